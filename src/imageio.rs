@@ -1,0 +1,301 @@
+//! Image files in and out: sRGB PNG and linear EXR decoded to linear f32 RGB, masks by the
+//! > 127 rule, and atomic writes (temp file, then rename) for everything umbra produces.
+
+use std::io::Write;
+use std::path::{Path, PathBuf};
+
+/// A linear RGB image, row-major, top row first.
+#[derive(Clone, Debug, PartialEq)]
+pub struct RgbImage {
+    pub width: usize,
+    pub height: usize,
+    pub pixels: Vec<[f32; 3]>,
+}
+
+impl RgbImage {
+    pub fn new(width: usize, height: usize) -> Self {
+        Self {
+            width,
+            height,
+            pixels: vec![[0.0; 3]; width * height],
+        }
+    }
+
+    pub fn get(&self, x: usize, y: usize) -> [f32; 3] {
+        self.pixels[y * self.width + x]
+    }
+
+    pub fn set(&mut self, x: usize, y: usize, value: [f32; 3]) {
+        self.pixels[y * self.width + x] = value;
+    }
+}
+
+/// A foreground mask, row-major, top row first.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Mask {
+    pub width: usize,
+    pub height: usize,
+    pub foreground: Vec<bool>,
+}
+
+/// Why an image could not be read; the scene reader adds the file and JSON path.
+#[derive(Debug, thiserror::Error)]
+pub enum ImageError {
+    #[error("file not found: {0}")]
+    NotFound(String),
+    #[error("unsupported image type (expected .png or .exr): {0}")]
+    UnsupportedType(String),
+    #[error("cannot decode {0}: {1}")]
+    Decode(String, String),
+    #[error("{0}")]
+    Io(String),
+}
+
+/// sRGB transfer function, 8-bit code to linear.
+pub fn srgb_to_linear(value: f32) -> f32 {
+    if value <= 0.04045 {
+        value / 12.92
+    } else {
+        ((value + 0.055) / 1.055).powf(2.4)
+    }
+}
+
+/// Linear to sRGB-encoded value in [0, 1] (input clamped).
+pub fn linear_to_srgb(value: f32) -> f32 {
+    let v = if value.is_finite() {
+        value.clamp(0.0, 1.0)
+    } else {
+        0.0
+    };
+    if v <= 0.003_130_8 {
+        v * 12.92
+    } else {
+        1.055 * v.powf(1.0 / 2.4) - 0.055
+    }
+}
+
+/// Linear value to the 8-bit sRGB code a PNG stores (round to nearest).
+pub fn linear_to_srgb8(value: f32) -> u8 {
+    (linear_to_srgb(value) * 255.0 + 0.5)
+        .floor()
+        .clamp(0.0, 255.0) as u8
+}
+
+fn srgb8_table() -> &'static [f32; 256] {
+    static TABLE: std::sync::OnceLock<[f32; 256]> = std::sync::OnceLock::new();
+    TABLE.get_or_init(|| {
+        let mut t = [0.0; 256];
+        for (i, v) in t.iter_mut().enumerate() {
+            *v = srgb_to_linear(i as f32 / 255.0);
+        }
+        t
+    })
+}
+
+fn kind(path: &Path) -> Option<&'static str> {
+    let ext = path.extension()?.to_str()?.to_ascii_lowercase();
+    match ext.as_str() {
+        "png" => Some("png"),
+        "exr" => Some("exr"),
+        _ => None,
+    }
+}
+
+/// Decoders of third-party crates may panic on hostile input; a corrupt file must be an error.
+fn guarded<T>(path: &Path, f: impl FnOnce() -> Result<T, ImageError>) -> Result<T, ImageError> {
+    std::panic::catch_unwind(std::panic::AssertUnwindSafe(f)).unwrap_or_else(|_| {
+        Err(ImageError::Decode(
+            path.display().to_string(),
+            "decoder panicked on corrupt data".into(),
+        ))
+    })
+}
+
+fn decode_png(path: &Path) -> Result<image::DynamicImage, ImageError> {
+    let bytes = std::fs::read(path).map_err(|e| io_error(path, e))?;
+    guarded(path, || {
+        image::load_from_memory_with_format(&bytes, image::ImageFormat::Png)
+            .map_err(|e| ImageError::Decode(path.display().to_string(), e.to_string()))
+    })
+}
+
+fn io_error(path: &Path, e: std::io::Error) -> ImageError {
+    if e.kind() == std::io::ErrorKind::NotFound {
+        ImageError::NotFound(path.display().to_string())
+    } else {
+        ImageError::Io(format!("{}: {e}", path.display()))
+    }
+}
+
+/// Reads a colour image: sRGB PNG (8 or 16 bit) to linear, EXR as linear (alpha ignored).
+pub fn read_rgb(path: &Path) -> Result<RgbImage, ImageError> {
+    if !path.is_file() {
+        return Err(ImageError::NotFound(path.display().to_string()));
+    }
+    match kind(path) {
+        Some("png") => {
+            let img = decode_png(path)?;
+            let (width, height) = (img.width() as usize, img.height() as usize);
+            let pixels = if matches!(
+                img.color(),
+                image::ColorType::Rgb16
+                    | image::ColorType::Rgba16
+                    | image::ColorType::L16
+                    | image::ColorType::La16
+            ) {
+                img.to_rgb16()
+                    .pixels()
+                    .map(|p| p.0.map(|c| srgb_to_linear(c as f32 / 65535.0)))
+                    .collect()
+            } else {
+                let table = srgb8_table();
+                img.to_rgb8()
+                    .pixels()
+                    .map(|p| p.0.map(|c| table[c as usize]))
+                    .collect()
+            };
+            Ok(RgbImage {
+                width,
+                height,
+                pixels,
+            })
+        }
+        Some(_) => read_exr(path),
+        None => Err(ImageError::UnsupportedType(path.display().to_string())),
+    }
+}
+
+fn read_exr(path: &Path) -> Result<RgbImage, ImageError> {
+    use exr::prelude::*;
+    guarded(path, || {
+        let image = read_first_rgba_layer_from_file(
+            path,
+            |resolution, _| RgbImage::new(resolution.width(), resolution.height()),
+            |img: &mut RgbImage, position, (r, g, b, _a): (f32, f32, f32, f32)| {
+                img.set(position.x(), position.y(), [r, g, b]);
+            },
+        )
+        .map_err(|e| ImageError::Decode(path.display().to_string(), e.to_string()))?;
+        Ok(image.layer_data.channel_data.pixels)
+    })
+}
+
+/// Reads a mask: the first channel of a PNG, foreground where the 8-bit value is > 127.
+pub fn read_mask(path: &Path) -> Result<Mask, ImageError> {
+    if !path.is_file() {
+        return Err(ImageError::NotFound(path.display().to_string()));
+    }
+    if kind(path) != Some("png") {
+        return Err(ImageError::UnsupportedType(format!(
+            "{} (masks are PNG)",
+            path.display()
+        )));
+    }
+    let img = decode_png(path)?;
+    let (width, height) = (img.width() as usize, img.height() as usize);
+    // to_rgba8 keeps the first channel as is for grey, RGB and RGBA inputs (16-bit scaled to 8).
+    let foreground = img.to_rgba8().pixels().map(|p| p.0[0] > 127).collect();
+    Ok(Mask {
+        width,
+        height,
+        foreground,
+    })
+}
+
+/// Writes `bytes` to `path` atomically: a temp file beside it, then a rename.
+pub fn write_atomic(path: &Path, bytes: &[u8]) -> std::io::Result<()> {
+    let temp = temp_path(path);
+    let result = (|| {
+        let mut file = std::fs::File::create(&temp)?;
+        file.write_all(bytes)?;
+        file.sync_all()?;
+        std::fs::rename(&temp, path)
+    })();
+    if result.is_err() {
+        let _ = std::fs::remove_file(&temp);
+    }
+    result
+}
+
+/// The temp name used by [`write_atomic`]: hidden, beside the target, unique to this process.
+pub fn temp_path(path: &Path) -> PathBuf {
+    let name = path
+        .file_name()
+        .map(|n| n.to_string_lossy().into_owned())
+        .unwrap_or_default();
+    path.with_file_name(format!(".{name}.tmp{}", std::process::id()))
+}
+
+/// Encodes linear RGB as an 8-bit sRGB PNG.
+pub fn encode_png_rgb(image: &RgbImage) -> Result<Vec<u8>, ImageError> {
+    let mut raw = Vec::with_capacity(image.pixels.len() * 3);
+    for p in &image.pixels {
+        raw.extend(p.iter().map(|&c| linear_to_srgb8(c)));
+    }
+    encode_png_raw(
+        &raw,
+        image.width,
+        image.height,
+        image::ExtendedColorType::Rgb8,
+    )
+}
+
+/// Encodes a mask as an 8-bit grey PNG (255 foreground, 0 background).
+pub fn encode_png_mask(mask: &Mask) -> Result<Vec<u8>, ImageError> {
+    let raw: Vec<u8> = mask
+        .foreground
+        .iter()
+        .map(|&f| if f { 255 } else { 0 })
+        .collect();
+    encode_png_raw(&raw, mask.width, mask.height, image::ExtendedColorType::L8)
+}
+
+/// Encodes raw 8-bit samples (already encoded values) as PNG.
+pub fn encode_png_raw(
+    raw: &[u8],
+    width: usize,
+    height: usize,
+    color: image::ExtendedColorType,
+) -> Result<Vec<u8>, ImageError> {
+    use image::ImageEncoder;
+    let mut out = Vec::new();
+    image::codecs::png::PngEncoder::new(&mut out)
+        .write_image(raw, width as u32, height as u32, color)
+        .map_err(|e| ImageError::Decode("png encoder".into(), e.to_string()))?;
+    Ok(out)
+}
+
+/// Writes a linear RGB image as a float EXR, atomically.
+pub fn write_exr_atomic(path: &Path, image: &RgbImage) -> Result<(), ImageError> {
+    let temp = temp_path(path).with_extension("exr");
+    let result = exr::prelude::write_rgb_file(&temp, image.width, image.height, |x, y| {
+        let p = image.get(x, y);
+        (p[0], p[1], p[2])
+    })
+    .map_err(|e| ImageError::Io(format!("{}: {e}", path.display())))
+    .and_then(|_| std::fs::rename(&temp, path).map_err(|e| io_error(path, e)));
+    if result.is_err() {
+        let _ = std::fs::remove_file(&temp);
+    }
+    result
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn srgb_round_trips_every_code() {
+        for code in 0..=255u8 {
+            let linear = srgb_to_linear(code as f32 / 255.0);
+            assert_eq!(linear_to_srgb8(linear), code);
+        }
+    }
+
+    #[test]
+    fn srgb_known_points() {
+        assert!((srgb_to_linear(0.5) - 0.214_041).abs() < 1e-5);
+        assert_eq!(srgb_to_linear(0.0), 0.0);
+        assert!((srgb_to_linear(1.0) - 1.0).abs() < 1e-6);
+    }
+}

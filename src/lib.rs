@@ -1,0 +1,13 @@
+//! umbra: relightable neural avatars from video. Bone-anchored anisotropic 3D Gaussians cast
+//! shadows by a closed-form ray integral; a staged fit recovers light, ambient and albedo.
+
+pub mod bench;
+pub mod cli;
+pub mod gaussians;
+pub mod imageio;
+pub mod light;
+pub mod plot;
+pub mod scene;
+pub mod shadow;
+pub mod skeleton;
+pub mod synth;

@@ -1,0 +1,569 @@
+//! Reading and validating `scene/1` captures: cameras, skeleton, frames, lights and images.
+//! This module is the only one that opens the files of a capture; every problem it finds is
+//! reported with the file and the JSON path of the offending value.
+
+mod camera;
+pub mod json;
+
+pub use camera::{Camera, Ray};
+pub use json::SceneError;
+
+use crate::imageio::{self, ImageError, Mask, RgbImage};
+use crate::light::{EnvironmentMap, Light};
+use crate::skeleton::{Bone, Pose, Skeleton};
+use json::At;
+use rayon::prelude::*;
+use std::collections::{BTreeMap, HashMap, HashSet};
+use std::path::{Path, PathBuf};
+
+pub const FORMAT: &str = "scene/1";
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
+pub enum Split {
+    Train,
+    Val,
+    Test,
+}
+
+impl Split {
+    pub fn name(self) -> &'static str {
+        match self {
+            Split::Train => "train",
+            Split::Val => "val",
+            Split::Test => "test",
+        }
+    }
+}
+
+#[derive(Clone, Debug, PartialEq)]
+pub struct Frame {
+    pub index: i64,
+    pub time: Option<f64>,
+    pub pose: Pose,
+    pub mesh: Option<PathBuf>,
+}
+
+/// One image of the capture, decoded: colour in linear RGB, mask and albedo if given.
+#[derive(Clone, Debug, PartialEq)]
+pub struct View {
+    pub camera: usize,
+    /// Position in `Scene::frames` (not `Frame::index`).
+    pub frame: usize,
+    pub light: String,
+    pub split: Split,
+    pub path: PathBuf,
+    pub colour: RgbImage,
+    pub mask: Option<Mask>,
+    pub albedo: Option<RgbImage>,
+}
+
+#[derive(Clone, Debug)]
+pub struct Scene {
+    /// The folder holding `scene.json`.
+    pub root: PathBuf,
+    pub name: Option<String>,
+    pub skeleton: Skeleton,
+    pub cameras: Vec<Camera>,
+    pub frames: Vec<Frame>,
+    pub lights: BTreeMap<String, Light>,
+    pub views: Vec<View>,
+}
+
+/// Where a scene lives: a folder with `scene.json`, or the JSON file itself.
+pub fn scene_file(path: &Path) -> PathBuf {
+    if path.is_dir() {
+        path.join("scene.json")
+    } else {
+        path.to_path_buf()
+    }
+}
+
+impl Scene {
+    /// Reads, validates and decodes a whole scene (every image, mask and environment map).
+    pub fn load(path: &Path) -> Result<Scene, SceneError> {
+        let file = scene_file(path);
+        let root = file.parent().map(Path::to_path_buf).unwrap_or_default();
+        let text = std::fs::read_to_string(&file).map_err(|e| SceneError {
+            file: file.clone(),
+            path: String::new(),
+            message: if e.kind() == std::io::ErrorKind::NotFound {
+                "file not found".into()
+            } else {
+                format!("cannot read: {e}")
+            },
+        })?;
+        let value = json::parse(&text, &file)?;
+        let doc = At::root(&value, &file);
+        Reader {
+            root: &root,
+            file: &file,
+        }
+        .scene(&doc)
+    }
+
+    pub fn views_in(&self, split: Split) -> impl Iterator<Item = &View> {
+        self.views.iter().filter(move |v| v.split == split)
+    }
+
+    /// The names of the lights used by training views.
+    pub fn training_lights(&self) -> Vec<&str> {
+        let mut names: Vec<&str> = self
+            .views_in(Split::Train)
+            .map(|v| v.light.as_str())
+            .collect();
+        names.sort();
+        names.dedup();
+        names
+    }
+
+    pub fn display_name(&self) -> String {
+        self.name.clone().unwrap_or_else(|| {
+            self.root
+                .file_name()
+                .map(|n| n.to_string_lossy().into_owned())
+                .unwrap_or_default()
+        })
+    }
+}
+
+struct Reader<'a> {
+    root: &'a Path,
+    file: &'a Path,
+}
+
+/// An image path to decode later, with the JSON path that named it.
+struct Pending {
+    scene_file: PathBuf,
+    json_path: String,
+    file: PathBuf,
+    relative: String,
+}
+
+impl Reader<'_> {
+    fn scene(&self, doc: &At) -> Result<Scene, SceneError> {
+        let format = doc.field("format")?;
+        let found = format.str()?;
+        if found != FORMAT {
+            return Err(format.error(format!("unsupported format {found:?}, expected {FORMAT:?}")));
+        }
+        let name = doc
+            .opt_field("name")?
+            .map(|n| n.str().map(str::to_string))
+            .transpose()?;
+        let skeleton = self.skeleton(&doc.field("skeleton")?)?;
+        let cameras = doc
+            .field("cameras")?
+            .non_empty_array()?
+            .iter()
+            .map(|c| self.camera(c))
+            .collect::<Result<Vec<_>, _>>()?;
+        let frames = self.frames(&doc.field("frames")?, &skeleton)?;
+        let lights = self.lights(&doc.field("lights")?)?;
+        let views = self.views(&doc.field("images")?, &cameras, frames.len(), &lights)?;
+        Ok(Scene {
+            root: self.root.to_path_buf(),
+            name,
+            skeleton,
+            cameras,
+            frames,
+            lights,
+            views,
+        })
+    }
+
+    fn skeleton(&self, node: &At) -> Result<Skeleton, SceneError> {
+        let items = node.field("bones")?.non_empty_array()?;
+        let mut bones = Vec::with_capacity(items.len());
+        let mut names = HashSet::new();
+        for (i, item) in items.iter().enumerate() {
+            let name_node = item.field("name")?;
+            let name = name_node.str()?.to_string();
+            if !names.insert(name.clone()) {
+                return Err(name_node.error(format!("bone name {name:?} is used twice")));
+            }
+            let parent = match item.opt_field("parent")? {
+                None => None,
+                Some(p) => {
+                    let v = p.i64()?;
+                    if v < 0 || v as u64 >= i as u64 {
+                        return Err(p.error(format!("parent must be null or the index of an earlier bone (< {i}), found {v}")));
+                    }
+                    Some(v as usize)
+                }
+            };
+            let length = item.field("length")?.positive_f64()?;
+            bones.push(Bone {
+                name,
+                parent,
+                length,
+            });
+        }
+        Ok(Skeleton { bones })
+    }
+
+    fn camera(&self, node: &At) -> Result<Camera, SceneError> {
+        let name = node
+            .opt_field("name")?
+            .map(|n| n.str().map(str::to_string))
+            .transpose()?
+            .unwrap_or_default();
+        let transform_node = node.field("camera_to_world")?;
+        let camera_to_world = transform_node.mat4()?;
+        let det = glam::DMat3::from_mat4(camera_to_world).determinant();
+        if det.abs() < 1e-9 {
+            return Err(transform_node.error("the rotation part is singular"));
+        }
+        Ok(Camera {
+            name,
+            width: node.field("width")?.positive_usize()?,
+            height: node.field("height")?.positive_usize()?,
+            fx: node.field("fx")?.positive_f64()?,
+            fy: node.field("fy")?.positive_f64()?,
+            cx: node.field("cx")?.f64()?,
+            cy: node.field("cy")?.f64()?,
+            camera_to_world,
+        })
+    }
+
+    fn frames(&self, node: &At, skeleton: &Skeleton) -> Result<Vec<Frame>, SceneError> {
+        let mut seen = HashMap::new();
+        let mut frames = Vec::new();
+        for (position, item) in node.non_empty_array()?.iter().enumerate() {
+            let index_node = item.field("index")?;
+            let index = index_node.i64()?;
+            if let Some(first) = seen.insert(index, position) {
+                return Err(index_node.error(format!(
+                    "frame index {index} is used twice (also frames[{first}])"
+                )));
+            }
+            let time = item.opt_field("time")?.map(|t| t.f64()).transpose()?;
+            let transforms_node = item.field("bone_to_world")?;
+            let transforms = transforms_node.array()?;
+            if transforms.len() != skeleton.len() {
+                return Err(transforms_node.error(format!(
+                    "expected one matrix per bone ({}), found {}",
+                    skeleton.len(),
+                    transforms.len()
+                )));
+            }
+            let bone_to_world = transforms
+                .iter()
+                .map(|m| m.rigid_mat4())
+                .collect::<Result<Vec<_>, _>>()?;
+            let mesh = match item.opt_field("mesh")? {
+                None => None,
+                Some(m) => Some(self.existing_file(&m)?),
+            };
+            frames.push(Frame {
+                index,
+                time,
+                pose: Pose { bone_to_world },
+                mesh,
+            });
+        }
+        Ok(frames)
+    }
+
+    fn existing_file(&self, node: &At) -> Result<PathBuf, SceneError> {
+        let relative = node.str()?;
+        let file = self.root.join(relative);
+        if !file.is_file() {
+            return Err(node.error(format!("file not found: {relative}")));
+        }
+        Ok(file)
+    }
+
+    fn lights(&self, node: &At) -> Result<BTreeMap<String, Light>, SceneError> {
+        let entries = node.entries()?;
+        if entries.is_empty() {
+            return Err(node.error("must hold at least one light"));
+        }
+        let mut lights = BTreeMap::new();
+        for (name, item) in entries {
+            lights.insert(name, self.light(&item)?);
+        }
+        Ok(lights)
+    }
+
+    fn light(&self, node: &At) -> Result<Light, SceneError> {
+        let type_node = node.field("type")?;
+        let ambient = |n: &At| -> Result<glam::DVec3, SceneError> {
+            Ok(n.opt_field("ambient")?
+                .map(|a| a.rgb())
+                .transpose()?
+                .unwrap_or(glam::DVec3::ZERO))
+        };
+        match type_node.str()? {
+            "directional" => {
+                let direction_node = node.field("direction")?;
+                let direction = direction_node.vec3()?;
+                if direction.length() < 1e-12 {
+                    return Err(direction_node.error("direction has zero length"));
+                }
+                Ok(Light::Directional { direction: direction.normalize(), irradiance: node.field("irradiance")?.rgb()?, ambient: ambient(node)? })
+            }
+            "uniform" => Ok(Light::Uniform { radiance: node.field("radiance")?.rgb()? }),
+            "point" => Ok(Light::Point { position: node.field("position")?.vec3()?, intensity: node.field("intensity")?.rgb()?, ambient: ambient(node)? }),
+            "environment" => {
+                let path_node = node.field("path")?;
+                let file = self.existing_file(&path_node)?;
+                let scale_node = node.opt_field("scale")?;
+                let scale = match scale_node {
+                    Some(s) => {
+                        let v = s.f64()?;
+                        if v < 0.0 {
+                            return Err(s.error(format!("scale must be >= 0, found {v}")));
+                        }
+                        v
+                    }
+                    None => 1.0,
+                };
+                let image = imageio::read_rgb(&file).map_err(|e| path_node.error(image_message(e, path_node.str().unwrap_or_default())))?;
+                if let Some(bad) = image.pixels.iter().find(|p| p.iter().any(|c| !c.is_finite())) {
+                    return Err(path_node.error(format!("environment map holds a non-finite value {bad:?}")));
+                }
+                Ok(Light::Environment { path: file, scale, map: EnvironmentMap { image } })
+            }
+            other => Err(type_node.error(format!("unknown light type {other:?} (expected directional, uniform, environment or point)"))),
+        }
+    }
+
+    fn views(
+        &self,
+        node: &At,
+        cameras: &[Camera],
+        frame_count: usize,
+        lights: &BTreeMap<String, Light>,
+    ) -> Result<Vec<View>, SceneError> {
+        struct Record {
+            camera: usize,
+            frame: usize,
+            light: String,
+            split: Split,
+            colour: Pending,
+            mask: Option<Pending>,
+            albedo: Option<Pending>,
+        }
+        let mut records = Vec::new();
+        for item in node.non_empty_array()?.iter() {
+            let camera = item.field("camera")?.index(cameras.len(), "cameras")?;
+            let frame = item.field("frame")?.index(frame_count, "frames")?;
+            let light_node = item.field("light")?;
+            let light = light_node.str()?.to_string();
+            if !lights.contains_key(&light) {
+                let known: Vec<&str> = lights.keys().map(String::as_str).collect();
+                return Err(
+                    light_node.error(format!("unknown light {light:?} (lights are {known:?})"))
+                );
+            }
+            let split_node = item.field("split")?;
+            let split = match split_node.str()? {
+                "train" => Split::Train,
+                "val" => Split::Val,
+                "test" => Split::Test,
+                other => {
+                    return Err(split_node.error(format!(
+                        "unknown split {other:?} (expected train, val or test)"
+                    )))
+                }
+            };
+            let colour = self.pending(&item.field("path")?)?;
+            let mask = match item.opt_field("mask")? {
+                Some(m) => Some(self.pending(&m)?),
+                None if split == Split::Train => {
+                    return Err(SceneError {
+                        file: self.file.to_path_buf(),
+                        path: format!("{}.mask", item.path),
+                        message: "missing: a mask is required for a training image".into(),
+                    })
+                }
+                None => None,
+            };
+            let albedo = item
+                .opt_field("albedo")?
+                .map(|a| self.pending(&a))
+                .transpose()?;
+            records.push(Record {
+                camera,
+                frame,
+                light,
+                split,
+                colour,
+                mask,
+                albedo,
+            });
+        }
+        // Decoding is the slow part of loading: do it in parallel, report the first failure in order.
+        records
+            .into_par_iter()
+            .map(|r| {
+                let (w, h) = (cameras[r.camera].width, cameras[r.camera].height);
+                let colour = decode_rgb(&r.colour, w, h)?;
+                let mask = r.mask.as_ref().map(|m| decode_mask(m, w, h)).transpose()?;
+                let albedo = r.albedo.as_ref().map(|a| decode_rgb(a, w, h)).transpose()?;
+                Ok(View {
+                    camera: r.camera,
+                    frame: r.frame,
+                    light: r.light,
+                    split: r.split,
+                    path: r.colour.file,
+                    colour,
+                    mask,
+                    albedo,
+                })
+            })
+            .collect()
+    }
+
+    fn pending(&self, node: &At) -> Result<Pending, SceneError> {
+        let relative = node.str()?.to_string();
+        let file = self.root.join(&relative);
+        if !file.is_file() {
+            return Err(node.error(format!("file not found: {relative}")));
+        }
+        Ok(Pending {
+            scene_file: self.file.to_path_buf(),
+            json_path: node.path.clone(),
+            file,
+            relative,
+        })
+    }
+}
+
+fn image_message(e: ImageError, relative: &str) -> String {
+    match e {
+        ImageError::NotFound(_) => format!("file not found: {relative}"),
+        other => other.to_string(),
+    }
+}
+
+fn pending_error(p: &Pending, message: String) -> SceneError {
+    SceneError {
+        file: p.scene_file.clone(),
+        path: p.json_path.clone(),
+        message,
+    }
+}
+
+fn check_size(
+    p: &Pending,
+    (w, h): (usize, usize),
+    expected: (usize, usize),
+) -> Result<(), SceneError> {
+    if (w, h) != expected {
+        return Err(pending_error(
+            p,
+            format!(
+                "{} is {w}x{h}, but its camera is {}x{}",
+                p.relative, expected.0, expected.1
+            ),
+        ));
+    }
+    Ok(())
+}
+
+fn decode_rgb(p: &Pending, w: usize, h: usize) -> Result<RgbImage, SceneError> {
+    let image =
+        imageio::read_rgb(&p.file).map_err(|e| pending_error(p, image_message(e, &p.relative)))?;
+    check_size(p, (image.width, image.height), (w, h))?;
+    if image
+        .pixels
+        .iter()
+        .any(|px| px.iter().any(|c| !c.is_finite()))
+    {
+        return Err(pending_error(
+            p,
+            format!("{} holds a non-finite value", p.relative),
+        ));
+    }
+    Ok(image)
+}
+
+fn decode_mask(p: &Pending, w: usize, h: usize) -> Result<Mask, SceneError> {
+    let mask =
+        imageio::read_mask(&p.file).map_err(|e| pending_error(p, image_message(e, &p.relative)))?;
+    check_size(p, (mask.width, mask.height), (w, h))?;
+    Ok(mask)
+}
+
+/// A human-readable summary: cameras, frames, bones, images per split and light, bounds.
+pub fn summary(scene: &Scene) -> String {
+    use std::fmt::Write;
+    let mut out = String::new();
+    let _ = writeln!(
+        out,
+        "scene {:?} ({})",
+        scene.display_name(),
+        scene.root.display()
+    );
+    let mut sizes: BTreeMap<(usize, usize), usize> = BTreeMap::new();
+    for c in &scene.cameras {
+        *sizes.entry((c.width, c.height)).or_default() += 1;
+    }
+    let sizes: Vec<String> = sizes
+        .iter()
+        .map(|((w, h), n)| format!("{n} x {w}x{h}"))
+        .collect();
+    let _ = writeln!(
+        out,
+        "cameras: {} ({})",
+        scene.cameras.len(),
+        sizes.join(", ")
+    );
+    let _ = writeln!(out, "frames:  {}", scene.frames.len());
+    let roots = scene
+        .skeleton
+        .bones
+        .iter()
+        .filter(|b| b.parent.is_none())
+        .count();
+    let _ = writeln!(
+        out,
+        "bones:   {} ({} root{})",
+        scene.skeleton.len(),
+        roots,
+        if roots == 1 { "" } else { "s" }
+    );
+    let _ = writeln!(out, "lights:");
+    for (name, light) in &scene.lights {
+        let _ = writeln!(out, "  {name}: {}", light.type_name());
+    }
+    let _ = writeln!(out, "images:");
+    let mut counts: BTreeMap<(Split, &str), usize> = BTreeMap::new();
+    for v in &scene.views {
+        *counts.entry((v.split, v.light.as_str())).or_default() += 1;
+    }
+    for ((split, light), n) in &counts {
+        let _ = writeln!(out, "  {:<5} {light}: {n}", split.name());
+    }
+    let train_frames: HashSet<usize> = scene.views_in(Split::Train).map(|v| v.frame).collect();
+    let train_cameras: HashSet<usize> = scene.views_in(Split::Train).map(|v| v.camera).collect();
+    let train_lights: HashSet<&str> = scene.training_lights().into_iter().collect();
+    let test: Vec<&View> = scene.views_in(Split::Test).collect();
+    let _ = writeln!(
+        out,
+        "test:    {} novel pose, {} novel view, {} relit",
+        test.iter()
+            .filter(|v| !train_frames.contains(&v.frame))
+            .count(),
+        test.iter()
+            .filter(|v| !train_cameras.contains(&v.camera))
+            .count(),
+        test.iter()
+            .filter(|v| !train_lights.contains(v.light.as_str()))
+            .count()
+    );
+    let mut lo = glam::DVec3::splat(f64::INFINITY);
+    let mut hi = glam::DVec3::splat(f64::NEG_INFINITY);
+    for f in &scene.frames {
+        let (a, b) = f.pose.bounds(&scene.skeleton);
+        lo = lo.min(a);
+        hi = hi.max(b);
+    }
+    let _ = writeln!(
+        out,
+        "skeleton bounds over all frames: [{:.3}, {:.3}, {:.3}] .. [{:.3}, {:.3}, {:.3}] m",
+        lo.x, lo.y, lo.z, hi.x, hi.y, hi.z
+    );
+    out
+}

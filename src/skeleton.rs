@@ -1,0 +1,131 @@
+//! The skeleton and its poses: bones (head joint at the origin, extending along local +Y),
+//! per-frame rigid `bone_to_world` transforms, and the maps between bone-local and world space.
+
+use glam::{DMat3, DMat4, DVec3};
+use serde::{Deserialize, Serialize};
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Bone {
+    pub name: String,
+    /// Index of an earlier bone, `None` for a root.
+    pub parent: Option<usize>,
+    /// Metres along local +Y from the head joint to the tail.
+    pub length: f64,
+}
+
+impl Bone {
+    /// The bone's centre in its own frame.
+    pub fn centre_local(&self) -> DVec3 {
+        DVec3::new(0.0, self.length / 2.0, 0.0)
+    }
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Skeleton {
+    pub bones: Vec<Bone>,
+}
+
+impl Skeleton {
+    pub fn len(&self) -> usize {
+        self.bones.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.bones.is_empty()
+    }
+}
+
+/// One frame's pose: a rigid bone-to-world transform per bone, in bone order.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Pose {
+    pub bone_to_world: Vec<DMat4>,
+}
+
+impl Pose {
+    pub fn to_world(&self, bone: usize, local: DVec3) -> DVec3 {
+        self.bone_to_world[bone].transform_point3(local)
+    }
+
+    /// World to bone-local, using the rigid inverse (transpose of the rotation).
+    pub fn to_local(&self, bone: usize, world: DVec3) -> DVec3 {
+        let m = &self.bone_to_world[bone];
+        let rotation = DMat3::from_mat4(*m);
+        rotation.transpose() * (world - m.w_axis.truncate())
+    }
+
+    pub fn direction_to_world(&self, bone: usize, local: DVec3) -> DVec3 {
+        self.bone_to_world[bone].transform_vector3(local)
+    }
+
+    /// World-space head and tail joint of a bone.
+    pub fn segment(&self, skeleton: &Skeleton, bone: usize) -> (DVec3, DVec3) {
+        let head = self.to_world(bone, DVec3::ZERO);
+        let tail = self.to_world(bone, DVec3::new(0.0, skeleton.bones[bone].length, 0.0));
+        (head, tail)
+    }
+
+    /// Axis-aligned bounds of every bone segment in this pose.
+    pub fn bounds(&self, skeleton: &Skeleton) -> (DVec3, DVec3) {
+        let mut lo = DVec3::splat(f64::INFINITY);
+        let mut hi = DVec3::splat(f64::NEG_INFINITY);
+        for bone in 0..skeleton.len() {
+            let (a, b) = self.segment(skeleton, bone);
+            lo = lo.min(a).min(b);
+            hi = hi.max(a).max(b);
+        }
+        (lo, hi)
+    }
+}
+
+/// Checks that the upper 3x3 is a rotation (orthonormal, determinant +1) to `tolerance`.
+pub fn check_rigid(m: &DMat4, tolerance: f64) -> Result<(), String> {
+    let r = DMat3::from_mat4(*m);
+    let gram = r.transpose() * r;
+    let mut worst = 0.0f64;
+    for (i, column) in [gram.x_axis, gram.y_axis, gram.z_axis].iter().enumerate() {
+        for j in 0..3 {
+            let expected = if i == j { 1.0 } else { 0.0 };
+            worst = worst.max((column[j] - expected).abs());
+        }
+    }
+    if worst > tolerance {
+        return Err(format!("rotation is not orthonormal (|R^T R - I| = {worst:.3e} > {tolerance:.0e}; scale or shear is not allowed)"));
+    }
+    let det = r.determinant();
+    if (det - 1.0).abs() > tolerance {
+        return Err(format!(
+            "rotation determinant is {det:.6}, expected +1 (a reflection?)"
+        ));
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn local_and_world_round_trip() {
+        let m = DMat4::from_rotation_translation(
+            glam::DQuat::from_euler(glam::EulerRot::XYZ, 0.3, -1.1, 2.0),
+            DVec3::new(1.0, 2.0, -3.0),
+        );
+        let pose = Pose {
+            bone_to_world: vec![m],
+        };
+        let p = DVec3::new(0.2, -0.7, 1.5);
+        let back = pose.to_local(0, pose.to_world(0, p));
+        assert!((back - p).length() < 1e-12);
+    }
+
+    #[test]
+    fn rigid_check_rejects_scale_and_reflection() {
+        let scaled = DMat4::from_scale(DVec3::new(1.0, 1.01, 1.0));
+        assert!(check_rigid(&scaled, 1e-3).is_err());
+        let mirrored = DMat4::from_scale(DVec3::new(1.0, 1.0, -1.0));
+        assert!(check_rigid(&mirrored, 1e-3)
+            .unwrap_err()
+            .contains("determinant"));
+        assert!(check_rigid(&DMat4::IDENTITY, 1e-3).is_ok());
+    }
+}

@@ -1,0 +1,583 @@
+//! `umbra synth`: synthetic scenes with exact ground truth in the `scene/1` format. A
+//! procedural human or quadruped walks (or trots) a cycle in front of a ring of cameras under a
+//! sun, a point light or uniform light; test images hold novel poses, a novel view and
+//! relighting by a second sun, a point light and an environment map the generator synthesises.
+
+pub mod character;
+pub mod trace;
+
+use crate::imageio::{self, Mask, RgbImage};
+use crate::light::{uv_to_direction, EnvironmentMap, Light};
+use crate::scene::{Camera, Split};
+use crate::skeleton::Pose;
+pub use character::{Character, Kind};
+use glam::{DMat4, DVec3};
+use rayon::prelude::*;
+use serde_json::{json, Value};
+use std::path::{Path, PathBuf};
+use trace::{shade, Stream, Traced};
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum, serde::Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum TrainingLight {
+    /// A directional sun with ambient: shadows to recover.
+    Sun,
+    /// Uniform light from every direction: albedo only.
+    Uniform,
+    /// A point light with ambient.
+    Point,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum, serde::Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum TestKind {
+    /// Frames whose pose never appears in training, seen by training cameras.
+    Poses,
+    /// A camera never used in training.
+    Views,
+    /// A second sun, a point light and an environment map.
+    Relight,
+}
+
+/// Everything that determines a synthetic scene; the same options give the same bytes.
+#[derive(Clone, Debug, clap::Args, serde::Serialize)]
+pub struct SynthOptions {
+    /// The character.
+    #[arg(long, value_enum, default_value_t = Kind::Human)]
+    pub character: Kind,
+    /// The light of the training images.
+    #[arg(long, value_enum, default_value_t = TrainingLight::Sun)]
+    pub light: TrainingLight,
+    /// Image width and height in pixels.
+    #[arg(long, default_value_t = 64)]
+    pub size: usize,
+    /// Training cameras (1 makes a monocular capture in which the character turns around).
+    #[arg(long, default_value_t = 6)]
+    pub cameras: usize,
+    /// Training frames over one motion cycle.
+    #[arg(long, default_value_t = 12)]
+    pub frames: usize,
+    /// Test frames (novel poses, between the training ones).
+    #[arg(long, default_value_t = 3)]
+    pub test_frames: usize,
+    /// Which test images to make.
+    #[arg(
+        long,
+        value_enum,
+        value_delimiter = ',',
+        default_value = "poses,views,relight"
+    )]
+    pub test: Vec<TestKind>,
+    /// Monte Carlo samples per pixel for uniform and environment light.
+    #[arg(long, default_value_t = 256)]
+    pub samples: usize,
+    /// Seed of camera placement and Monte Carlo sampling.
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+}
+
+impl Default for SynthOptions {
+    fn default() -> Self {
+        Self {
+            character: Kind::Human,
+            light: TrainingLight::Sun,
+            size: 64,
+            cameras: 6,
+            frames: 12,
+            test_frames: 3,
+            test: vec![TestKind::Poses, TestKind::Views, TestKind::Relight],
+            samples: 256,
+            seed: 0,
+        }
+    }
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum SynthError {
+    #[error("{0}")]
+    Options(String),
+    #[error("{path}: {message}")]
+    Io { path: PathBuf, message: String },
+}
+
+fn io_error(path: &Path, e: impl std::fmt::Display) -> SynthError {
+    SynthError::Io {
+        path: path.to_path_buf(),
+        message: e.to_string(),
+    }
+}
+
+/// One image the generator will render.
+#[derive(Clone, Debug)]
+pub struct PlannedView {
+    pub camera: usize,
+    pub frame: usize,
+    pub light: String,
+    pub split: Split,
+    pub name: String,
+}
+
+/// The scene before rendering: cameras, poses, lights and the images to make.
+pub struct Plan {
+    pub character: Character,
+    pub cameras: Vec<Camera>,
+    /// (frame index written to JSON, time, pose)
+    pub frames: Vec<(i64, f64, Pose)>,
+    pub lights: Vec<(String, Light)>,
+    pub views: Vec<PlannedView>,
+}
+
+fn sun(direction: [f64; 3], irradiance: [f64; 3], ambient: [f64; 3]) -> Light {
+    Light::Directional {
+        direction: DVec3::from_array(direction).normalize(),
+        irradiance: DVec3::from_array(irradiance),
+        ambient: DVec3::from_array(ambient),
+    }
+}
+
+/// A sky for relighting: blue above, warm horizon, dark ground and a bright sun disc.
+pub fn synthetic_sky(width: usize, height: usize) -> EnvironmentMap {
+    let sun_direction = DVec3::new(0.5, 0.55, -0.67).normalize();
+    let mut image = RgbImage::new(width, height);
+    for y in 0..height {
+        for x in 0..width {
+            let d = uv_to_direction(
+                (x as f64 + 0.5) / width as f64,
+                (y as f64 + 0.5) / height as f64,
+            );
+            let up = d.y;
+            let sky = if up >= 0.0 {
+                DVec3::new(0.35, 0.5, 0.9).lerp(DVec3::new(0.9, 0.85, 0.75), (1.0 - up).powi(4))
+            } else {
+                DVec3::new(0.25, 0.2, 0.15) * (1.0 + up * 0.5)
+            };
+            let angle = d.dot(sun_direction).clamp(-1.0, 1.0).acos();
+            let disc = DVec3::new(30.0, 27.0, 22.0) * (-(angle / 0.08).powi(2)).exp();
+            let c = (sky * 0.6 + disc).as_vec3().to_array();
+            image.set(x, y, c);
+        }
+    }
+    EnvironmentMap { image }
+}
+
+impl SynthOptions {
+    fn check(&self) -> Result<(), SynthError> {
+        let bad = |m: &str| Err(SynthError::Options(m.into()));
+        if !(8..=1024).contains(&self.size) {
+            return bad("--size must be within 8..=1024");
+        }
+        if self.cameras == 0 || self.cameras > 64 {
+            return bad("--cameras must be within 1..=64");
+        }
+        if self.frames == 0 || self.frames > 1000 {
+            return bad("--frames must be within 1..=1000");
+        }
+        if self.test_frames > 100 {
+            return bad("--test-frames must be at most 100");
+        }
+        if self.samples == 0 {
+            return bad("--samples must be positive");
+        }
+        Ok(())
+    }
+
+    /// Lays out cameras, frames, lights and views.
+    pub fn plan(&self) -> Result<Plan, SynthError> {
+        self.check()?;
+        let character = Character::new(self.character);
+        let mut stream = Stream::new(self.seed, 0xCA3E_4A5, 0);
+        let (target, extent) = match self.character {
+            Kind::Human => (DVec3::new(0.0, 0.9, 0.0), 1.05),
+            Kind::Quadruped => (DVec3::new(0.0, 0.45, 0.0), 0.75),
+        };
+        let focal = 1.2 * self.size as f64;
+        let distance = focal * extent / (0.45 * self.size as f64);
+        let ring = |name: String, azimuth: f64, elevation: f64| {
+            let eye = target
+                + DVec3::new(
+                    azimuth.sin() * elevation.cos(),
+                    elevation.sin(),
+                    azimuth.cos() * elevation.cos(),
+                ) * distance;
+            Camera::look_at(&name, eye, target, DVec3::Y, self.size, self.size, focal)
+        };
+        let mut cameras = Vec::new();
+        for c in 0..self.cameras {
+            let azimuth = 2.0 * std::f64::consts::PI * (c as f64 + 0.3 * (stream.uniform() - 0.5))
+                / self.cameras as f64
+                + 0.35;
+            let elevation = (8.0 + 14.0 * stream.uniform()).to_radians();
+            cameras.push(ring(format!("cam{c:02}"), azimuth, elevation));
+        }
+        let novel_view = self.test.contains(&TestKind::Views);
+        if novel_view {
+            let azimuth = 0.35 + std::f64::consts::PI / self.cameras as f64;
+            cameras.push(ring("heldout".into(), azimuth, 32f64.to_radians()));
+        }
+        // A monocular capture needs the character to turn so the one camera sees all sides.
+        let turns = if self.cameras == 1 { 1.0 } else { 0.0 };
+        let pose_at = |phase: f64| {
+            character.pose(
+                phase,
+                2.0 * std::f64::consts::PI * turns * phase,
+                DVec3::ZERO,
+            )
+        };
+        let mut frames = Vec::new();
+        for k in 0..self.frames {
+            let phase = k as f64 / self.frames as f64;
+            frames.push((10 * k as i64, phase, pose_at(phase)));
+        }
+        let test_poses =
+            self.test.contains(&TestKind::Poses) || self.test.contains(&TestKind::Relight);
+        let first_test_frame = frames.len();
+        if test_poses {
+            for j in 0..self.test_frames {
+                // Halfway between training phases: a pose never seen in training.
+                let phase = ((j * self.frames) as f64 / self.test_frames.max(1) as f64).floor()
+                    / self.frames as f64
+                    + 0.5 / self.frames as f64;
+                frames.push((1000 + j as i64, phase, pose_at(phase)));
+            }
+        }
+        let (train_name, train_light) = match self.light {
+            TrainingLight::Sun => (
+                "sun",
+                sun([0.45, 0.8, 0.4], [0.85, 0.82, 0.78], [0.2, 0.21, 0.24]),
+            ),
+            TrainingLight::Uniform => (
+                "studio",
+                Light::Uniform {
+                    radiance: DVec3::new(0.9, 0.9, 0.88),
+                },
+            ),
+            TrainingLight::Point => (
+                "lamp",
+                Light::Point {
+                    position: DVec3::new(1.1, 2.3, 1.4),
+                    intensity: DVec3::new(4.6, 4.4, 4.1),
+                    ambient: DVec3::new(0.15, 0.15, 0.17),
+                },
+            ),
+        };
+        let mut lights = vec![(train_name.to_string(), train_light)];
+        let relight = self.test.contains(&TestKind::Relight);
+        if relight {
+            lights.push((
+                "sun2".into(),
+                sun([-0.6, 0.55, -0.35], [0.9, 0.75, 0.6], [0.15, 0.17, 0.25]),
+            ));
+            if self.light != TrainingLight::Point {
+                lights.push((
+                    "lamp".into(),
+                    Light::Point {
+                        position: DVec3::new(-1.3, 2.0, 1.2),
+                        intensity: DVec3::new(4.2, 4.2, 4.6),
+                        ambient: DVec3::new(0.1, 0.1, 0.12),
+                    },
+                ));
+            }
+            lights.push((
+                "sky".into(),
+                Light::Environment {
+                    path: PathBuf::from("lights/sky.exr"),
+                    scale: 1.0,
+                    map: synthetic_sky(64, 32),
+                },
+            ));
+        }
+        let mut views = Vec::new();
+        let mut add = |camera: usize, frame: usize, light: &str, split: Split| {
+            let name = format!("c{camera:02}_f{:04}_{light}", frames[frame].0);
+            views.push(PlannedView {
+                camera,
+                frame,
+                light: light.to_string(),
+                split,
+                name,
+            });
+        };
+        for frame in 0..self.frames {
+            for camera in 0..self.cameras {
+                add(camera, frame, train_name, Split::Train);
+            }
+        }
+        let test_frames: Vec<usize> = (first_test_frame..frames.len()).collect();
+        if self.test.contains(&TestKind::Poses) {
+            for (j, &frame) in test_frames.iter().enumerate() {
+                for camera in [j % self.cameras, (j + self.cameras / 2) % self.cameras] {
+                    add(camera, frame, train_name, Split::Test);
+                    if self.cameras == 1 {
+                        break;
+                    }
+                }
+            }
+        }
+        if novel_view {
+            let heldout = self.cameras;
+            for k in [0, self.frames / 2] {
+                add(heldout, k, train_name, Split::Test);
+                if self.frames == 1 {
+                    break;
+                }
+            }
+        }
+        if relight {
+            let light_names: Vec<String> = lights.iter().skip(1).map(|(n, _)| n.clone()).collect();
+            for (j, name) in light_names.iter().enumerate() {
+                let frame = test_frames
+                    .get(j % test_frames.len().max(1))
+                    .copied()
+                    .unwrap_or(0);
+                add(j % self.cameras, frame, name, Split::Test);
+            }
+        }
+        Ok(Plan {
+            character,
+            cameras,
+            frames,
+            lights,
+            views,
+        })
+    }
+}
+
+/// Linear colour, mask and albedo of one view, rendered at pixel centres.
+pub struct Rendered {
+    pub colour: RgbImage,
+    pub mask: Mask,
+    pub albedo: RgbImage,
+}
+
+/// Renders one view of a posed character exactly per the scene format's image formation.
+pub fn render_view(
+    character: &Character,
+    pose: &Pose,
+    camera: &Camera,
+    light: &Light,
+    samples: usize,
+    seed: u64,
+    view_id: u64,
+) -> Rendered {
+    let traced = Traced::new(character, pose);
+    let (w, h) = (camera.width, camera.height);
+    let rows: Vec<Vec<([f32; 3], bool, [f32; 3])>> = (0..h)
+        .into_par_iter()
+        .map(|j| {
+            (0..w)
+                .map(|i| {
+                    let ray = camera.pixel_ray(i, j);
+                    match traced.intersect(&ray, f64::INFINITY) {
+                        None => ([0.0; 3], false, [0.0; 3]),
+                        Some(hit) => {
+                            let albedo = character.albedo(pose, hit.point);
+                            let mut stream = Stream::new(seed, view_id, (j * w + i) as u64);
+                            let colour = shade(&traced, &hit, albedo, light, samples, &mut stream);
+                            (
+                                colour.as_vec3().to_array(),
+                                true,
+                                albedo.as_vec3().to_array(),
+                            )
+                        }
+                    }
+                })
+                .collect()
+        })
+        .collect();
+    let mut colour = RgbImage::new(w, h);
+    let mut albedo = RgbImage::new(w, h);
+    let mut foreground = Vec::with_capacity(w * h);
+    for (j, row) in rows.into_iter().enumerate() {
+        for (i, (c, m, a)) in row.into_iter().enumerate() {
+            colour.set(i, j, c);
+            albedo.set(i, j, a);
+            foreground.push(m);
+        }
+    }
+    Rendered {
+        colour,
+        mask: Mask {
+            width: w,
+            height: h,
+            foreground,
+        },
+        albedo,
+    }
+}
+
+fn matrix_rows(m: &DMat4) -> Value {
+    json!((0..4)
+        .map(|r| m.row(r).to_array().to_vec())
+        .collect::<Vec<_>>())
+}
+
+fn light_json(light: &Light) -> Value {
+    let v = |d: &DVec3| json!(d.to_array());
+    match light {
+        Light::Directional {
+            direction,
+            irradiance,
+            ambient,
+        } => {
+            json!({"type": "directional", "direction": v(direction), "irradiance": v(irradiance), "ambient": v(ambient)})
+        }
+        Light::Uniform { radiance } => json!({"type": "uniform", "radiance": v(radiance)}),
+        Light::Environment { path, scale, .. } => {
+            json!({"type": "environment", "path": path.to_string_lossy(), "scale": scale})
+        }
+        Light::Point {
+            position,
+            intensity,
+            ambient,
+        } => {
+            json!({"type": "point", "position": v(position), "intensity": v(intensity), "ambient": v(ambient)})
+        }
+    }
+}
+
+/// What `generate` made.
+pub struct Report {
+    pub images: usize,
+    pub bytes: u64,
+}
+
+/// Writes the whole scene into `out`, atomically: everything goes to a temp folder beside it
+/// that is renamed into place at the end (an existing `out` is replaced only with `force`).
+pub fn generate(
+    options: &SynthOptions,
+    out: &Path,
+    force: bool,
+    mut progress: impl FnMut(usize, usize),
+) -> Result<Report, SynthError> {
+    let plan = options.plan()?;
+    if out.exists() && !force {
+        return Err(io_error(out, "already exists (pass --force to replace it)"));
+    }
+    let parent = out
+        .parent()
+        .filter(|p| !p.as_os_str().is_empty())
+        .unwrap_or(Path::new("."));
+    std::fs::create_dir_all(parent).map_err(|e| io_error(parent, e))?;
+    let temp = imageio::temp_path(out);
+    if temp.exists() {
+        std::fs::remove_dir_all(&temp).map_err(|e| io_error(&temp, e))?;
+    }
+    let result = write_scene(options, &plan, &temp, &mut progress);
+    match result {
+        Ok(report) => {
+            if out.exists() {
+                std::fs::remove_dir_all(out).map_err(|e| io_error(out, e))?;
+            }
+            std::fs::rename(&temp, out).map_err(|e| io_error(out, e))?;
+            Ok(report)
+        }
+        Err(e) => {
+            let _ = std::fs::remove_dir_all(&temp);
+            Err(e)
+        }
+    }
+}
+
+fn write_scene(
+    options: &SynthOptions,
+    plan: &Plan,
+    dir: &Path,
+    progress: &mut impl FnMut(usize, usize),
+) -> Result<Report, SynthError> {
+    for sub in ["images", "masks", "albedo", "lights"] {
+        let p = dir.join(sub);
+        std::fs::create_dir_all(&p).map_err(|e| io_error(&p, e))?;
+    }
+    let mut bytes = 0u64;
+    let mut write = |relative: &str, data: &[u8]| -> Result<(), SynthError> {
+        let path = dir.join(relative);
+        bytes += data.len() as u64;
+        std::fs::write(&path, data).map_err(|e| io_error(&path, e))
+    };
+    let lights: std::collections::BTreeMap<&str, &Light> =
+        plan.lights.iter().map(|(n, l)| (n.as_str(), l)).collect();
+    for (_, light) in &plan.lights {
+        if let Light::Environment { path, map, .. } = light {
+            imageio::write_exr_atomic(&dir.join(path), &map.image)
+                .map_err(|e| io_error(path, e))?;
+        }
+    }
+    let mut images = Vec::new();
+    for (k, view) in plan.views.iter().enumerate() {
+        progress(k, plan.views.len());
+        let (_, _, pose) = &plan.frames[view.frame];
+        let light = lights[view.light.as_str()];
+        let r = render_view(
+            &plan.character,
+            pose,
+            &plan.cameras[view.camera],
+            light,
+            options.samples,
+            options.seed,
+            k as u64,
+        );
+        let png = |e: imageio::ImageError| io_error(Path::new(&view.name), e);
+        let path = format!("images/{}.png", view.name);
+        let mask = format!("masks/{}.png", view.name);
+        write(&path, &imageio::encode_png_rgb(&r.colour).map_err(png)?)?;
+        write(&mask, &imageio::encode_png_mask(&r.mask).map_err(png)?)?;
+        let mut entry = json!({"camera": view.camera, "frame": view.frame, "light": view.light, "split": view.split.name(), "path": path, "mask": mask});
+        if view.split != Split::Train {
+            let albedo = format!("albedo/{}.png", view.name);
+            write(&albedo, &imageio::encode_png_rgb(&r.albedo).map_err(png)?)?;
+            entry["albedo"] = json!(albedo);
+        }
+        images.push(entry);
+    }
+    progress(plan.views.len(), plan.views.len());
+    let skeleton: Vec<Value> = plan
+        .character
+        .skeleton
+        .bones
+        .iter()
+        .map(|b| json!({"name": b.name, "parent": b.parent, "length": b.length}))
+        .collect();
+    let cameras: Vec<Value> = plan
+        .cameras
+        .iter()
+        .map(|c| json!({"name": c.name, "width": c.width, "height": c.height, "fx": c.fx, "fy": c.fy, "cx": c.cx, "cy": c.cy, "camera_to_world": matrix_rows(&c.camera_to_world)}))
+        .collect();
+    let frames: Vec<Value> = plan
+        .frames
+        .iter()
+        .map(|(index, time, pose)| json!({"index": index, "time": time, "bone_to_world": pose.bone_to_world.iter().map(matrix_rows).collect::<Vec<_>>()}))
+        .collect();
+    let lights_json: serde_json::Map<String, Value> = plan
+        .lights
+        .iter()
+        .map(|(n, l)| (n.clone(), light_json(l)))
+        .collect();
+    let name = format!(
+        "{}-{}",
+        serde_json::to_value(options.character)
+            .ok()
+            .and_then(|v| v.as_str().map(String::from))
+            .unwrap_or_default(),
+        serde_json::to_value(options.light)
+            .ok()
+            .and_then(|v| v.as_str().map(String::from))
+            .unwrap_or_default()
+    );
+    let scene = json!({
+        "format": crate::scene::FORMAT,
+        "name": name,
+        "generator": {"program": "umbra synth", "version": env!("CARGO_PKG_VERSION"), "options": options},
+        "skeleton": {"bones": skeleton},
+        "cameras": cameras,
+        "frames": frames,
+        "lights": lights_json,
+        "images": images,
+    });
+    let text =
+        serde_json::to_string_pretty(&scene).map_err(|e| io_error(Path::new("scene.json"), e))?;
+    write("scene.json", text.as_bytes())?;
+    Ok(Report {
+        images: plan.views.len(),
+        bytes,
+    })
+}

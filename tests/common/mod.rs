@@ -1,0 +1,134 @@
+//! Test helpers: unique temp folders and a small valid scene written from code.
+#![allow(dead_code)]
+
+use serde_json::{json, Value};
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicUsize, Ordering};
+use umbra::imageio::{self, Mask, RgbImage};
+
+static COUNTER: AtomicUsize = AtomicUsize::new(0);
+
+/// A fresh empty folder under the system temp dir, removed when dropped.
+pub struct TempDir(pub PathBuf);
+
+impl TempDir {
+    pub fn new(tag: &str) -> Self {
+        let n = COUNTER.fetch_add(1, Ordering::SeqCst);
+        let path =
+            std::env::temp_dir().join(format!("umbra-test-{tag}-{}-{n}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&path);
+        std::fs::create_dir_all(&path).unwrap();
+        TempDir(path)
+    }
+
+    pub fn path(&self) -> &Path {
+        &self.0
+    }
+}
+
+impl Drop for TempDir {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_dir_all(&self.0);
+    }
+}
+
+pub fn identity_rows(ty: f64) -> Value {
+    json!([[1, 0, 0, 0], [0, 1, 0, ty], [0, 0, 1, 0], [0, 0, 0, 1]])
+}
+
+/// An 8-bit sRGB PNG with codes ((k % 7) * 36, 128, 64) at pixel k.
+fn write_png(path: &Path, w: usize, h: usize) {
+    let raw: Vec<u8> = (0..w * h)
+        .flat_map(|k| [(k % 7) as u8 * 36, 128, 64])
+        .collect();
+    std::fs::create_dir_all(path.parent().unwrap()).unwrap();
+    std::fs::write(
+        path,
+        imageio::encode_png_raw(&raw, w, h, image::ExtendedColorType::Rgb8).unwrap(),
+    )
+    .unwrap();
+}
+
+fn write_mask(path: &Path, w: usize, h: usize) {
+    let mask = Mask {
+        width: w,
+        height: h,
+        foreground: (0..w * h).map(|k| k % 3 == 0).collect(),
+    };
+    std::fs::create_dir_all(path.parent().unwrap()).unwrap();
+    std::fs::write(path, imageio::encode_png_mask(&mask).unwrap()).unwrap();
+}
+
+/// A valid scene: 2 bones, two cameras of different sizes, 2 frames, all four light types,
+/// a train image (with mask), a test image (with albedo) and a val image without mask.
+pub fn valid_scene(dir: &Path) -> Value {
+    write_png(&dir.join("images/a.png"), 8, 8);
+    write_mask(&dir.join("masks/a.png"), 8, 8);
+    write_png(&dir.join("images/b.png"), 6, 4);
+    write_png(&dir.join("albedo/b.png"), 6, 4);
+    write_png(&dir.join("images/c.png"), 8, 8);
+    let mut env = RgbImage::new(8, 4);
+    env.pixels.iter_mut().for_each(|p| *p = [2.0, 1.5, 1.0]);
+    std::fs::create_dir_all(dir.join("lights")).unwrap();
+    imageio::write_exr_atomic(&dir.join("lights/sky.exr"), &env).unwrap();
+    std::fs::create_dir_all(dir.join("meshes")).unwrap();
+    std::fs::write(
+        dir.join("meshes/f0.obj"),
+        "v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n",
+    )
+    .unwrap();
+    let scene = json!({
+        "format": "scene/1",
+        "name": "tiny",
+        "skeleton": {"bones": [
+            {"name": "root", "parent": null, "length": 0.5},
+            {"name": "child", "parent": 0, "length": 0.3}
+        ]},
+        "cameras": [
+            {"name": "a", "width": 8, "height": 8, "fx": 10.0, "fy": 10.0, "cx": 4.0, "cy": 4.0,
+             "camera_to_world": [[1, 0, 0, 0], [0, -1, 0, 0], [0, 0, -1, 3], [0, 0, 0, 1]]},
+            {"name": "b", "width": 6, "height": 4, "fx": 12.0, "fy": 11.0, "cx": 3.0, "cy": 2.0,
+             "camera_to_world": [[1, 0, 0, 0], [0, -1, 0, 0], [0, 0, -1, 4], [0, 0, 0, 1]]}
+        ],
+        "frames": [
+            {"index": 5, "time": 0.0, "bone_to_world": [identity_rows(0.0), identity_rows(0.5)], "mesh": "meshes/f0.obj"},
+            {"index": 2, "bone_to_world": [identity_rows(0.1), identity_rows(0.6)]}
+        ],
+        "lights": {
+            "sun": {"type": "directional", "direction": [0.0, 2.0, 0.0], "irradiance": [1, 1, 1], "ambient": [0.1, 0.1, 0.1]},
+            "studio": {"type": "uniform", "radiance": [1, 1, 1]},
+            "sky": {"type": "environment", "path": "lights/sky.exr", "scale": 0.5},
+            "lamp": {"type": "point", "position": [1, 2, 0.5], "intensity": [8, 8, 8], "ambient": [0.05, 0.05, 0.05]}
+        },
+        "images": [
+            {"camera": 0, "frame": 1, "light": "sun", "split": "train", "path": "images/a.png", "mask": "masks/a.png"},
+            {"camera": 1, "frame": 0, "light": "sky", "split": "test", "path": "images/b.png", "albedo": "albedo/b.png"},
+            {"camera": 0, "frame": 0, "light": "lamp", "split": "val", "path": "images/c.png", "future_key": {"x": 1}}
+        ],
+        "some_future_field": [1, 2, 3]
+    });
+    write_scene_json(dir, &scene);
+    scene
+}
+
+pub fn write_scene_json(dir: &Path, scene: &Value) {
+    std::fs::write(
+        dir.join("scene.json"),
+        serde_json::to_string_pretty(scene).unwrap(),
+    )
+    .unwrap();
+}
+
+pub fn shared_dir() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared")
+}
+
+pub fn example_scene() -> PathBuf {
+    let p = shared_dir().join("examples/quadruped-tiny");
+    assert!(
+        p.join("scene.json").is_file(),
+        "the fixture {} is missing: ../shared must sit beside the repository",
+        p.display()
+    );
+    p
+}
