@@ -17,7 +17,9 @@ use serde_json::{json, Value};
 use std::path::{Path, PathBuf};
 use trace::{shade, Stream, Traced};
 
-#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum, serde::Serialize)]
+#[derive(
+    Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum, serde::Serialize, serde::Deserialize,
+)]
 #[serde(rename_all = "lowercase")]
 pub enum TrainingLight {
     /// A directional sun with ambient: shadows to recover.
@@ -28,7 +30,9 @@ pub enum TrainingLight {
     Point,
 }
 
-#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum, serde::Serialize)]
+#[derive(
+    Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum, serde::Serialize, serde::Deserialize,
+)]
 #[serde(rename_all = "lowercase")]
 pub enum TestKind {
     /// Frames whose pose never appears in training, seen by training cameras.
@@ -40,7 +44,7 @@ pub enum TestKind {
 }
 
 /// Everything that determines a synthetic scene; the same options give the same bytes.
-#[derive(Clone, Debug, clap::Args, serde::Serialize)]
+#[derive(Clone, Debug, clap::Args, serde::Serialize, serde::Deserialize)]
 pub struct SynthOptions {
     /// The character.
     #[arg(long, value_enum, default_value_t = Kind::Human)]
