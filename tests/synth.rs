@@ -20,12 +20,14 @@ fn tiny(character: Kind, light: TrainingLight) -> SynthOptions {
         test: vec![TestKind::Poses, TestKind::Views, TestKind::Relight],
         samples: 4,
         seed: 3,
+        meshes: true,
+        mesh_cell: 0.04,
     }
 }
 
 fn files(dir: &std::path::Path) -> Vec<(String, Vec<u8>)> {
     let mut out = Vec::new();
-    for sub in ["", "images", "masks", "albedo", "lights"] {
+    for sub in ["", "images", "masks", "albedo", "lights", "meshes"] {
         let Ok(entries) = std::fs::read_dir(dir.join(sub)) else {
             continue;
         };

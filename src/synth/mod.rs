@@ -4,6 +4,7 @@
 //! relighting by a second sun, a point light and an environment map the generator synthesises.
 
 pub mod character;
+pub mod mesh;
 pub mod trace;
 
 use crate::imageio::{self, Mask, RgbImage};
@@ -78,6 +79,18 @@ pub struct SynthOptions {
     /// Seed of camera placement and Monte Carlo sampling.
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
+    /// Also write a ground-truth OBJ mesh per frame (marching tetrahedra of the exact SDF).
+    #[arg(long)]
+    #[serde(default)]
+    pub meshes: bool,
+    /// Grid cell of the meshes, metres.
+    #[arg(long, default_value_t = 0.02)]
+    #[serde(default = "default_mesh_cell")]
+    pub mesh_cell: f64,
+}
+
+fn default_mesh_cell() -> f64 {
+    0.02
 }
 
 impl Default for SynthOptions {
@@ -92,6 +105,8 @@ impl Default for SynthOptions {
             test: vec![TestKind::Poses, TestKind::Views, TestKind::Relight],
             samples: 256,
             seed: 0,
+            meshes: false,
+            mesh_cell: 0.02,
         }
     }
 }
@@ -181,6 +196,9 @@ impl SynthOptions {
         }
         if self.samples == 0 {
             return bad("--samples must be positive");
+        }
+        if !(self.mesh_cell >= 0.002 && self.mesh_cell <= 0.5) {
+            return bad("--mesh-cell must be within 0.002..=0.5 metres");
         }
         Ok(())
     }
@@ -488,7 +506,10 @@ fn write_scene(
     dir: &Path,
     progress: &mut impl FnMut(usize, usize),
 ) -> Result<Report, SynthError> {
-    for sub in ["images", "masks", "albedo", "lights"] {
+    for sub in ["images", "masks", "albedo", "lights", "meshes"] {
+        if sub == "meshes" && !options.meshes {
+            continue;
+        }
         let p = dir.join(sub);
         std::fs::create_dir_all(&p).map_err(|e| io_error(&p, e))?;
     }
@@ -546,11 +567,17 @@ fn write_scene(
         .iter()
         .map(|c| json!({"name": c.name, "width": c.width, "height": c.height, "fx": c.fx, "fy": c.fy, "cx": c.cx, "cy": c.cy, "camera_to_world": matrix_rows(&c.camera_to_world)}))
         .collect();
-    let frames: Vec<Value> = plan
-        .frames
-        .iter()
-        .map(|(index, time, pose)| json!({"index": index, "time": time, "bone_to_world": pose.bone_to_world.iter().map(matrix_rows).collect::<Vec<_>>()}))
-        .collect();
+    let mut frames: Vec<Value> = Vec::new();
+    for (index, time, pose) in &plan.frames {
+        let mut frame = json!({"index": index, "time": time, "bone_to_world": pose.bone_to_world.iter().map(matrix_rows).collect::<Vec<_>>()});
+        if options.meshes {
+            let (vertices, triangles) = mesh::extract(&plan.character, pose, options.mesh_cell);
+            let relative = format!("meshes/f{index:04}.obj");
+            write(&relative, mesh::to_obj(&vertices, &triangles).as_bytes())?;
+            frame["mesh"] = json!(relative);
+        }
+        frames.push(frame);
+    }
     let lights_json: serde_json::Map<String, Value> = plan
         .lights
         .iter()
