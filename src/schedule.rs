@@ -1,0 +1,288 @@
+//! Staged loss schedules read from `schedules/*.toml`: each loss weight is a piecewise-linear
+//! `alpha(t) = (1 - tau) from + tau to`, `tau = clamp((t - hold) / ramp, 0, 1)`, plus learning
+//! rates per parameter group, the batch sizes and the iteration count. Errors name the file and
+//! the TOML key; a schedule that asks for something the scene cannot feed is an error too.
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+
+/// Every loss term a schedule can weight.
+pub const TERMS: [&str; 9] = ["rgb", "mask", "grey", "density", "sigma", "mean", "ambient", "eikonal", "curvature"];
+/// Parameter groups with their own learning rate.
+pub const GROUPS: [&str; 3] = ["field", "gaussians", "light"];
+
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize)]
+pub struct Ramp {
+    pub from: f64,
+    pub to: f64,
+    pub hold: f64,
+    pub ramp: f64,
+}
+
+impl Ramp {
+    pub fn constant(v: f64) -> Self {
+        Self { from: v, to: v, hold: 0.0, ramp: 0.0 }
+    }
+
+    pub fn at(&self, iteration: usize) -> f64 {
+        let t = iteration as f64;
+        let tau = if self.ramp <= 0.0 { if t >= self.hold { 1.0 } else { 0.0 } } else { ((t - self.hold) / self.ramp).clamp(0.0, 1.0) };
+        (1.0 - tau) * self.from + tau * self.to
+    }
+
+    /// Whether the weight is ever non-zero within `iterations`.
+    pub fn ever_active(&self, iterations: usize) -> bool {
+        self.from != 0.0 || (self.to != 0.0 && (self.hold as usize) < iterations)
+    }
+}
+
+/// Whether the light (direction or position, and ambient) is fitted.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum LightFit {
+    /// Fit it when a training light casts shadows (sun or point), skip it for uniform light.
+    Auto,
+    /// Always fit it: an error for a uniformly lit scene.
+    Fit,
+    /// Never: shading is albedo only.
+    Off,
+}
+
+#[derive(Clone, Debug, PartialEq, serde::Serialize)]
+pub struct Schedule {
+    pub file: PathBuf,
+    pub iterations: usize,
+    pub rays_per_batch: usize,
+    pub samples_per_ray: usize,
+    /// Points per step for the Gaussian density fit, and for Eikonal and curvature.
+    pub density_points: usize,
+    pub regulariser_points: usize,
+    pub checkpoint_every: usize,
+    pub light: LightFit,
+    /// Iteration from which the light is fitted (before it, shading uses the initial light).
+    pub light_from: usize,
+    pub ambient_target: f64,
+    pub curvature_epsilon: f64,
+    pub learning_rates: BTreeMap<String, f64>,
+    pub weights: BTreeMap<String, Ramp>,
+}
+
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+#[error("{}: {key}: {message}", file.display())]
+pub struct ScheduleError {
+    pub file: PathBuf,
+    pub key: String,
+    pub message: String,
+}
+
+fn err(file: &Path, key: &str, message: impl Into<String>) -> ScheduleError {
+    ScheduleError { file: file.to_path_buf(), key: key.to_string(), message: message.into() }
+}
+
+fn number(file: &Path, table: &toml::Table, key: &str, prefix: &str) -> Result<Option<f64>, ScheduleError> {
+    let full = if prefix.is_empty() { key.to_string() } else { format!("{prefix}.{key}") };
+    match table.get(key) {
+        None => Ok(None),
+        Some(toml::Value::Integer(i)) => Ok(Some(*i as f64)),
+        Some(toml::Value::Float(f)) if f.is_finite() => Ok(Some(*f)),
+        Some(toml::Value::Float(f)) => Err(err(file, &full, format!("must be finite, found {f}"))),
+        Some(other) => Err(err(file, &full, format!("expected a number, found {}", other.type_str()))),
+    }
+}
+
+fn count(file: &Path, table: &toml::Table, key: &str, default: usize, min: usize) -> Result<usize, ScheduleError> {
+    match number(file, table, key, "")? {
+        None => Ok(default),
+        Some(v) if v.fract() == 0.0 && v >= min as f64 && v <= 1e9 => Ok(v as usize),
+        Some(v) => Err(err(file, key, format!("must be a whole number >= {min}, found {v}"))),
+    }
+}
+
+impl Schedule {
+    pub fn load(path: &Path) -> Result<Self, ScheduleError> {
+        let text = std::fs::read_to_string(path).map_err(|e| err(path, "(file)", format!("cannot read: {e}")))?;
+        Self::parse(&text, path)
+    }
+
+    pub fn parse(text: &str, file: &Path) -> Result<Self, ScheduleError> {
+        let table: toml::Table = text.parse().map_err(|e: toml::de::Error| err(file, "(syntax)", e.to_string()))?;
+        let known = ["iterations", "rays_per_batch", "samples_per_ray", "density_points", "regulariser_points", "checkpoint_every", "light", "light_from", "ambient_target", "curvature_epsilon", "learning_rates", "losses"];
+        for key in table.keys() {
+            if !known.contains(&key.as_str()) {
+                return Err(err(file, key, format!("unknown key (known: {})", known.join(", "))));
+            }
+        }
+        let iterations = count(file, &table, "iterations", 2000, 1)?;
+        let light = match table.get("light") {
+            None => LightFit::Auto,
+            Some(toml::Value::String(s)) => match s.as_str() {
+                "auto" => LightFit::Auto,
+                "fit" => LightFit::Fit,
+                "off" => LightFit::Off,
+                other => return Err(err(file, "light", format!("expected \"auto\", \"fit\" or \"off\", found {other:?}"))),
+            },
+            Some(other) => return Err(err(file, "light", format!("expected a string, found {}", other.type_str()))),
+        };
+        let mut learning_rates = BTreeMap::new();
+        let lr_table = match table.get("learning_rates") {
+            Some(toml::Value::Table(t)) => t.clone(),
+            Some(_) => return Err(err(file, "learning_rates", "expected a table")),
+            None => toml::Table::new(),
+        };
+        for key in lr_table.keys() {
+            if !GROUPS.contains(&key.as_str()) {
+                return Err(err(file, &format!("learning_rates.{key}"), format!("unknown parameter group (known: {})", GROUPS.join(", "))));
+            }
+        }
+        for (group, default) in GROUPS.iter().zip([2e-3, 5e-3, 1e-2]) {
+            let v = number(file, &lr_table, group, "learning_rates")?.unwrap_or(default);
+            if !(v > 0.0 && v < 10.0) {
+                return Err(err(file, &format!("learning_rates.{group}"), format!("must be within (0, 10), found {v}")));
+            }
+            learning_rates.insert(group.to_string(), v);
+        }
+        let losses = match table.get("losses") {
+            Some(toml::Value::Table(t)) => t.clone(),
+            Some(_) => return Err(err(file, "losses", "expected a table of [losses.NAME] tables")),
+            None => return Err(err(file, "losses", "missing: a schedule must weight at least the mask loss")),
+        };
+        let mut weights = BTreeMap::new();
+        for (name, value) in &losses {
+            if !TERMS.contains(&name.as_str()) {
+                return Err(err(file, &format!("losses.{name}"), format!("unknown loss (known: {})", TERMS.join(", "))));
+            }
+            let key = format!("losses.{name}");
+            let ramp = match value {
+                toml::Value::Integer(_) | toml::Value::Float(_) => {
+                    let mut t = toml::Table::new();
+                    t.insert("weight".into(), value.clone());
+                    Ramp::constant(number(file, &t, "weight", &key)?.unwrap_or(0.0))
+                }
+                toml::Value::Table(t) => {
+                    for k in t.keys() {
+                        if !["from", "to", "hold", "ramp"].contains(&k.as_str()) {
+                            return Err(err(file, &format!("{key}.{k}"), "unknown key (known: from, to, hold, ramp)"));
+                        }
+                    }
+                    let from = number(file, t, "from", &key)?.ok_or_else(|| err(file, &format!("{key}.from"), "missing"))?;
+                    let to = number(file, t, "to", &key)?.unwrap_or(from);
+                    let hold = number(file, t, "hold", &key)?.unwrap_or(0.0);
+                    let ramp = number(file, t, "ramp", &key)?.unwrap_or(0.0);
+                    Ramp { from, to, hold, ramp }
+                }
+                other => return Err(err(file, &key, format!("expected a number or a table, found {}", other.type_str()))),
+            };
+            for (field, v) in [("from", ramp.from), ("to", ramp.to), ("hold", ramp.hold), ("ramp", ramp.ramp)] {
+                if v < 0.0 {
+                    return Err(err(file, &format!("{key}.{field}"), format!("must be >= 0, found {v}")));
+                }
+            }
+            if ramp.hold >= iterations as f64 && ramp.from == 0.0 && ramp.to != 0.0 {
+                return Err(err(file, &format!("{key}.hold"), format!("{} is past the last iteration ({iterations}): the loss would never start", ramp.hold)));
+            }
+            weights.insert(name.clone(), ramp);
+        }
+        if !weights.get("mask").map(|r| r.ever_active(iterations)).unwrap_or(false) {
+            return Err(err(file, "losses.mask", "the mask loss must be active: nothing else fits the silhouette"));
+        }
+        for term in TERMS {
+            weights.entry(term.to_string()).or_insert(Ramp::constant(0.0));
+        }
+        let schedule = Schedule {
+            file: file.to_path_buf(),
+            iterations,
+            rays_per_batch: count(file, &table, "rays_per_batch", 512, 1)?,
+            samples_per_ray: count(file, &table, "samples_per_ray", 24, 2)?,
+            density_points: count(file, &table, "density_points", 256, 0)?,
+            regulariser_points: count(file, &table, "regulariser_points", 128, 0)?,
+            checkpoint_every: count(file, &table, "checkpoint_every", 250, 1)?,
+            light,
+            light_from: count(file, &table, "light_from", 0, 0)?,
+            ambient_target: number(file, &table, "ambient_target", "")?.unwrap_or(0.1),
+            curvature_epsilon: number(file, &table, "curvature_epsilon", "")?.unwrap_or(0.02),
+            learning_rates,
+            weights,
+        };
+        Ok(schedule)
+    }
+
+    pub fn weight(&self, term: &str, iteration: usize) -> f64 {
+        self.weights.get(term).map(|r| r.at(iteration)).unwrap_or(0.0)
+    }
+
+    pub fn learning_rate(&self, group: &str) -> f64 {
+        self.learning_rates.get(group).copied().unwrap_or(1e-3)
+    }
+
+    /// Checks the schedule against what the scene can feed; returns whether the light is fitted.
+    pub fn check_against(&self, scene_casts_shadows: bool) -> Result<bool, ScheduleError> {
+        match (self.light, scene_casts_shadows) {
+            (LightFit::Fit, false) => Err(err(
+                &self.file,
+                "light",
+                "\"fit\" asks for a light-fitting stage, but every training image of this scene is uniformly lit: there is no light direction or shadow to recover (use \"auto\" or \"off\")",
+            )),
+            (LightFit::Off, _) => Ok(false),
+            (_, shadows) => Ok(shadows),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const DEFAULT: &str = include_str!("../schedules/default.toml");
+
+    #[test]
+    fn default_schedule_parses_and_stages_in_order() {
+        let s = Schedule::parse(DEFAULT, Path::new("schedules/default.toml")).unwrap();
+        assert!(s.weight("grey", 0) > 0.0 && s.weight("rgb", 0) == 0.0, "segment 1 fits a grey silhouette");
+        assert_eq!(s.weight("density", 0), 0.0);
+        let late = s.iterations - 1;
+        assert!(s.weight("rgb", late) > 0.9 && s.weight("grey", late) < 1e-9, "segment 3 fits colour");
+        assert!(s.weight("density", late) > 0.0);
+    }
+
+    #[test]
+    fn ramps_interpolate_between_hold_and_hold_plus_ramp() {
+        let r = Ramp { from: 1.0, to: 0.0, hold: 100.0, ramp: 50.0 };
+        assert_eq!(r.at(0), 1.0);
+        assert_eq!(r.at(100), 1.0);
+        assert_eq!(r.at(125), 0.5);
+        assert_eq!(r.at(150), 0.0);
+        assert_eq!(r.at(1000), 0.0);
+    }
+
+    fn error_of(text: &str) -> ScheduleError {
+        Schedule::parse(text, Path::new("s.toml")).unwrap_err()
+    }
+
+    #[test]
+    fn errors_name_the_file_and_key() {
+        assert_eq!(error_of("iterations = -3\n[losses]\nmask = 1.0").key, "iterations");
+        assert_eq!(error_of("iterations = 10\nbogus = 1\n[losses]\nmask = 1.0").key, "bogus");
+        assert_eq!(error_of("[losses]\nmask = 1.0\nshine = 2.0").key, "losses.shine");
+        assert_eq!(error_of("[losses]\nmask = 1.0\n[losses.rgb]\nfrom = 0.0\nto = 1.0\nhold = -5").key, "losses.rgb.hold");
+        assert_eq!(error_of("iterations = 100\n[losses]\nmask = 1.0\n[losses.rgb]\nfrom = 0.0\nto = 1.0\nhold = 500").key, "losses.rgb.hold");
+        assert_eq!(error_of("[losses]\nrgb = 1.0").key, "losses.mask");
+        assert_eq!(error_of("[learning_rates]\nfield = 0\n[losses]\nmask = 1.0").key, "learning_rates.field");
+        assert_eq!(error_of("[learning_rates]\nbrain = 1e-3\n[losses]\nmask = 1.0").key, "learning_rates.brain");
+        assert_eq!(error_of("light = \"sometimes\"\n[losses]\nmask = 1.0").key, "light");
+        assert_eq!(error_of("[losses]\nmask = \"lots\"").key, "losses.mask");
+        assert_eq!(error_of("[losses]\nmask = nan").key, "losses.mask.weight");
+        let e = error_of("iterations = [");
+        assert!(e.to_string().starts_with("s.toml: (syntax)"), "{e}");
+    }
+
+    #[test]
+    fn light_fitting_on_a_uniform_scene_is_an_error_that_says_why() {
+        let fit = Schedule::parse("light = \"fit\"\n[losses]\nmask = 1.0", Path::new("fit.toml")).unwrap();
+        let e = fit.check_against(false).unwrap_err();
+        assert!(e.to_string().contains("fit.toml: light:") && e.to_string().contains("uniformly lit"), "{e}");
+        assert!(fit.check_against(true).unwrap());
+        let auto = Schedule::parse("[losses]\nmask = 1.0", Path::new("a.toml")).unwrap();
+        assert!(!auto.check_against(false).unwrap());
+        assert!(auto.check_against(true).unwrap());
+    }
+}
