@@ -21,20 +21,11 @@ pub fn body_cloud(n: usize, seed: u64) -> Vec<PosedGaussian> {
     let shrink = (24.0 / n as f64).cbrt();
     (0..n)
         .map(|_| {
-            let axis = DVec3::new(s.uniform() - 0.5, s.uniform() - 0.5, s.uniform() - 0.5)
-                .normalize_or(DVec3::Y);
+            let axis = DVec3::new(s.uniform() - 0.5, s.uniform() - 0.5, s.uniform() - 0.5).normalize_or(DVec3::Y);
             PosedGaussian {
-                mean: DVec3::new(
-                    (s.uniform() - 0.5) * 0.6,
-                    s.uniform() * 1.7,
-                    (s.uniform() - 0.5) * 0.4,
-                ),
+                mean: DVec3::new((s.uniform() - 0.5) * 0.6, s.uniform() * 1.7, (s.uniform() - 0.5) * 0.4),
                 axes: DMat3::from_quat(DQuat::from_axis_angle(axis, s.uniform() * 6.28)),
-                scales: DVec3::new(
-                    0.03 + 0.08 * s.uniform(),
-                    0.03 + 0.1 * s.uniform(),
-                    0.03 + 0.08 * s.uniform(),
-                ) * shrink,
+                scales: DVec3::new(0.03 + 0.08 * s.uniform(), 0.03 + 0.1 * s.uniform(), 0.03 + 0.08 * s.uniform()) * shrink,
                 amplitude: 8.0 + 8.0 * s.uniform(),
             }
         })
@@ -47,11 +38,7 @@ pub fn sun_rays(n: usize, seed: u64) -> Vec<ShadowRay> {
     let sun = DVec3::new(0.45, 0.8, 0.4).normalize().as_vec3().to_array();
     (0..n)
         .map(|_| ShadowRay {
-            origin: [
-                ((s.uniform() - 0.5) * 0.8) as f32,
-                (s.uniform() * 1.7) as f32,
-                ((s.uniform() - 0.5) * 0.6) as f32,
-            ],
+            origin: [((s.uniform() - 0.5) * 0.8) as f32, (s.uniform() * 1.7) as f32, ((s.uniform() - 0.5) * 0.6) as f32],
             direction: sun,
             t0: 0.0,
             t1: f32::INFINITY,
@@ -92,12 +79,7 @@ fn reference_transmittance(gaussians: &[PosedGaussian], ray: &ShadowRay) -> f64 
 
 /// Transmittance by the midpoint rule over `steps` samples up to where the ray leaves the
 /// cloud's bounding box: the approximation closed-form integration replaces.
-fn marched_transmittance(
-    gaussians: &[PosedGaussian],
-    ray: &ShadowRay,
-    steps: usize,
-    far: f32,
-) -> f32 {
+fn marched_transmittance(gaussians: &[PosedGaussian], ray: &ShadowRay, steps: usize, far: f32) -> f32 {
     let t1 = ray.t1.min(far);
     let dt = (t1 - ray.t0) / steps as f32;
     let mut tau = 0.0f32;
@@ -124,16 +106,9 @@ pub struct Row {
 
 fn machine_peak_flops() -> (f64, String) {
     let info = std::fs::read_to_string("/proc/cpuinfo").unwrap_or_default();
-    let mhz = info
-        .lines()
-        .find(|l| l.starts_with("cpu MHz"))
-        .and_then(|l| l.split(':').nth(1))
-        .and_then(|v| v.trim().parse::<f64>().ok())
-        .unwrap_or(2500.0);
+    let mhz = info.lines().find(|l| l.starts_with("cpu MHz")).and_then(|l| l.split(':').nth(1)).and_then(|v| v.trim().parse::<f64>().ok()).unwrap_or(2500.0);
     let flags = info.lines().find(|l| l.starts_with("flags")).unwrap_or("");
-    let cores = std::thread::available_parallelism()
-        .map(|n| n.get())
-        .unwrap_or(1) as f64;
+    let cores = std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1) as f64;
     let (per_cycle, isa) = if flags.contains(" avx512f") {
         (64.0, "AVX-512 FMA")
     } else if flags.contains(" avx2") && flags.contains(" fma") {
@@ -141,10 +116,7 @@ fn machine_peak_flops() -> (f64, String) {
     } else {
         (8.0, "SSE")
     };
-    (
-        cores * mhz * 1e6 * per_cycle,
-        format!("{cores} cores x {mhz:.0} MHz x {per_cycle} f32 flop/cycle ({isa})"),
-    )
+    (cores * mhz * 1e6 * per_cycle, format!("{cores} cores x {mhz:.0} MHz x {per_cycle} f32 flop/cycle ({isa})"))
 }
 
 /// The shadow benchmark: both paths, culling on and off, 24 to 10,000 Gaussians, and the
@@ -152,11 +124,7 @@ fn machine_peak_flops() -> (f64, String) {
 pub fn shadows(out: &Path, quick: bool) -> Result<String, String> {
     std::fs::create_dir_all(out).map_err(|e| format!("{}: {e}", out.display()))?;
     let budget = if quick { 0.05 } else { 0.3 };
-    let sizes: &[usize] = if quick {
-        &[24, 96]
-    } else {
-        &[24, 96, 1000, 10000]
-    };
+    let sizes: &[usize] = if quick { &[24, 96] } else { &[24, 96, 1000, 10000] };
     let device = Device::flex();
     let mut rows = Vec::new();
     for &n in sizes {
@@ -179,26 +147,8 @@ pub fn shadows(out: &Path, quick: bool) -> Result<String, String> {
         let tensor_rays = &rays[..rays.len().min((4_000_000 / n).max(16))];
         let g = GaussianTensors::from_posed(&gaussians, &device);
         let segments = RaySegments {
-            origins: Tensor::from_data(
-                TensorData::new(
-                    tensor_rays
-                        .iter()
-                        .flat_map(|r| r.origin)
-                        .collect::<Vec<f32>>(),
-                    [tensor_rays.len(), 3],
-                ),
-                &device,
-            ),
-            directions: Tensor::from_data(
-                TensorData::new(
-                    tensor_rays
-                        .iter()
-                        .flat_map(|r| r.direction)
-                        .collect::<Vec<f32>>(),
-                    [tensor_rays.len(), 3],
-                ),
-                &device,
-            ),
+            origins: Tensor::from_data(TensorData::new(tensor_rays.iter().flat_map(|r| r.origin).collect::<Vec<f32>>(), [tensor_rays.len(), 3]), &device),
+            directions: Tensor::from_data(TensorData::new(tensor_rays.iter().flat_map(|r| r.direction).collect::<Vec<f32>>(), [tensor_rays.len(), 3]), &device),
             t0: Tensor::zeros([tensor_rays.len()], &device),
             t1: None,
         };
@@ -217,21 +167,14 @@ pub fn shadows(out: &Path, quick: bool) -> Result<String, String> {
     // Accuracy against the f64 closed form on the 96-Gaussian body.
     let gaussians = body_cloud(96, 1);
     let rays = sun_rays(if quick { 128 } else { 512 }, 3);
-    let reference: Vec<f64> = rays
-        .iter()
-        .map(|r| reference_transmittance(&gaussians, r))
-        .collect();
+    let reference: Vec<f64> = rays.iter().map(|r| reference_transmittance(&gaussians, r)).collect();
     let caster = ShadowCaster::new(&gaussians, 1e-6);
     let mut trade = Vec::new();
     let closed = caster.transmittance_all(&rays, true);
     let seconds = time(budget, || {
         std::hint::black_box(caster.transmittance_all(&rays, true));
     });
-    let error = closed
-        .iter()
-        .zip(&reference)
-        .map(|(a, b)| (*a as f64 - b).abs())
-        .fold(0.0, f64::max);
+    let error = closed.iter().zip(&reference).map(|(a, b)| (*a as f64 - b).abs()).fold(0.0, f64::max);
     trade.push(Row {
         method: "closed form (cpu f32, culled)".into(),
         gaussians: 96,
@@ -242,20 +185,12 @@ pub fn shadows(out: &Path, quick: bool) -> Result<String, String> {
     });
     for steps in [16, 64, 256] {
         use rayon::prelude::*;
-        let run = || {
-            rays.par_iter()
-                .map(|r| marched_transmittance(&gaussians, r, steps, 4.0))
-                .collect::<Vec<f32>>()
-        };
+        let run = || rays.par_iter().map(|r| marched_transmittance(&gaussians, r, steps, 4.0)).collect::<Vec<f32>>();
         let marched = run();
         let seconds = time(budget, || {
             std::hint::black_box(run());
         });
-        let error = marched
-            .iter()
-            .zip(&reference)
-            .map(|(a, b)| (*a as f64 - b).abs())
-            .fold(0.0, f64::max);
+        let error = marched.iter().zip(&reference).map(|(a, b)| (*a as f64 - b).abs()).fold(0.0, f64::max);
         trade.push(Row {
             method: format!("ray marching, {steps} steps"),
             gaussians: 96,
@@ -267,14 +202,10 @@ pub fn shadows(out: &Path, quick: bool) -> Result<String, String> {
     }
     let (peak, peak_text) = machine_peak_flops();
     let mut md = String::from("## Shadow casting throughput\n\n| method | Gaussians | rays | time (ms) | pairs/s | vs culling off | % of FLOP peak |\n|---|---|---|---|---|---|---|\n");
-    let mut csv =
-        String::from("section,method,gaussians,rays,seconds,pairs_per_second,max_error\n");
+    let mut csv = String::from("section,method,gaussians,rays,seconds,pairs_per_second,max_error\n");
     for r in &rows {
-        let baseline = rows
-            .iter()
-            .find(|b| b.gaussians == r.gaussians && b.method == "cpu f32, culling off")
-            .map(|b| b.pairs_per_second)
-            .unwrap_or(r.pairs_per_second);
+        let baseline =
+            rows.iter().find(|b| b.gaussians == r.gaussians && b.method == "cpu f32, culling off").map(|b| b.pairs_per_second).unwrap_or(r.pairs_per_second);
         md += &format!(
             "| {} | {} | {} | {:.3} | {:.3e} | {:.2}x | {:.2}% |\n",
             r.method,
@@ -285,36 +216,17 @@ pub fn shadows(out: &Path, quick: bool) -> Result<String, String> {
             r.pairs_per_second / baseline,
             100.0 * r.pairs_per_second * FLOPS_PER_PAIR / peak
         );
-        csv += &format!(
-            "throughput,{},{},{},{},{},\n",
-            r.method, r.gaussians, r.rays, r.seconds, r.pairs_per_second
-        );
+        csv += &format!("throughput,{},{},{},{},{},\n", r.method, r.gaussians, r.rays, r.seconds, r.pairs_per_second);
     }
     md += "\n## Closed form against ray marching (96 Gaussians, error against the f64 closed form)\n\n| method | time (ms) | speed vs closed form | max abs transmittance error |\n|---|---|---|---|\n";
     let closed_seconds = trade[0].seconds;
     for r in &trade {
-        md += &format!(
-            "| {} | {:.3} | {:.2}x | {:.2e} |\n",
-            r.method,
-            r.seconds * 1e3,
-            closed_seconds / r.seconds,
-            r.max_error.unwrap_or(f64::NAN)
-        );
-        csv += &format!(
-            "accuracy,{},{},{},{},{},{}\n",
-            r.method,
-            r.gaussians,
-            r.rays,
-            r.seconds,
-            r.pairs_per_second,
-            r.max_error.unwrap_or(f64::NAN)
-        );
+        md += &format!("| {} | {:.3} | {:.2}x | {:.2e} |\n", r.method, r.seconds * 1e3, closed_seconds / r.seconds, r.max_error.unwrap_or(f64::NAN));
+        csv += &format!("accuracy,{},{},{},{},{},{}\n", r.method, r.gaussians, r.rays, r.seconds, r.pairs_per_second, r.max_error.unwrap_or(f64::NAN));
     }
     md += &format!("\nFLOP peak: {:.1} GFLOP/s ({peak_text}); the closed form is counted at {FLOPS_PER_PAIR} flop per pair.\n", peak / 1e9);
-    crate::imageio::write_atomic(&out.join("shadows.md"), md.as_bytes())
-        .map_err(|e| e.to_string())?;
-    crate::imageio::write_atomic(&out.join("shadows.csv"), csv.as_bytes())
-        .map_err(|e| e.to_string())?;
+    crate::imageio::write_atomic(&out.join("shadows.md"), md.as_bytes()).map_err(|e| e.to_string())?;
+    crate::imageio::write_atomic(&out.join("shadows.csv"), csv.as_bytes()).map_err(|e| e.to_string())?;
     let chart = Chart {
         title: "shadow transmittance: time vs error".into(),
         x_label: "time ms".into(),
@@ -323,11 +235,7 @@ pub fn shadows(out: &Path, quick: bool) -> Result<String, String> {
         log_y: true,
         series: trade
             .iter()
-            .map(|r| Series {
-                name: r.method.clone(),
-                points: vec![(r.seconds * 1e3, r.max_error.unwrap_or(f64::NAN).max(1e-9))],
-                lines: false,
-            })
+            .map(|r| Series { name: r.method.clone(), points: vec![(r.seconds * 1e3, r.max_error.unwrap_or(f64::NAN).max(1e-9))], lines: false })
             .collect(),
     };
     chart.render(720, 480).save_png(&out.join("shadows.png"))?;

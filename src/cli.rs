@@ -5,11 +5,7 @@ use clap::{Parser, Subcommand};
 use std::path::{Path, PathBuf};
 
 #[derive(Parser)]
-#[command(
-    name = "umbra",
-    version,
-    about = "Relightable neural avatars: Gaussian shadow casting, fitting, relighting"
-)]
+#[command(name = "umbra", version, about = "Relightable neural avatars: Gaussian shadow casting, fitting, relighting")]
 pub struct Cli {
     #[command(subcommand)]
     pub command: Command,
@@ -32,6 +28,30 @@ pub enum Command {
         force: bool,
         #[command(flatten)]
         options: crate::synth::SynthOptions,
+    },
+    /// Fit an avatar, its light and its albedo to a scene's training images.
+    Fit {
+        /// A scene folder (or its scene.json).
+        scene: PathBuf,
+        /// The run folder: fit.json, losses.csv/png, gaussians.json, checkpoint/, renders/.
+        #[arg(long)]
+        out: PathBuf,
+        /// The loss schedule.
+        #[arg(long, default_value = "schedules/default.toml")]
+        schedule: PathBuf,
+        /// Override the schedule's iteration count.
+        #[arg(long)]
+        iterations: Option<usize>,
+        #[arg(long, default_value_t = 0)]
+        seed: u64,
+        /// Continue from the run's last checkpoint.
+        #[arg(long)]
+        resume: bool,
+        #[arg(long, value_enum, default_value_t = crate::train::Backend::Flex)]
+        backend: crate::train::Backend,
+        /// Skip rendering and scoring the test images at the end.
+        #[arg(long)]
+        no_eval: bool,
     },
     /// Run a benchmark and write its table (Markdown, CSV) and plot (PNG).
     Bench {
@@ -57,16 +77,11 @@ pub fn main() -> i32 {
     let cli = Cli::parse();
     let result = match cli.command {
         Command::Inspect { scene } => inspect(&scene),
-        Command::Synth {
-            out,
-            force,
-            options,
-        } => synth(&out, force, &options),
-        Command::Bench {
-            which: BenchKind::Shadows,
-            out,
-            quick,
-        } => crate::bench::shadows(&out, quick).map(|table| print!("{table}")),
+        Command::Synth { out, force, options } => synth(&out, force, &options),
+        Command::Fit { scene, out, schedule, iterations, seed, resume, backend, no_eval } => {
+            fit(&crate::train::FitOptions { scene, out, schedule, iterations, seed, resume, backend, evaluate: !no_eval })
+        }
+        Command::Bench { which: BenchKind::Shadows, out, quick } => crate::bench::shadows(&out, quick).map(|table| print!("{table}")),
     };
     match result {
         Ok(()) => 0,
@@ -80,11 +95,9 @@ pub fn main() -> i32 {
 /// A progress bar with an ETA on standard error.
 pub fn progress_bar(total: u64, what: &str) -> indicatif::ProgressBar {
     let bar = indicatif::ProgressBar::new(total);
-    let style = indicatif::ProgressStyle::with_template(
-        "{msg} [{bar:30}] {pos}/{len} {elapsed_precise} eta {eta}",
-    )
-    .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar())
-    .progress_chars("=> ");
+    let style = indicatif::ProgressStyle::with_template("{msg} [{bar:30}] {pos}/{len} {elapsed_precise} eta {eta}")
+        .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar())
+        .progress_chars("=> ");
     bar.set_style(style);
     bar.set_message(what.to_string());
     bar
@@ -104,11 +117,39 @@ fn synth(out: &Path, force: bool, options: &crate::synth::SynthOptions) -> Resul
     })
     .map_err(|e| e.to_string())?;
     bar.finish_and_clear();
-    println!(
-        "wrote {} ({} images, {:.2} MB)",
-        out.display(),
-        report.images,
-        report.bytes as f64 / 1e6
-    );
+    println!("wrote {} ({} images, {:.2} MB)", out.display(), report.images, report.bytes as f64 / 1e6);
+    Ok(())
+}
+
+fn fit(options: &crate::train::FitOptions) -> Result<(), String> {
+    use crate::train::TrainMessage;
+    let bar = progress_bar(0, "fitting");
+    let report = crate::fit::fit(options, |message| match message {
+        TrainMessage::Loaded { scene, training_images, frames, light } => {
+            bar.println(format!("scene {scene}: {training_images} training images, {frames} frames, light {light:?}"));
+        }
+        TrainMessage::Started { first, iterations } => {
+            bar.set_length(iterations as u64);
+            bar.set_position(first as u64);
+            bar.reset_eta();
+        }
+        TrainMessage::Step { iteration, stats } => {
+            bar.set_position(iteration as u64 + 1);
+            if iteration % 10 == 0 {
+                let terms: Vec<String> = stats.terms.iter().map(|(k, v)| format!("{k} {v:.4}")).collect();
+                bar.set_message(format!("loss {:.4} ({})", stats.total, terms.join(", ")));
+            }
+        }
+        TrainMessage::Checkpoint { .. } => {}
+        TrainMessage::Evaluating { images } => bar.println(format!("rendering {images} test images")),
+        TrainMessage::Done => bar.finish_and_clear(),
+    })
+    .map_err(|e| e.to_string())?;
+    println!("wrote {}", options.out.join("fit.json").display());
+    println!("light: {}", report["light"]);
+    if let Some(p) = report["evaluation"]["novel_pose_psnr"].as_f64() {
+        println!("novel-pose PSNR: {p:.2} dB");
+    }
+    println!("wall time: {:.1} s", report["wall_seconds"].as_f64().unwrap_or(0.0));
     Ok(())
 }

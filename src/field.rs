@@ -41,7 +41,7 @@ impl PoseTensors {
         let [n, _] = points.dims();
         let b = self.bones();
         let relative = points.unsqueeze_dim::<3>(1) - self.translations.clone().unsqueeze_dim::<3>(0); // [N, B, 3]
-        // local = R^T (x - t); as rows: local_row = relative_row R.
+                                                                                                       // local = R^T (x - t); as rows: local_row = relative_row R.
         relative.swap_dims(0, 1).matmul(self.rotations.clone()).swap_dims(0, 1).reshape([n, b, 3])
     }
 }
@@ -78,8 +78,13 @@ impl FieldConfig {
         }
         let output = LinearConfig::new(width, 4).init(device);
         // Start with a zero residual: the initial surface is the capsule prior.
-        let output = Linear { weight: Param::from_tensor(output.weight.val() * 0.01), bias: output.bias.map(|b| Param::from_tensor(b.val() * 0.0)) };
-        AvatarField { hidden, output, log_beta: Param::from_tensor(Tensor::from_data(TensorData::new(vec![self.initial_beta.ln()], [1]), device)), config: self.clone() }
+        let output = Linear { weight: Param::from_tensor((output.weight.val() * 0.01).detach()), bias: output.bias.map(|b| Param::from_tensor((b.val() * 0.0).detach())) };
+        AvatarField {
+            hidden,
+            output,
+            log_beta: Param::from_tensor(Tensor::from_data(TensorData::new(vec![self.initial_beta.ln()], [1]), device)),
+            config: self.clone(),
+        }
     }
 }
 

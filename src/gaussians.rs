@@ -40,11 +40,7 @@ pub struct PosedGaussian {
 
 impl PosedGaussian {
     pub fn rotation_columns(&self) -> [[f64; 3]; 3] {
-        [
-            self.axes.x_axis.to_array(),
-            self.axes.y_axis.to_array(),
-            self.axes.z_axis.to_array(),
-        ]
+        [self.axes.x_axis.to_array(), self.axes.y_axis.to_array(), self.axes.z_axis.to_array()]
     }
 
     /// The density at a world point.
@@ -62,13 +58,7 @@ impl GaussianSet {
         for (bone, b) in skeleton.bones.iter().enumerate() {
             for k in 0..per_bone {
                 let y = b.length * (k as f64 + 0.5) / per_bone as f64;
-                gaussians.push(Gaussian {
-                    bone,
-                    mean: [0.0, y, 0.0],
-                    rotation: [0.0, 0.0, 0.0, 1.0],
-                    scales: [std; 3],
-                    amplitude,
-                });
+                gaussians.push(Gaussian { bone, mean: [0.0, y, 0.0], rotation: [0.0, 0.0, 0.0, 1.0], scales: [std; 3], amplitude });
             }
         }
         Self { gaussians }
@@ -112,11 +102,8 @@ impl GaussianSet {
 
     /// Reads a set, checking every value; `bones` is the skeleton size the set must fit.
     pub fn load(path: &Path, bones: Option<usize>) -> Result<Self, SceneError> {
-        let text = std::fs::read_to_string(path).map_err(|e| SceneError {
-            file: path.to_path_buf(),
-            path: String::new(),
-            message: format!("cannot read: {e}"),
-        })?;
+        let text =
+            std::fs::read_to_string(path).map_err(|e| SceneError { file: path.to_path_buf(), path: String::new(), message: format!("cannot read: {e}") })?;
         Self::parse(&text, path, bones)
     }
 
@@ -125,19 +112,14 @@ impl GaussianSet {
         let doc = At::root(&value, file);
         let format = doc.field("format")?;
         if format.str()? != FORMAT {
-            return Err(format.error(format!(
-                "unsupported format {:?}, expected {FORMAT:?}",
-                format.str()?
-            )));
+            return Err(format.error(format!("unsupported format {:?}, expected {FORMAT:?}", format.str()?)));
         }
         let mut gaussians = Vec::new();
         for item in doc.field("gaussians")?.array()? {
             let bone_node = item.field("bone")?;
             let bone = match bones {
                 Some(n) => bone_node.index(n, "skeleton.bones")?,
-                None => bone_node.i64().and_then(|b| {
-                    usize::try_from(b).map_err(|_| bone_node.error("must be >= 0"))
-                })?,
+                None => bone_node.i64().and_then(|b| usize::try_from(b).map_err(|_| bone_node.error("must be >= 0")))?,
             };
             let mean = item.field("mean")?.vec3()?.to_array();
             let rotation_node = item.field("rotation")?;
@@ -148,9 +130,7 @@ impl GaussianSet {
             let rotation = [q[0].f64()?, q[1].f64()?, q[2].f64()?, q[3].f64()?];
             let norm = rotation.iter().map(|c| c * c).sum::<f64>().sqrt();
             if (norm - 1.0).abs() > 1e-3 {
-                return Err(
-                    rotation_node.error(format!("quaternion must have unit length, found {norm}"))
-                );
+                return Err(rotation_node.error(format!("quaternion must have unit length, found {norm}")));
             }
             let scales_node = item.field("scales")?;
             let scales = scales_node.vec3()?;
@@ -162,13 +142,7 @@ impl GaussianSet {
             if amplitude < 0.0 {
                 return Err(amplitude_node.error("amplitude must be >= 0"));
             }
-            gaussians.push(Gaussian {
-                bone,
-                mean,
-                rotation,
-                scales: scales.to_array(),
-                amplitude,
-            });
+            gaussians.push(Gaussian { bone, mean, rotation, scales: scales.to_array(), amplitude });
         }
         Ok(Self { gaussians })
     }
@@ -181,13 +155,7 @@ mod tests {
 
     #[test]
     fn json_round_trip_and_errors() {
-        let skeleton = Skeleton {
-            bones: vec![Bone {
-                name: "a".into(),
-                parent: None,
-                length: 0.4,
-            }],
-        };
+        let skeleton = Skeleton { bones: vec![Bone { name: "a".into(), parent: None, length: 0.4 }] };
         let mut set = GaussianSet::along_bones(&skeleton, 3, 0.05, 10.0);
         set.gaussians[1].rotation = DQuat::from_rotation_z(0.4).to_array();
         let text = set.to_json();
@@ -200,22 +168,139 @@ mod tests {
 
     #[test]
     fn posing_moves_the_mean_with_the_bone() {
-        let skeleton = Skeleton {
-            bones: vec![Bone {
-                name: "a".into(),
-                parent: None,
-                length: 1.0,
-            }],
-        };
+        let skeleton = Skeleton { bones: vec![Bone { name: "a".into(), parent: None, length: 1.0 }] };
         let set = GaussianSet::along_bones(&skeleton, 1, 0.1, 1.0);
-        let m = glam::DMat4::from_rotation_translation(
-            DQuat::from_rotation_z(std::f64::consts::FRAC_PI_2),
-            DVec3::new(1.0, 0.0, 0.0),
-        );
-        let posed = set.pose(&Pose {
-            bone_to_world: vec![m],
-        });
+        let m = glam::DMat4::from_rotation_translation(DQuat::from_rotation_z(std::f64::consts::FRAC_PI_2), DVec3::new(1.0, 0.0, 0.0));
+        let posed = set.pose(&Pose { bone_to_world: vec![m] });
         assert!((posed[0].mean - DVec3::new(0.5, 0.0, 0.0)).length() < 1e-12);
         assert!((posed[0].density(posed[0].mean) - 1.0).abs() < 1e-12);
+    }
+}
+
+/// Learnable Gaussians (burn module): bone-local means `[G, 3]`, quaternions `[G, 4]`
+/// (x, y, z, w), log scales `[G, 3]` and log amplitudes `[G]`; each belongs to a fixed bone.
+#[derive(burn::module::Module, Debug)]
+pub struct GaussianParams {
+    pub means: burn::module::Param<burn::tensor::Tensor<2>>,
+    pub rotations: burn::module::Param<burn::tensor::Tensor<2>>,
+    pub log_scales: burn::module::Param<burn::tensor::Tensor<2>>,
+    pub log_amplitudes: burn::module::Param<burn::tensor::Tensor<1>>,
+    #[module(skip)]
+    pub bones: Vec<usize>,
+}
+
+mod learnable {
+    use super::{Gaussian, GaussianParams, GaussianSet};
+    use crate::field::PoseTensors;
+    use crate::shadow::tensor::GaussianTensors;
+    use burn::module::Param;
+    use burn::tensor::{Device, Int, Tensor, TensorData};
+
+    fn values<const D: usize>(t: Tensor<D>) -> Vec<f64> {
+        t.into_data().convert::<f32>().try_to_vec::<f32>().unwrap_or_default().into_iter().map(f64::from).collect()
+    }
+
+    impl GaussianParams {
+        pub fn from_set(set: &GaussianSet, device: &Device) -> Self {
+            let n = set.len();
+            let flat = |f: &dyn Fn(&Gaussian) -> Vec<f32>| set.gaussians.iter().flat_map(f).collect::<Vec<f32>>();
+            Self {
+                means: Param::from_tensor(Tensor::from_data(TensorData::new(flat(&|g| g.mean.map(|v| v as f32).to_vec()), [n, 3]), device)),
+                rotations: Param::from_tensor(Tensor::from_data(TensorData::new(flat(&|g| g.rotation.map(|v| v as f32).to_vec()), [n, 4]), device)),
+                log_scales: Param::from_tensor(Tensor::from_data(TensorData::new(flat(&|g| g.scales.map(|v| (v as f32).ln()).to_vec()), [n, 3]), device)),
+                log_amplitudes: Param::from_tensor(Tensor::from_data(TensorData::new(flat(&|g| vec![(g.amplitude as f32).ln()]), [n]), device)),
+                bones: set.gaussians.iter().map(|g| g.bone).collect(),
+            }
+        }
+
+        pub fn len(&self) -> usize {
+            self.bones.len()
+        }
+
+        pub fn is_empty(&self) -> bool {
+            self.bones.is_empty()
+        }
+
+        pub fn scales(&self) -> Tensor<2> {
+            self.log_scales.val().exp()
+        }
+
+        pub fn amplitudes(&self) -> Tensor<1> {
+            self.log_amplitudes.val().exp()
+        }
+
+        /// Rotation matrices `[G, 3, 3]` (row-major; columns are the Gaussians' local axes).
+        pub fn rotation_matrices(&self) -> Tensor<3> {
+            let q = self.rotations.val();
+            let n = self.len();
+            let q = q.clone() / (q.clone() * q).sum_dim(1).sqrt().clamp_min(1e-8);
+            let c = |k: usize| q.clone().narrow(1, k, 1);
+            let (x, y, z, w) = (c(0), c(1), c(2), c(3));
+            let two = |a: Tensor<2>| a * 2.0;
+            let entries = vec![
+                (two(y.clone() * y.clone() + z.clone() * z.clone())).neg() + 1.0,
+                two(x.clone() * y.clone() - z.clone() * w.clone()),
+                two(x.clone() * z.clone() + y.clone() * w.clone()),
+                two(x.clone() * y.clone() + z.clone() * w.clone()),
+                (two(x.clone() * x.clone() + z.clone() * z.clone())).neg() + 1.0,
+                two(y.clone() * z.clone() - x.clone() * w.clone()),
+                two(x.clone() * z.clone() - y.clone() * w.clone()),
+                two(y.clone() * z.clone() + x.clone() * w.clone()),
+                (two(x.clone() * x + y.clone() * y)).neg() + 1.0,
+            ];
+            Tensor::cat(entries, 1).reshape([n, 3, 3])
+        }
+
+        fn bone_index(&self, device: &Device) -> Tensor<1, Int> {
+            Tensor::from_data(TensorData::new(self.bones.iter().map(|&b| b as i64).collect::<Vec<i64>>(), [self.len()]), device)
+        }
+
+        /// World-space Gaussians in a pose, differentiable in every parameter.
+        pub fn posed(&self, pose: &PoseTensors) -> GaussianTensors {
+            let device = self.means.val().device();
+            let index = self.bone_index(&device);
+            let n = self.len();
+            let bone_rotation = pose.rotations.clone().select(0, index.clone());
+            let bone_translation = pose.translations.clone().select(0, index);
+            let means = bone_rotation.clone().matmul(self.means.val().reshape([n, 3, 1])).reshape([n, 3]) + bone_translation;
+            let rotations = bone_rotation.matmul(self.rotation_matrices());
+            GaussianTensors::from_world(means, rotations, self.scales(), self.amplitudes())
+        }
+
+        /// The mixture density `sum_g A_g exp(-|W_g (x - mu_g)|^2 / 2)` at world points `[N, 3]`.
+        pub fn mixture_density(posed: &GaussianTensors, points: Tensor<2>) -> Tensor<1> {
+            let [p, _] = points.dims();
+            let n = posed.len();
+            let rows = posed.whiten.clone().reshape([n * 3, 3]).transpose();
+            let whitened_points = points.matmul(rows).reshape([p, n, 3]);
+            let whitened_means = (posed.whiten.clone() * posed.means.clone().unsqueeze_dim::<3>(1)).sum_dim(2).reshape([1, n, 3]);
+            let d = whitened_points - whitened_means;
+            let m2 = (d.clone() * d).sum_dim(2).reshape([p, n]);
+            ((m2 * -0.5).exp() * posed.amplitudes.clone().reshape([1, n])).sum_dim(1).reshape([p])
+        }
+
+        /// The current values as a plain set (for JSON, culling bounds and the CPU shadow path).
+        pub fn to_set(&self) -> GaussianSet {
+            let means = values(self.means.val());
+            let rotations = values(self.rotations.val());
+            let scales = values(self.scales());
+            let amplitudes = values(self.amplitudes());
+            let gaussians = self
+                .bones
+                .iter()
+                .enumerate()
+                .map(|(i, &bone)| {
+                    let q = glam::DQuat::from_array([rotations[i * 4], rotations[i * 4 + 1], rotations[i * 4 + 2], rotations[i * 4 + 3]]).normalize();
+                    Gaussian {
+                        bone,
+                        mean: [means[i * 3], means[i * 3 + 1], means[i * 3 + 2]],
+                        rotation: q.to_array(),
+                        scales: [scales[i * 3], scales[i * 3 + 1], scales[i * 3 + 2]],
+                        amplitude: amplitudes[i],
+                    }
+                })
+                .collect();
+            GaussianSet { gaussians }
+        }
     }
 }

@@ -14,11 +14,7 @@ pub struct RgbImage {
 
 impl RgbImage {
     pub fn new(width: usize, height: usize) -> Self {
-        Self {
-            width,
-            height,
-            pixels: vec![[0.0; 3]; width * height],
-        }
+        Self { width, height, pixels: vec![[0.0; 3]; width * height] }
     }
 
     pub fn get(&self, x: usize, y: usize) -> [f32; 3] {
@@ -62,11 +58,7 @@ pub fn srgb_to_linear(value: f32) -> f32 {
 
 /// Linear to sRGB-encoded value in [0, 1] (input clamped).
 pub fn linear_to_srgb(value: f32) -> f32 {
-    let v = if value.is_finite() {
-        value.clamp(0.0, 1.0)
-    } else {
-        0.0
-    };
+    let v = if value.is_finite() { value.clamp(0.0, 1.0) } else { 0.0 };
     if v <= 0.003_130_8 {
         v * 12.92
     } else {
@@ -76,9 +68,7 @@ pub fn linear_to_srgb(value: f32) -> f32 {
 
 /// Linear value to the 8-bit sRGB code a PNG stores (round to nearest).
 pub fn linear_to_srgb8(value: f32) -> u8 {
-    (linear_to_srgb(value) * 255.0 + 0.5)
-        .floor()
-        .clamp(0.0, 255.0) as u8
+    (linear_to_srgb(value) * 255.0 + 0.5).floor().clamp(0.0, 255.0) as u8
 }
 
 fn srgb8_table() -> &'static [f32; 256] {
@@ -103,19 +93,14 @@ fn kind(path: &Path) -> Option<&'static str> {
 
 /// Decoders of third-party crates may panic on hostile input; a corrupt file must be an error.
 fn guarded<T>(path: &Path, f: impl FnOnce() -> Result<T, ImageError>) -> Result<T, ImageError> {
-    std::panic::catch_unwind(std::panic::AssertUnwindSafe(f)).unwrap_or_else(|_| {
-        Err(ImageError::Decode(
-            path.display().to_string(),
-            "decoder panicked on corrupt data".into(),
-        ))
-    })
+    std::panic::catch_unwind(std::panic::AssertUnwindSafe(f))
+        .unwrap_or_else(|_| Err(ImageError::Decode(path.display().to_string(), "decoder panicked on corrupt data".into())))
 }
 
 fn decode_png(path: &Path) -> Result<image::DynamicImage, ImageError> {
     let bytes = std::fs::read(path).map_err(|e| io_error(path, e))?;
     guarded(path, || {
-        image::load_from_memory_with_format(&bytes, image::ImageFormat::Png)
-            .map_err(|e| ImageError::Decode(path.display().to_string(), e.to_string()))
+        image::load_from_memory_with_format(&bytes, image::ImageFormat::Png).map_err(|e| ImageError::Decode(path.display().to_string(), e.to_string()))
     })
 }
 
@@ -136,29 +121,13 @@ pub fn read_rgb(path: &Path) -> Result<RgbImage, ImageError> {
         Some("png") => {
             let img = decode_png(path)?;
             let (width, height) = (img.width() as usize, img.height() as usize);
-            let pixels = if matches!(
-                img.color(),
-                image::ColorType::Rgb16
-                    | image::ColorType::Rgba16
-                    | image::ColorType::L16
-                    | image::ColorType::La16
-            ) {
-                img.to_rgb16()
-                    .pixels()
-                    .map(|p| p.0.map(|c| srgb_to_linear(c as f32 / 65535.0)))
-                    .collect()
+            let pixels = if matches!(img.color(), image::ColorType::Rgb16 | image::ColorType::Rgba16 | image::ColorType::L16 | image::ColorType::La16) {
+                img.to_rgb16().pixels().map(|p| p.0.map(|c| srgb_to_linear(c as f32 / 65535.0))).collect()
             } else {
                 let table = srgb8_table();
-                img.to_rgb8()
-                    .pixels()
-                    .map(|p| p.0.map(|c| table[c as usize]))
-                    .collect()
+                img.to_rgb8().pixels().map(|p| p.0.map(|c| table[c as usize])).collect()
             };
-            Ok(RgbImage {
-                width,
-                height,
-                pixels,
-            })
+            Ok(RgbImage { width, height, pixels })
         }
         Some(_) => read_exr(path),
         None => Err(ImageError::UnsupportedType(path.display().to_string())),
@@ -186,20 +155,13 @@ pub fn read_mask(path: &Path) -> Result<Mask, ImageError> {
         return Err(ImageError::NotFound(path.display().to_string()));
     }
     if kind(path) != Some("png") {
-        return Err(ImageError::UnsupportedType(format!(
-            "{} (masks are PNG)",
-            path.display()
-        )));
+        return Err(ImageError::UnsupportedType(format!("{} (masks are PNG)", path.display())));
     }
     let img = decode_png(path)?;
     let (width, height) = (img.width() as usize, img.height() as usize);
     // to_rgba8 keeps the first channel as is for grey, RGB and RGBA inputs (16-bit scaled to 8).
     let foreground = img.to_rgba8().pixels().map(|p| p.0[0] > 127).collect();
-    Ok(Mask {
-        width,
-        height,
-        foreground,
-    })
+    Ok(Mask { width, height, foreground })
 }
 
 /// Writes `bytes` to `path` atomically: a temp file beside it, then a rename.
@@ -219,10 +181,7 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> std::io::Result<()> {
 
 /// The temp name used by [`write_atomic`]: hidden, beside the target, unique to this process.
 pub fn temp_path(path: &Path) -> PathBuf {
-    let name = path
-        .file_name()
-        .map(|n| n.to_string_lossy().into_owned())
-        .unwrap_or_default();
+    let name = path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
     path.with_file_name(format!(".{name}.tmp{}", std::process::id()))
 }
 
@@ -232,31 +191,17 @@ pub fn encode_png_rgb(image: &RgbImage) -> Result<Vec<u8>, ImageError> {
     for p in &image.pixels {
         raw.extend(p.iter().map(|&c| linear_to_srgb8(c)));
     }
-    encode_png_raw(
-        &raw,
-        image.width,
-        image.height,
-        image::ExtendedColorType::Rgb8,
-    )
+    encode_png_raw(&raw, image.width, image.height, image::ExtendedColorType::Rgb8)
 }
 
 /// Encodes a mask as an 8-bit grey PNG (255 foreground, 0 background).
 pub fn encode_png_mask(mask: &Mask) -> Result<Vec<u8>, ImageError> {
-    let raw: Vec<u8> = mask
-        .foreground
-        .iter()
-        .map(|&f| if f { 255 } else { 0 })
-        .collect();
+    let raw: Vec<u8> = mask.foreground.iter().map(|&f| if f { 255 } else { 0 }).collect();
     encode_png_raw(&raw, mask.width, mask.height, image::ExtendedColorType::L8)
 }
 
 /// Encodes raw 8-bit samples (already encoded values) as PNG.
-pub fn encode_png_raw(
-    raw: &[u8],
-    width: usize,
-    height: usize,
-    color: image::ExtendedColorType,
-) -> Result<Vec<u8>, ImageError> {
+pub fn encode_png_raw(raw: &[u8], width: usize, height: usize, color: image::ExtendedColorType) -> Result<Vec<u8>, ImageError> {
     use image::ImageEncoder;
     let mut out = Vec::new();
     image::codecs::png::PngEncoder::new(&mut out)

@@ -3,11 +3,19 @@
 
 pub mod bench;
 pub mod cli;
+pub mod eval;
+pub mod field;
+pub mod fit;
 pub mod gaussians;
 pub mod imageio;
 pub mod light;
+pub mod losses;
 pub mod plot;
+pub mod render;
 pub mod scene;
+pub mod schedule;
+pub mod shading;
 pub mod shadow;
 pub mod skeleton;
 pub mod synth;
+pub mod train;

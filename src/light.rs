@@ -9,25 +9,13 @@ use std::path::PathBuf;
 #[derive(Clone, Debug, PartialEq)]
 pub enum Light {
     /// A sun: `direction` is a unit vector from the scene toward the light.
-    Directional {
-        direction: DVec3,
-        irradiance: DVec3,
-        ambient: DVec3,
-    },
+    Directional { direction: DVec3, irradiance: DVec3, ambient: DVec3 },
     /// Equal radiance from every direction.
     Uniform { radiance: DVec3 },
     /// An equirectangular map times `scale`.
-    Environment {
-        path: PathBuf,
-        scale: f64,
-        map: EnvironmentMap,
-    },
+    Environment { path: PathBuf, scale: f64, map: EnvironmentMap },
     /// A near-field light: irradiance `intensity / r^2` on a surface facing it.
-    Point {
-        position: DVec3,
-        intensity: DVec3,
-        ambient: DVec3,
-    },
+    Point { position: DVec3, intensity: DVec3, ambient: DVec3 },
 }
 
 impl Light {
@@ -57,11 +45,7 @@ pub struct EnvironmentMap {
 pub fn uv_to_direction(u: f64, v: f64) -> DVec3 {
     let theta = v * PI;
     let phi = (u - 0.5) * 2.0 * PI;
-    DVec3::new(
-        theta.sin() * phi.sin(),
-        theta.cos(),
-        -theta.sin() * phi.cos(),
-    )
+    DVec3::new(theta.sin() * phi.sin(), theta.cos(), -theta.sin() * phi.cos())
 }
 
 /// The inverse of [`uv_to_direction`] for a unit direction; u in [0, 1), v in [0, 1].
@@ -97,10 +81,7 @@ impl EnvironmentMap {
 
     /// The direction through the centre of texel (x, y).
     pub fn texel_direction(&self, x: usize, y: usize) -> DVec3 {
-        uv_to_direction(
-            (x as f64 + 0.5) / self.image.width as f64,
-            (y as f64 + 0.5) / self.image.height as f64,
-        )
+        uv_to_direction((x as f64 + 0.5) / self.image.width as f64, (y as f64 + 0.5) / self.image.height as f64)
     }
 
     /// Solid angle of a texel in row `y` (rows near the poles are smaller).
@@ -117,18 +98,9 @@ mod tests {
 
     #[test]
     fn mapping_follows_the_spec() {
-        assert!(
-            (uv_to_direction(0.5, 0.0) - DVec3::Y).length() < 1e-12,
-            "top row is +Y"
-        );
-        assert!(
-            (uv_to_direction(0.5, 0.5) - DVec3::NEG_Z).length() < 1e-12,
-            "centre column looks to -Z"
-        );
-        assert!(
-            (uv_to_direction(0.75, 0.5) - DVec3::X).length() < 1e-12,
-            "u = 0.75 is +X"
-        );
+        assert!((uv_to_direction(0.5, 0.0) - DVec3::Y).length() < 1e-12, "top row is +Y");
+        assert!((uv_to_direction(0.5, 0.5) - DVec3::NEG_Z).length() < 1e-12, "centre column looks to -Z");
+        assert!((uv_to_direction(0.75, 0.5) - DVec3::X).length() < 1e-12, "u = 0.75 is +X");
         assert!((uv_to_direction(0.25, 0.5) - DVec3::NEG_X).length() < 1e-12);
         assert!((uv_to_direction(0.0, 0.5) - DVec3::Z).length() < 1e-12);
         assert!((uv_to_direction(0.3, 1.0) - DVec3::NEG_Y).length() < 1e-12);
@@ -140,10 +112,7 @@ mod tests {
             for j in 1..25 {
                 let (u, v) = (i as f64 / 50.0, j as f64 / 25.0);
                 let (u2, v2) = direction_to_uv(uv_to_direction(u, v));
-                assert!(
-                    (u - u2).abs() < 1e-9 && (v - v2).abs() < 1e-9,
-                    "{u} {v} -> {u2} {v2}"
-                );
+                assert!((u - u2).abs() < 1e-9 && (v - v2).abs() < 1e-9, "{u} {v} -> {u2} {v2}");
             }
         }
     }

@@ -66,11 +66,7 @@ pub struct Canvas {
 
 impl Canvas {
     pub fn new(width: usize, height: usize) -> Self {
-        Self {
-            width,
-            height,
-            pixels: vec![[255; 3]; width * height],
-        }
+        Self { width, height, pixels: vec![[255; 3]; width * height] }
     }
 
     pub fn set(&mut self, x: i64, y: i64, c: [u8; 3]) {
@@ -83,11 +79,7 @@ impl Canvas {
         let steps = ((x1 - x0).abs().max((y1 - y0).abs()).ceil() as usize).max(1);
         for k in 0..=steps {
             let t = k as f64 / steps as f64;
-            self.set(
-                (x0 + (x1 - x0) * t).round() as i64,
-                (y0 + (y1 - y0) * t).round() as i64,
-                c,
-            );
+            self.set((x0 + (x1 - x0) * t).round() as i64, (y0 + (y1 - y0) * t).round() as i64, c);
         }
     }
 
@@ -99,11 +91,7 @@ impl Canvas {
                     if bits & (4 >> col) != 0 {
                         for dy in 0..scale {
                             for dx in 0..scale {
-                                self.set(
-                                    x + (i as i64 * 4 + col) * scale + dx,
-                                    y + row as i64 * scale + dy,
-                                    c,
-                                );
+                                self.set(x + (i as i64 * 4 + col) * scale + dx, y + row as i64 * scale + dy, c);
                             }
                         }
                     }
@@ -114,13 +102,7 @@ impl Canvas {
 
     pub fn save_png(&self, path: &Path) -> Result<(), String> {
         let raw: Vec<u8> = self.pixels.iter().flatten().copied().collect();
-        let png = crate::imageio::encode_png_raw(
-            &raw,
-            self.width,
-            self.height,
-            image::ExtendedColorType::Rgb8,
-        )
-        .map_err(|e| e.to_string())?;
+        let png = crate::imageio::encode_png_raw(&raw, self.width, self.height, image::ExtendedColorType::Rgb8).map_err(|e| e.to_string())?;
         crate::imageio::write_atomic(path, &png).map_err(|e| format!("{}: {e}", path.display()))
     }
 }
@@ -141,16 +123,7 @@ pub struct Chart {
     pub series: Vec<Series>,
 }
 
-const COLOURS: [[u8; 3]; 8] = [
-    [31, 119, 180],
-    [214, 39, 40],
-    [44, 160, 44],
-    [255, 127, 14],
-    [148, 103, 189],
-    [140, 86, 75],
-    [227, 119, 194],
-    [23, 190, 207],
-];
+const COLOURS: [[u8; 3]; 8] = [[31, 119, 180], [214, 39, 40], [44, 160, 44], [255, 127, 14], [148, 103, 189], [140, 86, 75], [227, 119, 194], [23, 190, 207]];
 
 fn label(v: f64) -> String {
     if v == 0.0 {
@@ -175,23 +148,12 @@ impl Chart {
             .series
             .iter()
             .flat_map(|s| s.points.iter().copied())
-            .filter(|(x, y)| {
-                x.is_finite()
-                    && y.is_finite()
-                    && (!self.log_x || *x > 0.0)
-                    && (!self.log_y || *y > 0.0)
-            })
+            .filter(|(x, y)| x.is_finite() && y.is_finite() && (!self.log_x || *x > 0.0) && (!self.log_y || *y > 0.0))
             .map(|(x, y)| (tx(x), ty(y)))
             .collect();
-        let (mut x0, mut x1, mut y0, mut y1) = finite.iter().fold(
-            (
-                f64::INFINITY,
-                f64::NEG_INFINITY,
-                f64::INFINITY,
-                f64::NEG_INFINITY,
-            ),
-            |a, p| (a.0.min(p.0), a.1.max(p.0), a.2.min(p.1), a.3.max(p.1)),
-        );
+        let (mut x0, mut x1, mut y0, mut y1) = finite
+            .iter()
+            .fold((f64::INFINITY, f64::NEG_INFINITY, f64::INFINITY, f64::NEG_INFINITY), |a, p| (a.0.min(p.0), a.1.max(p.0), a.2.min(p.1), a.3.max(p.1)));
         if !x0.is_finite() {
             (x0, x1, y0, y1) = (0.0, 1.0, 0.0, 1.0);
         }
@@ -215,44 +177,21 @@ impl Chart {
             let fx = x0 + (x1 - x0) * k as f64 / 4.0;
             canvas.line((px(fx), top), (px(fx), bottom), grey);
             let value = if self.log_x { 10f64.powf(fx) } else { fx };
-            canvas.text(
-                px(fx) as i64 - 12,
-                bottom as i64 + 8,
-                &label(value),
-                2,
-                black,
-            );
+            canvas.text(px(fx) as i64 - 12, bottom as i64 + 8, &label(value), 2, black);
         }
         canvas.line((left, bottom), (right, bottom), black);
         canvas.line((left, top), (left, bottom), black);
         canvas.text(left as i64, 8, &self.title, 3, black);
         let x_name = format!("{}{}", self.x_label, if self.log_x { " (log)" } else { "" });
-        canvas.text(
-            (left + right) as i64 / 2 - 60,
-            height as i64 - 18,
-            &x_name,
-            2,
-            black,
-        );
+        canvas.text((left + right) as i64 / 2 - 60, height as i64 - 18, &x_name, 2, black);
         let y_name = format!("{}{}", self.y_label, if self.log_y { " (log)" } else { "" });
-        canvas.text(
-            right as i64 - 8 * y_name.len() as i64 - 4,
-            top as i64 - 14,
-            &y_name,
-            2,
-            black,
-        );
+        canvas.text(right as i64 - 8 * y_name.len() as i64 - 4, top as i64 - 14, &y_name, 2, black);
         for (i, s) in self.series.iter().enumerate() {
             let c = COLOURS[i % COLOURS.len()];
             let pts: Vec<(f64, f64)> = s
                 .points
                 .iter()
-                .filter(|(x, y)| {
-                    x.is_finite()
-                        && y.is_finite()
-                        && (!self.log_x || *x > 0.0)
-                        && (!self.log_y || *y > 0.0)
-                })
+                .filter(|(x, y)| x.is_finite() && y.is_finite() && (!self.log_x || *x > 0.0) && (!self.log_y || *y > 0.0))
                 .map(|&(x, y)| (px(tx(x)), py(ty(y))))
                 .collect();
             for w in pts.windows(2) {
@@ -266,13 +205,7 @@ impl Chart {
                     canvas.set(x as i64, y as i64 + d, c);
                 }
             }
-            canvas.text(
-                left as i64 + 10,
-                top as i64 + 6 + 14 * i as i64,
-                &s.name,
-                2,
-                c,
-            );
+            canvas.text(left as i64 + 10, top as i64 + 6 + 14 * i as i64, &s.name, 2, c);
         }
         canvas
     }

@@ -26,7 +26,15 @@ impl Ramp {
 
     pub fn at(&self, iteration: usize) -> f64 {
         let t = iteration as f64;
-        let tau = if self.ramp <= 0.0 { if t >= self.hold { 1.0 } else { 0.0 } } else { ((t - self.hold) / self.ramp).clamp(0.0, 1.0) };
+        let tau = if self.ramp <= 0.0 {
+            if t >= self.hold {
+                1.0
+            } else {
+                0.0
+            }
+        } else {
+            ((t - self.hold) / self.ramp).clamp(0.0, 1.0)
+        };
         (1.0 - tau) * self.from + tau * self.to
     }
 
@@ -106,7 +114,20 @@ impl Schedule {
 
     pub fn parse(text: &str, file: &Path) -> Result<Self, ScheduleError> {
         let table: toml::Table = text.parse().map_err(|e: toml::de::Error| err(file, "(syntax)", e.to_string()))?;
-        let known = ["iterations", "rays_per_batch", "samples_per_ray", "density_points", "regulariser_points", "checkpoint_every", "light", "light_from", "ambient_target", "curvature_epsilon", "learning_rates", "losses"];
+        let known = [
+            "iterations",
+            "rays_per_batch",
+            "samples_per_ray",
+            "density_points",
+            "regulariser_points",
+            "checkpoint_every",
+            "light",
+            "light_from",
+            "ambient_target",
+            "curvature_epsilon",
+            "learning_rates",
+            "losses",
+        ];
         for key in table.keys() {
             if !known.contains(&key.as_str()) {
                 return Err(err(file, key, format!("unknown key (known: {})", known.join(", "))));

@@ -93,9 +93,7 @@ pub fn check_rigid(m: &DMat4, tolerance: f64) -> Result<(), String> {
     }
     let det = r.determinant();
     if (det - 1.0).abs() > tolerance {
-        return Err(format!(
-            "rotation determinant is {det:.6}, expected +1 (a reflection?)"
-        ));
+        return Err(format!("rotation determinant is {det:.6}, expected +1 (a reflection?)"));
     }
     Ok(())
 }
@@ -106,13 +104,8 @@ mod tests {
 
     #[test]
     fn local_and_world_round_trip() {
-        let m = DMat4::from_rotation_translation(
-            glam::DQuat::from_euler(glam::EulerRot::XYZ, 0.3, -1.1, 2.0),
-            DVec3::new(1.0, 2.0, -3.0),
-        );
-        let pose = Pose {
-            bone_to_world: vec![m],
-        };
+        let m = DMat4::from_rotation_translation(glam::DQuat::from_euler(glam::EulerRot::XYZ, 0.3, -1.1, 2.0), DVec3::new(1.0, 2.0, -3.0));
+        let pose = Pose { bone_to_world: vec![m] };
         let p = DVec3::new(0.2, -0.7, 1.5);
         let back = pose.to_local(0, pose.to_world(0, p));
         assert!((back - p).length() < 1e-12);
@@ -123,9 +116,7 @@ mod tests {
         let scaled = DMat4::from_scale(DVec3::new(1.0, 1.01, 1.0));
         assert!(check_rigid(&scaled, 1e-3).is_err());
         let mirrored = DMat4::from_scale(DVec3::new(1.0, 1.0, -1.0));
-        assert!(check_rigid(&mirrored, 1e-3)
-            .unwrap_err()
-            .contains("determinant"));
+        assert!(check_rigid(&mirrored, 1e-3).unwrap_err().contains("determinant"));
         assert!(check_rigid(&DMat4::IDENTITY, 1e-3).is_ok());
     }
 }

@@ -13,12 +13,7 @@ fn near_foreground(view: &View, x: f64, y: f64, radius: i64) -> bool {
     for dy in -radius..=radius {
         for dx in -radius..=radius {
             let (px, py) = (xi + dx, yi + dy);
-            if px >= 0
-                && py >= 0
-                && (px as usize) < mask.width
-                && (py as usize) < mask.height
-                && mask.foreground[py as usize * mask.width + px as usize]
-            {
+            if px >= 0 && py >= 0 && (px as usize) < mask.width && (py as usize) < mask.height && mask.foreground[py as usize * mask.width + px as usize] {
                 return true;
             }
         }
@@ -33,14 +28,7 @@ fn fixture_loads_and_frames_are_positions() {
     assert_eq!(scene.cameras.len(), 4);
     let indices: Vec<i64> = scene.frames.iter().map(|f| f.index).collect();
     assert_eq!(indices, vec![0, 10, 20, 15]);
-    assert_eq!(
-        scene
-            .views
-            .iter()
-            .filter(|v| v.split == Split::Train)
-            .count(),
-        9
-    );
+    assert_eq!(scene.views.iter().filter(|v| v.split == Split::Train).count(), 9);
     assert!(matches!(scene.lights["dusk"], Light::Environment { .. }));
 }
 
@@ -66,12 +54,7 @@ fn ground_truth_mesh_projects_into_the_masks() {
             }
         }
         assert!(total > 100);
-        assert_eq!(
-            outside,
-            0,
-            "{}: {outside} of {total} vertices project outside the mask",
-            view.path.display()
-        );
+        assert_eq!(outside, 0, "{}: {outside} of {total} vertices project outside the mask", view.path.display());
         checked += 1;
     }
     assert_eq!(checked, scene.views.len());
@@ -86,8 +69,7 @@ fn posed_bone_centres_land_in_the_masks() {
             let centre = pose.to_world(b, bone.centre_local());
             let pixel = scene.cameras[view.camera].project(centre).unwrap();
             assert!(
-                near_foreground(view, pixel.x, pixel.y, 0)
-                    || near_foreground(view, pixel.x, pixel.y, 1),
+                near_foreground(view, pixel.x, pixel.y, 0) || near_foreground(view, pixel.x, pixel.y, 1),
                 "{} bone {} at {pixel}",
                 view.path.display(),
                 bone.name
@@ -101,26 +83,14 @@ fn sunlit_pixels_are_bounded_by_the_formula() {
     // a (ambient + E max(0, n.l) V) lies between a * ambient and a * (ambient + E): decoded to
     // linear, every foreground pixel of a sun-lit test image with albedo obeys it.
     let scene = Scene::load(&common::example_scene()).unwrap();
-    let Light::Directional {
-        irradiance,
-        ambient,
-        ..
-    } = scene.lights["sun"]
-    else {
-        panic!("sun")
-    };
+    let Light::Directional { irradiance, ambient, .. } = scene.lights["sun"] else { panic!("sun") };
     let mut interior = 0;
-    for view in scene
-        .views
-        .iter()
-        .filter(|v| v.light == "sun" && v.albedo.is_some())
-    {
+    for view in scene.views.iter().filter(|v| v.light == "sun" && v.albedo.is_some()) {
         let mask = view.mask.as_ref().unwrap();
         let albedo = view.albedo.as_ref().unwrap();
         for y in 1..mask.height - 1 {
             for x in 1..mask.width - 1 {
-                let all =
-                    (0..9).all(|k| mask.foreground[(y + k / 3 - 1) * mask.width + x + k % 3 - 1]);
+                let all = (0..9).all(|k| mask.foreground[(y + k / 3 - 1) * mask.width + x + k % 3 - 1]);
                 if !all {
                     continue; // silhouettes are anti-aliased
                 }

@@ -14,14 +14,7 @@ fn valid_scene_with_all_light_types_and_mixed_camera_sizes_loads() {
     valid_scene(dir.path());
     let scene = Scene::load(dir.path()).unwrap();
     assert_eq!(scene.skeleton.len(), 2);
-    assert_eq!(
-        (
-            scene.cameras[0].width,
-            scene.cameras[1].width,
-            scene.cameras[1].height
-        ),
-        (8, 6, 4)
-    );
+    assert_eq!((scene.cameras[0].width, scene.cameras[1].width, scene.cameras[1].height), (8, 6, 4));
     assert_eq!(scene.frames[0].index, 5);
     assert_eq!(scene.frames[1].index, 2);
     let types: Vec<&str> = scene.lights.values().map(Light::type_name).collect();
@@ -29,10 +22,7 @@ fn valid_scene_with_all_light_types_and_mixed_camera_sizes_loads() {
         assert!(types.contains(&t), "{t} missing from {types:?}");
     }
     match &scene.lights["sun"] {
-        Light::Directional { direction, .. } => assert!(
-            (direction.length() - 1.0).abs() < 1e-12,
-            "direction normalised on load"
-        ),
+        Light::Directional { direction, .. } => assert!((direction.length() - 1.0).abs() < 1e-12, "direction normalised on load"),
         _ => panic!("sun is directional"),
     }
     match &scene.lights["sky"] {
@@ -46,26 +36,12 @@ fn valid_scene_with_all_light_types_and_mixed_camera_sizes_loads() {
     assert_eq!(train.split, Split::Train);
     assert_eq!(train.frame, 1, "images[].frame is a position in frames");
     let mask = train.mask.as_ref().unwrap();
-    assert_eq!(
-        mask.foreground.iter().filter(|&&f| f).count(),
-        (0..64).filter(|k| k % 3 == 0).count()
-    );
+    assert_eq!(mask.foreground.iter().filter(|&&f| f).count(), (0..64).filter(|k| k % 3 == 0).count());
     // sRGB PNG decoded to linear: code 128 is 0.2158605, code 36 is 0.0176420.
-    assert!(
-        (train.colour.get(0, 0)[1] - 0.215_860_5).abs() < 1e-6,
-        "{:?}",
-        train.colour.get(0, 0)
-    );
-    assert!(
-        (train.colour.get(1, 0)[0] - 0.017_642_0).abs() < 1e-6,
-        "{:?}",
-        train.colour.get(1, 0)
-    );
+    assert!((train.colour.get(0, 0)[1] - 0.215_860_5).abs() < 1e-6, "{:?}", train.colour.get(0, 0));
+    assert!((train.colour.get(1, 0)[0] - 0.017_642_0).abs() < 1e-6, "{:?}", train.colour.get(1, 0));
     assert!(scene.views[1].albedo.is_some());
-    assert!(
-        scene.views[2].mask.is_none(),
-        "masks are optional outside train"
-    );
+    assert!(scene.views[2].mask.is_none(), "masks are optional outside train");
 }
 
 /// Applies `edit` to the valid scene, loads it and returns the error.
@@ -75,10 +51,7 @@ fn broken(edit: impl FnOnce(&mut Value, &std::path::Path)) -> umbra::scene::Scen
     edit(&mut scene, dir.path());
     write_scene_json(dir.path(), &scene);
     let err = Scene::load(dir.path()).expect_err("a broken scene must not load");
-    assert!(
-        err.to_string().contains("scene.json"),
-        "message names the file: {err}"
-    );
+    assert!(err.to_string().contains("scene.json"), "message names the file: {err}");
     err
 }
 
@@ -86,286 +59,94 @@ fn expect_path(err: umbra::scene::SceneError, path: &str, words: &str) {
     assert_eq!(err.path, path, "{err}");
     let text = err.to_string();
     assert!(text.contains(path), "{text}");
-    assert!(
-        text.to_lowercase().contains(words),
-        "{text} should mention {words:?}"
-    );
+    assert!(text.to_lowercase().contains(words), "{text} should mention {words:?}");
 }
 
 #[test]
 fn format_must_be_scene_1() {
-    expect_path(
-        broken(|s, _| s["format"] = json!("scene/2")),
-        "format",
-        "scene/2",
-    );
+    expect_path(broken(|s, _| s["format"] = json!("scene/2")), "format", "scene/2");
 }
 
 #[test]
 fn required_top_level_fields() {
     for key in ["skeleton", "cameras", "frames", "lights", "images"] {
-        expect_path(
-            broken(|s, _| drop(s.as_object_mut().unwrap().remove(key))),
-            key,
-            "missing",
-        );
+        expect_path(broken(|s, _| drop(s.as_object_mut().unwrap().remove(key))), key, "missing");
     }
 }
 
 #[test]
 fn skeleton_rules() {
-    expect_path(
-        broken(|s, _| s["skeleton"]["bones"] = json!([])),
-        "skeleton.bones",
-        "at least one",
-    );
-    expect_path(
-        broken(|s, _| s["skeleton"]["bones"][1]["parent"] = json!(1)),
-        "skeleton.bones[1].parent",
-        "earlier",
-    );
-    expect_path(
-        broken(|s, _| s["skeleton"]["bones"][0]["parent"] = json!(0)),
-        "skeleton.bones[0].parent",
-        "earlier",
-    );
-    expect_path(
-        broken(|s, _| s["skeleton"]["bones"][0]["length"] = json!(0.0)),
-        "skeleton.bones[0].length",
-        "> 0",
-    );
-    expect_path(
-        broken(|s, _| s["skeleton"]["bones"][1]["name"] = json!("root")),
-        "skeleton.bones[1].name",
-        "twice",
-    );
-    expect_path(
-        broken(|s, _| s["skeleton"]["bones"][1]["length"] = json!("long")),
-        "skeleton.bones[1].length",
-        "number",
-    );
+    expect_path(broken(|s, _| s["skeleton"]["bones"] = json!([])), "skeleton.bones", "at least one");
+    expect_path(broken(|s, _| s["skeleton"]["bones"][1]["parent"] = json!(1)), "skeleton.bones[1].parent", "earlier");
+    expect_path(broken(|s, _| s["skeleton"]["bones"][0]["parent"] = json!(0)), "skeleton.bones[0].parent", "earlier");
+    expect_path(broken(|s, _| s["skeleton"]["bones"][0]["length"] = json!(0.0)), "skeleton.bones[0].length", "> 0");
+    expect_path(broken(|s, _| s["skeleton"]["bones"][1]["name"] = json!("root")), "skeleton.bones[1].name", "twice");
+    expect_path(broken(|s, _| s["skeleton"]["bones"][1]["length"] = json!("long")), "skeleton.bones[1].length", "number");
 }
 
 #[test]
 fn camera_rules() {
-    expect_path(
-        broken(|s, _| s["cameras"] = json!([])),
-        "cameras",
-        "at least one",
-    );
-    expect_path(
-        broken(|s, _| s["cameras"][0]["width"] = json!(0)),
-        "cameras[0].width",
-        "positive",
-    );
-    expect_path(
-        broken(|s, _| s["cameras"][1]["height"] = json!(2.5)),
-        "cameras[1].height",
-        "integer",
-    );
-    expect_path(
-        broken(|s, _| s["cameras"][1]["fx"] = json!(-1.0)),
-        "cameras[1].fx",
-        "> 0",
-    );
-    expect_path(
-        broken(|s, _| s["cameras"][0]["fy"] = json!(0)),
-        "cameras[0].fy",
-        "> 0",
-    );
-    expect_path(
-        broken(|s, _| {
-            s["cameras"][0]["camera_to_world"] = json!([[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0]])
-        }),
-        "cameras[0].camera_to_world",
-        "4 rows",
-    );
-    expect_path(
-        broken(|s, _| s["cameras"][0]["camera_to_world"][3] = json!([0, 0, 1, 1])),
-        "cameras[0].camera_to_world[3]",
-        "last row",
-    );
-    expect_path(
-        broken(|s, _| s["cameras"][0]["camera_to_world"][1] = json!([0, 1, 0])),
-        "cameras[0].camera_to_world[1]",
-        "4 numbers",
-    );
+    expect_path(broken(|s, _| s["cameras"] = json!([])), "cameras", "at least one");
+    expect_path(broken(|s, _| s["cameras"][0]["width"] = json!(0)), "cameras[0].width", "positive");
+    expect_path(broken(|s, _| s["cameras"][1]["height"] = json!(2.5)), "cameras[1].height", "integer");
+    expect_path(broken(|s, _| s["cameras"][1]["fx"] = json!(-1.0)), "cameras[1].fx", "> 0");
+    expect_path(broken(|s, _| s["cameras"][0]["fy"] = json!(0)), "cameras[0].fy", "> 0");
+    expect_path(broken(|s, _| s["cameras"][0]["camera_to_world"] = json!([[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0]])), "cameras[0].camera_to_world", "4 rows");
+    expect_path(broken(|s, _| s["cameras"][0]["camera_to_world"][3] = json!([0, 0, 1, 1])), "cameras[0].camera_to_world[3]", "last row");
+    expect_path(broken(|s, _| s["cameras"][0]["camera_to_world"][1] = json!([0, 1, 0])), "cameras[0].camera_to_world[1]", "4 numbers");
 }
 
 #[test]
 fn frame_rules() {
+    expect_path(broken(|s, _| s["frames"] = json!([])), "frames", "at least one");
+    expect_path(broken(|s, _| s["frames"][1]["index"] = json!(5)), "frames[1].index", "twice");
+    expect_path(broken(|s, _| s["frames"][0]["bone_to_world"] = json!([identity_rows(0.0)])), "frames[0].bone_to_world", "one matrix per bone");
     expect_path(
-        broken(|s, _| s["frames"] = json!([])),
-        "frames",
-        "at least one",
-    );
-    expect_path(
-        broken(|s, _| s["frames"][1]["index"] = json!(5)),
-        "frames[1].index",
-        "twice",
-    );
-    expect_path(
-        broken(|s, _| s["frames"][0]["bone_to_world"] = json!([identity_rows(0.0)])),
-        "frames[0].bone_to_world",
-        "one matrix per bone",
-    );
-    expect_path(
-        broken(|s, _| {
-            s["frames"][1]["bone_to_world"][0] =
-                json!([[1.1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]])
-        }),
+        broken(|s, _| s["frames"][1]["bone_to_world"][0] = json!([[1.1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]])),
         "frames[1].bone_to_world[0]",
         "rigid",
     );
     expect_path(
-        broken(|s, _| {
-            s["frames"][1]["bone_to_world"][1] =
-                json!([[-1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]])
-        }),
+        broken(|s, _| s["frames"][1]["bone_to_world"][1] = json!([[-1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]])),
         "frames[1].bone_to_world[1]",
         "determinant",
     );
-    expect_path(
-        broken(|s, _| s["frames"][0]["mesh"] = json!("meshes/none.obj")),
-        "frames[0].mesh",
-        "not found",
-    );
-    expect_path(
-        broken(|s, _| s["frames"][0]["time"] = json!("soon")),
-        "frames[0].time",
-        "number",
-    );
+    expect_path(broken(|s, _| s["frames"][0]["mesh"] = json!("meshes/none.obj")), "frames[0].mesh", "not found");
+    expect_path(broken(|s, _| s["frames"][0]["time"] = json!("soon")), "frames[0].time", "number");
 }
 
 #[test]
 fn light_rules() {
-    expect_path(
-        broken(|s, _| s["lights"] = json!({})),
-        "lights",
-        "at least one",
-    );
-    expect_path(
-        broken(|s, _| s["lights"]["sun"]["type"] = json!("laser")),
-        "lights.sun.type",
-        "unknown light type",
-    );
-    expect_path(
-        broken(|s, _| s["lights"]["sun"]["direction"] = json!([0, 0, 0])),
-        "lights.sun.direction",
-        "zero length",
-    );
-    expect_path(
-        broken(|s, _| s["lights"]["sun"]["irradiance"] = json!([1, -1, 1])),
-        "lights.sun.irradiance",
-        ">= 0",
-    );
-    expect_path(
-        broken(|s, _| {
-            drop(
-                s["lights"]["studio"]
-                    .as_object_mut()
-                    .unwrap()
-                    .remove("radiance"),
-            )
-        }),
-        "lights.studio.radiance",
-        "missing",
-    );
-    expect_path(
-        broken(|s, _| s["lights"]["sky"]["path"] = json!("lights/none.exr")),
-        "lights.sky.path",
-        "not found",
-    );
-    expect_path(
-        broken(|s, _| s["lights"]["lamp"]["position"] = json!([1, 2])),
-        "lights.lamp.position",
-        "3 numbers",
-    );
+    expect_path(broken(|s, _| s["lights"] = json!({})), "lights", "at least one");
+    expect_path(broken(|s, _| s["lights"]["sun"]["type"] = json!("laser")), "lights.sun.type", "unknown light type");
+    expect_path(broken(|s, _| s["lights"]["sun"]["direction"] = json!([0, 0, 0])), "lights.sun.direction", "zero length");
+    expect_path(broken(|s, _| s["lights"]["sun"]["irradiance"] = json!([1, -1, 1])), "lights.sun.irradiance", ">= 0");
+    expect_path(broken(|s, _| drop(s["lights"]["studio"].as_object_mut().unwrap().remove("radiance"))), "lights.studio.radiance", "missing");
+    expect_path(broken(|s, _| s["lights"]["sky"]["path"] = json!("lights/none.exr")), "lights.sky.path", "not found");
+    expect_path(broken(|s, _| s["lights"]["lamp"]["position"] = json!([1, 2])), "lights.lamp.position", "3 numbers");
 }
 
 #[test]
 fn image_rules() {
-    expect_path(
-        broken(|s, _| s["images"] = json!([])),
-        "images",
-        "at least one",
-    );
-    expect_path(
-        broken(|s, _| s["images"][0]["camera"] = json!(2)),
-        "images[0].camera",
-        "out of range",
-    );
-    expect_path(
-        broken(|s, _| s["images"][0]["frame"] = json!(5)),
-        "images[0].frame",
-        "out of range",
-    );
-    expect_path(
-        broken(|s, _| s["images"][2]["frame"] = json!(-1)),
-        "images[2].frame",
-        "out of range",
-    );
-    expect_path(
-        broken(|s, _| s["images"][0]["light"] = json!("moon")),
-        "images[0].light",
-        "unknown light",
-    );
-    expect_path(
-        broken(|s, _| s["images"][0]["split"] = json!("training")),
-        "images[0].split",
-        "unknown split",
-    );
-    expect_path(
-        broken(|s, _| s["images"][1]["path"] = json!("images/none.png")),
-        "images[1].path",
-        "not found",
-    );
-    expect_path(
-        broken(|s, _| drop(s["images"][0].as_object_mut().unwrap().remove("mask"))),
-        "images[0].mask",
-        "mask is required",
-    );
-    expect_path(
-        broken(|s, _| s["images"][0]["path"] = json!("images/b.png")),
-        "images[0].path",
-        "6x4",
-    );
-    expect_path(
-        broken(|s, _| s["images"][1]["albedo"] = json!("images/a.png")),
-        "images[1].albedo",
-        "8x8",
-    );
-    expect_path(
-        broken(|s, _| s["images"][0]["mask"] = json!("masks/none.png")),
-        "images[0].mask",
-        "not found",
-    );
+    expect_path(broken(|s, _| s["images"] = json!([])), "images", "at least one");
+    expect_path(broken(|s, _| s["images"][0]["camera"] = json!(2)), "images[0].camera", "out of range");
+    expect_path(broken(|s, _| s["images"][0]["frame"] = json!(5)), "images[0].frame", "out of range");
+    expect_path(broken(|s, _| s["images"][2]["frame"] = json!(-1)), "images[2].frame", "out of range");
+    expect_path(broken(|s, _| s["images"][0]["light"] = json!("moon")), "images[0].light", "unknown light");
+    expect_path(broken(|s, _| s["images"][0]["split"] = json!("training")), "images[0].split", "unknown split");
+    expect_path(broken(|s, _| s["images"][1]["path"] = json!("images/none.png")), "images[1].path", "not found");
+    expect_path(broken(|s, _| drop(s["images"][0].as_object_mut().unwrap().remove("mask"))), "images[0].mask", "mask is required");
+    expect_path(broken(|s, _| s["images"][0]["path"] = json!("images/b.png")), "images[0].path", "6x4");
+    expect_path(broken(|s, _| s["images"][1]["albedo"] = json!("images/a.png")), "images[1].albedo", "8x8");
+    expect_path(broken(|s, _| s["images"][0]["mask"] = json!("masks/none.png")), "images[0].mask", "not found");
 }
 
 #[test]
 fn corrupt_files_are_errors_not_panics() {
-    expect_path(
-        broken(|_, dir| {
-            std::fs::write(dir.join("images/a.png"), b"\x89PNG\r\n\x1a\n not really").unwrap()
-        }),
-        "images[0].path",
-        "decode",
-    );
-    expect_path(
-        broken(|_, dir| std::fs::write(dir.join("masks/a.png"), b"").unwrap()),
-        "images[0].mask",
-        "decode",
-    );
-    expect_path(
-        broken(|_, dir| std::fs::write(dir.join("lights/sky.exr"), b"v/1\x01garbage").unwrap()),
-        "lights.sky.path",
-        "decode",
-    );
-    expect_path(
-        broken(|s, _| s["images"][0]["path"] = json!("scene.json")),
-        "images[0].path",
-        "unsupported",
-    );
+    expect_path(broken(|_, dir| std::fs::write(dir.join("images/a.png"), b"\x89PNG\r\n\x1a\n not really").unwrap()), "images[0].path", "decode");
+    expect_path(broken(|_, dir| std::fs::write(dir.join("masks/a.png"), b"").unwrap()), "images[0].mask", "decode");
+    expect_path(broken(|_, dir| std::fs::write(dir.join("lights/sky.exr"), b"v/1\x01garbage").unwrap()), "lights.sky.path", "decode");
+    expect_path(broken(|s, _| s["images"][0]["path"] = json!("scene.json")), "images[0].path", "unsupported");
 }
 
 fn broken_text(edit: impl FnOnce(String) -> String) -> umbra::scene::SceneError {
@@ -385,16 +166,10 @@ fn nan_infinity_and_truncation_are_reported() {
     let err = broken_text(|t| t.replace("\"fx\": 10.0", "\"fx\": 1e999"));
     assert!(err.to_string().contains("invalid JSON"), "{err}");
     let err = broken_text(|t| t[..t.len() / 2].to_string());
-    assert!(
-        err.to_string().contains("EOF") || err.to_string().contains("invalid JSON"),
-        "{err}"
-    );
+    assert!(err.to_string().contains("EOF") || err.to_string().contains("invalid JSON"), "{err}");
     let dir = TempDir::new("none");
     let err = Scene::load(dir.path()).unwrap_err();
-    assert!(
-        err.to_string().contains("scene.json") && err.to_string().contains("not found"),
-        "{err}"
-    );
+    assert!(err.to_string().contains("scene.json") && err.to_string().contains("not found"), "{err}");
 }
 
 #[test]
@@ -404,32 +179,17 @@ fn inspect_exits_non_zero_with_the_json_path_and_writes_nothing() {
     scene["images"][2]["camera"] = json!(7);
     write_scene_json(dir.path(), &scene);
     let before: Vec<_> = walk(dir.path());
-    let out = std::process::Command::new(env!("CARGO_BIN_EXE_umbra"))
-        .arg("inspect")
-        .arg(dir.path())
-        .output()
-        .unwrap();
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_umbra")).arg("inspect").arg(dir.path()).output().unwrap();
     assert!(!out.status.success());
     let stderr = String::from_utf8_lossy(&out.stderr);
-    assert!(
-        stderr.contains("scene.json: images[2].camera: index 7 out of range"),
-        "{stderr}"
-    );
+    assert!(stderr.contains("scene.json: images[2].camera: index 7 out of range"), "{stderr}");
     assert_eq!(before, walk(dir.path()), "inspect wrote nothing");
 
     scene["images"][2]["camera"] = json!(1);
     scene["images"][2]["path"] = json!("images/b.png");
     write_scene_json(dir.path(), &scene);
-    let out = std::process::Command::new(env!("CARGO_BIN_EXE_umbra"))
-        .arg("inspect")
-        .arg(dir.path())
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_umbra")).arg("inspect").arg(dir.path()).output().unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
     let stdout = String::from_utf8_lossy(&out.stdout);
     assert!(stdout.contains("cameras: 2"), "{stdout}");
 }

@@ -58,30 +58,13 @@ struct Case {
 
 impl Case {
     fn closed_form(&self) -> f64 {
-        let cols = [
-            self.axes.x_axis.to_array(),
-            self.axes.y_axis.to_array(),
-            self.axes.z_axis.to_array(),
-        ];
-        optical_depth(
-            self.mean.to_array(),
-            cols,
-            self.scales.to_array(),
-            self.amplitude,
-            self.origin.to_array(),
-            self.direction.to_array(),
-            self.t0,
-            self.t1,
-        )
+        let cols = [self.axes.x_axis.to_array(), self.axes.y_axis.to_array(), self.axes.z_axis.to_array()];
+        optical_depth(self.mean.to_array(), cols, self.scales.to_array(), self.amplitude, self.origin.to_array(), self.direction.to_array(), self.t0, self.t1)
     }
 
     /// Quadrature of the density along the ray, independent of the closed form's algebra.
     fn quadrature(&self, nodes: &[(f64, f64)]) -> f64 {
-        let inverse_covariance = |v: DVec3| -> f64 {
-            (0..3)
-                .map(|k| (self.axes.col(k).dot(v) / self.scales[k]).powi(2))
-                .sum()
-        };
+        let inverse_covariance = |v: DVec3| -> f64 { (0..3).map(|k| (self.axes.col(k).dot(v) / self.scales[k]).powi(2)).sum() };
         let offset = self.origin - self.mean;
         // Where the mass is along the ray (only used to place the integration window).
         let mut quadratic = 0.0;
@@ -118,11 +101,7 @@ impl Case {
             let mid = lo + (p as f64 + 0.5) * width;
             for &(x, w) in nodes {
                 let u = mid + 0.5 * width * x;
-                total += w
-                    * 0.5
-                    * width
-                    * self.amplitude
-                    * (-0.5 * inverse_covariance(position(u))).exp();
+                total += w * 0.5 * width * self.amplitude * (-0.5 * inverse_covariance(position(u))).exp();
             }
         }
         total
@@ -135,11 +114,7 @@ fn log_uniform(s: &mut Stream, lo: f64, hi: f64) -> f64 {
 
 fn unit(s: &mut Stream) -> DVec3 {
     loop {
-        let v = DVec3::new(
-            s.uniform() * 2.0 - 1.0,
-            s.uniform() * 2.0 - 1.0,
-            s.uniform() * 2.0 - 1.0,
-        );
+        let v = DVec3::new(s.uniform() * 2.0 - 1.0, s.uniform() * 2.0 - 1.0, s.uniform() * 2.0 - 1.0);
         if v.length_squared() > 1e-4 && v.length_squared() <= 1.0 {
             return v.normalize();
         }
@@ -151,16 +126,8 @@ fn cases(n: usize, seed: u64) -> Vec<(String, Case)> {
     let mut s = Stream::new(seed, 1, 2);
     let mut out = Vec::new();
     for i in 0..n {
-        let scales = DVec3::new(
-            log_uniform(&mut s, 1e-4, 10.0),
-            log_uniform(&mut s, 1e-4, 10.0),
-            log_uniform(&mut s, 1e-4, 10.0),
-        );
-        let scales = if i % 3 == 0 {
-            DVec3::splat(scales.x) * DVec3::new(1.0, 1.5, 0.7)
-        } else {
-            scales
-        };
+        let scales = DVec3::new(log_uniform(&mut s, 1e-4, 10.0), log_uniform(&mut s, 1e-4, 10.0), log_uniform(&mut s, 1e-4, 10.0));
+        let scales = if i % 3 == 0 { DVec3::splat(scales.x) * DVec3::new(1.0, 1.5, 0.7) } else { scales };
         let rotation = DQuat::from_axis_angle(unit(&mut s), s.uniform() * 6.28);
         let axes = DMat3::from_quat(rotation);
         let mean = (unit(&mut s)) * s.uniform() * 3.0;
@@ -175,21 +142,11 @@ fn cases(n: usize, seed: u64) -> Vec<(String, Case)> {
         let reach = scales.max_element();
         let kind = i % 8;
         let (name, origin, direction) = match kind {
-            0 => (
-                "inside",
-                mean + axes
-                    * (scales
-                        * DVec3::new(s.uniform() - 0.5, s.uniform() - 0.5, s.uniform() - 0.5)),
-                unit(&mut s),
-            ),
+            0 => ("inside", mean + axes * (scales * DVec3::new(s.uniform() - 0.5, s.uniform() - 0.5, s.uniform() - 0.5)), unit(&mut s)),
             1 => {
                 // Behind: the ray points away from the Gaussian.
                 let away = unit(&mut s);
-                (
-                    "behind",
-                    mean + away * reach * (1.0 + 3.0 * s.uniform()),
-                    (away + unit(&mut s) * 0.3).normalize(),
-                )
+                ("behind", mean + away * reach * (1.0 + 3.0 * s.uniform()), (away + unit(&mut s) * 0.3).normalize())
             }
             2 => {
                 let d = unit(&mut s);
@@ -200,68 +157,24 @@ fn cases(n: usize, seed: u64) -> Vec<(String, Case)> {
                 // Grazing: passes 3-6 standard deviations from the centre.
                 let d = unit(&mut s);
                 let side = d.any_orthonormal_vector();
-                let sigma_side = 1.0
-                    / (0..3)
-                        .map(|k| (axes.col(k).dot(side) / scales[k]).powi(2))
-                        .sum::<f64>()
-                        .sqrt();
-                (
-                    "grazing",
-                    mean + side * sigma_side * (3.0 + 3.0 * s.uniform()) - d * reach * 5.0,
-                    d,
-                )
+                let sigma_side = 1.0 / (0..3).map(|k| (axes.col(k).dot(side) / scales[k]).powi(2)).sum::<f64>().sqrt();
+                ("grazing", mean + side * sigma_side * (3.0 + 3.0 * s.uniform()) - d * reach * 5.0, d)
             }
-            4 => (
-                "parallel to longest axis",
-                mean - longest * reach * (2.0 + s.uniform()) + axes * (scales * unit(&mut s) * 0.5),
-                longest,
-            ),
-            5 => (
-                "axis-aligned ray",
-                mean + DVec3::new(0.0, 0.0, -2.0 * reach) + axes * (scales * unit(&mut s)),
-                DVec3::Z,
-            ),
-            _ => (
-                "random",
-                mean + unit(&mut s) * reach * 4.0 * s.uniform(),
-                unit(&mut s),
-            ),
+            4 => ("parallel to longest axis", mean - longest * reach * (2.0 + s.uniform()) + axes * (scales * unit(&mut s) * 0.5), longest),
+            5 => ("axis-aligned ray", mean + DVec3::new(0.0, 0.0, -2.0 * reach) + axes * (scales * unit(&mut s)), DVec3::Z),
+            _ => ("random", mean + unit(&mut s) * reach * 4.0 * s.uniform(), unit(&mut s)),
         };
         let along = (mean - origin).dot(direction);
         let sigma_along = reach;
         let (segment, t0, t1) = match i % 5 {
             0 => ("[0, inf)", 0.0, f64::INFINITY),
-            1 => (
-                "finite",
-                (along - sigma_along * 2.0 * s.uniform()).max(0.0),
-                along + sigma_along * 3.0 * s.uniform(),
-            ),
+            1 => ("finite", (along - sigma_along * 2.0 * s.uniform()).max(0.0), along + sigma_along * 3.0 * s.uniform()),
             2 => ("t0 = t1", along, along),
-            3 => (
-                "short",
-                along + 0.1 * sigma_along * s.uniform(),
-                along + 0.1 * sigma_along * s.uniform() + 1e-6 * sigma_along,
-            ),
-            _ => (
-                "ends inside",
-                0.0,
-                along + sigma_along * (s.uniform() - 0.5),
-            ),
+            3 => ("short", along + 0.1 * sigma_along * s.uniform(), along + 0.1 * sigma_along * s.uniform() + 1e-6 * sigma_along),
+            _ => ("ends inside", 0.0, along + sigma_along * (s.uniform() - 0.5)),
         };
         let (t0, t1) = if t1 < t0 { (t1, t0) } else { (t0, t1) };
-        out.push((
-            format!("{name}, {segment}"),
-            Case {
-                mean,
-                axes,
-                scales,
-                amplitude,
-                origin,
-                direction,
-                t0: t0.max(0.0),
-                t1,
-            },
-        ));
+        out.push((format!("{name}, {segment}"), Case { mean, axes, scales, amplitude, origin, direction, t0: t0.max(0.0), t1 }));
     }
     out
 }
@@ -274,17 +187,13 @@ fn libm_erf_agrees_with_statrs_and_quadrature() {
     for k in 0..=600 {
         let x = -6.0 + 12.0 * k as f64 / 600.0;
         let (e, c) = (libm::erf(x), libm::erfc(x));
-        worst_statrs =
-            worst_statrs.max(((e - statrs::function::erf::erf(x)) / e.abs().max(1e-300)).abs());
+        worst_statrs = worst_statrs.max(((e - statrs::function::erf::erf(x)) / e.abs().max(1e-300)).abs());
         worst_statrs = worst_statrs.max(((c - statrs::function::erf::erfc(x)) / c).abs());
         // erf(x) = 2/sqrt(pi) int_0^x exp(-u^2) du, composite 20-point Gauss-Legendre.
         let panels = 40;
         let mut q = 0.0;
         for p in 0..panels {
-            let (a, b) = (
-                x * p as f64 / panels as f64,
-                x * (p + 1) as f64 / panels as f64,
-            );
+            let (a, b) = (x * p as f64 / panels as f64, x * (p + 1) as f64 / panels as f64);
             for &(n, w) in &nodes {
                 let u = 0.5 * (a + b) + 0.5 * (b - a) * n;
                 q += w * 0.5 * (b - a) * (-u * u).exp();
@@ -297,10 +206,7 @@ fn libm_erf_agrees_with_statrs_and_quadrature() {
     }
     // statrs documents about 1e-10 relative accuracy; measured here its worst is ~1.03e-10.
     assert!(worst_statrs < 3e-10, "libm vs statrs: {worst_statrs:e}");
-    assert!(
-        worst_quadrature < 1e-13,
-        "libm vs quadrature: {worst_quadrature:e}"
-    );
+    assert!(worst_quadrature < 1e-13, "libm vs quadrature: {worst_quadrature:e}");
 }
 
 #[test]
@@ -322,10 +228,7 @@ fn erf_difference_never_cancels() {
         let panels = 8;
         let mut q = 0.0;
         for p in 0..panels {
-            let (lo, hi) = (
-                a + width * p as f64 / panels as f64,
-                a + width * (p + 1) as f64 / panels as f64,
-            );
+            let (lo, hi) = (a + width * p as f64 / panels as f64, a + width * (p + 1) as f64 / panels as f64);
             for &(n, w) in &nodes {
                 let u = 0.5 * (lo + hi) + 0.5 * (hi - lo) * n;
                 q += w * 0.5 * (hi - lo) * (-u * u).exp();
@@ -362,63 +265,17 @@ fn closed_form_matches_quadrature_to_1e9_over_stress_ranges() {
             worst = (error, name.clone());
         }
     }
-    assert!(
-        count > 2000,
-        "enough cases with a non-negligible reference: {count}"
-    );
-    assert!(
-        worst.0 < 1e-9,
-        "worst relative error {:e} ({})",
-        worst.0,
-        worst.1
-    );
+    assert!(count > 2000, "enough cases with a non-negligible reference: {count}");
+    assert!(worst.0 < 1e-9, "worst relative error {:e} ({})", worst.0, worst.1);
 }
 
 #[test]
 fn zero_length_and_degenerate_inputs_stay_finite() {
     let axes = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]];
-    assert_eq!(
-        optical_depth(
-            [0.0; 3],
-            axes,
-            [0.1; 3],
-            5.0,
-            [0.0, 0.0, -1.0],
-            [0.0, 0.0, 1.0],
-            1.0,
-            1.0
-        ),
-        0.0
-    );
-    assert_eq!(
-        optical_depth(
-            [0.0; 3],
-            axes,
-            [0.1; 3],
-            5.0,
-            [0.0, 0.0, -1.0],
-            [0.0, 0.0, 1.0],
-            2.0,
-            1.0
-        ),
-        0.0
-    );
-    for scales in [
-        [0.0, 0.1, 0.1],
-        [0.0, 0.0, 0.0],
-        [1e-12, 1e3, 1.0],
-        [-1.0, 0.2, 0.2],
-    ] {
-        let v = optical_depth(
-            [0.0; 3],
-            axes,
-            scales,
-            5.0,
-            [0.0, 0.0, -1.0],
-            [0.0, 0.0, 1.0],
-            0.0,
-            f64::INFINITY,
-        );
+    assert_eq!(optical_depth([0.0; 3], axes, [0.1; 3], 5.0, [0.0, 0.0, -1.0], [0.0, 0.0, 1.0], 1.0, 1.0), 0.0);
+    assert_eq!(optical_depth([0.0; 3], axes, [0.1; 3], 5.0, [0.0, 0.0, -1.0], [0.0, 0.0, 1.0], 2.0, 1.0), 0.0);
+    for scales in [[0.0, 0.1, 0.1], [0.0, 0.0, 0.0], [1e-12, 1e3, 1.0], [-1.0, 0.2, 0.2]] {
+        let v = optical_depth([0.0; 3], axes, scales, 5.0, [0.0, 0.0, -1.0], [0.0, 0.0, 1.0], 0.0, f64::INFINITY);
         let v32 = optical_depth_f32(
             [0.0; 3],
             [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
@@ -429,22 +286,10 @@ fn zero_length_and_degenerate_inputs_stay_finite() {
             0.0,
             f32::INFINITY,
         );
-        assert!(
-            v.is_finite() && v >= 0.0 && v32.is_finite() && v32 >= 0.0,
-            "{scales:?}: {v} {v32}"
-        );
+        assert!(v.is_finite() && v >= 0.0 && v32.is_finite() && v32 >= 0.0, "{scales:?}: {v} {v32}");
     }
     // Whole line through an isotropic Gaussian: A s sqrt(2 pi).
-    let full = optical_depth(
-        [0.0; 3],
-        axes,
-        [0.2; 3],
-        3.0,
-        [0.0, 0.0, -5.0],
-        [0.0, 0.0, 1.0],
-        0.0,
-        f64::INFINITY,
-    );
+    let full = optical_depth([0.0; 3], axes, [0.2; 3], 3.0, [0.0, 0.0, -5.0], [0.0, 0.0, 1.0], 0.0, f64::INFINITY);
     assert!((full / (3.0 * 0.2 * (2.0 * std::f64::consts::PI).sqrt()) - 1.0).abs() < 1e-14);
 }
 
@@ -453,11 +298,7 @@ fn f32_path_agrees_with_f64_within_1e4_or_1e6_transmittance() {
     let mut worst = (0.0f64, String::new());
     for (name, case) in cases(4000, 23) {
         let f = |v: DVec3| v.as_vec3().to_array();
-        let cols32 = [
-            f(case.axes.x_axis),
-            f(case.axes.y_axis),
-            f(case.axes.z_axis),
-        ];
+        let cols32 = [f(case.axes.x_axis), f(case.axes.y_axis), f(case.axes.z_axis)];
         let got = optical_depth_f32(
             f(case.mean),
             cols32,

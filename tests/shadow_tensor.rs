@@ -6,9 +6,7 @@ mod common;
 use burn::tensor::{Device, Tensor, TensorData};
 use glam::{DMat3, DQuat, DVec3};
 use umbra::gaussians::PosedGaussian;
-use umbra::shadow::tensor::{
-    erfc_nonnegative, optical_depth as tensor_depth, transmittance, GaussianTensors, RaySegments,
-};
+use umbra::shadow::tensor::{erfc_nonnegative, optical_depth as tensor_depth, transmittance, GaussianTensors, RaySegments};
 use umbra::shadow::{optical_depth, ShadowCaster, ShadowRay};
 use umbra::synth::trace::Stream;
 
@@ -39,15 +37,8 @@ fn body_like_gaussians(n: usize, seed: u64) -> Vec<PosedGaussian> {
     (0..n)
         .map(|_| PosedGaussian {
             mean: DVec3::new(s.uniform() - 0.5, s.uniform() * 1.6, s.uniform() - 0.5) * 0.8,
-            axes: DMat3::from_quat(DQuat::from_axis_angle(
-                random_unit(&mut s),
-                s.uniform() * 6.0,
-            )),
-            scales: DVec3::new(
-                0.02 + 0.1 * s.uniform(),
-                0.02 + 0.1 * s.uniform(),
-                0.02 + 0.1 * s.uniform(),
-            ),
+            axes: DMat3::from_quat(DQuat::from_axis_angle(random_unit(&mut s), s.uniform() * 6.0)),
+            scales: DVec3::new(0.02 + 0.1 * s.uniform(), 0.02 + 0.1 * s.uniform(), 0.02 + 0.1 * s.uniform()),
             amplitude: 2.0 + 20.0 * s.uniform(),
         })
         .collect()
@@ -63,11 +54,7 @@ fn shadow_rays(n: usize, seed: u64, finite: bool) -> Vec<ShadowRay> {
                 origin: origin.as_vec3().to_array(),
                 direction: direction.as_vec3().to_array(),
                 t0: 0.01,
-                t1: if finite {
-                    0.3 + 2.0 * s.uniform() as f32
-                } else {
-                    f32::INFINITY
-                },
+                t1: if finite { 0.3 + 2.0 * s.uniform() as f32 } else { f32::INFINITY },
             }
         })
         .collect()
@@ -95,10 +82,7 @@ fn erfc_approximation_tracks_libm_to_f32_rounding() {
             // 1.2e-7 in exact arithmetic; in f32 the exponent's argument (about -x^2) carries an
             // absolute rounding error of order ulp(x^2), which exp turns into a relative one.
             let x2 = (*x as f64) * (*x as f64);
-            assert!(
-                ((g as f64 - reference) / reference).abs() < 6e-7 + 1.5e-7 * x2,
-                "erfc({x}) = {g} vs {reference}"
-            );
+            assert!(((g as f64 - reference) / reference).abs() < 6e-7 + 1.5e-7 * x2, "erfc({x}) = {g} vs {reference}");
         }
     }
 }
@@ -132,17 +116,9 @@ fn tensor_and_cpu_paths_agree() {
                     )
                 })
                 .sum();
-            assert!(
-                ((-exact).exp() - cpu as f64).abs() < 1e-6,
-                "cpu vs f64: {} vs {}",
-                cpu,
-                (-exact).exp()
-            );
+            assert!(((-exact).exp() - cpu as f64).abs() < 1e-6, "cpu vs f64: {} vs {}", cpu, (-exact).exp());
         }
-        assert!(
-            worst < 2e-6,
-            "finite={finite}: worst |T_cpu - T_tensor| = {worst:e}"
-        );
+        assert!(worst < 2e-6, "finite={finite}: worst |T_cpu - T_tensor| = {worst:e}");
     }
 }
 
@@ -157,15 +133,9 @@ fn culling_changes_transmittance_by_less_than_its_tolerance() {
         let (all, n_all) = caster.optical_depth(ray, false);
         let (culled, n_culled) = caster.optical_depth(ray, true);
         skipped += n_all - n_culled;
-        assert!(
-            ((-all).exp() - (-culled).exp()).abs() as f64 <= tolerance + 1e-6,
-            "{all} vs {culled}"
-        );
+        assert!(((-all).exp() - (-culled).exp()).abs() as f64 <= tolerance + 1e-6, "{all} vs {culled}");
     }
-    assert!(
-        skipped > rays.len() * 100,
-        "culling skips most pairs: {skipped}"
-    );
+    assert!(skipped > rays.len() * 100, "culling skips most pairs: {skipped}");
 }
 
 #[test]
@@ -175,56 +145,22 @@ fn gradients_match_finite_differences_of_the_f64_path() {
     let rays = shadow_rays(12, 22, true);
     let n = gaussians.len();
     // Leaves for every input.
-    let means = tensor2(
-        gaussians
-            .iter()
-            .flat_map(|g| g.mean.as_vec3().to_array())
-            .collect(),
-        3,
-        &d,
-    )
-    .require_grad();
+    let means = tensor2(gaussians.iter().flat_map(|g| g.mean.as_vec3().to_array()).collect(), 3, &d).require_grad();
     let rotations: Tensor<3> = Tensor::from_data(
-        TensorData::new(
-            gaussians
-                .iter()
-                .flat_map(|g| g.axes.transpose().to_cols_array().map(|v| v as f32))
-                .collect::<Vec<_>>(),
-            [n, 3, 3],
-        ),
+        TensorData::new(gaussians.iter().flat_map(|g| g.axes.transpose().to_cols_array().map(|v| v as f32)).collect::<Vec<_>>(), [n, 3, 3]),
         &d,
     )
     .require_grad();
-    let scales = tensor2(
-        gaussians
-            .iter()
-            .flat_map(|g| g.scales.as_vec3().to_array())
-            .collect(),
-        3,
-        &d,
-    )
-    .require_grad();
-    let amplitudes =
-        tensor1(gaussians.iter().map(|g| g.amplitude as f32).collect(), &d).require_grad();
+    let scales = tensor2(gaussians.iter().flat_map(|g| g.scales.as_vec3().to_array()).collect(), 3, &d).require_grad();
+    let amplitudes = tensor1(gaussians.iter().map(|g| g.amplitude as f32).collect(), &d).require_grad();
     let origins = tensor2(rays.iter().flat_map(|r| r.origin).collect(), 3, &d).require_grad();
     let directions = tensor2(rays.iter().flat_map(|r| r.direction).collect(), 3, &d).require_grad();
     let t1 = tensor1(rays.iter().map(|r| r.t1).collect(), &d).require_grad();
-    let g = GaussianTensors::from_world(
-        means.clone(),
-        rotations.clone(),
-        scales.clone(),
-        amplitudes.clone(),
-    );
-    let segs = RaySegments {
-        origins: origins.clone(),
-        directions: directions.clone(),
-        t0: tensor1(rays.iter().map(|r| r.t0).collect(), &d),
-        t1: Some(t1.clone()),
-    };
+    let g = GaussianTensors::from_world(means.clone(), rotations.clone(), scales.clone(), amplitudes.clone());
+    let segs =
+        RaySegments { origins: origins.clone(), directions: directions.clone(), t0: tensor1(rays.iter().map(|r| r.t0).collect(), &d), t1: Some(t1.clone()) };
     // A loss that weights every pair differently, so that each gradient entry is tested.
-    let weights: Vec<f32> = (0..rays.len() * n)
-        .map(|k| 0.5 + ((k * 7919) % 13) as f32 / 13.0)
-        .collect();
+    let weights: Vec<f32> = (0..rays.len() * n).map(|k| 0.5 + ((k * 7919) % 13) as f32 / 13.0).collect();
     let loss = (tensor_depth(&g, &segs) * tensor2(weights.clone(), n, &d)).sum();
     let grads = loss.backward();
 
@@ -244,18 +180,10 @@ fn gradients_match_finite_differences_of_the_f64_path() {
             for k in 0..n {
                 let rot = &x.rotations[k * 9..k * 9 + 9];
                 // Row-major rotation: column c is (rot[c], rot[3 + c], rot[6 + c]).
-                let cols = [
-                    [rot[0], rot[3], rot[6]],
-                    [rot[1], rot[4], rot[7]],
-                    [rot[2], rot[5], rot[8]],
-                ];
+                let cols = [[rot[0], rot[3], rot[6]], [rot[1], rot[4], rot[7]], [rot[2], rot[5], rot[8]]];
                 let o = [x.origins[r * 3], x.origins[r * 3 + 1], x.origins[r * 3 + 2]];
                 // The tensor path takes directions as given (callers normalise); so does this.
-                let dir = [
-                    x.directions[r * 3],
-                    x.directions[r * 3 + 1],
-                    x.directions[r * 3 + 2],
-                ];
+                let dir = [x.directions[r * 3], x.directions[r * 3 + 1], x.directions[r * 3 + 2]];
                 let tau = optical_depth(
                     [x.means[k * 3], x.means[k * 3 + 1], x.means[k * 3 + 2]],
                     cols,
@@ -271,23 +199,12 @@ fn gradients_match_finite_differences_of_the_f64_path() {
         }
         total
     };
-    let to64 = |t: &Tensor<2>| {
-        values(t.clone())
-            .into_iter()
-            .map(f64::from)
-            .collect::<Vec<_>>()
-    };
+    let to64 = |t: &Tensor<2>| values(t.clone()).into_iter().map(f64::from).collect::<Vec<_>>();
     let base = Inputs {
         means: to64(&means),
-        rotations: values(rotations.clone())
-            .into_iter()
-            .map(f64::from)
-            .collect(),
+        rotations: values(rotations.clone()).into_iter().map(f64::from).collect(),
         scales: to64(&scales),
-        amplitudes: values(amplitudes.clone())
-            .into_iter()
-            .map(f64::from)
-            .collect(),
+        amplitudes: values(amplitudes.clone()).into_iter().map(f64::from).collect(),
         origins: to64(&origins),
         directions: to64(&directions),
         t1: values(t1.clone()).into_iter().map(f64::from).collect(),
@@ -297,21 +214,14 @@ fn gradients_match_finite_differences_of_the_f64_path() {
         let scale = got.iter().map(|v| v.abs() as f64).fold(0.0, f64::max);
         for (i, g) in got.iter().enumerate() {
             let h = 1e-6;
-            let mut plus = Inputs {
-                ..clone_inputs(&base)
-            };
+            let mut plus = Inputs { ..clone_inputs(&base) };
             field(&mut plus)[i] += h;
-            let mut minus = Inputs {
-                ..clone_inputs(&base)
-            };
+            let mut minus = Inputs { ..clone_inputs(&base) };
             field(&mut minus)[i] -= h;
             let fd = (loss64(&plus) - loss64(&minus)) / (2.0 * h);
             worst = worst.max((*g as f64 - fd).abs() / (fd.abs() + 1e-3 * scale + 1e-6));
         }
-        assert!(
-            worst < 2e-3,
-            "{name}: worst relative gradient error {worst:e}"
-        );
+        assert!(worst < 2e-3, "{name}: worst relative gradient error {worst:e}");
     };
     fn clone_inputs(x: &Inputs) -> Inputs {
         Inputs {
@@ -324,27 +234,11 @@ fn gradients_match_finite_differences_of_the_f64_path() {
             t1: x.t1.clone(),
         }
     }
-    check("means", values(means.grad(&grads).unwrap()), |x| {
-        &mut x.means
-    });
-    check("rotations", values(rotations.grad(&grads).unwrap()), |x| {
-        &mut x.rotations
-    });
-    check("scales", values(scales.grad(&grads).unwrap()), |x| {
-        &mut x.scales
-    });
-    check(
-        "amplitudes",
-        values(amplitudes.grad(&grads).unwrap()),
-        |x| &mut x.amplitudes,
-    );
-    check("origins", values(origins.grad(&grads).unwrap()), |x| {
-        &mut x.origins
-    });
-    check(
-        "directions",
-        values(directions.grad(&grads).unwrap()),
-        |x| &mut x.directions,
-    );
+    check("means", values(means.grad(&grads).unwrap()), |x| &mut x.means);
+    check("rotations", values(rotations.grad(&grads).unwrap()), |x| &mut x.rotations);
+    check("scales", values(scales.grad(&grads).unwrap()), |x| &mut x.scales);
+    check("amplitudes", values(amplitudes.grad(&grads).unwrap()), |x| &mut x.amplitudes);
+    check("origins", values(origins.grad(&grads).unwrap()), |x| &mut x.origins);
+    check("directions", values(directions.grad(&grads).unwrap()), |x| &mut x.directions);
     check("t1", values(t1.grad(&grads).unwrap()), |x| &mut x.t1);
 }

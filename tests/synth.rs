@@ -34,10 +34,7 @@ fn files(dir: &std::path::Path) -> Vec<(String, Vec<u8>)> {
         for e in entries {
             let p = e.unwrap().path();
             if p.is_file() {
-                out.push((
-                    p.strip_prefix(dir).unwrap().display().to_string(),
-                    std::fs::read(&p).unwrap(),
-                ));
+                out.push((p.strip_prefix(dir).unwrap().display().to_string(), std::fs::read(&p).unwrap()));
             }
         }
     }
@@ -54,10 +51,7 @@ fn same_seed_same_bytes_and_the_scene_loads() {
     umbra::synth::generate(&options, &b.path().join("s"), false, |_, _| {}).unwrap();
     let (fa, fb) = (files(&a.path().join("s")), files(&b.path().join("s")));
     assert!(fa.len() > 10);
-    assert_eq!(
-        fa.iter().map(|f| &f.0).collect::<Vec<_>>(),
-        fb.iter().map(|f| &f.0).collect::<Vec<_>>()
-    );
+    assert_eq!(fa.iter().map(|f| &f.0).collect::<Vec<_>>(), fb.iter().map(|f| &f.0).collect::<Vec<_>>());
     for (x, y) in fa.iter().zip(&fb) {
         assert!(x.1 == y.1, "{} differs between two runs", x.0);
     }
@@ -68,21 +62,11 @@ fn same_seed_same_bytes_and_the_scene_loads() {
         assert!(kinds.contains(&k), "{kinds:?}");
     }
     let train_frames: Vec<usize> = scene.views_in(Split::Train).map(|v| v.frame).collect();
-    let novel_pose = scene
-        .views_in(Split::Test)
-        .any(|v| !train_frames.contains(&v.frame));
+    let novel_pose = scene.views_in(Split::Test).any(|v| !train_frames.contains(&v.frame));
     assert!(novel_pose);
-    assert!(
-        scene
-            .views
-            .iter()
-            .all(|v| v.mask.as_ref().unwrap().foreground.iter().any(|&f| f)),
-        "the character is in every image"
-    );
+    assert!(scene.views.iter().all(|v| v.mask.as_ref().unwrap().foreground.iter().any(|&f| f)), "the character is in every image");
     // An existing output is not replaced without --force, and nothing else is touched.
-    let err = umbra::synth::generate(&options, &a.path().join("s"), false, |_, _| {})
-        .err()
-        .unwrap();
+    let err = umbra::synth::generate(&options, &a.path().join("s"), false, |_, _| {}).err().unwrap();
     assert!(err.to_string().contains("already exists"));
 }
 
@@ -90,33 +74,13 @@ fn same_seed_same_bytes_and_the_scene_loads() {
 fn human_has_at_least_15_bones_with_the_named_parts() {
     let human = Character::new(Kind::Human);
     assert!(human.skeleton.len() >= 15);
-    for part in [
-        "pelvis",
-        "spine",
-        "chest",
-        "neck",
-        "head",
-        "upper_arm_l",
-        "forearm_r",
-        "hand_l",
-        "thigh_r",
-        "shin_l",
-        "foot_r",
-    ] {
-        assert!(
-            human.skeleton.bones.iter().any(|b| b.name == part),
-            "{part}"
-        );
+    for part in ["pelvis", "spine", "chest", "neck", "head", "upper_arm_l", "forearm_r", "hand_l", "thigh_r", "shin_l", "foot_r"] {
+        assert!(human.skeleton.bones.iter().any(|b| b.name == part), "{part}");
     }
 }
 
 /// Dense marching with bisection: an intersection routine independent of sphere tracing.
-fn march(
-    character: &Character,
-    pose: &umbra::skeleton::Pose,
-    ray: &Ray,
-    t_max: f64,
-) -> (Option<f64>, f64) {
+fn march(character: &Character, pose: &umbra::skeleton::Pose, ray: &Ray, t_max: f64) -> (Option<f64>, f64) {
     let (centre, radius) = character.bounding_sphere(pose);
     let oc = ray.origin - centre;
     let b = oc.dot(ray.direction);
@@ -157,67 +121,34 @@ fn march(
 fn check_against_independent_formula(light: &Light, kind: Kind) {
     let character = Character::new(kind);
     let pose = character.pose(0.3, 0.2, DVec3::ZERO);
-    let target = if kind == Kind::Human {
-        DVec3::new(0.0, 0.9, 0.0)
-    } else {
-        DVec3::new(0.0, 0.45, 0.0)
-    };
+    let target = if kind == Kind::Human { DVec3::new(0.0, 0.9, 0.0) } else { DVec3::new(0.0, 0.45, 0.0) };
     const SIZE: usize = 48;
-    let camera = umbra::scene::Camera::look_at(
-        "c",
-        target + DVec3::new(2.0, 0.6, 2.2),
-        target,
-        DVec3::Y,
-        SIZE,
-        SIZE,
-        100.0,
-    );
+    let camera = umbra::scene::Camera::look_at("c", target + DVec3::new(2.0, 0.6, 2.2), target, DVec3::Y, SIZE, SIZE, 100.0);
     let rendered = render_view(&character, &pose, &camera, light, 4, 0, 0);
     let (mut compared, mut ambiguous, mut worst) = (0, 0, 0.0f64);
     for j in 1..SIZE - 1 {
         for i in 1..SIZE - 1 {
             let interior = [(0, 0), (1, 0), (0, 1), (-1, 0), (0, -1)]
                 .iter()
-                .all(|(dx, dy)| {
-                    rendered.mask.foreground
-                        [((j as i64 + dy) * SIZE as i64 + i as i64 + dx) as usize]
-                });
+                .all(|(dx, dy)| rendered.mask.foreground[((j as i64 + dy) * SIZE as i64 + i as i64 + dx) as usize]);
             if !interior {
                 continue;
             }
             let ray = camera.pixel_ray(i, j);
-            let Some(t) = march(&character, &pose, &ray, 100.0).0 else {
-                panic!("pixel ({i},{j}) is foreground but the march misses")
-            };
+            let Some(t) = march(&character, &pose, &ray, 100.0).0 else { panic!("pixel ({i},{j}) is foreground but the march misses") };
             let x = ray.at(t);
             let n = character.normal(&pose, x);
             let a = character.albedo(&pose, x);
             let (l, irradiance, ambient, t_max) = match light {
-                Light::Directional {
-                    direction,
-                    irradiance,
-                    ambient,
-                } => (*direction, *irradiance, *ambient, 100.0),
-                Light::Point {
-                    position,
-                    intensity,
-                    ambient,
-                } => {
+                Light::Directional { direction, irradiance, ambient } => (*direction, *irradiance, *ambient, 100.0),
+                Light::Point { position, intensity, ambient } => {
                     let r = (*position - x).length();
                     ((*position - x) / r, *intensity / (r * r), *ambient, r)
                 }
                 _ => unreachable!(),
             };
             let cosine = n.dot(l).max(0.0);
-            let (blocked, closest) = march(
-                &character,
-                &pose,
-                &Ray {
-                    origin: x + n * umbra::synth::trace::SHADOW_OFFSET,
-                    direction: l,
-                },
-                t_max,
-            );
+            let (blocked, closest) = march(&character, &pose, &Ray { origin: x + n * umbra::synth::trace::SHADOW_OFFSET, direction: l }, t_max);
             if cosine > 0.0 && closest < 0.003 && blocked.is_none() {
                 ambiguous += 1; // the shadow ray grazes the surface: a shadow edge
                 continue;
@@ -232,10 +163,7 @@ fn check_against_independent_formula(light: &Light, kind: Kind) {
         }
     }
     assert!(compared > 200, "compared {compared}");
-    assert!(
-        ambiguous * 10 < compared,
-        "{ambiguous} shadow-edge pixels of {compared}"
-    );
+    assert!(ambiguous * 10 < compared, "{ambiguous} shadow-edge pixels of {compared}");
     assert!(worst < 1e-3, "max error {worst:e} over {compared} pixels");
 }
 
@@ -252,11 +180,7 @@ fn sunlit_images_match_an_independent_evaluation() {
 
 #[test]
 fn point_lit_images_match_an_independent_evaluation() {
-    let lamp = Light::Point {
-        position: DVec3::new(1.1, 2.3, 1.4),
-        intensity: DVec3::new(4.6, 4.4, 4.1),
-        ambient: DVec3::new(0.15, 0.15, 0.17),
-    };
+    let lamp = Light::Point { position: DVec3::new(1.1, 2.3, 1.4), intensity: DVec3::new(4.6, 4.4, 4.1), ambient: DVec3::new(0.15, 0.15, 0.17) };
     check_against_independent_formula(&lamp, Kind::Human);
 }
 
@@ -265,28 +189,15 @@ fn uniform_light_without_occlusion_is_albedo_times_radiance() {
     // Monte Carlo with visibility: on open, convex parts the estimate is exact up to occlusion.
     let character = Character::new(Kind::Human);
     let pose = character.pose(0.0, 0.0, DVec3::ZERO);
-    let camera = umbra::scene::Camera::look_at(
-        "c",
-        DVec3::new(0.0, 1.6, 3.0),
-        DVec3::new(0.0, 1.6, 0.0),
-        DVec3::Y,
-        16,
-        16,
-        60.0,
-    );
-    let light = Light::Uniform {
-        radiance: DVec3::new(0.9, 0.9, 0.9),
-    };
+    let camera = umbra::scene::Camera::look_at("c", DVec3::new(0.0, 1.6, 3.0), DVec3::new(0.0, 1.6, 0.0), DVec3::Y, 16, 16, 60.0);
+    let light = Light::Uniform { radiance: DVec3::new(0.9, 0.9, 0.9) };
     let r = render_view(&character, &pose, &camera, &light, 64, 1, 0);
     let mut n = 0;
     for k in 0..256 {
         if r.mask.foreground[k] {
             let (c, a) = (r.colour.pixels[k], r.albedo.pixels[k]);
             for ch in 0..3 {
-                assert!(
-                    c[ch] <= a[ch] * 0.9 + 1e-6,
-                    "never brighter than unoccluded"
-                );
+                assert!(c[ch] <= a[ch] * 0.9 + 1e-6, "never brighter than unoccluded");
             }
             n += 1;
         }
@@ -297,13 +208,10 @@ fn uniform_light_without_occlusion_is_albedo_times_radiance() {
 #[test]
 fn shipped_scenes_reproduce_byte_for_byte_from_their_options() {
     for name in ["human-sun", "dog-sun", "human-mono"] {
-        let shipped = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
-            .join("datasets-synthetic")
-            .join(name);
+        let shipped = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("datasets-synthetic").join(name);
         let text = std::fs::read_to_string(shipped.join("scene.json")).unwrap();
         let json: serde_json::Value = serde_json::from_str(&text).unwrap();
-        let options: SynthOptions =
-            serde_json::from_value(json["generator"]["options"].clone()).unwrap();
+        let options: SynthOptions = serde_json::from_value(json["generator"]["options"].clone()).unwrap();
         let out = TempDir::new("reproduce");
         umbra::synth::generate(&options, &out.path().join(name), false, |_, _| {}).unwrap();
         let (a, b) = (files(&shipped), files(&out.path().join(name)));

@@ -40,16 +40,9 @@ impl Camera {
 
     /// The ray through a continuous pixel position (x right, y down, pixel corners at integers).
     pub fn ray_through(&self, pixel: DVec2) -> Ray {
-        let local = DVec3::new(
-            (pixel.x - self.cx) / self.fx,
-            (pixel.y - self.cy) / self.fy,
-            1.0,
-        );
+        let local = DVec3::new((pixel.x - self.cx) / self.fx, (pixel.y - self.cy) / self.fy, 1.0);
         let direction = self.camera_to_world.transform_vector3(local).normalize();
-        Ray {
-            origin: self.centre(),
-            direction,
-        }
+        Ray { origin: self.centre(), direction }
     }
 
     /// Camera-space coordinates of a world point (z is the depth along the optical axis).
@@ -64,41 +57,16 @@ impl Camera {
         if c.z <= 1e-12 {
             return None;
         }
-        Some(DVec2::new(
-            self.fx * c.x / c.z + self.cx,
-            self.fy * c.y / c.z + self.cy,
-        ))
+        Some(DVec2::new(self.fx * c.x / c.z + self.cx, self.fy * c.y / c.z + self.cy))
     }
 
     /// A camera at `eye` looking at `target`, image +Y pointing as close to world -`up` as possible.
-    pub fn look_at(
-        name: &str,
-        eye: DVec3,
-        target: DVec3,
-        up: DVec3,
-        width: usize,
-        height: usize,
-        focal: f64,
-    ) -> Self {
+    pub fn look_at(name: &str, eye: DVec3, target: DVec3, up: DVec3, width: usize, height: usize, focal: f64) -> Self {
         let forward = (target - eye).normalize();
         let right = forward.cross(up).normalize();
         let down = forward.cross(right);
-        let camera_to_world = DMat4::from_cols(
-            right.extend(0.0),
-            down.extend(0.0),
-            forward.extend(0.0),
-            eye.extend(1.0),
-        );
-        Self {
-            name: name.into(),
-            width,
-            height,
-            fx: focal,
-            fy: focal,
-            cx: width as f64 / 2.0,
-            cy: height as f64 / 2.0,
-            camera_to_world,
-        }
+        let camera_to_world = DMat4::from_cols(right.extend(0.0), down.extend(0.0), forward.extend(0.0), eye.extend(1.0));
+        Self { name: name.into(), width, height, fx: focal, fy: focal, cx: width as f64 / 2.0, cy: height as f64 / 2.0, camera_to_world }
     }
 }
 
@@ -108,15 +76,7 @@ mod tests {
 
     #[test]
     fn centre_pixel_looks_forward_and_projects_back() {
-        let cam = Camera::look_at(
-            "c",
-            DVec3::new(0.0, 1.0, 3.0),
-            DVec3::new(0.0, 1.0, 0.0),
-            DVec3::Y,
-            64,
-            48,
-            80.0,
-        );
+        let cam = Camera::look_at("c", DVec3::new(0.0, 1.0, 3.0), DVec3::new(0.0, 1.0, 0.0), DVec3::Y, 64, 48, 80.0);
         let ray = cam.ray_through(DVec2::new(32.0, 24.0));
         assert!((ray.direction - DVec3::new(0.0, 0.0, -1.0)).length() < 1e-12);
         let pixel = cam.pixel_ray(10, 40);
@@ -126,21 +86,10 @@ mod tests {
 
     #[test]
     fn image_y_points_down_in_the_world() {
-        let cam = Camera::look_at(
-            "c",
-            DVec3::new(0.0, 1.0, 3.0),
-            DVec3::new(0.0, 1.0, 0.0),
-            DVec3::Y,
-            64,
-            64,
-            80.0,
-        );
+        let cam = Camera::look_at("c", DVec3::new(0.0, 1.0, 3.0), DVec3::new(0.0, 1.0, 0.0), DVec3::Y, 64, 64, 80.0);
         let above = cam.project(DVec3::new(0.0, 1.5, 0.0)).unwrap();
         let right = cam.project(DVec3::new(0.5, 1.0, 0.0)).unwrap();
         assert!(above.y < 32.0, "points above the centre land in upper rows");
-        assert!(
-            right.x > 32.0,
-            "world +X is image right when looking down -Z"
-        );
+        assert!(right.x > 32.0, "world +X is image right when looking down -Z");
     }
 }

@@ -33,19 +33,11 @@ pub type Result<T> = std::result::Result<T, SceneError>;
 
 impl<'a> At<'a> {
     pub fn root(value: &'a Value, file: &'a Path) -> Self {
-        Self {
-            value,
-            path: String::new(),
-            file,
-        }
+        Self { value, path: String::new(), file }
     }
 
     pub fn error(&self, message: impl Into<String>) -> SceneError {
-        SceneError {
-            file: self.file.to_path_buf(),
-            path: self.path.clone(),
-            message: message.into(),
-        }
+        SceneError { file: self.file.to_path_buf(), path: self.path.clone(), message: message.into() }
     }
 
     fn child_path(&self, key: &str) -> String {
@@ -58,44 +50,18 @@ impl<'a> At<'a> {
 
     /// A required field of an object.
     pub fn field(&self, key: &str) -> Result<At<'a>> {
-        self.opt_field(key)?.ok_or_else(|| {
-            At {
-                value: self.value,
-                path: self.child_path(key),
-                file: self.file,
-            }
-            .error("missing required field")
-        })
+        self.opt_field(key)?.ok_or_else(|| At { value: self.value, path: self.child_path(key), file: self.file }.error("missing required field"))
     }
 
     /// An optional field; `null` counts as absent.
     pub fn opt_field(&self, key: &str) -> Result<Option<At<'a>>> {
-        let object = self.value.as_object().ok_or_else(|| {
-            self.error(format!(
-                "expected an object, found {}",
-                describe(self.value)
-            ))
-        })?;
-        Ok(object.get(key).filter(|v| !v.is_null()).map(|value| At {
-            value,
-            path: self.child_path(key),
-            file: self.file,
-        }))
+        let object = self.value.as_object().ok_or_else(|| self.error(format!("expected an object, found {}", describe(self.value))))?;
+        Ok(object.get(key).filter(|v| !v.is_null()).map(|value| At { value, path: self.child_path(key), file: self.file }))
     }
 
     pub fn array(&self) -> Result<Vec<At<'a>>> {
-        let items = self.value.as_array().ok_or_else(|| {
-            self.error(format!("expected an array, found {}", describe(self.value)))
-        })?;
-        Ok(items
-            .iter()
-            .enumerate()
-            .map(|(i, value)| At {
-                value,
-                path: format!("{}[{i}]", self.path),
-                file: self.file,
-            })
-            .collect())
+        let items = self.value.as_array().ok_or_else(|| self.error(format!("expected an array, found {}", describe(self.value))))?;
+        Ok(items.iter().enumerate().map(|(i, value)| At { value, path: format!("{}[{i}]", self.path), file: self.file }).collect())
     }
 
     pub fn non_empty_array(&self) -> Result<Vec<At<'a>>> {
@@ -107,38 +73,17 @@ impl<'a> At<'a> {
     }
 
     pub fn entries(&self) -> Result<Vec<(String, At<'a>)>> {
-        let object = self.value.as_object().ok_or_else(|| {
-            self.error(format!(
-                "expected an object, found {}",
-                describe(self.value)
-            ))
-        })?;
-        Ok(object
-            .iter()
-            .map(|(k, value)| {
-                (
-                    k.clone(),
-                    At {
-                        value,
-                        path: self.child_path(k),
-                        file: self.file,
-                    },
-                )
-            })
-            .collect())
+        let object = self.value.as_object().ok_or_else(|| self.error(format!("expected an object, found {}", describe(self.value))))?;
+        Ok(object.iter().map(|(k, value)| (k.clone(), At { value, path: self.child_path(k), file: self.file })).collect())
     }
 
     pub fn str(&self) -> Result<&'a str> {
-        self.value
-            .as_str()
-            .ok_or_else(|| self.error(format!("expected a string, found {}", describe(self.value))))
+        self.value.as_str().ok_or_else(|| self.error(format!("expected a string, found {}", describe(self.value))))
     }
 
     /// A finite number (serde_json already refuses NaN and Infinity literals).
     pub fn f64(&self) -> Result<f64> {
-        let v = self.value.as_f64().ok_or_else(|| {
-            self.error(format!("expected a number, found {}", describe(self.value)))
-        })?;
+        let v = self.value.as_f64().ok_or_else(|| self.error(format!("expected a number, found {}", describe(self.value))))?;
         if !v.is_finite() {
             return Err(self.error("must be finite"));
         }
@@ -159,10 +104,7 @@ impl<'a> At<'a> {
         }
         match self.value.as_f64() {
             Some(v) if v.fract() == 0.0 && v.abs() < 9.0e15 => Ok(v as i64),
-            _ => Err(self.error(format!(
-                "expected an integer, found {}",
-                describe(self.value)
-            ))),
+            _ => Err(self.error(format!("expected an integer, found {}", describe(self.value)))),
         }
     }
 
@@ -188,21 +130,14 @@ impl<'a> At<'a> {
         if items.len() != 3 {
             return Err(self.error(format!("expected 3 numbers, found {}", items.len())));
         }
-        Ok(DVec3::new(
-            items[0].f64()?,
-            items[1].f64()?,
-            items[2].f64()?,
-        ))
+        Ok(DVec3::new(items[0].f64()?, items[1].f64()?, items[2].f64()?))
     }
 
     /// An RGB triple with no negative channel.
     pub fn rgb(&self) -> Result<DVec3> {
         let v = self.vec3()?;
         if v.min_element() < 0.0 {
-            return Err(self.error(format!(
-                "RGB values must be >= 0, found [{}, {}, {}]",
-                v.x, v.y, v.z
-            )));
+            return Err(self.error(format!("RGB values must be >= 0, found [{}, {}, {}]", v.x, v.y, v.z)));
         }
         Ok(v)
     }
@@ -211,29 +146,20 @@ impl<'a> At<'a> {
     pub fn mat4(&self) -> Result<DMat4> {
         let rows = self.array()?;
         if rows.len() != 4 {
-            return Err(self.error(format!(
-                "expected a 4x4 matrix (4 rows), found {} rows",
-                rows.len()
-            )));
+            return Err(self.error(format!("expected a 4x4 matrix (4 rows), found {} rows", rows.len())));
         }
         let mut m = [[0.0f64; 4]; 4];
         for (r, row) in rows.iter().enumerate() {
             let cols = row.array()?;
             if cols.len() != 4 {
-                return Err(row.error(format!(
-                    "expected 4 numbers in a matrix row, found {}",
-                    cols.len()
-                )));
+                return Err(row.error(format!("expected 4 numbers in a matrix row, found {}", cols.len())));
             }
             for (c, col) in cols.iter().enumerate() {
                 m[r][c] = col.f64()?;
             }
         }
         if (m[3][0].abs() + m[3][1].abs() + m[3][2].abs() + (m[3][3] - 1.0).abs()) > 1e-6 {
-            return Err(rows[3].error(format!(
-                "the last row must be [0, 0, 0, 1], found {:?}",
-                m[3]
-            )));
+            return Err(rows[3].error(format!("the last row must be [0, 0, 0, 1], found {:?}", m[3])));
         }
         // glam is column-major: column j holds m[0..4][j].
         Ok(DMat4::from_cols_array_2d(&[
@@ -270,10 +196,6 @@ pub fn parse(text: &str, file: &Path) -> Result<Value> {
     serde_json::from_str(text).map_err(|e| SceneError {
         file: file.to_path_buf(),
         path: String::new(),
-        message: format!(
-            "invalid JSON at line {}, column {}: {e}",
-            e.line(),
-            e.column()
-        ),
+        message: format!("invalid JSON at line {}, column {}: {e}", e.line(), e.column()),
     })
 }

@@ -86,19 +86,11 @@ impl Scene {
         let text = std::fs::read_to_string(&file).map_err(|e| SceneError {
             file: file.clone(),
             path: String::new(),
-            message: if e.kind() == std::io::ErrorKind::NotFound {
-                "file not found".into()
-            } else {
-                format!("cannot read: {e}")
-            },
+            message: if e.kind() == std::io::ErrorKind::NotFound { "file not found".into() } else { format!("cannot read: {e}") },
         })?;
         let value = json::parse(&text, &file)?;
         let doc = At::root(&value, &file);
-        Reader {
-            root: &root,
-            file: &file,
-        }
-        .scene(&doc)
+        Reader { root: &root, file: &file }.scene(&doc)
     }
 
     pub fn views_in(&self, split: Split) -> impl Iterator<Item = &View> {
@@ -107,22 +99,14 @@ impl Scene {
 
     /// The names of the lights used by training views.
     pub fn training_lights(&self) -> Vec<&str> {
-        let mut names: Vec<&str> = self
-            .views_in(Split::Train)
-            .map(|v| v.light.as_str())
-            .collect();
+        let mut names: Vec<&str> = self.views_in(Split::Train).map(|v| v.light.as_str()).collect();
         names.sort();
         names.dedup();
         names
     }
 
     pub fn display_name(&self) -> String {
-        self.name.clone().unwrap_or_else(|| {
-            self.root
-                .file_name()
-                .map(|n| n.to_string_lossy().into_owned())
-                .unwrap_or_default()
-        })
+        self.name.clone().unwrap_or_else(|| self.root.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default())
     }
 }
 
@@ -146,29 +130,13 @@ impl Reader<'_> {
         if found != FORMAT {
             return Err(format.error(format!("unsupported format {found:?}, expected {FORMAT:?}")));
         }
-        let name = doc
-            .opt_field("name")?
-            .map(|n| n.str().map(str::to_string))
-            .transpose()?;
+        let name = doc.opt_field("name")?.map(|n| n.str().map(str::to_string)).transpose()?;
         let skeleton = self.skeleton(&doc.field("skeleton")?)?;
-        let cameras = doc
-            .field("cameras")?
-            .non_empty_array()?
-            .iter()
-            .map(|c| self.camera(c))
-            .collect::<Result<Vec<_>, _>>()?;
+        let cameras = doc.field("cameras")?.non_empty_array()?.iter().map(|c| self.camera(c)).collect::<Result<Vec<_>, _>>()?;
         let frames = self.frames(&doc.field("frames")?, &skeleton)?;
         let lights = self.lights(&doc.field("lights")?)?;
         let views = self.views(&doc.field("images")?, &cameras, frames.len(), &lights)?;
-        Ok(Scene {
-            root: self.root.to_path_buf(),
-            name,
-            skeleton,
-            cameras,
-            frames,
-            lights,
-            views,
-        })
+        Ok(Scene { root: self.root.to_path_buf(), name, skeleton, cameras, frames, lights, views })
     }
 
     fn skeleton(&self, node: &At) -> Result<Skeleton, SceneError> {
@@ -192,21 +160,13 @@ impl Reader<'_> {
                 }
             };
             let length = item.field("length")?.positive_f64()?;
-            bones.push(Bone {
-                name,
-                parent,
-                length,
-            });
+            bones.push(Bone { name, parent, length });
         }
         Ok(Skeleton { bones })
     }
 
     fn camera(&self, node: &At) -> Result<Camera, SceneError> {
-        let name = node
-            .opt_field("name")?
-            .map(|n| n.str().map(str::to_string))
-            .transpose()?
-            .unwrap_or_default();
+        let name = node.opt_field("name")?.map(|n| n.str().map(str::to_string)).transpose()?.unwrap_or_default();
         let transform_node = node.field("camera_to_world")?;
         let camera_to_world = transform_node.mat4()?;
         let det = glam::DMat3::from_mat4(camera_to_world).determinant();
@@ -232,34 +192,20 @@ impl Reader<'_> {
             let index_node = item.field("index")?;
             let index = index_node.i64()?;
             if let Some(first) = seen.insert(index, position) {
-                return Err(index_node.error(format!(
-                    "frame index {index} is used twice (also frames[{first}])"
-                )));
+                return Err(index_node.error(format!("frame index {index} is used twice (also frames[{first}])")));
             }
             let time = item.opt_field("time")?.map(|t| t.f64()).transpose()?;
             let transforms_node = item.field("bone_to_world")?;
             let transforms = transforms_node.array()?;
             if transforms.len() != skeleton.len() {
-                return Err(transforms_node.error(format!(
-                    "expected one matrix per bone ({}), found {}",
-                    skeleton.len(),
-                    transforms.len()
-                )));
+                return Err(transforms_node.error(format!("expected one matrix per bone ({}), found {}", skeleton.len(), transforms.len())));
             }
-            let bone_to_world = transforms
-                .iter()
-                .map(|m| m.rigid_mat4())
-                .collect::<Result<Vec<_>, _>>()?;
+            let bone_to_world = transforms.iter().map(|m| m.rigid_mat4()).collect::<Result<Vec<_>, _>>()?;
             let mesh = match item.opt_field("mesh")? {
                 None => None,
                 Some(m) => Some(self.existing_file(&m)?),
             };
-            frames.push(Frame {
-                index,
-                time,
-                pose: Pose { bone_to_world },
-                mesh,
-            });
+            frames.push(Frame { index, time, pose: Pose { bone_to_world }, mesh });
         }
         Ok(frames)
     }
@@ -287,12 +233,7 @@ impl Reader<'_> {
 
     fn light(&self, node: &At) -> Result<Light, SceneError> {
         let type_node = node.field("type")?;
-        let ambient = |n: &At| -> Result<glam::DVec3, SceneError> {
-            Ok(n.opt_field("ambient")?
-                .map(|a| a.rgb())
-                .transpose()?
-                .unwrap_or(glam::DVec3::ZERO))
-        };
+        let ambient = |n: &At| -> Result<glam::DVec3, SceneError> { Ok(n.opt_field("ambient")?.map(|a| a.rgb()).transpose()?.unwrap_or(glam::DVec3::ZERO)) };
         match type_node.str()? {
             "directional" => {
                 let direction_node = node.field("direction")?;
@@ -328,13 +269,7 @@ impl Reader<'_> {
         }
     }
 
-    fn views(
-        &self,
-        node: &At,
-        cameras: &[Camera],
-        frame_count: usize,
-        lights: &BTreeMap<String, Light>,
-    ) -> Result<Vec<View>, SceneError> {
+    fn views(&self, node: &At, cameras: &[Camera], frame_count: usize, lights: &BTreeMap<String, Light>) -> Result<Vec<View>, SceneError> {
         struct Record {
             camera: usize,
             frame: usize,
@@ -352,20 +287,14 @@ impl Reader<'_> {
             let light = light_node.str()?.to_string();
             if !lights.contains_key(&light) {
                 let known: Vec<&str> = lights.keys().map(String::as_str).collect();
-                return Err(
-                    light_node.error(format!("unknown light {light:?} (lights are {known:?})"))
-                );
+                return Err(light_node.error(format!("unknown light {light:?} (lights are {known:?})")));
             }
             let split_node = item.field("split")?;
             let split = match split_node.str()? {
                 "train" => Split::Train,
                 "val" => Split::Val,
                 "test" => Split::Test,
-                other => {
-                    return Err(split_node.error(format!(
-                        "unknown split {other:?} (expected train, val or test)"
-                    )))
-                }
+                other => return Err(split_node.error(format!("unknown split {other:?} (expected train, val or test)"))),
             };
             let colour = self.pending(&item.field("path")?)?;
             let mask = match item.opt_field("mask")? {
@@ -379,19 +308,8 @@ impl Reader<'_> {
                 }
                 None => None,
             };
-            let albedo = item
-                .opt_field("albedo")?
-                .map(|a| self.pending(&a))
-                .transpose()?;
-            records.push(Record {
-                camera,
-                frame,
-                light,
-                split,
-                colour,
-                mask,
-                albedo,
-            });
+            let albedo = item.opt_field("albedo")?.map(|a| self.pending(&a)).transpose()?;
+            records.push(Record { camera, frame, light, split, colour, mask, albedo });
         }
         // Decoding is the slow part of loading: do it in parallel, report the first failure in order.
         records
@@ -401,16 +319,7 @@ impl Reader<'_> {
                 let colour = decode_rgb(&r.colour, w, h)?;
                 let mask = r.mask.as_ref().map(|m| decode_mask(m, w, h)).transpose()?;
                 let albedo = r.albedo.as_ref().map(|a| decode_rgb(a, w, h)).transpose()?;
-                Ok(View {
-                    camera: r.camera,
-                    frame: r.frame,
-                    light: r.light,
-                    split: r.split,
-                    path: r.colour.file,
-                    colour,
-                    mask,
-                    albedo,
-                })
+                Ok(View { camera: r.camera, frame: r.frame, light: r.light, split: r.split, path: r.colour.file, colour, mask, albedo })
             })
             .collect()
     }
@@ -421,12 +330,7 @@ impl Reader<'_> {
         if !file.is_file() {
             return Err(node.error(format!("file not found: {relative}")));
         }
-        Ok(Pending {
-            scene_file: self.file.to_path_buf(),
-            json_path: node.path.clone(),
-            file,
-            relative,
-        })
+        Ok(Pending { scene_file: self.file.to_path_buf(), json_path: node.path.clone(), file, relative })
     }
 }
 
@@ -438,50 +342,27 @@ fn image_message(e: ImageError, relative: &str) -> String {
 }
 
 fn pending_error(p: &Pending, message: String) -> SceneError {
-    SceneError {
-        file: p.scene_file.clone(),
-        path: p.json_path.clone(),
-        message,
-    }
+    SceneError { file: p.scene_file.clone(), path: p.json_path.clone(), message }
 }
 
-fn check_size(
-    p: &Pending,
-    (w, h): (usize, usize),
-    expected: (usize, usize),
-) -> Result<(), SceneError> {
+fn check_size(p: &Pending, (w, h): (usize, usize), expected: (usize, usize)) -> Result<(), SceneError> {
     if (w, h) != expected {
-        return Err(pending_error(
-            p,
-            format!(
-                "{} is {w}x{h}, but its camera is {}x{}",
-                p.relative, expected.0, expected.1
-            ),
-        ));
+        return Err(pending_error(p, format!("{} is {w}x{h}, but its camera is {}x{}", p.relative, expected.0, expected.1)));
     }
     Ok(())
 }
 
 fn decode_rgb(p: &Pending, w: usize, h: usize) -> Result<RgbImage, SceneError> {
-    let image =
-        imageio::read_rgb(&p.file).map_err(|e| pending_error(p, image_message(e, &p.relative)))?;
+    let image = imageio::read_rgb(&p.file).map_err(|e| pending_error(p, image_message(e, &p.relative)))?;
     check_size(p, (image.width, image.height), (w, h))?;
-    if image
-        .pixels
-        .iter()
-        .any(|px| px.iter().any(|c| !c.is_finite()))
-    {
-        return Err(pending_error(
-            p,
-            format!("{} holds a non-finite value", p.relative),
-        ));
+    if image.pixels.iter().any(|px| px.iter().any(|c| !c.is_finite())) {
+        return Err(pending_error(p, format!("{} holds a non-finite value", p.relative)));
     }
     Ok(image)
 }
 
 fn decode_mask(p: &Pending, w: usize, h: usize) -> Result<Mask, SceneError> {
-    let mask =
-        imageio::read_mask(&p.file).map_err(|e| pending_error(p, image_message(e, &p.relative)))?;
+    let mask = imageio::read_mask(&p.file).map_err(|e| pending_error(p, image_message(e, &p.relative)))?;
     check_size(p, (mask.width, mask.height), (w, h))?;
     Ok(mask)
 }
@@ -490,40 +371,16 @@ fn decode_mask(p: &Pending, w: usize, h: usize) -> Result<Mask, SceneError> {
 pub fn summary(scene: &Scene) -> String {
     use std::fmt::Write;
     let mut out = String::new();
-    let _ = writeln!(
-        out,
-        "scene {:?} ({})",
-        scene.display_name(),
-        scene.root.display()
-    );
+    let _ = writeln!(out, "scene {:?} ({})", scene.display_name(), scene.root.display());
     let mut sizes: BTreeMap<(usize, usize), usize> = BTreeMap::new();
     for c in &scene.cameras {
         *sizes.entry((c.width, c.height)).or_default() += 1;
     }
-    let sizes: Vec<String> = sizes
-        .iter()
-        .map(|((w, h), n)| format!("{n} x {w}x{h}"))
-        .collect();
-    let _ = writeln!(
-        out,
-        "cameras: {} ({})",
-        scene.cameras.len(),
-        sizes.join(", ")
-    );
+    let sizes: Vec<String> = sizes.iter().map(|((w, h), n)| format!("{n} x {w}x{h}")).collect();
+    let _ = writeln!(out, "cameras: {} ({})", scene.cameras.len(), sizes.join(", "));
     let _ = writeln!(out, "frames:  {}", scene.frames.len());
-    let roots = scene
-        .skeleton
-        .bones
-        .iter()
-        .filter(|b| b.parent.is_none())
-        .count();
-    let _ = writeln!(
-        out,
-        "bones:   {} ({} root{})",
-        scene.skeleton.len(),
-        roots,
-        if roots == 1 { "" } else { "s" }
-    );
+    let roots = scene.skeleton.bones.iter().filter(|b| b.parent.is_none()).count();
+    let _ = writeln!(out, "bones:   {} ({} root{})", scene.skeleton.len(), roots, if roots == 1 { "" } else { "s" });
     let _ = writeln!(out, "lights:");
     for (name, light) in &scene.lights {
         let _ = writeln!(out, "  {name}: {}", light.type_name());
@@ -543,15 +400,9 @@ pub fn summary(scene: &Scene) -> String {
     let _ = writeln!(
         out,
         "test:    {} novel pose, {} novel view, {} relit",
-        test.iter()
-            .filter(|v| !train_frames.contains(&v.frame))
-            .count(),
-        test.iter()
-            .filter(|v| !train_cameras.contains(&v.camera))
-            .count(),
-        test.iter()
-            .filter(|v| !train_lights.contains(v.light.as_str()))
-            .count()
+        test.iter().filter(|v| !train_frames.contains(&v.frame)).count(),
+        test.iter().filter(|v| !train_cameras.contains(&v.camera)).count(),
+        test.iter().filter(|v| !train_lights.contains(v.light.as_str())).count()
     );
     let mut lo = glam::DVec3::splat(f64::INFINITY);
     let mut hi = glam::DVec3::splat(f64::NEG_INFINITY);
@@ -560,10 +411,6 @@ pub fn summary(scene: &Scene) -> String {
         lo = lo.min(a);
         hi = hi.max(b);
     }
-    let _ = writeln!(
-        out,
-        "skeleton bounds over all frames: [{:.3}, {:.3}, {:.3}] .. [{:.3}, {:.3}, {:.3}] m",
-        lo.x, lo.y, lo.z, hi.x, hi.y, hi.z
-    );
+    let _ = writeln!(out, "skeleton bounds over all frames: [{:.3}, {:.3}, {:.3}] .. [{:.3}, {:.3}, {:.3}] m", lo.x, lo.y, lo.z, hi.x, hi.y, hi.z);
     out
 }

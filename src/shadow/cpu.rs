@@ -40,21 +40,8 @@ impl ShadowCaster {
     pub fn new(gaussians: &[PosedGaussian], tolerance: f64) -> Self {
         let budget = tolerance / gaussians.len().max(1) as f64;
         Self {
-            gaussians: gaussians
-                .iter()
-                .map(|g| {
-                    WhitenedGaussian::new(
-                        g.mean.to_array(),
-                        g.rotation_columns(),
-                        g.scales.to_array(),
-                        g.amplitude,
-                    )
-                })
-                .collect(),
-            cull_radius_squared: gaussians
-                .iter()
-                .map(|g| cull_radius_squared(g, budget) as f32)
-                .collect(),
+            gaussians: gaussians.iter().map(|g| WhitenedGaussian::new(g.mean.to_array(), g.rotation_columns(), g.scales.to_array(), g.amplitude)).collect(),
+            cull_radius_squared: gaussians.iter().map(|g| cull_radius_squared(g, budget) as f32).collect(),
             tolerance,
         }
     }
@@ -92,10 +79,7 @@ impl ShadowCaster {
 
     /// Transmittance along every ray, in parallel.
     pub fn transmittance_all(&self, rays: &[ShadowRay], cull: bool) -> Vec<f32> {
-        rays.par_iter()
-            .with_min_len(64)
-            .map(|r| self.transmittance(r, cull))
-            .collect()
+        rays.par_iter().with_min_len(64).map(|r| self.transmittance(r, cull)).collect()
     }
 }
 
@@ -105,17 +89,8 @@ fn segment_within(centre: [f32; 3], ray: &ShadowRay, radius2: f32) -> bool {
     if radius2 < 0.0 {
         return false;
     }
-    let v = [
-        centre[0] - ray.origin[0],
-        centre[1] - ray.origin[1],
-        centre[2] - ray.origin[2],
-    ];
-    let along = (v[0] * ray.direction[0] + v[1] * ray.direction[1] + v[2] * ray.direction[2])
-        .clamp(ray.t0, ray.t1);
-    let d = [
-        v[0] - along * ray.direction[0],
-        v[1] - along * ray.direction[1],
-        v[2] - along * ray.direction[2],
-    ];
+    let v = [centre[0] - ray.origin[0], centre[1] - ray.origin[1], centre[2] - ray.origin[2]];
+    let along = (v[0] * ray.direction[0] + v[1] * ray.direction[1] + v[2] * ray.direction[2]).clamp(ray.t0, ray.t1);
+    let d = [v[0] - along * ray.direction[0], v[1] - along * ray.direction[1], v[2] - along * ray.direction[2]];
     d[0] * d[0] + d[1] * d[1] + d[2] * d[2] <= radius2
 }

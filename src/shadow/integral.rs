@@ -37,19 +37,9 @@ pub struct WhitenedGaussian<R: Real> {
 
 impl<R: Real> WhitenedGaussian<R> {
     /// From a world-space mean, rotation (columns are the Gaussian's axes), scales and amplitude.
-    pub fn new(
-        mean: [f64; 3],
-        rotation_columns: [[f64; 3]; 3],
-        scales: [f64; 3],
-        amplitude: f64,
-    ) -> Self {
+    pub fn new(mean: [f64; 3], rotation_columns: [[f64; 3]; 3], scales: [f64; 3], amplitude: f64) -> Self {
         let inverse_scales = scales.map(|s| R::of(1.0 / if s > MIN_SCALE { s } else { MIN_SCALE }));
-        Self {
-            mean: mean.map(R::of),
-            axes: rotation_columns.map(|c| c.map(R::of)),
-            inverse_scales,
-            amplitude: R::of(amplitude),
-        }
+        Self { mean: mean.map(R::of), axes: rotation_columns.map(|c| c.map(R::of)), inverse_scales, amplitude: R::of(amplitude) }
     }
 }
 
@@ -97,13 +87,7 @@ pub fn erf_difference<R: Real>(a: f64, b: f64) -> R {
 /// `t1` may be `+infinity` (a ray toward a directional light); `t1 <= t0` gives 0. The
 /// direction need not be unit length: t is then measured in units of its length.
 #[inline]
-pub fn optical_depth_whitened<R: Real>(
-    g: &WhitenedGaussian<R>,
-    origin: [R; 3],
-    direction: [R; 3],
-    t0: R,
-    t1: R,
-) -> R {
+pub fn optical_depth_whitened<R: Real>(g: &WhitenedGaussian<R>, origin: [R; 3], direction: [R; 3], t0: R, t1: R) -> R {
     if !(t1 > t0) {
         return R::ZERO;
     }
@@ -111,28 +95,18 @@ pub fn optical_depth_whitened<R: Real>(
     let d = direction.map(R::to_f64);
     let d_squared = dot(d, d);
     // Re-anchor at the Euclidean closest approach s to the mean; the segment shifts by -s.
-    let s = (0..3)
-        .map(|k| (mean[k] - origin[k].to_f64()) * d[k])
-        .sum::<f64>()
-        / d_squared;
+    let s = (0..3).map(|k| (mean[k] - origin[k].to_f64()) * d[k]).sum::<f64>() / d_squared;
     let near = [0, 1, 2].map(|k| R::offset(origin[k], s, direction[k], g.mean[k]));
     let o = whiten(g, near);
     let w = whiten(g, d);
     let length = dot(w, w).sqrt();
     let unit = w.map(|c| c / length);
     let along = dot(o, unit);
-    let perpendicular = [
-        o[0] - along * unit[0],
-        o[1] - along * unit[1],
-        o[2] - along * unit[2],
-    ];
+    let perpendicular = [o[0] - along * unit[0], o[1] - along * unit[1], o[2] - along * unit[2]];
     let mahalanobis_squared = dot(perpendicular, perpendicular);
     let a = ((t0.to_f64() - s) * length + along) * std::f64::consts::FRAC_1_SQRT_2;
     let b = ((t1.to_f64() - s) * length + along) * std::f64::consts::FRAC_1_SQRT_2;
-    g.amplitude
-        * R::of(-0.5 * mahalanobis_squared).exp()
-        * R::of((PI / 2.0).sqrt() / length)
-        * erf_difference::<R>(a, b)
+    g.amplitude * R::of(-0.5 * mahalanobis_squared).exp() * R::of((PI / 2.0).sqrt() / length) * erf_difference::<R>(a, b)
 }
 
 /// Optical depth (the integral of density) of one Gaussian along a ray segment, in f64.
@@ -154,13 +128,7 @@ pub fn optical_depth(
     t0: f64,
     t1: f64,
 ) -> f64 {
-    optical_depth_whitened(
-        &WhitenedGaussian::<f64>::new(mean, rotation_columns, scales, amplitude),
-        origin,
-        direction,
-        t0,
-        t1,
-    )
+    optical_depth_whitened(&WhitenedGaussian::<f64>::new(mean, rotation_columns, scales, amplitude), origin, direction, t0, t1)
 }
 
 /// The same integral in f32, as used by the rendering hot loops.
@@ -174,11 +142,6 @@ pub fn optical_depth_f32(
     t0: f32,
     t1: f32,
 ) -> f32 {
-    let g = WhitenedGaussian::<f32>::new(
-        mean.map(f64::from),
-        rotation_columns.map(|c| c.map(f64::from)),
-        scales.map(f64::from),
-        amplitude as f64,
-    );
+    let g = WhitenedGaussian::<f32>::new(mean.map(f64::from), rotation_columns.map(|c| c.map(f64::from)), scales.map(f64::from), amplitude as f64);
     optical_depth_whitened(&g, origin, direction, t0, t1)
 }

@@ -9,7 +9,4 @@ pub mod real;
 pub mod tensor;
 
 pub use cpu::{ShadowCaster, ShadowRay};
-pub use integral::{
-    erf_difference, optical_depth, optical_depth_f32, optical_depth_whitened, WhitenedGaussian,
-    MIN_SCALE,
-};
+pub use integral::{erf_difference, optical_depth, optical_depth_f32, optical_depth_whitened, WhitenedGaussian, MIN_SCALE};

@@ -18,38 +18,17 @@ pub struct GaussianTensors {
 impl GaussianTensors {
     /// From world means `[G, 3]`, rotations `[G, 3, 3]` whose columns are the axes, scales
     /// `[G, 3]` (positive) and amplitudes `[G]`: every input keeps its gradient.
-    pub fn from_world(
-        means: Tensor<2>,
-        rotations: Tensor<3>,
-        scales: Tensor<2>,
-        amplitudes: Tensor<1>,
-    ) -> Self {
-        let whiten = rotations.swap_dims(1, 2)
-            / scales
-                .clamp_min(super::MIN_SCALE as f32)
-                .unsqueeze_dim::<3>(2);
-        Self {
-            means,
-            whiten,
-            amplitudes,
-        }
+    pub fn from_world(means: Tensor<2>, rotations: Tensor<3>, scales: Tensor<2>, amplitudes: Tensor<1>) -> Self {
+        let whiten = rotations.swap_dims(1, 2) / scales.clamp_min(super::MIN_SCALE as f32).unsqueeze_dim::<3>(2);
+        Self { means, whiten, amplitudes }
     }
 
     /// Constant tensors of a posed set (no gradients), for rendering or tests.
     pub fn from_posed(posed: &[crate::gaussians::PosedGaussian], device: &Device) -> Self {
         let n = posed.len();
-        let means: Vec<f32> = posed
-            .iter()
-            .flat_map(|g| g.mean.to_array().map(|v| v as f32))
-            .collect();
-        let rotations: Vec<f32> = posed
-            .iter()
-            .flat_map(|g| g.axes.transpose().to_cols_array().map(|v| v as f32))
-            .collect();
-        let scales: Vec<f32> = posed
-            .iter()
-            .flat_map(|g| g.scales.to_array().map(|v| v as f32))
-            .collect();
+        let means: Vec<f32> = posed.iter().flat_map(|g| g.mean.to_array().map(|v| v as f32)).collect();
+        let rotations: Vec<f32> = posed.iter().flat_map(|g| g.axes.transpose().to_cols_array().map(|v| v as f32)).collect();
+        let scales: Vec<f32> = posed.iter().flat_map(|g| g.scales.to_array().map(|v| v as f32)).collect();
         let amplitudes: Vec<f32> = posed.iter().map(|g| g.amplitude as f32).collect();
         Self::from_world(
             Tensor::from_data(TensorData::new(means, [n, 3]), device),
@@ -83,18 +62,8 @@ pub struct RaySegments {
 /// order 1.5e-7 x^2 (the Chebyshev fit of Press et al., tested against libm), built
 /// from elementwise ops so that autodiff differentiates it and no branch yields a NaN.
 pub fn erfc_nonnegative(x: Tensor<3>) -> Tensor<3> {
-    const C: [f32; 10] = [
-        -1.265_512_2,
-        1.000_023_7,
-        0.374_091_96,
-        0.096_784_18,
-        -0.186_288_06,
-        0.278_868_07,
-        -1.135_203_98,
-        1.488_515_87,
-        -0.822_152_23,
-        0.170_872_77,
-    ];
+    const C: [f32; 10] =
+        [-1.265_512_2, 1.000_023_7, 0.374_091_96, 0.096_784_18, -0.186_288_06, 0.278_868_07, -1.135_203_98, 1.488_515_87, -0.822_152_23, 0.170_872_77];
     let t = (x.clone() * 0.5 + 1.0).recip();
     let mut poly = t.clone() * C[9];
     for &c in C[1..9].iter().rev() {
@@ -109,19 +78,11 @@ pub fn optical_depth(g: &GaussianTensors, rays: &RaySegments) -> Tensor<2> {
     let n = g.len();
     // Whitened direction and origin as matmuls against the stacked whitening rows.
     let rows = g.whiten.clone().reshape([n * 3, 3]).transpose();
-    let w = rays
-        .directions
-        .clone()
-        .matmul(rows.clone())
-        .reshape([r, n, 3]);
+    let w = rays.directions.clone().matmul(rows.clone()).reshape([r, n, 3]);
     let whitened_origin = rays.origins.clone().matmul(rows).reshape([r, n, 3]);
-    let whitened_mean = (g.whiten.clone() * g.means.clone().unsqueeze_dim::<3>(1))
-        .sum_dim(2)
-        .reshape([1, n, 3]);
+    let whitened_mean = (g.whiten.clone() * g.means.clone().unsqueeze_dim::<3>(1)).sum_dim(2).reshape([1, n, 3]);
     // Re-anchor at the Euclidean closest approach s to each mean, as the scalar path does.
-    let s = (rays.directions.clone().matmul(g.means.clone().transpose())
-        - (rays.origins.clone() * rays.directions.clone()).sum_dim(1))
-    .unsqueeze_dim::<3>(2);
+    let s = (rays.directions.clone().matmul(g.means.clone().transpose()) - (rays.origins.clone() * rays.directions.clone()).sum_dim(1)).unsqueeze_dim::<3>(2);
     let o = whitened_origin - whitened_mean + w.clone() * s.clone();
     let length = (w.clone() * w.clone()).sum_dim(2).sqrt();
     let unit = w / length.clone();
@@ -143,10 +104,7 @@ pub fn optical_depth(g: &GaussianTensors, rays: &RaySegments) -> Tensor<2> {
             let both_negative = erfc_b.clone() - erfc_a.clone();
             let both_positive = erfc_a - erfc_b;
             let empty = b.clone().lower_equal(a.clone());
-            straddle
-                .mask_where(b.lower_equal_elem(0.0), both_negative)
-                .mask_where(a_nonnegative, both_positive)
-                .mask_fill(empty, 0.0)
+            straddle.mask_where(b.lower_equal_elem(0.0), both_negative).mask_where(a_nonnegative, both_positive).mask_fill(empty, 0.0)
         }
     };
     let peak = g.amplitudes.clone().reshape([1, n, 1]) * (mahalanobis_squared * -0.5).exp();

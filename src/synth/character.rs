@@ -6,9 +6,7 @@ use crate::skeleton::{Bone, Pose, Skeleton};
 use glam::{DMat3, DMat4, DQuat, DVec3};
 use std::f64::consts::PI;
 
-#[derive(
-    Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum, serde::Serialize, serde::Deserialize,
-)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum, serde::Serialize, serde::Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum Kind {
     Human,
@@ -26,12 +24,7 @@ struct Swing {
     one_sided: bool,
 }
 
-const STILL: Swing = Swing {
-    amplitude: 0.0,
-    offset: 0.0,
-    bias: 0.0,
-    one_sided: false,
-};
+const STILL: Swing = Swing { amplitude: 0.0, offset: 0.0, bias: 0.0, one_sided: false };
 
 #[derive(Clone, Debug)]
 struct BoneSpec {
@@ -56,43 +49,16 @@ pub struct Character {
     blend: f64,
 }
 
-fn bone(
-    name: &'static str,
-    parent: Option<usize>,
-    head: [f64; 3],
-    tail: [f64; 3],
-    radii: (f64, f64),
-    colour: [f64; 3],
-    swing: Swing,
-) -> BoneSpec {
-    BoneSpec {
-        name,
-        parent,
-        head: DVec3::from_array(head),
-        tail: DVec3::from_array(tail),
-        radius_head: radii.0,
-        radius_tail: radii.1,
-        colour,
-        swing,
-    }
+fn bone(name: &'static str, parent: Option<usize>, head: [f64; 3], tail: [f64; 3], radii: (f64, f64), colour: [f64; 3], swing: Swing) -> BoneSpec {
+    BoneSpec { name, parent, head: DVec3::from_array(head), tail: DVec3::from_array(tail), radius_head: radii.0, radius_tail: radii.1, colour, swing }
 }
 
 fn swing(amplitude: f64, offset: f64, bias: f64) -> Swing {
-    Swing {
-        amplitude,
-        offset,
-        bias,
-        one_sided: false,
-    }
+    Swing { amplitude, offset, bias, one_sided: false }
 }
 
 fn bend(amplitude: f64, offset: f64, bias: f64) -> Swing {
-    Swing {
-        amplitude,
-        offset,
-        bias,
-        one_sided: true,
-    }
+    Swing { amplitude, offset, bias, one_sided: true }
 }
 
 fn human_specs() -> Vec<BoneSpec> {
@@ -102,159 +68,23 @@ fn human_specs() -> Vec<BoneSpec> {
     let shoes = [0.55, 0.25, 0.15];
     let hair = [0.35, 0.22, 0.12];
     vec![
-        bone(
-            "pelvis",
-            None,
-            [0.0, 0.92, 0.0],
-            [0.0, 1.04, 0.0],
-            (0.13, 0.12),
-            trousers,
-            STILL,
-        ),
-        bone(
-            "spine",
-            Some(0),
-            [0.0, 1.04, 0.0],
-            [0.0, 1.24, 0.0],
-            (0.12, 0.12),
-            shirt,
-            swing(0.04, 0.5, 0.0),
-        ),
-        bone(
-            "chest",
-            Some(1),
-            [0.0, 1.24, 0.0],
-            [0.0, 1.44, 0.0],
-            (0.13, 0.12),
-            shirt,
-            STILL,
-        ),
-        bone(
-            "neck",
-            Some(2),
-            [0.0, 1.44, 0.0],
-            [0.0, 1.53, 0.0],
-            (0.05, 0.05),
-            skin,
-            STILL,
-        ),
-        bone(
-            "head",
-            Some(3),
-            [0.0, 1.53, 0.0],
-            [0.0, 1.73, 0.02],
-            (0.09, 0.10),
-            hair,
-            swing(0.05, 1.0, 0.0),
-        ),
-        bone(
-            "upper_arm_l",
-            Some(2),
-            [0.19, 1.40, 0.0],
-            [0.23, 1.12, 0.0],
-            (0.05, 0.045),
-            shirt,
-            swing(-0.45, 0.0, 0.0),
-        ),
-        bone(
-            "forearm_l",
-            Some(5),
-            [0.23, 1.12, 0.0],
-            [0.25, 0.88, 0.0],
-            (0.04, 0.035),
-            skin,
-            bend(-0.35, 0.0, -0.25),
-        ),
-        bone(
-            "hand_l",
-            Some(6),
-            [0.25, 0.88, 0.0],
-            [0.26, 0.80, 0.0],
-            (0.035, 0.03),
-            skin,
-            STILL,
-        ),
-        bone(
-            "upper_arm_r",
-            Some(2),
-            [-0.19, 1.40, 0.0],
-            [-0.23, 1.12, 0.0],
-            (0.05, 0.045),
-            shirt,
-            swing(0.45, 0.0, 0.0),
-        ),
-        bone(
-            "forearm_r",
-            Some(8),
-            [-0.23, 1.12, 0.0],
-            [-0.25, 0.88, 0.0],
-            (0.04, 0.035),
-            skin,
-            bend(0.35, 0.0, -0.25),
-        ),
-        bone(
-            "hand_r",
-            Some(9),
-            [-0.25, 0.88, 0.0],
-            [-0.26, 0.80, 0.0],
-            (0.035, 0.03),
-            skin,
-            STILL,
-        ),
-        bone(
-            "thigh_l",
-            Some(0),
-            [0.09, 0.92, 0.0],
-            [0.10, 0.50, 0.0],
-            (0.075, 0.06),
-            trousers,
-            swing(0.5, 0.0, 0.0),
-        ),
-        bone(
-            "shin_l",
-            Some(11),
-            [0.10, 0.50, 0.0],
-            [0.10, 0.09, 0.0],
-            (0.055, 0.045),
-            trousers,
-            bend(0.7, -1.2, 0.0),
-        ),
-        bone(
-            "foot_l",
-            Some(12),
-            [0.10, 0.06, -0.04],
-            [0.10, 0.05, 0.16],
-            (0.045, 0.04),
-            shoes,
-            swing(0.15, -0.8, 0.0),
-        ),
-        bone(
-            "thigh_r",
-            Some(0),
-            [-0.09, 0.92, 0.0],
-            [-0.10, 0.50, 0.0],
-            (0.075, 0.06),
-            trousers,
-            swing(-0.5, 0.0, 0.0),
-        ),
-        bone(
-            "shin_r",
-            Some(14),
-            [-0.10, 0.50, 0.0],
-            [-0.10, 0.09, 0.0],
-            (0.055, 0.045),
-            trousers,
-            bend(-0.7, -1.2, 0.0),
-        ),
-        bone(
-            "foot_r",
-            Some(15),
-            [-0.10, 0.06, -0.04],
-            [-0.10, 0.05, 0.16],
-            (0.045, 0.04),
-            shoes,
-            swing(-0.15, -0.8, 0.0),
-        ),
+        bone("pelvis", None, [0.0, 0.92, 0.0], [0.0, 1.04, 0.0], (0.13, 0.12), trousers, STILL),
+        bone("spine", Some(0), [0.0, 1.04, 0.0], [0.0, 1.24, 0.0], (0.12, 0.12), shirt, swing(0.04, 0.5, 0.0)),
+        bone("chest", Some(1), [0.0, 1.24, 0.0], [0.0, 1.44, 0.0], (0.13, 0.12), shirt, STILL),
+        bone("neck", Some(2), [0.0, 1.44, 0.0], [0.0, 1.53, 0.0], (0.05, 0.05), skin, STILL),
+        bone("head", Some(3), [0.0, 1.53, 0.0], [0.0, 1.73, 0.02], (0.09, 0.10), hair, swing(0.05, 1.0, 0.0)),
+        bone("upper_arm_l", Some(2), [0.19, 1.40, 0.0], [0.23, 1.12, 0.0], (0.05, 0.045), shirt, swing(-0.45, 0.0, 0.0)),
+        bone("forearm_l", Some(5), [0.23, 1.12, 0.0], [0.25, 0.88, 0.0], (0.04, 0.035), skin, bend(-0.35, 0.0, -0.25)),
+        bone("hand_l", Some(6), [0.25, 0.88, 0.0], [0.26, 0.80, 0.0], (0.035, 0.03), skin, STILL),
+        bone("upper_arm_r", Some(2), [-0.19, 1.40, 0.0], [-0.23, 1.12, 0.0], (0.05, 0.045), shirt, swing(0.45, 0.0, 0.0)),
+        bone("forearm_r", Some(8), [-0.23, 1.12, 0.0], [-0.25, 0.88, 0.0], (0.04, 0.035), skin, bend(0.35, 0.0, -0.25)),
+        bone("hand_r", Some(9), [-0.25, 0.88, 0.0], [-0.26, 0.80, 0.0], (0.035, 0.03), skin, STILL),
+        bone("thigh_l", Some(0), [0.09, 0.92, 0.0], [0.10, 0.50, 0.0], (0.075, 0.06), trousers, swing(0.5, 0.0, 0.0)),
+        bone("shin_l", Some(11), [0.10, 0.50, 0.0], [0.10, 0.09, 0.0], (0.055, 0.045), trousers, bend(0.7, -1.2, 0.0)),
+        bone("foot_l", Some(12), [0.10, 0.06, -0.04], [0.10, 0.05, 0.16], (0.045, 0.04), shoes, swing(0.15, -0.8, 0.0)),
+        bone("thigh_r", Some(0), [-0.09, 0.92, 0.0], [-0.10, 0.50, 0.0], (0.075, 0.06), trousers, swing(-0.5, 0.0, 0.0)),
+        bone("shin_r", Some(14), [-0.10, 0.50, 0.0], [-0.10, 0.09, 0.0], (0.055, 0.045), trousers, bend(-0.7, -1.2, 0.0)),
+        bone("foot_r", Some(15), [-0.10, 0.06, -0.04], [-0.10, 0.05, 0.16], (0.045, 0.04), shoes, swing(-0.15, -0.8, 0.0)),
     ]
 }
 
@@ -264,114 +94,18 @@ fn quadruped_specs() -> Vec<BoneSpec> {
     let dark = [0.30, 0.22, 0.18];
     let legs = [0.60, 0.42, 0.25];
     vec![
-        bone(
-            "body",
-            None,
-            [0.0, 0.55, -0.32],
-            [0.0, 0.58, 0.30],
-            (0.16, 0.17),
-            coat,
-            swing(0.03, 0.0, 0.0),
-        ),
-        bone(
-            "neck",
-            Some(0),
-            [0.0, 0.60, 0.30],
-            [0.0, 0.78, 0.45],
-            (0.09, 0.075),
-            belly,
-            swing(0.06, 0.7, 0.0),
-        ),
-        bone(
-            "head",
-            Some(1),
-            [0.0, 0.80, 0.45],
-            [0.0, 0.74, 0.68],
-            (0.09, 0.055),
-            dark,
-            swing(0.05, 1.4, 0.0),
-        ),
-        bone(
-            "tail",
-            Some(0),
-            [0.0, 0.58, -0.40],
-            [0.0, 0.66, -0.70],
-            (0.04, 0.02),
-            dark,
-            swing(0.3, 0.3, 0.0),
-        ),
-        bone(
-            "front_upper_l",
-            Some(0),
-            [0.10, 0.50, 0.25],
-            [0.11, 0.28, 0.27],
-            (0.055, 0.045),
-            legs,
-            swing(0.45, 0.0, 0.0),
-        ),
-        bone(
-            "front_lower_l",
-            Some(4),
-            [0.11, 0.28, 0.27],
-            [0.11, 0.03, 0.27],
-            (0.04, 0.03),
-            dark,
-            bend(-0.5, 1.0, 0.0),
-        ),
-        bone(
-            "front_upper_r",
-            Some(0),
-            [-0.10, 0.50, 0.25],
-            [-0.11, 0.28, 0.27],
-            (0.055, 0.045),
-            legs,
-            swing(-0.45, 0.0, 0.0),
-        ),
-        bone(
-            "front_lower_r",
-            Some(6),
-            [-0.11, 0.28, 0.27],
-            [-0.11, 0.03, 0.27],
-            (0.04, 0.03),
-            dark,
-            bend(0.5, 1.0, 0.0),
-        ),
-        bone(
-            "hind_upper_l",
-            Some(0),
-            [0.10, 0.50, -0.28],
-            [0.11, 0.27, -0.25],
-            (0.065, 0.05),
-            legs,
-            swing(-0.45, 0.0, 0.0),
-        ),
-        bone(
-            "hind_lower_l",
-            Some(8),
-            [0.11, 0.27, -0.25],
-            [0.11, 0.03, -0.29],
-            (0.045, 0.03),
-            dark,
-            bend(0.5, 1.0, 0.0),
-        ),
-        bone(
-            "hind_upper_r",
-            Some(0),
-            [-0.10, 0.50, -0.28],
-            [-0.11, 0.27, -0.25],
-            (0.065, 0.05),
-            legs,
-            swing(0.45, 0.0, 0.0),
-        ),
-        bone(
-            "hind_lower_r",
-            Some(10),
-            [-0.11, 0.27, -0.25],
-            [-0.11, 0.03, -0.29],
-            (0.045, 0.03),
-            dark,
-            bend(-0.5, 1.0, 0.0),
-        ),
+        bone("body", None, [0.0, 0.55, -0.32], [0.0, 0.58, 0.30], (0.16, 0.17), coat, swing(0.03, 0.0, 0.0)),
+        bone("neck", Some(0), [0.0, 0.60, 0.30], [0.0, 0.78, 0.45], (0.09, 0.075), belly, swing(0.06, 0.7, 0.0)),
+        bone("head", Some(1), [0.0, 0.80, 0.45], [0.0, 0.74, 0.68], (0.09, 0.055), dark, swing(0.05, 1.4, 0.0)),
+        bone("tail", Some(0), [0.0, 0.58, -0.40], [0.0, 0.66, -0.70], (0.04, 0.02), dark, swing(0.3, 0.3, 0.0)),
+        bone("front_upper_l", Some(0), [0.10, 0.50, 0.25], [0.11, 0.28, 0.27], (0.055, 0.045), legs, swing(0.45, 0.0, 0.0)),
+        bone("front_lower_l", Some(4), [0.11, 0.28, 0.27], [0.11, 0.03, 0.27], (0.04, 0.03), dark, bend(-0.5, 1.0, 0.0)),
+        bone("front_upper_r", Some(0), [-0.10, 0.50, 0.25], [-0.11, 0.28, 0.27], (0.055, 0.045), legs, swing(-0.45, 0.0, 0.0)),
+        bone("front_lower_r", Some(6), [-0.11, 0.28, 0.27], [-0.11, 0.03, 0.27], (0.04, 0.03), dark, bend(0.5, 1.0, 0.0)),
+        bone("hind_upper_l", Some(0), [0.10, 0.50, -0.28], [0.11, 0.27, -0.25], (0.065, 0.05), legs, swing(-0.45, 0.0, 0.0)),
+        bone("hind_lower_l", Some(8), [0.11, 0.27, -0.25], [0.11, 0.03, -0.29], (0.045, 0.03), dark, bend(0.5, 1.0, 0.0)),
+        bone("hind_upper_r", Some(0), [-0.10, 0.50, -0.28], [-0.11, 0.27, -0.25], (0.065, 0.05), legs, swing(0.45, 0.0, 0.0)),
+        bone("hind_lower_r", Some(10), [-0.11, 0.27, -0.25], [-0.11, 0.03, -0.29], (0.045, 0.03), dark, bend(-0.5, 1.0, 0.0)),
     ]
 }
 
@@ -381,12 +115,7 @@ fn rest_frame(head: DVec3, tail: DVec3) -> DMat4 {
     let reference = if y.x.abs() > 0.9 { DVec3::Z } else { DVec3::X };
     let x = (reference - y * reference.dot(y)).normalize();
     let z = x.cross(y);
-    DMat4::from_cols(
-        x.extend(0.0),
-        y.extend(0.0),
-        z.extend(0.0),
-        head.extend(1.0),
-    )
+    DMat4::from_cols(x.extend(0.0), y.extend(0.0), z.extend(0.0), head.extend(1.0))
 }
 
 impl Character {
@@ -395,24 +124,9 @@ impl Character {
             Kind::Human => human_specs(),
             Kind::Quadruped => quadruped_specs(),
         };
-        let skeleton = Skeleton {
-            bones: specs
-                .iter()
-                .map(|s| Bone {
-                    name: s.name.into(),
-                    parent: s.parent,
-                    length: (s.tail - s.head).length(),
-                })
-                .collect(),
-        };
+        let skeleton = Skeleton { bones: specs.iter().map(|s| Bone { name: s.name.into(), parent: s.parent, length: (s.tail - s.head).length() }).collect() };
         let rest = specs.iter().map(|s| rest_frame(s.head, s.tail)).collect();
-        Self {
-            kind,
-            skeleton,
-            specs,
-            rest,
-            blend: 0.025,
-        }
+        Self { kind, skeleton, specs, rest, blend: 0.025 }
     }
 
     /// The pose at `phase` (cycles; 1.0 is one full stride) with the body `heading` radians
@@ -420,19 +134,12 @@ impl Character {
     pub fn pose(&self, phase: f64, heading: f64, offset: DVec3) -> Pose {
         let angle = 2.0 * PI * phase;
         let bob = 0.015 * (2.0 * angle).cos();
-        let root = DMat4::from_rotation_translation(
-            DQuat::from_rotation_y(heading),
-            offset + DVec3::new(0.0, bob, 0.0),
-        );
+        let root = DMat4::from_rotation_translation(DQuat::from_rotation_y(heading), offset + DVec3::new(0.0, bob, 0.0));
         let mut world: Vec<DMat4> = Vec::with_capacity(self.specs.len());
         for (i, spec) in self.specs.iter().enumerate() {
             let mut a = spec.swing.amplitude * (angle + spec.swing.offset).sin() + spec.swing.bias;
             if spec.swing.one_sided {
-                a = if spec.swing.amplitude >= 0.0 {
-                    a.max(0.0)
-                } else {
-                    a.min(0.0)
-                };
+                a = if spec.swing.amplitude >= 0.0 { a.max(0.0) } else { a.min(0.0) };
             }
             let local_motion = DMat4::from_quat(DQuat::from_rotation_x(a));
             let parent_world = match spec.parent {
@@ -441,9 +148,7 @@ impl Character {
             };
             world.push(parent_world * self.rest[i] * local_motion);
         }
-        Pose {
-            bone_to_world: world,
-        }
+        Pose { bone_to_world: world }
     }
 
     /// Signed distance to the surface, its gradient (the unit normal off the medial axis) and
@@ -482,11 +187,7 @@ impl Character {
         for (i, spec) in self.specs.iter().enumerate() {
             let d = tapered_capsule(pose, &self.skeleton, i, spec, p).0;
             let local = pose.to_local(i, p);
-            let pattern = 0.82
-                + 0.18
-                    * (local.y * 38.0 + i as f64).sin()
-                    * (local.x * 25.0).cos()
-                    * (local.z * 31.0 + 0.5).sin();
+            let pattern = 0.82 + 0.18 * (local.y * 38.0 + i as f64).sin() * (local.x * 25.0).cos() * (local.z * 31.0 + 0.5).sin();
             let base = DVec3::from_array(spec.colour) * pattern;
             parts[i] = (d, base);
             best = best.min(d);
@@ -505,24 +206,14 @@ impl Character {
     pub fn bounding_sphere(&self, pose: &Pose) -> (DVec3, f64) {
         let (lo, hi) = pose.bounds(&self.skeleton);
         let centre = (lo + hi) * 0.5;
-        let radius_margin = self
-            .specs
-            .iter()
-            .map(|s| s.radius_head.max(s.radius_tail))
-            .fold(0.0, f64::max);
+        let radius_margin = self.specs.iter().map(|s| s.radius_head.max(s.radius_tail)).fold(0.0, f64::max);
         (centre, (hi - lo).length() * 0.5 + radius_margin + 0.05)
     }
 }
 
 /// Distance to a capsule around bone `i` whose radius tapers from head to tail, and its gradient.
 /// (Not an exact distance where the taper is steep, but Lipschitz to within the taper slope.)
-fn tapered_capsule(
-    pose: &Pose,
-    skeleton: &Skeleton,
-    i: usize,
-    spec: &BoneSpec,
-    p: DVec3,
-) -> (f64, DVec3) {
+fn tapered_capsule(pose: &Pose, skeleton: &Skeleton, i: usize, spec: &BoneSpec, p: DVec3) -> (f64, DVec3) {
     let m = &pose.bone_to_world[i];
     let rotation = DMat3::from_mat4(*m);
     let local = rotation.transpose() * (p - m.w_axis.truncate());
@@ -531,17 +222,9 @@ fn tapered_capsule(
     let offset = local - DVec3::new(0.0, h * length, 0.0);
     let distance = offset.length();
     let radius = spec.radius_head + (spec.radius_tail - spec.radius_head) * h;
-    let direction = if distance > 1e-12 {
-        offset / distance
-    } else {
-        DVec3::X
-    };
+    let direction = if distance > 1e-12 { offset / distance } else { DVec3::X };
     // Between the joints the radius changes with the position along the bone.
-    let taper = if local.y > 0.0 && local.y < length {
-        (spec.radius_tail - spec.radius_head) / length
-    } else {
-        0.0
-    };
+    let taper = if local.y > 0.0 && local.y < length { (spec.radius_tail - spec.radius_head) / length } else { 0.0 };
     (distance - radius, rotation * (direction - DVec3::Y * taper))
 }
 
@@ -573,11 +256,7 @@ mod tests {
     fn sdf_gradient_matches_finite_differences() {
         let c = Character::new(Kind::Human);
         let pose = c.pose(0.2, 0.0, DVec3::ZERO);
-        for p in [
-            DVec3::new(0.1, 1.2, 0.1),
-            DVec3::new(-0.2, 0.5, 0.05),
-            DVec3::new(0.0, 1.7, 0.1),
-        ] {
+        for p in [DVec3::new(0.1, 1.2, 0.1), DVec3::new(-0.2, 0.5, 0.05), DVec3::new(0.0, 1.7, 0.1)] {
             let (_, g) = c.sdf(&pose, p);
             let h = 1e-6;
             let fd = DVec3::new(

@@ -18,9 +18,7 @@ use serde_json::{json, Value};
 use std::path::{Path, PathBuf};
 use trace::{shade, Stream, Traced};
 
-#[derive(
-    Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum, serde::Serialize, serde::Deserialize,
-)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum, serde::Serialize, serde::Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum TrainingLight {
     /// A directional sun with ambient: shadows to recover.
@@ -31,9 +29,7 @@ pub enum TrainingLight {
     Point,
 }
 
-#[derive(
-    Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum, serde::Serialize, serde::Deserialize,
-)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum, serde::Serialize, serde::Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum TestKind {
     /// Frames whose pose never appears in training, seen by training cameras.
@@ -66,12 +62,7 @@ pub struct SynthOptions {
     #[arg(long, default_value_t = 3)]
     pub test_frames: usize,
     /// Which test images to make.
-    #[arg(
-        long,
-        value_enum,
-        value_delimiter = ',',
-        default_value = "poses,views,relight"
-    )]
+    #[arg(long, value_enum, value_delimiter = ',', default_value = "poses,views,relight")]
     pub test: Vec<TestKind>,
     /// Monte Carlo samples per pixel for uniform and environment light.
     #[arg(long, default_value_t = 256)]
@@ -120,10 +111,7 @@ pub enum SynthError {
 }
 
 fn io_error(path: &Path, e: impl std::fmt::Display) -> SynthError {
-    SynthError::Io {
-        path: path.to_path_buf(),
-        message: e.to_string(),
-    }
+    SynthError::Io { path: path.to_path_buf(), message: e.to_string() }
 }
 
 /// One image the generator will render.
@@ -147,11 +135,7 @@ pub struct Plan {
 }
 
 fn sun(direction: [f64; 3], irradiance: [f64; 3], ambient: [f64; 3]) -> Light {
-    Light::Directional {
-        direction: DVec3::from_array(direction).normalize(),
-        irradiance: DVec3::from_array(irradiance),
-        ambient: DVec3::from_array(ambient),
-    }
+    Light::Directional { direction: DVec3::from_array(direction).normalize(), irradiance: DVec3::from_array(irradiance), ambient: DVec3::from_array(ambient) }
 }
 
 /// A sky for relighting: blue above, warm horizon, dark ground and a bright sun disc.
@@ -160,10 +144,7 @@ pub fn synthetic_sky(width: usize, height: usize) -> EnvironmentMap {
     let mut image = RgbImage::new(width, height);
     for y in 0..height {
         for x in 0..width {
-            let d = uv_to_direction(
-                (x as f64 + 0.5) / width as f64,
-                (y as f64 + 0.5) / height as f64,
-            );
+            let d = uv_to_direction((x as f64 + 0.5) / width as f64, (y as f64 + 0.5) / height as f64);
             let up = d.y;
             let sky = if up >= 0.0 {
                 DVec3::new(0.35, 0.5, 0.9).lerp(DVec3::new(0.9, 0.85, 0.75), (1.0 - up).powi(4))
@@ -215,19 +196,12 @@ impl SynthOptions {
         let focal = 1.2 * self.size as f64;
         let distance = focal * extent / (0.45 * self.size as f64);
         let ring = |name: String, azimuth: f64, elevation: f64| {
-            let eye = target
-                + DVec3::new(
-                    azimuth.sin() * elevation.cos(),
-                    elevation.sin(),
-                    azimuth.cos() * elevation.cos(),
-                ) * distance;
+            let eye = target + DVec3::new(azimuth.sin() * elevation.cos(), elevation.sin(), azimuth.cos() * elevation.cos()) * distance;
             Camera::look_at(&name, eye, target, DVec3::Y, self.size, self.size, focal)
         };
         let mut cameras = Vec::new();
         for c in 0..self.cameras {
-            let azimuth = 2.0 * std::f64::consts::PI * (c as f64 + 0.3 * (stream.uniform() - 0.5))
-                / self.cameras as f64
-                + 0.35;
+            let azimuth = 2.0 * std::f64::consts::PI * (c as f64 + 0.3 * (stream.uniform() - 0.5)) / self.cameras as f64 + 0.35;
             let elevation = (8.0 + 14.0 * stream.uniform()).to_radians();
             cameras.push(ring(format!("cam{c:02}"), azimuth, elevation));
         }
@@ -238,86 +212,44 @@ impl SynthOptions {
         }
         // A monocular capture needs the character to turn so the one camera sees all sides.
         let turns = if self.cameras == 1 { 1.0 } else { 0.0 };
-        let pose_at = |phase: f64| {
-            character.pose(
-                phase,
-                2.0 * std::f64::consts::PI * turns * phase,
-                DVec3::ZERO,
-            )
-        };
+        let pose_at = |phase: f64| character.pose(phase, 2.0 * std::f64::consts::PI * turns * phase, DVec3::ZERO);
         let mut frames = Vec::new();
         for k in 0..self.frames {
             let phase = k as f64 / self.frames as f64;
             frames.push((10 * k as i64, phase, pose_at(phase)));
         }
-        let test_poses =
-            self.test.contains(&TestKind::Poses) || self.test.contains(&TestKind::Relight);
+        let test_poses = self.test.contains(&TestKind::Poses) || self.test.contains(&TestKind::Relight);
         let first_test_frame = frames.len();
         if test_poses {
             for j in 0..self.test_frames {
                 // Halfway between training phases: a pose never seen in training.
-                let phase = ((j * self.frames) as f64 / self.test_frames.max(1) as f64).floor()
-                    / self.frames as f64
-                    + 0.5 / self.frames as f64;
+                let phase = ((j * self.frames) as f64 / self.test_frames.max(1) as f64).floor() / self.frames as f64 + 0.5 / self.frames as f64;
                 frames.push((1000 + j as i64, phase, pose_at(phase)));
             }
         }
         let (train_name, train_light) = match self.light {
-            TrainingLight::Sun => (
-                "sun",
-                sun([0.45, 0.8, 0.4], [0.85, 0.82, 0.78], [0.2, 0.21, 0.24]),
-            ),
-            TrainingLight::Uniform => (
-                "studio",
-                Light::Uniform {
-                    radiance: DVec3::new(0.9, 0.9, 0.88),
-                },
-            ),
-            TrainingLight::Point => (
-                "lamp",
-                Light::Point {
-                    position: DVec3::new(1.1, 2.3, 1.4),
-                    intensity: DVec3::new(4.6, 4.4, 4.1),
-                    ambient: DVec3::new(0.15, 0.15, 0.17),
-                },
-            ),
+            TrainingLight::Sun => ("sun", sun([0.45, 0.8, 0.4], [0.85, 0.82, 0.78], [0.2, 0.21, 0.24])),
+            TrainingLight::Uniform => ("studio", Light::Uniform { radiance: DVec3::new(0.9, 0.9, 0.88) }),
+            TrainingLight::Point => {
+                ("lamp", Light::Point { position: DVec3::new(1.1, 2.3, 1.4), intensity: DVec3::new(4.6, 4.4, 4.1), ambient: DVec3::new(0.15, 0.15, 0.17) })
+            }
         };
         let mut lights = vec![(train_name.to_string(), train_light)];
         let relight = self.test.contains(&TestKind::Relight);
         if relight {
-            lights.push((
-                "sun2".into(),
-                sun([-0.6, 0.55, -0.35], [0.9, 0.75, 0.6], [0.15, 0.17, 0.25]),
-            ));
+            lights.push(("sun2".into(), sun([-0.6, 0.55, -0.35], [0.9, 0.75, 0.6], [0.15, 0.17, 0.25])));
             if self.light != TrainingLight::Point {
                 lights.push((
                     "lamp".into(),
-                    Light::Point {
-                        position: DVec3::new(-1.3, 2.0, 1.2),
-                        intensity: DVec3::new(4.2, 4.2, 4.6),
-                        ambient: DVec3::new(0.1, 0.1, 0.12),
-                    },
+                    Light::Point { position: DVec3::new(-1.3, 2.0, 1.2), intensity: DVec3::new(4.2, 4.2, 4.6), ambient: DVec3::new(0.1, 0.1, 0.12) },
                 ));
             }
-            lights.push((
-                "sky".into(),
-                Light::Environment {
-                    path: PathBuf::from("lights/sky.exr"),
-                    scale: 1.0,
-                    map: synthetic_sky(64, 32),
-                },
-            ));
+            lights.push(("sky".into(), Light::Environment { path: PathBuf::from("lights/sky.exr"), scale: 1.0, map: synthetic_sky(64, 32) }));
         }
         let mut views = Vec::new();
         let mut add = |camera: usize, frame: usize, light: &str, split: Split| {
             let name = format!("c{camera:02}_f{:04}_{light}", frames[frame].0);
-            views.push(PlannedView {
-                camera,
-                frame,
-                light: light.to_string(),
-                split,
-                name,
-            });
+            views.push(PlannedView { camera, frame, light: light.to_string(), split, name });
         };
         for frame in 0..self.frames {
             for camera in 0..self.cameras {
@@ -347,20 +279,11 @@ impl SynthOptions {
         if relight {
             let light_names: Vec<String> = lights.iter().skip(1).map(|(n, _)| n.clone()).collect();
             for (j, name) in light_names.iter().enumerate() {
-                let frame = test_frames
-                    .get(j % test_frames.len().max(1))
-                    .copied()
-                    .unwrap_or(0);
+                let frame = test_frames.get(j % test_frames.len().max(1)).copied().unwrap_or(0);
                 add(j % self.cameras, frame, name, Split::Test);
             }
         }
-        Ok(Plan {
-            character,
-            cameras,
-            frames,
-            lights,
-            views,
-        })
+        Ok(Plan { character, cameras, frames, lights, views })
     }
 }
 
@@ -372,15 +295,7 @@ pub struct Rendered {
 }
 
 /// Renders one view of a posed character exactly per the scene format's image formation.
-pub fn render_view(
-    character: &Character,
-    pose: &Pose,
-    camera: &Camera,
-    light: &Light,
-    samples: usize,
-    seed: u64,
-    view_id: u64,
-) -> Rendered {
+pub fn render_view(character: &Character, pose: &Pose, camera: &Camera, light: &Light, samples: usize, seed: u64, view_id: u64) -> Rendered {
     let traced = Traced::new(character, pose);
     let (w, h) = (camera.width, camera.height);
     let rows: Vec<Vec<([f32; 3], bool, [f32; 3])>> = (0..h)
@@ -395,11 +310,7 @@ pub fn render_view(
                             let albedo = character.albedo(pose, hit.point);
                             let mut stream = Stream::new(seed, view_id, (j * w + i) as u64);
                             let colour = shade(&traced, &hit, albedo, light, samples, &mut stream);
-                            (
-                                colour.as_vec3().to_array(),
-                                true,
-                                albedo.as_vec3().to_array(),
-                            )
+                            (colour.as_vec3().to_array(), true, albedo.as_vec3().to_array())
                         }
                     }
                 })
@@ -416,42 +327,24 @@ pub fn render_view(
             foreground.push(m);
         }
     }
-    Rendered {
-        colour,
-        mask: Mask {
-            width: w,
-            height: h,
-            foreground,
-        },
-        albedo,
-    }
+    Rendered { colour, mask: Mask { width: w, height: h, foreground }, albedo }
 }
 
 fn matrix_rows(m: &DMat4) -> Value {
-    json!((0..4)
-        .map(|r| m.row(r).to_array().to_vec())
-        .collect::<Vec<_>>())
+    json!((0..4).map(|r| m.row(r).to_array().to_vec()).collect::<Vec<_>>())
 }
 
 fn light_json(light: &Light) -> Value {
     let v = |d: &DVec3| json!(d.to_array());
     match light {
-        Light::Directional {
-            direction,
-            irradiance,
-            ambient,
-        } => {
+        Light::Directional { direction, irradiance, ambient } => {
             json!({"type": "directional", "direction": v(direction), "irradiance": v(irradiance), "ambient": v(ambient)})
         }
         Light::Uniform { radiance } => json!({"type": "uniform", "radiance": v(radiance)}),
         Light::Environment { path, scale, .. } => {
             json!({"type": "environment", "path": path.to_string_lossy(), "scale": scale})
         }
-        Light::Point {
-            position,
-            intensity,
-            ambient,
-        } => {
+        Light::Point { position, intensity, ambient } => {
             json!({"type": "point", "position": v(position), "intensity": v(intensity), "ambient": v(ambient)})
         }
     }
@@ -465,20 +358,12 @@ pub struct Report {
 
 /// Writes the whole scene into `out`, atomically: everything goes to a temp folder beside it
 /// that is renamed into place at the end (an existing `out` is replaced only with `force`).
-pub fn generate(
-    options: &SynthOptions,
-    out: &Path,
-    force: bool,
-    mut progress: impl FnMut(usize, usize),
-) -> Result<Report, SynthError> {
+pub fn generate(options: &SynthOptions, out: &Path, force: bool, mut progress: impl FnMut(usize, usize)) -> Result<Report, SynthError> {
     let plan = options.plan()?;
     if out.exists() && !force {
         return Err(io_error(out, "already exists (pass --force to replace it)"));
     }
-    let parent = out
-        .parent()
-        .filter(|p| !p.as_os_str().is_empty())
-        .unwrap_or(Path::new("."));
+    let parent = out.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(Path::new("."));
     std::fs::create_dir_all(parent).map_err(|e| io_error(parent, e))?;
     let temp = imageio::temp_path(out);
     if temp.exists() {
@@ -500,12 +385,7 @@ pub fn generate(
     }
 }
 
-fn write_scene(
-    options: &SynthOptions,
-    plan: &Plan,
-    dir: &Path,
-    progress: &mut impl FnMut(usize, usize),
-) -> Result<Report, SynthError> {
+fn write_scene(options: &SynthOptions, plan: &Plan, dir: &Path, progress: &mut impl FnMut(usize, usize)) -> Result<Report, SynthError> {
     for sub in ["images", "masks", "albedo", "lights", "meshes"] {
         if sub == "meshes" && !options.meshes {
             continue;
@@ -519,12 +399,10 @@ fn write_scene(
         bytes += data.len() as u64;
         std::fs::write(&path, data).map_err(|e| io_error(&path, e))
     };
-    let lights: std::collections::BTreeMap<&str, &Light> =
-        plan.lights.iter().map(|(n, l)| (n.as_str(), l)).collect();
+    let lights: std::collections::BTreeMap<&str, &Light> = plan.lights.iter().map(|(n, l)| (n.as_str(), l)).collect();
     for (_, light) in &plan.lights {
         if let Light::Environment { path, map, .. } = light {
-            imageio::write_exr_atomic(&dir.join(path), &map.image)
-                .map_err(|e| io_error(path, e))?;
+            imageio::write_exr_atomic(&dir.join(path), &map.image).map_err(|e| io_error(path, e))?;
         }
     }
     let mut images = Vec::new();
@@ -532,15 +410,7 @@ fn write_scene(
         progress(k, plan.views.len());
         let (_, _, pose) = &plan.frames[view.frame];
         let light = lights[view.light.as_str()];
-        let r = render_view(
-            &plan.character,
-            pose,
-            &plan.cameras[view.camera],
-            light,
-            options.samples,
-            options.seed,
-            k as u64,
-        );
+        let r = render_view(&plan.character, pose, &plan.cameras[view.camera], light, options.samples, options.seed, k as u64);
         let png = |e: imageio::ImageError| io_error(Path::new(&view.name), e);
         let path = format!("images/{}.png", view.name);
         let mask = format!("masks/{}.png", view.name);
@@ -555,13 +425,7 @@ fn write_scene(
         images.push(entry);
     }
     progress(plan.views.len(), plan.views.len());
-    let skeleton: Vec<Value> = plan
-        .character
-        .skeleton
-        .bones
-        .iter()
-        .map(|b| json!({"name": b.name, "parent": b.parent, "length": b.length}))
-        .collect();
+    let skeleton: Vec<Value> = plan.character.skeleton.bones.iter().map(|b| json!({"name": b.name, "parent": b.parent, "length": b.length})).collect();
     let cameras: Vec<Value> = plan
         .cameras
         .iter()
@@ -578,21 +442,11 @@ fn write_scene(
         }
         frames.push(frame);
     }
-    let lights_json: serde_json::Map<String, Value> = plan
-        .lights
-        .iter()
-        .map(|(n, l)| (n.clone(), light_json(l)))
-        .collect();
+    let lights_json: serde_json::Map<String, Value> = plan.lights.iter().map(|(n, l)| (n.clone(), light_json(l))).collect();
     let name = format!(
         "{}-{}",
-        serde_json::to_value(options.character)
-            .ok()
-            .and_then(|v| v.as_str().map(String::from))
-            .unwrap_or_default(),
-        serde_json::to_value(options.light)
-            .ok()
-            .and_then(|v| v.as_str().map(String::from))
-            .unwrap_or_default()
+        serde_json::to_value(options.character).ok().and_then(|v| v.as_str().map(String::from)).unwrap_or_default(),
+        serde_json::to_value(options.light).ok().and_then(|v| v.as_str().map(String::from)).unwrap_or_default()
     );
     let scene = json!({
         "format": crate::scene::FORMAT,
@@ -604,11 +458,7 @@ fn write_scene(
         "lights": lights_json,
         "images": images,
     });
-    let text =
-        serde_json::to_string_pretty(&scene).map_err(|e| io_error(Path::new("scene.json"), e))?;
+    let text = serde_json::to_string_pretty(&scene).map_err(|e| io_error(Path::new("scene.json"), e))?;
     write("scene.json", text.as_bytes())?;
-    Ok(Report {
-        images: plan.views.len(),
-        bytes,
-    })
+    Ok(Report { images: plan.views.len(), bytes })
 }

@@ -33,12 +33,7 @@ pub struct Hit {
 impl<'a> Traced<'a> {
     pub fn new(character: &'a Character, pose: &'a Pose) -> Self {
         let (centre, radius) = character.bounding_sphere(pose);
-        Self {
-            character,
-            pose,
-            centre,
-            radius,
-        }
+        Self { character, pose, centre, radius }
     }
 
     /// The `[t_in, t_out]` interval of the ray inside the bounding sphere, if any.
@@ -72,11 +67,7 @@ impl<'a> Traced<'a> {
                     t -= d / slope;
                 }
                 let point = ray.at(t);
-                return Some(Hit {
-                    t,
-                    point,
-                    normal: self.character.normal(self.pose, point),
-                });
+                return Some(Hit { t, point, normal: self.character.normal(self.pose, point) });
             }
             let _ = gradient;
             // The blended SDF is Lipschitz to within the capsules' taper: step 0.9 of it.
@@ -101,11 +92,18 @@ pub struct Stream(u64);
 
 impl Stream {
     pub fn new(seed: u64, a: u64, b: u64) -> Self {
-        let mut s = Stream(
-            seed ^ a.wrapping_mul(0x9E37_79B9_7F4A_7C15) ^ b.wrapping_mul(0xC2B2_AE3D_27D4_EB4F),
-        );
+        let mut s = Stream(seed ^ a.wrapping_mul(0x9E37_79B9_7F4A_7C15) ^ b.wrapping_mul(0xC2B2_AE3D_27D4_EB4F));
         s.next_u64();
         s
+    }
+
+    /// The whole state, to checkpoint and resume a stream exactly.
+    pub fn state(&self) -> u64 {
+        self.0
+    }
+
+    pub fn from_state(state: u64) -> Self {
+        Stream(state)
     }
 
     pub fn next_u64(&mut self) -> u64 {
@@ -125,75 +123,34 @@ impl Stream {
 /// A cosine-weighted direction about `normal`, sample `k` of `n` stratified on a square grid.
 pub fn cosine_direction(normal: DVec3, k: usize, n: usize, stream: &mut Stream) -> DVec3 {
     let side = (n as f64).sqrt().floor().max(1.0) as usize;
-    let (cell_x, cell_y) = if k < side * side {
-        (k % side, k / side)
-    } else {
-        (0, 0)
-    };
+    let (cell_x, cell_y) = if k < side * side { (k % side, k / side) } else { (0, 0) };
     let cells = if k < side * side { side as f64 } else { 1.0 };
     let u1 = (cell_x as f64 + stream.uniform()) / cells;
     let u2 = (cell_y as f64 + stream.uniform()) / cells;
     let r = u1.sqrt();
     let phi = 2.0 * std::f64::consts::PI * u2;
     let (tangent, bitangent) = normal.any_orthonormal_pair();
-    (tangent * (r * phi.cos()) + bitangent * (r * phi.sin()) + normal * (1.0 - u1).max(0.0).sqrt())
-        .normalize()
+    (tangent * (r * phi.cos()) + bitangent * (r * phi.sin()) + normal * (1.0 - u1).max(0.0).sqrt()).normalize()
 }
 
 /// Outgoing radiance of a Lambertian point per the scene format's image formation.
-pub fn shade(
-    traced: &Traced,
-    hit: &Hit,
-    albedo: DVec3,
-    light: &Light,
-    samples: usize,
-    stream: &mut Stream,
-) -> DVec3 {
+pub fn shade(traced: &Traced, hit: &Hit, albedo: DVec3, light: &Light, samples: usize, stream: &mut Stream) -> DVec3 {
     match light {
-        Light::Directional {
-            direction,
-            irradiance,
-            ambient,
-        } => {
+        Light::Directional { direction, irradiance, ambient } => {
             let cosine = hit.normal.dot(*direction).max(0.0);
-            let lit = if cosine > 0.0
-                && traced.visible(hit.point, hit.normal, *direction, f64::INFINITY)
-            {
-                1.0
-            } else {
-                0.0
-            };
+            let lit = if cosine > 0.0 && traced.visible(hit.point, hit.normal, *direction, f64::INFINITY) { 1.0 } else { 0.0 };
             albedo * (*ambient + *irradiance * (cosine * lit))
         }
-        Light::Point {
-            position,
-            intensity,
-            ambient,
-        } => {
+        Light::Point { position, intensity, ambient } => {
             let to_light = *position - hit.point;
             let r = to_light.length();
             let direction = to_light / r;
             let cosine = hit.normal.dot(direction).max(0.0);
-            let lit = if cosine > 0.0
-                && traced.visible(hit.point, hit.normal, direction, r - SHADOW_OFFSET)
-            {
-                1.0
-            } else {
-                0.0
-            };
+            let lit = if cosine > 0.0 && traced.visible(hit.point, hit.normal, direction, r - SHADOW_OFFSET) { 1.0 } else { 0.0 };
             albedo * (*ambient + *intensity / (r * r) * (cosine * lit))
         }
         Light::Uniform { radiance } => {
-            let open = (0..samples)
-                .filter(|&k| {
-                    traced.visible(
-                        hit.point,
-                        hit.normal,
-                        cosine_direction(hit.normal, k, samples, stream),
-                        f64::INFINITY,
-                    )
-                })
-                .count();
+            let open = (0..samples).filter(|&k| traced.visible(hit.point, hit.normal, cosine_direction(hit.normal, k, samples, stream), f64::INFINITY)).count();
             albedo * *radiance * (open as f64 / samples.max(1) as f64)
         }
         Light::Environment { scale, map, .. } => {

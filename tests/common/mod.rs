@@ -14,8 +14,7 @@ pub struct TempDir(pub PathBuf);
 impl TempDir {
     pub fn new(tag: &str) -> Self {
         let n = COUNTER.fetch_add(1, Ordering::SeqCst);
-        let path =
-            std::env::temp_dir().join(format!("umbra-test-{tag}-{}-{n}", std::process::id()));
+        let path = std::env::temp_dir().join(format!("umbra-test-{tag}-{}-{n}", std::process::id()));
         let _ = std::fs::remove_dir_all(&path);
         std::fs::create_dir_all(&path).unwrap();
         TempDir(path)
@@ -38,23 +37,13 @@ pub fn identity_rows(ty: f64) -> Value {
 
 /// An 8-bit sRGB PNG with codes ((k % 7) * 36, 128, 64) at pixel k.
 fn write_png(path: &Path, w: usize, h: usize) {
-    let raw: Vec<u8> = (0..w * h)
-        .flat_map(|k| [(k % 7) as u8 * 36, 128, 64])
-        .collect();
+    let raw: Vec<u8> = (0..w * h).flat_map(|k| [(k % 7) as u8 * 36, 128, 64]).collect();
     std::fs::create_dir_all(path.parent().unwrap()).unwrap();
-    std::fs::write(
-        path,
-        imageio::encode_png_raw(&raw, w, h, image::ExtendedColorType::Rgb8).unwrap(),
-    )
-    .unwrap();
+    std::fs::write(path, imageio::encode_png_raw(&raw, w, h, image::ExtendedColorType::Rgb8).unwrap()).unwrap();
 }
 
 fn write_mask(path: &Path, w: usize, h: usize) {
-    let mask = Mask {
-        width: w,
-        height: h,
-        foreground: (0..w * h).map(|k| k % 3 == 0).collect(),
-    };
+    let mask = Mask { width: w, height: h, foreground: (0..w * h).map(|k| k % 3 == 0).collect() };
     std::fs::create_dir_all(path.parent().unwrap()).unwrap();
     std::fs::write(path, imageio::encode_png_mask(&mask).unwrap()).unwrap();
 }
@@ -72,11 +61,7 @@ pub fn valid_scene(dir: &Path) -> Value {
     std::fs::create_dir_all(dir.join("lights")).unwrap();
     imageio::write_exr_atomic(&dir.join("lights/sky.exr"), &env).unwrap();
     std::fs::create_dir_all(dir.join("meshes")).unwrap();
-    std::fs::write(
-        dir.join("meshes/f0.obj"),
-        "v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n",
-    )
-    .unwrap();
+    std::fs::write(dir.join("meshes/f0.obj"), "v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n").unwrap();
     let scene = json!({
         "format": "scene/1",
         "name": "tiny",
@@ -112,11 +97,7 @@ pub fn valid_scene(dir: &Path) -> Value {
 }
 
 pub fn write_scene_json(dir: &Path, scene: &Value) {
-    std::fs::write(
-        dir.join("scene.json"),
-        serde_json::to_string_pretty(scene).unwrap(),
-    )
-    .unwrap();
+    std::fs::write(dir.join("scene.json"), serde_json::to_string_pretty(scene).unwrap()).unwrap();
 }
 
 pub fn shared_dir() -> PathBuf {
@@ -125,10 +106,6 @@ pub fn shared_dir() -> PathBuf {
 
 pub fn example_scene() -> PathBuf {
     let p = shared_dir().join("examples/quadruped-tiny");
-    assert!(
-        p.join("scene.json").is_file(),
-        "the fixture {} is missing: ../shared must sit beside the repository",
-        p.display()
-    );
+    assert!(p.join("scene.json").is_file(), "the fixture {} is missing: ../shared must sit beside the repository", p.display());
     p
 }

@@ -1,0 +1,222 @@
+//! A whole fit as the CLI runs it: the training loop with its outputs (`fit.json`,
+//! `losses.csv`, `losses.png`, `gaussians.json`, renders), atomic checkpoints every N
+//! iterations, exact `--resume`, and the evaluation of the test images at the end.
+
+use crate::plot::{Chart, Series};
+use crate::scene::{Scene, Split};
+use crate::schedule::Schedule;
+use crate::shading::LightKind;
+use crate::synth::trace::Stream;
+use crate::train::{io, Avatar, FitError, FitOptions, StepStats, TrainMessage, Trainer};
+use burn::module::Module;
+use serde_json::json;
+use std::collections::BTreeMap;
+use std::path::Path;
+use std::time::Instant;
+
+const CHECKPOINT: &str = "checkpoint";
+
+/// The three segments of the schedule, for timing and reporting.
+fn segment(schedule: &Schedule, iteration: usize) -> &'static str {
+    let density_start = schedule.weights.get("density").map(|r| r.hold as usize).unwrap_or(usize::MAX);
+    if iteration < density_start.min(schedule.light_from) {
+        "density fitting"
+    } else if iteration < schedule.light_from {
+        "Gaussian fitting"
+    } else {
+        "light and RGB fitting"
+    }
+}
+
+fn write_text(path: &Path, text: &str) -> Result<(), FitError> {
+    crate::imageio::write_atomic(path, text.as_bytes()).map_err(|e| io(path, e))
+}
+
+fn save_checkpoint(trainer: &Trainer, out: &Path, history: &[(usize, StepStats)]) -> Result<(), FitError> {
+    let temp = out.join(".checkpoint.tmp");
+    let _ = std::fs::remove_dir_all(&temp);
+    std::fs::create_dir_all(&temp).map_err(|e| io(&temp, e))?;
+    trainer.model().clone().save_file(temp.join("model.bpk")).map_err(|e| io(&temp.join("model.bpk"), format!("{e:?}")))?;
+    for (name, optimizer) in &trainer.optimizers {
+        let path = temp.join(format!("optimizer-{name}.bpk"));
+        optimizer.save(&path).map_err(|e| io(&path, format!("{e:?}")))?;
+    }
+    let state = json!({"iteration": trainer.iteration, "stream": trainer.stream.state().to_string()});
+    write_text(&temp.join("state.json"), &state.to_string())?;
+    write_text(&temp.join("losses.csv"), &losses_csv(history))?;
+    let target = out.join(CHECKPOINT);
+    let old = out.join(".checkpoint.old");
+    let _ = std::fs::remove_dir_all(&old);
+    if target.exists() {
+        std::fs::rename(&target, &old).map_err(|e| io(&target, e))?;
+    }
+    std::fs::rename(&temp, &target).map_err(|e| io(&target, e))?;
+    let _ = std::fs::remove_dir_all(&old);
+    Ok(())
+}
+
+fn load_checkpoint(trainer: &mut Trainer, out: &Path) -> Result<Vec<(usize, StepStats)>, FitError> {
+    let dir = out.join(CHECKPOINT);
+    let state_path = dir.join("state.json");
+    let text = std::fs::read_to_string(&state_path).map_err(|e| io(&state_path, format!("cannot resume: {e}")))?;
+    let state: serde_json::Value = serde_json::from_str(&text).map_err(|e| io(&state_path, e))?;
+    let iteration = state["iteration"].as_u64().ok_or_else(|| io(&state_path, "iteration: missing"))? as usize;
+    let stream: u64 = state["stream"].as_str().and_then(|s| s.parse().ok()).ok_or_else(|| io(&state_path, "stream: missing"))?;
+    let model = trainer.model.take().ok_or_else(|| FitError::Input("no model".into()))?;
+    let model = model.try_load_file(dir.join("model.bpk")).map_err(|e| io(&dir.join("model.bpk"), format!("{e:?}")))?;
+    trainer.model = Some(model);
+    let mut optimizers = std::mem::take(&mut trainer.optimizers);
+    for (name, optimizer) in optimizers.iter_mut() {
+        let path = dir.join(format!("optimizer-{name}.bpk"));
+        *optimizer = optimizer.clone().load(&path).map_err(|e| io(&path, format!("{e:?}")))?;
+    }
+    trainer.optimizers = optimizers;
+    trainer.iteration = iteration;
+    trainer.stream = Stream::from_state(stream);
+    let csv = std::fs::read_to_string(dir.join("losses.csv")).map_err(|e| io(&dir.join("losses.csv"), e))?;
+    Ok(parse_losses_csv(&csv))
+}
+
+fn losses_csv(history: &[(usize, StepStats)]) -> String {
+    let mut out = format!("iteration,total,seconds,{}\n", crate::schedule::TERMS.join(","));
+    for (it, s) in history {
+        let terms: Vec<String> = crate::schedule::TERMS.iter().map(|t| s.terms.get(*t).map(|v| format!("{v:.6e}")).unwrap_or_default()).collect();
+        out += &format!("{it},{:.6e},{:.4},{}\n", s.total, s.seconds, terms.join(","));
+    }
+    out
+}
+
+fn parse_losses_csv(text: &str) -> Vec<(usize, StepStats)> {
+    let mut rows = Vec::new();
+    for line in text.lines().skip(1) {
+        let cells: Vec<&str> = line.split(',').collect();
+        let (Some(it), Some(total), Some(seconds)) =
+            (cells.first().and_then(|c| c.parse().ok()), cells.get(1).and_then(|c| c.parse().ok()), cells.get(2).and_then(|c| c.parse().ok()))
+        else {
+            continue;
+        };
+        let terms =
+            crate::schedule::TERMS.iter().enumerate().filter_map(|(k, t)| cells.get(3 + k).and_then(|c| c.parse().ok()).map(|v| (t.to_string(), v))).collect();
+        rows.push((it, StepStats { total, terms, seconds }));
+    }
+    rows
+}
+
+fn losses_chart(history: &[(usize, StepStats)]) -> Chart {
+    let mut series = vec![Series { name: "total".into(), points: history.iter().map(|(i, s)| (*i as f64 + 1.0, s.total)).collect(), lines: true }];
+    for term in crate::schedule::TERMS {
+        let points: Vec<(f64, f64)> = history.iter().filter_map(|(i, s)| s.terms.get(term).map(|v| (*i as f64 + 1.0, *v))).collect();
+        if !points.is_empty() {
+            series.push(Series { name: term.into(), points, lines: true });
+        }
+    }
+    Chart { title: "losses".into(), x_label: "iteration".into(), y_label: "loss".into(), log_x: false, log_y: true, series }
+}
+
+/// Runs the fit described by `options`, reporting through `on`; returns fit.json's content.
+pub fn fit(options: &FitOptions, mut on: impl FnMut(TrainMessage)) -> Result<serde_json::Value, FitError> {
+    let wall = Instant::now();
+    let scene = Scene::load(&options.scene)?;
+    let mut schedule = Schedule::load(&options.schedule)?;
+    if let Some(n) = options.iterations {
+        if n == 0 {
+            return Err(FitError::Input("--iterations must be at least 1".into()));
+        }
+        schedule.iterations = n;
+    }
+    let out = &options.out;
+    if out.join(CHECKPOINT).exists() && !options.resume {
+        return Err(io(out, "holds a checkpoint of an earlier fit: pass --resume to continue it, or choose another --out"));
+    }
+    std::fs::create_dir_all(out).map_err(|e| io(out, e))?;
+    let mut trainer = Trainer::new(scene, schedule.clone(), options.backend, options.seed)?;
+    let mut history = if options.resume { load_checkpoint(&mut trainer, out)? } else { Vec::new() };
+    history.retain(|(i, _)| *i < trainer.iteration);
+    let training_images = trainer.scene.views_in(Split::Train).count();
+    on(TrainMessage::Loaded { scene: trainer.scene.display_name(), training_images, frames: trainer.scene.frames.len(), light: trainer.light_kind });
+    on(TrainMessage::Started { first: trainer.iteration, iterations: schedule.iterations });
+    let mut segment_seconds: BTreeMap<&str, f64> = BTreeMap::new();
+    while trainer.iteration < schedule.iterations {
+        let it = trainer.iteration;
+        let stats = trainer.step().map_err(|e| match e {
+            FitError::NonFinite { iteration, what, .. } => FitError::NonFinite { iteration, what, checkpoint: out.join(CHECKPOINT).display().to_string() },
+            other => other,
+        })?;
+        *segment_seconds.entry(segment(&schedule, it)).or_default() += stats.seconds;
+        history.push((it, stats.clone()));
+        on(TrainMessage::Step { iteration: it, stats });
+        if trainer.iteration % schedule.checkpoint_every == 0 || trainer.iteration == schedule.iterations {
+            save_checkpoint(&trainer, out, &history)?;
+            on(TrainMessage::Checkpoint { iteration: trainer.iteration });
+        }
+    }
+    let set = trainer.model().gaussians.to_set();
+    set.save(&out.join("gaussians.json")).map_err(|e| io(&out.join("gaussians.json"), e))?;
+    write_text(&out.join("losses.csv"), &losses_csv(&history))?;
+    losses_chart(&history).render(800, 500).save_png(&out.join("losses.png")).map_err(|e| io(&out.join("losses.png"), e))?;
+    let evaluation = if options.evaluate { evaluate(&trainer, out, &mut on)? } else { json!(null) };
+    let model: &Avatar = trainer.model();
+    let light = model.light.report();
+    let mut stages = Vec::new();
+    let density_hold = schedule.weights.get("density").map(|r| r.hold).unwrap_or(0.0);
+    stages.push(json!({"name": "density fitting", "ran": true, "seconds": segment_seconds.get("density fitting").copied().unwrap_or(0.0)}));
+    stages.push(json!({"name": "Gaussian fitting", "ran": schedule.weights["density"].ever_active(schedule.iterations), "from": density_hold, "seconds": segment_seconds.get("Gaussian fitting").copied().unwrap_or(0.0)}));
+    let light_stage = if trainer.fit_light {
+        json!({"name": "light and RGB fitting", "ran": true, "from": schedule.light_from, "seconds": segment_seconds.get("light and RGB fitting").copied().unwrap_or(0.0)})
+    } else {
+        let why = if trainer.light_kind == LightKind::Uniform && schedule.light != crate::schedule::LightFit::Off {
+            "every training image is uniformly lit: no light direction, no shadow rays; RGB fits the albedo directly"
+        } else {
+            "the schedule sets light = \"off\""
+        };
+        json!({"name": "light fitting", "ran": false, "skipped_because": why})
+    };
+    stages.push(light_stage);
+    let last = history.last().map(|(_, s)| s.clone()).unwrap_or_default();
+    let report = json!({
+        "scene": options.scene.display().to_string(),
+        "light": light,
+        "stages": stages,
+        "iterations": schedule.iterations,
+        "seed": options.seed,
+        "schedule": options.schedule.display().to_string(),
+        "backend": options.backend,
+        "threads": rayon::current_num_threads(),
+        "final_losses": last.terms,
+        "final_total": last.total,
+        "wall_seconds": wall.elapsed().as_secs_f64(),
+        "evaluation": evaluation,
+    });
+    write_text(&out.join("fit.json"), &serde_json::to_string_pretty(&report).unwrap_or_default())?;
+    on(TrainMessage::Done);
+    Ok(report)
+}
+
+/// Renders every test image the fitted light can reproduce and scores it (PSNR, sRGB 8-bit).
+fn evaluate(trainer: &Trainer, out: &Path, on: &mut impl FnMut(TrainMessage)) -> Result<serde_json::Value, FitError> {
+    let scene = &trainer.scene;
+    let train_frames: Vec<usize> = scene.views_in(Split::Train).map(|v| v.frame).collect();
+    let train_cameras: Vec<usize> = scene.views_in(Split::Train).map(|v| v.camera).collect();
+    let train_lights = scene.training_lights();
+    let tests: Vec<&crate::scene::View> = scene.views_in(Split::Test).filter(|v| train_lights.contains(&v.light.as_str())).collect();
+    on(TrainMessage::Evaluating { images: tests.len() });
+    let dir = out.join("renders");
+    std::fs::create_dir_all(&dir).map_err(|e| io(&dir, e))?;
+    let mut rows = Vec::new();
+    let (mut pose_sum, mut pose_n) = (0.0, 0);
+    for view in tests {
+        let image = crate::eval::render_view(trainer.model(), scene, view.camera, view.frame, 48, &trainer.device, trainer.fit_light);
+        let psnr = crate::eval::psnr_srgb8(&image, &view.colour);
+        let name = view.path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+        let png = crate::imageio::encode_png_rgb(&image).map_err(|e| io(&dir.join(&name), e))?;
+        crate::imageio::write_atomic(&dir.join(&name), &png).map_err(|e| io(&dir.join(&name), e))?;
+        let novel_pose = !train_frames.contains(&view.frame);
+        let novel_view = !train_cameras.contains(&view.camera);
+        if novel_pose && !novel_view {
+            pose_sum += psnr;
+            pose_n += 1;
+        }
+        rows.push(json!({"image": name, "psnr": psnr, "novel_pose": novel_pose, "novel_view": novel_view}));
+    }
+    Ok(json!({"novel_pose_psnr": if pose_n > 0 { json!(pose_sum / pose_n as f64) } else { json!(null) }, "images": rows}))
+}

@@ -1,0 +1,100 @@
+//! Deferred shading and the learnable light model: `albedo x (ambient + E max(0, n.l) T)`,
+//! with T the transmittance of the posed Gaussians along the shadow ray. A sun is a learnable
+//! unit direction with fixed irradiance 1 (its scale is not separable from the albedo's); a
+//! point light is a learnable position and intensity; ambient is learnable RGB. The light
+//! knows nothing of the network.
+
+use crate::shadow::tensor::{transmittance, GaussianTensors, RaySegments};
+use burn::module::Param;
+use burn::tensor::activation::softplus;
+use burn::tensor::{Device, Tensor, TensorData};
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum LightKind {
+    Directional,
+    Point,
+    /// Uniform light: shading is the albedo, no direction, no shadow rays.
+    Uniform,
+}
+
+#[derive(burn::module::Module, Debug)]
+pub struct LightModel {
+    /// Unnormalised direction toward a sun, or a point light's position.
+    pub vector: Param<Tensor<1>>,
+    pub ambient_raw: Param<Tensor<1>>,
+    /// Log of a point light's intensity.
+    pub log_intensity: Param<Tensor<1>>,
+    /// Log of the factor on the Gaussians' optical depth.
+    pub log_density_scale: Param<Tensor<1>>,
+    #[module(skip)]
+    pub kind: LightKind,
+}
+
+/// Distance (m) the shadow ray starts off the surface, along the normal and along the ray, so a
+/// surface is not shadowed by the Gaussians that model its own skin.
+pub const SHADOW_START: f32 = 0.03;
+
+fn inverse_softplus(v: f32) -> f32 {
+    (v.exp() - 1.0).ln()
+}
+
+impl LightModel {
+    pub fn new(kind: LightKind, initial: [f32; 3], ambient: f32, device: &Device) -> Self {
+        let t = |v: Vec<f32>| Param::from_tensor(Tensor::from_data(TensorData::new(v.clone(), [v.len()]), device));
+        Self {
+            vector: t(initial.to_vec()),
+            ambient_raw: t(vec![inverse_softplus(ambient); 3]),
+            log_intensity: t(vec![(9.0f32).ln()]),
+            log_density_scale: t(vec![(3.0f32).ln()]),
+            kind,
+        }
+    }
+
+    pub fn ambient(&self) -> Tensor<1> {
+        softplus(self.ambient_raw.val(), 1.0)
+    }
+
+    pub fn direction(&self) -> Tensor<1> {
+        let v = self.vector.val();
+        v.clone() / (v.clone() * v).sum().sqrt().clamp_min(1e-8)
+    }
+
+    /// Shaded colour `[R, 3]` of surface points `[R, 3]` with normals `[R, 3]` and albedo `[R, 3]`.
+    /// `gaussians` should be detached when the Gaussians must learn only from their own fit.
+    pub fn shade(&self, albedo: Tensor<2>, points: Tensor<2>, normals: Tensor<2>, gaussians: &GaussianTensors) -> Tensor<2> {
+        let [r, _] = points.dims();
+        let device = points.device();
+        let ambient = self.ambient().reshape([1, 3]);
+        let (direction, irradiance, t1) = match self.kind {
+            LightKind::Uniform => return albedo,
+            LightKind::Directional => (self.direction().reshape([1, 3]).repeat_dim(0, r), Tensor::<2>::ones([r, 1], &device), None),
+            LightKind::Point => {
+                let to_light = self.vector.val().reshape([1, 3]) - points.clone();
+                let distance = (to_light.clone() * to_light.clone()).sum_dim(1).sqrt().clamp_min(1e-3);
+                let irradiance = self.log_intensity.val().exp().reshape([1, 1]) / (distance.clone() * distance.clone());
+                (to_light / distance.clone(), irradiance, Some(distance.reshape([r])))
+            }
+        };
+        let cosine = (normals.clone() * direction.clone()).sum_dim(1).clamp_min(0.0);
+        let segments = RaySegments { origins: points + normals * SHADOW_START, directions: direction, t0: Tensor::full([r], SHADOW_START, &device), t1 };
+        let scaled = GaussianTensors { amplitudes: gaussians.amplitudes.clone() * self.log_density_scale.val().exp(), ..gaussians.clone() };
+        let visibility = transmittance(&scaled, &segments).reshape([r, 1]);
+        albedo * (ambient + irradiance * cosine * visibility)
+    }
+
+    /// The light as plain numbers for fit.json: direction or position, ambient, intensity.
+    pub fn report(&self) -> serde_json::Value {
+        let v = |t: Tensor<1>| t.into_data().convert::<f32>().try_to_vec::<f32>().unwrap_or_default();
+        let ambient = v(self.ambient());
+        match self.kind {
+            LightKind::Directional => {
+                serde_json::json!({"type": "directional", "direction": v(self.direction()), "irradiance": [1.0, 1.0, 1.0], "ambient": ambient, "shadow_density_scale": v(self.log_density_scale.val().exp())})
+            }
+            LightKind::Point => {
+                serde_json::json!({"type": "point", "position": v(self.vector.val()), "intensity": v(self.log_intensity.val().exp()).repeat(3), "ambient": ambient, "shadow_density_scale": v(self.log_density_scale.val().exp())})
+            }
+            LightKind::Uniform => serde_json::json!({"type": "uniform", "radiance": [1.0, 1.0, 1.0]}),
+        }
+    }
+}

@@ -1,0 +1,333 @@
+//! The fit: one explicit loop of `step(batch, state) -> stats` (forward, weighted losses from the
+//! schedule, backward, one Adam step per parameter group), atomic checkpoints with exact resume,
+//! and typed messages that the CLI turns into a progress bar. It skips what a scene does not
+//! need: a uniformly lit capture gets no light, no shadow rays and no light-fitting stage.
+
+use crate::field::{AvatarField, FieldConfig, PoseTensors};
+use crate::gaussians::{GaussianParams, GaussianSet};
+use crate::light::Light;
+use crate::render::{ray_bounds, render, RaySet};
+use crate::scene::{Scene, Split};
+use crate::schedule::Schedule;
+use crate::shading::{LightKind, LightModel};
+use crate::shadow::tensor::GaussianTensors;
+use crate::synth::trace::Stream;
+use burn::module::Module;
+use burn::optim::{AdamConfig, GradientsParams, ModuleOptimizer};
+use burn::tensor::{Device, Int, Tensor, TensorData};
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum, serde::Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Backend {
+    /// burn's pure-Rust CPU backend (default; the faster one here).
+    Flex,
+    /// burn-ndarray.
+    Ndarray,
+}
+
+impl Backend {
+    pub fn device(self) -> Device {
+        match self {
+            Backend::Flex => Device::flex().autodiff(),
+            #[allow(deprecated)]
+            Backend::Ndarray => Device::ndarray().autodiff(),
+        }
+    }
+}
+
+/// The whole learnable avatar.
+#[derive(Module, Debug)]
+pub struct Avatar {
+    pub field: AvatarField,
+    pub gaussians: GaussianParams,
+    pub light: LightModel,
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum FitError {
+    #[error("{0}")]
+    Scene(#[from] crate::scene::SceneError),
+    #[error("{0}")]
+    Schedule(#[from] crate::schedule::ScheduleError),
+    #[error("{0}")]
+    Input(String),
+    #[error("{path}: {message}")]
+    Io { path: PathBuf, message: String },
+    #[error("the fit diverged at iteration {iteration}: {what} is not finite; the last good checkpoint is kept in {checkpoint}")]
+    NonFinite { iteration: usize, what: String, checkpoint: String },
+}
+
+pub fn io(path: &Path, e: impl std::fmt::Display) -> FitError {
+    FitError::Io { path: path.to_path_buf(), message: e.to_string() }
+}
+
+/// What the fit tells whoever runs it.
+#[derive(Clone, Debug)]
+pub enum TrainMessage {
+    Loaded { scene: String, training_images: usize, frames: usize, light: LightKind },
+    Started { first: usize, iterations: usize },
+    Step { iteration: usize, stats: StepStats },
+    Checkpoint { iteration: usize },
+    Evaluating { images: usize },
+    Done,
+}
+
+/// The losses of one step (unweighted) and the weighted total.
+#[derive(Clone, Debug, Default, serde::Serialize)]
+pub struct StepStats {
+    pub total: f64,
+    pub terms: BTreeMap<String, f64>,
+    pub seconds: f64,
+}
+
+#[derive(Clone, Debug)]
+pub struct FitOptions {
+    pub scene: PathBuf,
+    pub out: PathBuf,
+    pub schedule: PathBuf,
+    pub iterations: Option<usize>,
+    pub seed: u64,
+    pub resume: bool,
+    pub backend: Backend,
+    /// Render and score the test images at the end.
+    pub evaluate: bool,
+}
+
+/// Training data of one frame: its pose and the views that see it.
+struct FrameData {
+    position: usize,
+    pose_tensors: PoseTensors,
+    views: Vec<usize>,
+}
+
+/// Per training view: foreground pixel indices for balanced ray sampling.
+struct ViewData {
+    foreground: Vec<usize>,
+}
+
+pub struct Trainer {
+    pub scene: Scene,
+    pub schedule: Schedule,
+    pub device: Device,
+    pub model: Option<Avatar>,
+    pub optimizers: Vec<(String, ModuleOptimizer)>,
+    frames: Vec<FrameData>,
+    views: Vec<ViewData>,
+    pub fit_light: bool,
+    pub light_kind: LightKind,
+    pub iteration: usize,
+    pub stream: Stream,
+    bone_centres: Tensor<2>,
+}
+
+/// Gaussians detached from the graph, for the shadow pass (they learn only from their fit).
+fn detached(g: &GaussianTensors) -> GaussianTensors {
+    GaussianTensors { means: g.means.clone().detach(), whiten: g.whiten.clone().detach(), amplitudes: g.amplitudes.clone().detach() }
+}
+
+fn scalar(t: &Tensor<1>) -> f64 {
+    t.clone().into_data().convert::<f32>().try_to_vec::<f32>().ok().and_then(|v| v.first().copied()).unwrap_or(f32::NAN) as f64
+}
+
+impl Trainer {
+    pub fn new(scene: Scene, schedule: Schedule, backend: Backend, seed: u64) -> Result<Self, FitError> {
+        let device = backend.device();
+        device.seed(seed);
+        let training: Vec<usize> = (0..scene.views.len()).filter(|&i| scene.views[i].split == Split::Train).collect();
+        if training.is_empty() {
+            return Err(FitError::Input(format!("{}: no training images (split \"train\")", scene.root.join("scene.json").display())));
+        }
+        let lights = scene.training_lights();
+        if lights.len() > 1 {
+            return Err(FitError::Input(format!(
+                "{}: training images use {} lights ({lights:?}); umbra fits one training light",
+                scene.root.join("scene.json").display(),
+                lights.len()
+            )));
+        }
+        let light = &scene.lights[lights[0]];
+        let light_kind = match light {
+            Light::Directional { .. } => LightKind::Directional,
+            Light::Point { .. } => LightKind::Point,
+            Light::Uniform { .. } | Light::Environment { .. } => LightKind::Uniform,
+        };
+        let fit_light = schedule.check_against(light.casts_shadows())?;
+        let light_kind = if fit_light { light_kind } else { LightKind::Uniform };
+        let mut frames: Vec<FrameData> = Vec::new();
+        for &v in &training {
+            let f = scene.views[v].frame;
+            match frames.iter_mut().find(|d| d.position == f) {
+                Some(d) => d.views.push(v),
+                None => frames.push(FrameData { position: f, pose_tensors: PoseTensors::new(&scene.frames[f].pose, &scene.skeleton, &device), views: vec![v] }),
+            }
+        }
+        let views = scene
+            .views
+            .iter()
+            .map(|v| ViewData { foreground: v.mask.as_ref().map(|m| (0..m.foreground.len()).filter(|&k| m.foreground[k]).collect()).unwrap_or_default() })
+            .collect();
+        let set = GaussianSet::along_bones(&scene.skeleton, 4, 0.05, 10.0);
+        let (lo, hi) = scene
+            .frames
+            .iter()
+            .map(|f| f.pose.bounds(&scene.skeleton))
+            .fold((glam::DVec3::splat(f64::INFINITY), glam::DVec3::splat(f64::NEG_INFINITY)), |a, b| (a.0.min(b.0), a.1.max(b.1)));
+        let centre = (lo + hi) * 0.5;
+        let initial = match light_kind {
+            LightKind::Point => (centre + glam::DVec3::new(0.0, 2.5, 0.0)).as_vec3().to_array(),
+            _ => [0.0, 1.0, 0.0],
+        };
+        let model = Avatar {
+            field: FieldConfig::for_bones(scene.skeleton.len()).init(&device),
+            gaussians: GaussianParams::from_set(&set, &device),
+            light: LightModel::new(light_kind, initial, 0.3, &device),
+        };
+        let centres: Vec<f32> = set.gaussians.iter().flat_map(|g| [0.0, scene.skeleton.bones[g.bone].length as f32 / 2.0, 0.0]).collect();
+        let bone_centres = Tensor::from_data(TensorData::new(centres, [set.len(), 3]), &device);
+        let optimizers = crate::schedule::GROUPS.iter().map(|g| (g.to_string(), AdamConfig::new().init())).collect();
+        Ok(Self {
+            scene,
+            schedule,
+            device,
+            model: Some(model),
+            optimizers,
+            frames,
+            views,
+            fit_light,
+            light_kind,
+            iteration: 0,
+            stream: Stream::new(seed, 0x7AA1, 0),
+            bone_centres,
+        })
+    }
+
+    pub fn model(&self) -> &Avatar {
+        self.model.as_ref().expect("the model is only taken out inside step")
+    }
+
+    /// Samples a batch of rays from one random training frame.
+    fn batch(&mut self, set: &GaussianSet) -> (usize, RaySet, Vec<f32>, Vec<f32>) {
+        let frame = (self.stream.uniform() * self.frames.len() as f64) as usize % self.frames.len();
+        let data = &self.frames[frame];
+        let pose = &self.scene.frames[data.position].pose;
+        let posed = set.pose(pose);
+        let mut rays = RaySet::default();
+        let mut colours = Vec::with_capacity(self.schedule.rays_per_batch * 3);
+        let mut masks = Vec::with_capacity(self.schedule.rays_per_batch);
+        for k in 0..self.schedule.rays_per_batch {
+            let v = data.views[(self.stream.uniform() * data.views.len() as f64) as usize % data.views.len()];
+            let view = &self.scene.views[v];
+            let camera = &self.scene.cameras[view.camera];
+            let pixels = camera.width * camera.height;
+            let foreground = &self.views[v].foreground;
+            let pixel = if k % 2 == 0 && !foreground.is_empty() {
+                foreground[(self.stream.uniform() * foreground.len() as f64) as usize % foreground.len()]
+            } else {
+                (self.stream.uniform() * pixels as f64) as usize % pixels
+            };
+            let ray = camera.pixel_ray(pixel % camera.width, pixel / camera.width);
+            rays.push(ray.origin, ray.direction, ray_bounds(ray.origin, ray.direction, &posed));
+            colours.extend(view.colour.pixels[pixel]);
+            masks.push(view.mask.as_ref().map(|m| m.foreground[pixel] as u8 as f32).unwrap_or(0.0));
+        }
+        (frame, rays, colours, masks)
+    }
+
+    fn random_indices(&mut self, count: usize, below: usize) -> Tensor<1, Int> {
+        let idx: Vec<i64> = (0..count).map(|_| ((self.stream.uniform() * below as f64) as usize % below) as i64).collect();
+        Tensor::from_data(TensorData::new(idx, [count]), &self.device)
+    }
+
+    /// One iteration: forward, losses, backward, an Adam step per group.
+    pub fn step(&mut self) -> Result<StepStats, FitError> {
+        let start = Instant::now();
+        let it = self.iteration;
+        let set = self.model().gaussians.to_set();
+        let (frame, rays, colours, masks) = self.batch(&set);
+        let r = rays.len();
+        let s = self.schedule.samples_per_ray;
+        let jitter: Vec<f32> = (0..r * s).map(|_| self.stream.uniform() as f32).collect();
+        let device = self.device.clone();
+        let pose = self.frames[frame].pose_tensors.clone();
+        let schedule = self.schedule.clone();
+        let w = |name: &str| schedule.weight(name, it);
+        let model = self.model.take().expect("model present");
+        let deferred = render(&model.field, &pose, &rays, s, &jitter, &device);
+        let target: Tensor<2> = Tensor::from_data(TensorData::new(colours, [r, 3]), &device);
+        let mask: Tensor<1> = Tensor::from_data(TensorData::new(masks, [r]), &device);
+        let posed = model.gaussians.posed(&pose);
+        let mut terms: Vec<(&str, f64, Tensor<1>)> = Vec::new();
+        if w("rgb") > 0.0 {
+            let colour = if self.fit_light {
+                model.light.shade(deferred.albedo.clone(), deferred.surface.clone(), deferred.normal.clone(), &detached(&posed))
+            } else {
+                deferred.albedo.clone()
+            };
+            terms.push(("rgb", w("rgb"), crate::losses::rgb(colour, target)));
+        }
+        terms.push(("mask", w("mask"), crate::losses::mask(deferred.accumulation.clone(), mask.clone())));
+        if w("grey") > 0.0 {
+            terms.push(("grey", w("grey"), crate::losses::grey(deferred.albedo.clone(), mask)));
+        }
+        if w("density") > 0.0 && self.schedule.density_points > 0 {
+            let idx = self.random_indices(self.schedule.density_points, r * s);
+            let points = deferred.sample_points.clone().detach().select(0, idx.clone());
+            let field_density = deferred.sample_density.clone().detach().select(0, idx);
+            let mixture = GaussianParams::mixture_density(&posed, points);
+            terms.push(("density", w("density"), crate::losses::density(mixture, field_density)));
+        }
+        if w("sigma") > 0.0 {
+            terms.push(("sigma", w("sigma"), crate::losses::sigma(model.gaussians.scales())));
+        }
+        if w("mean") > 0.0 {
+            terms.push(("mean", w("mean"), crate::losses::mean(model.gaussians.means.val(), self.bone_centres.clone())));
+        }
+        if w("ambient") > 0.0 && self.fit_light {
+            terms.push(("ambient", w("ambient"), crate::losses::ambient(model.light.ambient(), self.schedule.ambient_target)));
+        }
+        if (w("eikonal") > 0.0 || w("curvature") > 0.0) && self.schedule.regulariser_points > 0 {
+            let q = self.schedule.regulariser_points;
+            let idx = self.random_indices(q, r * s);
+            let points = deferred.sample_points.clone().detach().select(0, idx);
+            let gradient = model.field.sdf_gradient(points.clone(), &pose, crate::render::NORMAL_STEP);
+            if w("eikonal") > 0.0 {
+                terms.push(("eikonal", w("eikonal"), crate::losses::eikonal(gradient.clone())));
+            }
+            if w("curvature") > 0.0 {
+                let noise: Vec<f32> = (0..q * 3).map(|_| ((self.stream.uniform() - 0.5) * 2.0 * self.schedule.curvature_epsilon) as f32).collect();
+                let perturbed = points + Tensor::<2>::from_data(TensorData::new(noise, [q, 3]), &device);
+                let g2 = model.field.sdf_gradient(perturbed, &pose, crate::render::NORMAL_STEP);
+                let unit = |g: Tensor<2>| g.clone() / (g.clone() * g).sum_dim(1).sqrt().clamp_min(1e-6);
+                terms.push(("curvature", w("curvature"), crate::losses::curvature(unit(gradient), unit(g2))));
+            }
+        }
+        let mut total = terms[0].2.clone() * terms[0].1;
+        for (_, weight, value) in terms.iter().skip(1) {
+            total = total + value.clone() * *weight;
+        }
+        let mut stats = StepStats { total: scalar(&total), terms: terms.iter().map(|(n, _, v)| (n.to_string(), scalar(v))).collect(), seconds: 0.0 };
+        if !stats.total.is_finite() {
+            let bad = stats.terms.iter().find(|(_, v)| !v.is_finite()).map(|(n, _)| format!("the {n} loss")).unwrap_or_else(|| "the total loss".into());
+            self.model = Some(model);
+            return Err(FitError::NonFinite { iteration: it, what: bad, checkpoint: String::new() });
+        }
+        let mut grads = total.backward();
+        let light_active = self.fit_light && it >= self.schedule.light_from;
+        let Avatar { field, gaussians, light } = model;
+        let g_field = GradientsParams::from_module(&mut grads, &field);
+        let g_gaussians = GradientsParams::from_module(&mut grads, &gaussians);
+        let g_light = GradientsParams::from_module(&mut grads, &light);
+        let lr = |g: &str| self.schedule.learning_rate(g);
+        let (lr_field, lr_gaussians, lr_light) = (lr("field"), lr("gaussians"), lr("light"));
+        let field = self.optimizers[0].1.step(lr_field, field, g_field);
+        let gaussians = self.optimizers[1].1.step(lr_gaussians, gaussians, g_gaussians);
+        let light = if light_active { self.optimizers[2].1.step(lr_light, light, g_light) } else { light };
+        self.model = Some(Avatar { field, gaussians, light });
+        self.iteration += 1;
+        stats.seconds = start.elapsed().as_secs_f64();
+        Ok(stats)
+    }
+}
