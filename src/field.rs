@@ -78,7 +78,10 @@ impl FieldConfig {
         }
         let output = LinearConfig::new(width, 4).init(device);
         // Start with a zero residual: the initial surface is the capsule prior.
-        let output = Linear { weight: Param::from_tensor((output.weight.val() * 0.01).detach()), bias: output.bias.map(|b| Param::from_tensor((b.val() * 0.0).detach())) };
+        let output = Linear {
+            weight: Param::from_tensor((output.weight.val() * 0.01).detach()),
+            bias: output.bias.map(|b| Param::from_tensor((b.val() * 0.0).detach())),
+        };
         AvatarField {
             hidden,
             output,

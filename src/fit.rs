@@ -102,15 +102,31 @@ fn parse_losses_csv(text: &str) -> Vec<(usize, StepStats)> {
     rows
 }
 
+/// Running mean over `window` points: per-batch losses are noisy, trends are what one reads.
+fn smooth(points: Vec<(f64, f64)>, window: usize) -> Vec<(f64, f64)> {
+    (0..points.len())
+        .map(|k| {
+            let lo = k.saturating_sub(window - 1);
+            let mean = points[lo..=k].iter().map(|p| p.1).sum::<f64>() / (k + 1 - lo) as f64;
+            (points[k].0, mean)
+        })
+        .collect()
+}
+
 fn losses_chart(history: &[(usize, StepStats)]) -> Chart {
-    let mut series = vec![Series { name: "total".into(), points: history.iter().map(|(i, s)| (*i as f64 + 1.0, s.total)).collect(), lines: true }];
+    let window = (history.len() / 60).max(1);
+    let mut series = vec![Series {
+        name: "total (weighted)".into(),
+        points: smooth(history.iter().map(|(i, s)| (*i as f64 + 1.0, s.total)).collect(), window),
+        lines: true,
+    }];
     for term in crate::schedule::TERMS {
         let points: Vec<(f64, f64)> = history.iter().filter_map(|(i, s)| s.terms.get(term).map(|v| (*i as f64 + 1.0, *v))).collect();
         if !points.is_empty() {
-            series.push(Series { name: term.into(), points, lines: true });
+            series.push(Series { name: term.into(), points: smooth(points, window), lines: true });
         }
     }
-    Chart { title: "losses".into(), x_label: "iteration".into(), y_label: "loss".into(), log_x: false, log_y: true, series }
+    Chart { title: format!("losses (running mean of {window})"), x_label: "iteration".into(), y_label: "loss".into(), log_x: false, log_y: true, series }
 }
 
 /// Runs the fit described by `options`, reporting through `on`; returns fit.json's content.
@@ -128,8 +144,9 @@ pub fn fit(options: &FitOptions, mut on: impl FnMut(TrainMessage)) -> Result<ser
     if out.join(CHECKPOINT).exists() && !options.resume {
         return Err(io(out, "holds a checkpoint of an earlier fit: pass --resume to continue it, or choose another --out"));
     }
-    std::fs::create_dir_all(out).map_err(|e| io(out, e))?;
+    // Everything is validated before the run folder is created: a refused fit writes nothing.
     let mut trainer = Trainer::new(scene, schedule.clone(), options.backend, options.seed)?;
+    std::fs::create_dir_all(out).map_err(|e| io(out, e))?;
     let mut history = if options.resume { load_checkpoint(&mut trainer, out)? } else { Vec::new() };
     history.retain(|(i, _)| *i < trainer.iteration);
     let training_images = trainer.scene.views_in(Split::Train).count();

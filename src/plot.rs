@@ -199,10 +199,12 @@ impl Chart {
                     canvas.line(w[0], w[1], c);
                 }
             }
-            for &(x, y) in &pts {
-                for d in -2..=2 {
-                    canvas.set(x as i64 + d, y as i64, c);
-                    canvas.set(x as i64, y as i64 + d, c);
+            if !s.lines {
+                for &(x, y) in &pts {
+                    for d in -3..=3 {
+                        canvas.set(x as i64 + d, y as i64, c);
+                        canvas.set(x as i64, y as i64 + d, c);
+                    }
                 }
             }
             canvas.text(left as i64 + 10, top as i64 + 6 + 14 * i as i64, &s.name, 2, c);

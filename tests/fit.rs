@@ -1,0 +1,146 @@
+//! A few seconds of fitting on a tiny synthetic scene: the loss goes down, the light moves
+//! toward the truth, a resumed fit continues exactly, and bad schedules are refused.
+
+mod common;
+
+use common::TempDir;
+use std::path::Path;
+use umbra::schedule::Schedule;
+use umbra::synth::{Kind, SynthOptions, TestKind, TrainingLight};
+use umbra::train::{Backend, FitOptions, Trainer};
+
+fn tiny_scene(dir: &Path, light: TrainingLight) -> std::path::PathBuf {
+    let options = SynthOptions {
+        character: Kind::Human,
+        light,
+        size: 32,
+        cameras: 4,
+        frames: 2,
+        test_frames: 1,
+        test: vec![TestKind::Poses],
+        samples: 8,
+        seed: 5,
+        meshes: false,
+        mesh_cell: 0.02,
+    };
+    let out = dir.join("scene");
+    umbra::synth::generate(&options, &out, false, |_, _| {}).unwrap();
+    out
+}
+
+const QUICK: &str = r#"
+iterations = 60
+rays_per_batch = 256
+samples_per_ray = 16
+density_points = 64
+regulariser_points = 32
+checkpoint_every = 20
+light_from = 0
+[learning_rates]
+field = 3e-3
+gaussians = 5e-3
+light = 5e-2
+[losses]
+mask = 1.0
+rgb = 1.0
+eikonal = 0.05
+density = 0.5
+"#;
+
+fn angle_to(direction: &serde_json::Value, truth: glam::DVec3) -> f64 {
+    let d = glam::DVec3::new(direction[0].as_f64().unwrap(), direction[1].as_f64().unwrap(), direction[2].as_f64().unwrap()).normalize();
+    d.dot(truth.normalize()).clamp(-1.0, 1.0).acos().to_degrees()
+}
+
+#[test]
+fn a_short_fit_lowers_the_loss_and_turns_the_light_toward_the_truth() {
+    let dir = TempDir::new("fit");
+    let scene_path = tiny_scene(dir.path(), TrainingLight::Sun);
+    let scene = umbra::scene::Scene::load(&scene_path).unwrap();
+    let schedule = Schedule::parse(QUICK, Path::new("quick.toml")).unwrap();
+    let mut trainer = Trainer::new(scene, schedule, Backend::Flex, 1).unwrap();
+    let truth = glam::DVec3::new(0.45, 0.8, 0.4);
+    let before = angle_to(&trainer.model().light.report()["direction"], truth);
+    let mut first = Vec::new();
+    let mut last = Vec::new();
+    for i in 0..60 {
+        let stats = trainer.step().unwrap();
+        if i < 10 {
+            first.push(stats.total);
+        } else if i >= 50 {
+            last.push(stats.total);
+        }
+    }
+    let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len() as f64;
+    assert!(mean(&last) < 0.8 * mean(&first), "loss {} -> {}", mean(&first), mean(&last));
+    let after = angle_to(&trainer.model().light.report()["direction"], truth);
+    assert!(after < before - 5.0, "light direction error {before:.1} -> {after:.1} degrees");
+}
+
+#[test]
+fn resume_continues_where_the_fit_stopped() {
+    let dir = TempDir::new("resume");
+    let scene_path = tiny_scene(dir.path(), TrainingLight::Sun);
+    let schedule_path = dir.path().join("quick.toml");
+    std::fs::write(&schedule_path, QUICK.replace("iterations = 60", "iterations = 40")).unwrap();
+    let options = |out: &str, iterations: usize, resume: bool| FitOptions {
+        scene: scene_path.clone(),
+        out: dir.path().join(out),
+        schedule: schedule_path.clone(),
+        iterations: Some(iterations),
+        seed: 3,
+        resume,
+        backend: Backend::Flex,
+        evaluate: false,
+    };
+    let straight = umbra::fit::fit(&options("straight", 40, false), |_| {}).unwrap();
+    umbra::fit::fit(&options("resumed", 20, false), |_| {}).unwrap();
+    // A second fit into the same folder without --resume is refused.
+    let err = umbra::fit::fit(&options("resumed", 40, false), |_| {}).unwrap_err();
+    assert!(err.to_string().contains("--resume"), "{err}");
+    let resumed = umbra::fit::fit(&options("resumed", 40, true), |_| {}).unwrap();
+    let a = std::fs::read_to_string(dir.path().join("straight/losses.csv")).unwrap();
+    let b = std::fs::read_to_string(dir.path().join("resumed/losses.csv")).unwrap();
+    let column = |text: &str| text.lines().skip(1).map(|l| l.split(',').nth(1).unwrap().parse::<f64>().unwrap()).collect::<Vec<_>>();
+    let (ta, tb) = (column(&a), column(&b));
+    assert_eq!(ta.len(), 40);
+    assert_eq!(tb.len(), 40);
+    for i in 0..40 {
+        assert!((ta[i] - tb[i]).abs() <= 1e-4 * ta[i].abs().max(1e-3), "iteration {i}: {} vs {}", ta[i], tb[i]);
+    }
+    assert_eq!(straight["light"]["direction"], resumed["light"]["direction"]);
+}
+
+#[test]
+fn uniform_scenes_skip_the_light_and_refuse_a_light_fitting_schedule() {
+    let dir = TempDir::new("uniform");
+    let scene_path = tiny_scene(dir.path(), TrainingLight::Uniform);
+    let schedule_path = dir.path().join("quick.toml");
+    std::fs::write(&schedule_path, QUICK.replace("iterations = 60", "iterations = 3")).unwrap();
+    let options = FitOptions {
+        scene: scene_path.clone(),
+        out: dir.path().join("run"),
+        schedule: schedule_path.clone(),
+        iterations: None,
+        seed: 0,
+        resume: false,
+        backend: Backend::Flex,
+        evaluate: false,
+    };
+    let report = umbra::fit::fit(&options, |_| {}).unwrap();
+    assert_eq!(report["light"]["type"], "uniform");
+    let stages = report["stages"].as_array().unwrap();
+    let light_stage = stages.iter().find(|s| s["name"].as_str().unwrap().starts_with("light")).unwrap();
+    assert_eq!(light_stage["ran"], false);
+    assert!(light_stage["skipped_because"].as_str().unwrap().contains("uniformly lit"));
+
+    std::fs::write(&schedule_path, format!("light = \"fit\"\n{QUICK}")).unwrap();
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_umbra"))
+        .args(["fit", scene_path.to_str().unwrap(), "--out", dir.path().join("run2").to_str().unwrap(), "--schedule", schedule_path.to_str().unwrap()])
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(stderr.contains("quick.toml: light:") && stderr.contains("uniformly lit"), "{stderr}");
+    assert!(!dir.path().join("run2/fit.json").exists(), "nothing written");
+}
