@@ -69,19 +69,28 @@ impl FieldConfig {
         self.bones * 3 * (1 + 2 * self.frequencies.len())
     }
 
-    pub fn init(&self, device: &Device) -> AvatarField {
+    /// A field with weights drawn from our own seeded stream (uniform in +-1/sqrt(fan_in), as
+    /// burn's default), so that a fit is reproducible whatever else uses burn's global RNG.
+    pub fn init(&self, device: &Device, seed: u64) -> AvatarField {
+        let mut stream = crate::synth::trace::Stream::new(seed, 0xF1E1D, 0);
+        let mut linear = |fan_in: usize, fan_out: usize, scale: f32| {
+            let bound = scale / (fan_in as f32).sqrt();
+            let mut draw = |n: usize| (0..n).map(|_| ((stream.uniform() * 2.0 - 1.0) as f32) * bound).collect::<Vec<f32>>();
+            let weight = Tensor::<2>::from_data(TensorData::new(draw(fan_in * fan_out), [fan_in, fan_out]), device);
+            let bias = Tensor::<1>::from_data(TensorData::new(draw(fan_out), [fan_out]), device);
+            let mut layer = LinearConfig::new(fan_in, fan_out).init(device);
+            layer.weight = Param::from_tensor(weight);
+            layer.bias = Some(Param::from_tensor(bias));
+            layer
+        };
         let mut hidden = Vec::new();
         let mut width = self.input_width();
         for _ in 0..self.layers {
-            hidden.push(LinearConfig::new(width, self.hidden).init(device));
+            hidden.push(linear(width, self.hidden, 1.0));
             width = self.hidden;
         }
-        let output = LinearConfig::new(width, 4).init(device);
-        // Start with a zero residual: the initial surface is the capsule prior.
-        let output = Linear {
-            weight: Param::from_tensor((output.weight.val() * 0.01).detach()),
-            bias: output.bias.map(|b| Param::from_tensor((b.val() * 0.0).detach())),
-        };
+        // A near-zero residual at the start: the initial surface is the capsule prior.
+        let output = linear(width, 4, 0.01);
         AvatarField {
             hidden,
             output,

@@ -181,7 +181,7 @@ impl Trainer {
             _ => [0.0, 1.0, 0.0],
         };
         let model = Avatar {
-            field: FieldConfig::for_bones(scene.skeleton.len()).init(&device),
+            field: FieldConfig::for_bones(scene.skeleton.len()).init(&device, seed),
             gaussians: GaussianParams::from_set(&set, &device),
             light: LightModel::new(light_kind, initial, 0.3, &device),
         };
