@@ -45,8 +45,11 @@ pub enum Command {
         #[arg(long, default_value_t = 0)]
         seed: u64,
         /// Continue from the run's last checkpoint.
-        #[arg(long)]
+        #[arg(long, conflicts_with = "force")]
         resume: bool,
+        /// Replace an earlier run in the same folder.
+        #[arg(long)]
+        force: bool,
         #[arg(long, value_enum, default_value_t = crate::train::Backend::Flex)]
         backend: crate::train::Backend,
         /// Skip rendering and scoring the test images at the end.
@@ -78,8 +81,8 @@ pub fn main() -> i32 {
     let result = match cli.command {
         Command::Inspect { scene } => inspect(&scene),
         Command::Synth { out, force, options } => synth(&out, force, &options),
-        Command::Fit { scene, out, schedule, iterations, seed, resume, backend, no_eval } => {
-            fit(&crate::train::FitOptions { scene, out, schedule, iterations, seed, resume, backend, evaluate: !no_eval })
+        Command::Fit { scene, out, schedule, iterations, seed, resume, force, backend, no_eval } => {
+            fit(&crate::train::FitOptions { scene, out, schedule, iterations, seed, resume, force, backend, evaluate: !no_eval })
         }
         Command::Bench { which: BenchKind::Shadows, out, quick } => crate::bench::shadows(&out, quick).map(|table| print!("{table}")),
     };
@@ -147,6 +150,9 @@ fn fit(options: &crate::train::FitOptions) -> Result<(), String> {
     .map_err(|e| e.to_string())?;
     println!("wrote {}", options.out.join("fit.json").display());
     println!("light: {}", report["light"]);
+    if let Some(e) = report["light_error_against_scene"]["direction_degrees"].as_f64() {
+        println!("light direction error against the scene's sun: {e:.2} degrees");
+    }
     if let Some(p) = report["evaluation"]["novel_pose_psnr"].as_f64() {
         println!("novel-pose PSNR: {p:.2} dB");
     }

@@ -36,7 +36,7 @@ fn save_checkpoint(trainer: &Trainer, out: &Path, history: &[(usize, StepStats)]
     let temp = out.join(".checkpoint.tmp");
     let _ = std::fs::remove_dir_all(&temp);
     std::fs::create_dir_all(&temp).map_err(|e| io(&temp, e))?;
-    trainer.model().clone().save_file(temp.join("model.bpk")).map_err(|e| io(&temp.join("model.bpk"), format!("{e:?}")))?;
+    trainer.model()?.clone().save_file(temp.join("model.bpk")).map_err(|e| io(&temp.join("model.bpk"), format!("{e:?}")))?;
     for (name, optimizer) in &trainer.optimizers {
         let path = temp.join(format!("optimizer-{name}.bpk"));
         optimizer.save(&path).map_err(|e| io(&path, format!("{e:?}")))?;
@@ -141,11 +141,14 @@ pub fn fit(options: &FitOptions, mut on: impl FnMut(TrainMessage)) -> Result<ser
         schedule.iterations = n;
     }
     let out = &options.out;
-    if out.join(CHECKPOINT).exists() && !options.resume {
-        return Err(io(out, "holds a checkpoint of an earlier fit: pass --resume to continue it, or choose another --out"));
+    if out.join(CHECKPOINT).exists() && !options.resume && !options.force {
+        return Err(io(out, "holds a checkpoint of an earlier fit: pass --resume to continue it, --force to replace it, or choose another --out"));
     }
-    // Everything is validated before the run folder is created: a refused fit writes nothing.
+    // Everything is validated before the run folder is touched: a refused fit writes nothing.
     let mut trainer = Trainer::new(scene, schedule.clone(), options.backend, options.seed)?;
+    if options.force && !options.resume {
+        let _ = std::fs::remove_dir_all(out.join(CHECKPOINT));
+    }
     std::fs::create_dir_all(out).map_err(|e| io(out, e))?;
     let mut history = if options.resume { load_checkpoint(&mut trainer, out)? } else { Vec::new() };
     history.retain(|(i, _)| *i < trainer.iteration);
@@ -167,12 +170,12 @@ pub fn fit(options: &FitOptions, mut on: impl FnMut(TrainMessage)) -> Result<ser
             on(TrainMessage::Checkpoint { iteration: trainer.iteration });
         }
     }
-    let set = trainer.model().gaussians.to_set();
+    let set = trainer.model()?.gaussians.to_set();
     set.save(&out.join("gaussians.json")).map_err(|e| io(&out.join("gaussians.json"), e))?;
     write_text(&out.join("losses.csv"), &losses_csv(&history))?;
     losses_chart(&history).render(800, 500).save_png(&out.join("losses.png")).map_err(|e| io(&out.join("losses.png"), e))?;
     let evaluation = if options.evaluate { evaluate(&trainer, out, &mut on)? } else { json!(null) };
-    let model: &Avatar = trainer.model();
+    let model: &Avatar = trainer.model()?;
     let light = model.light.report();
     let mut stages = Vec::new();
     let density_hold = schedule.weights.get("density").map(|r| r.hold).unwrap_or(0.0);
@@ -190,6 +193,7 @@ pub fn fit(options: &FitOptions, mut on: impl FnMut(TrainMessage)) -> Result<ser
     };
     stages.push(light_stage);
     let last = history.last().map(|(_, s)| s.clone()).unwrap_or_default();
+    let light_error = light_error(&trainer, &light);
     let report = json!({
         "scene": options.scene.display().to_string(),
         "light": light,
@@ -203,6 +207,7 @@ pub fn fit(options: &FitOptions, mut on: impl FnMut(TrainMessage)) -> Result<ser
         "final_total": last.total,
         "wall_seconds": wall.elapsed().as_secs_f64(),
         "evaluation": evaluation,
+        "light_error_against_scene": light_error,
     });
     write_text(&out.join("fit.json"), &serde_json::to_string_pretty(&report).unwrap_or_default())?;
     on(TrainMessage::Done);
@@ -222,7 +227,7 @@ fn evaluate(trainer: &Trainer, out: &Path, on: &mut impl FnMut(TrainMessage)) ->
     let mut rows = Vec::new();
     let (mut pose_sum, mut pose_n) = (0.0, 0);
     for view in tests {
-        let image = crate::eval::render_view(trainer.model(), scene, view.camera, view.frame, 48, &trainer.device, trainer.fit_light);
+        let image = crate::eval::render_view(trainer.model()?, scene, view.camera, view.frame, 48, &trainer.device, trainer.fit_light);
         let psnr = crate::eval::psnr_srgb8(&image, &view.colour);
         let name = view.path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
         let png = crate::imageio::encode_png_rgb(&image).map_err(|e| io(&dir.join(&name), e))?;
@@ -236,4 +241,22 @@ fn evaluate(trainer: &Trainer, out: &Path, on: &mut impl FnMut(TrainMessage)) ->
         rows.push(json!({"image": name, "psnr": psnr, "novel_pose": novel_pose, "novel_view": novel_view}));
     }
     Ok(json!({"novel_pose_psnr": if pose_n > 0 { json!(pose_sum / pose_n as f64) } else { json!(null) }, "images": rows}))
+}
+
+/// How far the recovered light is from the one the scene states for its training images
+/// (synthetic and evaluation scenes state it): degrees for a sun, metres for a point light.
+fn light_error(trainer: &Trainer, light: &serde_json::Value) -> serde_json::Value {
+    let lights = trainer.scene.training_lights();
+    let vector = |v: &serde_json::Value| -> Option<glam::DVec3> { Some(glam::DVec3::new(v[0].as_f64()?, v[1].as_f64()?, v[2].as_f64()?)) };
+    match (lights.first().map(|n| &trainer.scene.lights[*n]), trainer.fit_light) {
+        (Some(crate::light::Light::Directional { direction, .. }), true) => match vector(&light["direction"]) {
+            Some(d) => json!({"direction_degrees": d.normalize().dot(*direction).clamp(-1.0, 1.0).acos().to_degrees()}),
+            None => json!(null),
+        },
+        (Some(crate::light::Light::Point { position, .. }), true) => match vector(&light["position"]) {
+            Some(p) => json!({"position_metres": (p - *position).length()}),
+            None => json!(null),
+        },
+        _ => json!(null),
+    }
 }

@@ -165,6 +165,8 @@ impl Chart {
         }
         let pad = (y1 - y0) * 0.05;
         let (y0, y1) = (y0 - pad, y1 + pad);
+        let pad = (x1 - x0) * 0.04;
+        let (x0, x1) = (x0 - pad, x1 + pad);
         let px = |x: f64| left + (x - x0) / (x1 - x0) * (right - left);
         let py = |y: f64| bottom - (y - y0) / (y1 - y0) * (bottom - top);
         let grey = [190, 190, 190];

@@ -71,6 +71,10 @@ pub struct Schedule {
     pub light_from: usize,
     pub ambient_target: f64,
     pub curvature_epsilon: f64,
+    /// The light's learning rate falls exponentially to this fraction between `light_from` and
+    /// the end, so the direction settles instead of jittering with the batch noise (the field
+    /// keeps its rate: it is still learning colour then).
+    pub light_lr_decay: f64,
     pub learning_rates: BTreeMap<String, f64>,
     pub weights: BTreeMap<String, Ramp>,
 }
@@ -125,6 +129,7 @@ impl Schedule {
             "light_from",
             "ambient_target",
             "curvature_epsilon",
+            "light_lr_decay",
             "learning_rates",
             "losses",
         ];
@@ -221,6 +226,11 @@ impl Schedule {
             light_from: count(file, &table, "light_from", 0, 0)?,
             ambient_target: number(file, &table, "ambient_target", "")?.unwrap_or(0.1),
             curvature_epsilon: number(file, &table, "curvature_epsilon", "")?.unwrap_or(0.02),
+            light_lr_decay: match number(file, &table, "light_lr_decay", "")? {
+                None => 1.0,
+                Some(v) if v > 0.0 && v <= 1.0 => v,
+                Some(v) => return Err(err(file, "light_lr_decay", format!("must be within (0, 1], found {v}"))),
+            },
             learning_rates,
             weights,
         };
@@ -231,8 +241,15 @@ impl Schedule {
         self.weights.get(term).map(|r| r.at(iteration)).unwrap_or(0.0)
     }
 
-    pub fn learning_rate(&self, group: &str) -> f64 {
-        self.learning_rates.get(group).copied().unwrap_or(1e-3)
+    /// The learning rate of a group at an iteration (with the light's decay in the last segment).
+    pub fn learning_rate(&self, group: &str, iteration: usize) -> f64 {
+        let base = self.learning_rates.get(group).copied().unwrap_or(1e-3);
+        if group != "light" {
+            return base;
+        }
+        let span = self.iterations.saturating_sub(self.light_from).max(1) as f64;
+        let progress = (iteration.saturating_sub(self.light_from) as f64 / span).clamp(0.0, 1.0);
+        base * self.light_lr_decay.powf(progress)
     }
 
     /// Checks the schedule against what the scene can feed; returns whether the light is fitted.

@@ -25,8 +25,10 @@ pub struct LightModel {
     pub ambient_raw: Param<Tensor<1>>,
     /// Log of a point light's intensity.
     pub log_intensity: Param<Tensor<1>>,
-    /// Log of the factor on the Gaussians' optical depth.
-    pub log_density_scale: Param<Tensor<1>>,
+    /// The factor on the Gaussians' optical depth (their density is fitted to tanh-squashed
+    /// field density, so a body is optically thinner than a hard shadow needs), through a
+    /// sigmoid into [1, 30] so it can sharpen shadows but not run away.
+    pub density_scale_raw: Param<Tensor<1>>,
     #[module(skip)]
     pub kind: LightKind,
 }
@@ -46,9 +48,13 @@ impl LightModel {
             vector: t(initial.to_vec()),
             ambient_raw: t(vec![inverse_softplus(ambient); 3]),
             log_intensity: t(vec![(9.0f32).ln()]),
-            log_density_scale: t(vec![(3.0f32).ln()]),
+            density_scale_raw: t(vec![-2.2]),
             kind,
         }
+    }
+
+    pub fn density_scale(&self) -> Tensor<1> {
+        burn::tensor::activation::sigmoid(self.density_scale_raw.val()) * 29.0 + 1.0
     }
 
     pub fn ambient(&self) -> Tensor<1> {
@@ -78,7 +84,7 @@ impl LightModel {
         };
         let cosine = (normals.clone() * direction.clone()).sum_dim(1).clamp_min(0.0);
         let segments = RaySegments { origins: points + normals * SHADOW_START, directions: direction, t0: Tensor::full([r], SHADOW_START, &device), t1 };
-        let scaled = GaussianTensors { amplitudes: gaussians.amplitudes.clone() * self.log_density_scale.val().exp(), ..gaussians.clone() };
+        let scaled = GaussianTensors { amplitudes: gaussians.amplitudes.clone() * self.density_scale(), ..gaussians.clone() };
         let visibility = transmittance(&scaled, &segments).reshape([r, 1]);
         albedo * (ambient + irradiance * cosine * visibility)
     }
@@ -89,10 +95,10 @@ impl LightModel {
         let ambient = v(self.ambient());
         match self.kind {
             LightKind::Directional => {
-                serde_json::json!({"type": "directional", "direction": v(self.direction()), "irradiance": [1.0, 1.0, 1.0], "ambient": ambient, "shadow_density_scale": v(self.log_density_scale.val().exp())})
+                serde_json::json!({"type": "directional", "direction": v(self.direction()), "irradiance": [1.0, 1.0, 1.0], "ambient": ambient, "shadow_density_scale": v(self.density_scale())})
             }
             LightKind::Point => {
-                serde_json::json!({"type": "point", "position": v(self.vector.val()), "intensity": v(self.log_intensity.val().exp()).repeat(3), "ambient": ambient, "shadow_density_scale": v(self.log_density_scale.val().exp())})
+                serde_json::json!({"type": "point", "position": v(self.vector.val()), "intensity": v(self.log_intensity.val().exp()).repeat(3), "ambient": ambient, "shadow_density_scale": v(self.density_scale())})
             }
             LightKind::Uniform => serde_json::json!({"type": "uniform", "radiance": [1.0, 1.0, 1.0]}),
         }

@@ -91,6 +91,8 @@ pub struct FitOptions {
     pub iterations: Option<usize>,
     pub seed: u64,
     pub resume: bool,
+    /// Replace an earlier run's checkpoint and outputs in `out`.
+    pub force: bool,
     pub backend: Backend,
     /// Render and score the test images at the end.
     pub evaluate: bool,
@@ -204,8 +206,9 @@ impl Trainer {
         })
     }
 
-    pub fn model(&self) -> &Avatar {
-        self.model.as_ref().expect("the model is only taken out inside step")
+    /// The current model (it is only out of the trainer while a step runs).
+    pub fn model(&self) -> Result<&Avatar, FitError> {
+        self.model.as_ref().ok_or_else(|| FitError::Input("the model was lost by an interrupted step".into()))
     }
 
     /// Samples a batch of rays from one random training frame.
@@ -245,7 +248,7 @@ impl Trainer {
     pub fn step(&mut self) -> Result<StepStats, FitError> {
         let start = Instant::now();
         let it = self.iteration;
-        let set = self.model().gaussians.to_set();
+        let set = self.model()?.gaussians.to_set();
         let (frame, rays, colours, masks) = self.batch(&set);
         let r = rays.len();
         let s = self.schedule.samples_per_ray;
@@ -254,7 +257,7 @@ impl Trainer {
         let pose = self.frames[frame].pose_tensors.clone();
         let schedule = self.schedule.clone();
         let w = |name: &str| schedule.weight(name, it);
-        let model = self.model.take().expect("model present");
+        let model = self.model.take().ok_or_else(|| FitError::Input("the model was lost by an interrupted step".into()))?;
         let deferred = render(&model.field, &pose, &rays, s, &jitter, &device);
         let target: Tensor<2> = Tensor::from_data(TensorData::new(colours, [r, 3]), &device);
         let mask: Tensor<1> = Tensor::from_data(TensorData::new(masks, [r]), &device);
@@ -320,7 +323,7 @@ impl Trainer {
         let g_field = GradientsParams::from_module(&mut grads, &field);
         let g_gaussians = GradientsParams::from_module(&mut grads, &gaussians);
         let g_light = GradientsParams::from_module(&mut grads, &light);
-        let lr = |g: &str| self.schedule.learning_rate(g);
+        let lr = |g: &str| self.schedule.learning_rate(g, it);
         let (lr_field, lr_gaussians, lr_light) = (lr("field"), lr("gaussians"), lr("light"));
         let field = self.optimizers[0].1.step(lr_field, field, g_field);
         let gaussians = self.optimizers[1].1.step(lr_gaussians, gaussians, g_gaussians);

@@ -60,7 +60,7 @@ fn a_short_fit_lowers_the_loss_and_turns_the_light_toward_the_truth() {
     let schedule = Schedule::parse(QUICK, Path::new("quick.toml")).unwrap();
     let mut trainer = Trainer::new(scene, schedule, Backend::Flex, 1).unwrap();
     let truth = glam::DVec3::new(0.45, 0.8, 0.4);
-    let before = angle_to(&trainer.model().light.report()["direction"], truth);
+    let before = angle_to(&trainer.model().unwrap().light.report()["direction"], truth);
     let mut first = Vec::new();
     let mut last = Vec::new();
     for i in 0..60 {
@@ -73,7 +73,7 @@ fn a_short_fit_lowers_the_loss_and_turns_the_light_toward_the_truth() {
     }
     let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len() as f64;
     assert!(mean(&last) < 0.8 * mean(&first), "loss {} -> {}", mean(&first), mean(&last));
-    let after = angle_to(&trainer.model().light.report()["direction"], truth);
+    let after = angle_to(&trainer.model().unwrap().light.report()["direction"], truth);
     assert!(after < before - 5.0, "light direction error {before:.1} -> {after:.1} degrees");
 }
 
@@ -90,6 +90,7 @@ fn resume_continues_where_the_fit_stopped() {
         iterations: Some(iterations),
         seed: 3,
         resume,
+        force: false,
         backend: Backend::Flex,
         evaluate: false,
     };
@@ -124,6 +125,7 @@ fn uniform_scenes_skip_the_light_and_refuse_a_light_fitting_schedule() {
         iterations: None,
         seed: 0,
         resume: false,
+        force: false,
         backend: Backend::Flex,
         evaluate: false,
     };
