@@ -4,7 +4,7 @@
 use crate::gaussians::PosedGaussian;
 use crate::plot::{Chart, Series};
 use crate::shadow::tensor::{transmittance, GaussianTensors, RaySegments};
-use crate::shadow::{optical_depth, ShadowCaster, ShadowRay};
+use crate::shadow::{transmittance_f64, ShadowCaster, ShadowRay};
 use crate::synth::trace::Stream;
 use burn::tensor::{Device, Tensor, TensorData};
 use glam::{DMat3, DQuat, DVec3};
@@ -56,25 +56,6 @@ fn time(budget: f64, mut f: impl FnMut()) -> f64 {
         calls += 1;
     }
     start.elapsed().as_secs_f64() / calls as f64
-}
-
-fn reference_transmittance(gaussians: &[PosedGaussian], ray: &ShadowRay) -> f64 {
-    let tau: f64 = gaussians
-        .iter()
-        .map(|g| {
-            optical_depth(
-                g.mean.to_array(),
-                g.rotation_columns(),
-                g.scales.to_array(),
-                g.amplitude,
-                ray.origin.map(f64::from),
-                ray.direction.map(f64::from),
-                ray.t0 as f64,
-                ray.t1 as f64,
-            )
-        })
-        .sum();
-    (-tau).exp()
 }
 
 /// Transmittance by the midpoint rule over `steps` samples up to where the ray leaves the
@@ -167,7 +148,7 @@ pub fn shadows(out: &Path, quick: bool) -> Result<String, String> {
     // Accuracy against the f64 closed form on the 96-Gaussian body.
     let gaussians = body_cloud(96, 1);
     let rays = sun_rays(if quick { 128 } else { 512 }, 3);
-    let reference: Vec<f64> = rays.iter().map(|r| reference_transmittance(&gaussians, r)).collect();
+    let reference: Vec<f64> = rays.iter().map(|r| transmittance_f64(&gaussians, r)).collect();
     let caster = ShadowCaster::new(&gaussians, 1e-6);
     let mut trade = Vec::new();
     let closed = caster.transmittance_all(&rays, true);

@@ -51,8 +51,11 @@ pub fn render_view(model: &Avatar, scene: &Scene, camera: usize, frame: usize, s
             continue;
         }
         let jitter = vec![0.5; rays.len() * samples];
-        let deferred = render(&model.field, &pose_tensors, &rays, samples, &jitter, device);
-        let colour = if shaded { model.light.shade(deferred.albedo, deferred.surface, deferred.normal, &gaussians) } else { deferred.albedo };
+        let deferred = render(&model.field, &pose_tensors, &rays, samples, &jitter, shaded, device);
+        let colour = match deferred.normal {
+            Some(normal) if shaded => model.light.shade(deferred.albedo, deferred.surface, normal, &gaussians),
+            _ => deferred.albedo,
+        };
         let colour = values(colour.detach());
         for (k, &p) in hit.iter().enumerate() {
             image.pixels[p] = [colour[k * 3], colour[k * 3 + 1], colour[k * 3 + 2]];

@@ -146,6 +146,10 @@ pub fn fit(options: &FitOptions, mut on: impl FnMut(TrainMessage)) -> Result<ser
     }
     // Everything is validated before the run folder is touched: a refused fit writes nothing.
     let mut trainer = Trainer::new(scene, schedule.clone(), options.backend, options.seed)?;
+    // Without a light to fit the light-only iterations are not run (unless --iterations says).
+    let saved = if options.iterations.is_some() { 0 } else { schedule.iterations - schedule.iterations_for(trainer.fit_light) };
+    schedule.iterations -= saved;
+    trainer.schedule.iterations = schedule.iterations;
     if options.force && !options.resume {
         let _ = std::fs::remove_dir_all(out.join(CHECKPOINT));
     }
@@ -189,7 +193,7 @@ pub fn fit(options: &FitOptions, mut on: impl FnMut(TrainMessage)) -> Result<ser
         } else {
             "the schedule sets light = \"off\""
         };
-        json!({"name": "light fitting", "ran": false, "skipped_because": why})
+        json!({"name": "light fitting", "ran": false, "skipped_because": why, "iterations_saved": saved})
     };
     stages.push(light_stage);
     let last = history.last().map(|(_, s)| s.clone()).unwrap_or_default();

@@ -67,7 +67,8 @@ pub struct Deferred {
     pub albedo: Tensor<2>,
     pub depth: Tensor<1>,
     pub surface: Tensor<2>,
-    pub normal: Tensor<2>,
+    /// Unit surface normals, when asked for (shading needs them; albedo-only fits do not).
+    pub normal: Option<Tensor<2>>,
     /// Every sample point `[R * S, 3]` and the field's density there `[R * S]`.
     pub sample_points: Tensor<2>,
     pub sample_density: Tensor<1>,
@@ -75,7 +76,8 @@ pub struct Deferred {
 
 /// Volume-renders `rays` through the field in `pose` with `samples` stratified samples per ray,
 /// `jitter` in [0, 1) per sample (`[R * S]` values; 0.5 for a deterministic render).
-pub fn render(field: &AvatarField, pose: &PoseTensors, rays: &RaySet, samples: usize, jitter: &[f32], device: &Device) -> Deferred {
+/// Normals cost six more field evaluations per ray, so they are computed only when `normals`.
+pub fn render(field: &AvatarField, pose: &PoseTensors, rays: &RaySet, samples: usize, jitter: &[f32], normals: bool, device: &Device) -> Deferred {
     let r = rays.len();
     let s = samples;
     let t1 = |v: &Vec<f32>| Tensor::<1>::from_data(TensorData::new(v.clone(), [r]), device);
@@ -98,7 +100,9 @@ pub fn render(field: &AvatarField, pose: &PoseTensors, rays: &RaySet, samples: u
     let albedo = (weights.clone().unsqueeze_dim::<3>(2) * out.albedo.reshape([r, s, 3])).sum_dim(1).reshape([r, 3]);
     let depth = (weights * t).sum_dim(1).reshape([r]) / (accumulation.clone() + 1e-6);
     let surface = origins + directions * depth.clone().reshape([r, 1]);
-    let gradient = field.sdf_gradient(surface.clone(), pose, NORMAL_STEP);
-    let normal = gradient.clone() / (gradient.clone() * gradient).sum_dim(1).sqrt().clamp_min(1e-6);
+    let normal = normals.then(|| {
+        let gradient = field.sdf_gradient(surface.clone(), pose, NORMAL_STEP);
+        gradient.clone() / (gradient.clone() * gradient).sum_dim(1).sqrt().clamp_min(1e-6)
+    });
     Deferred { accumulation, albedo, depth, surface, normal, sample_points: points, sample_density: density }
 }

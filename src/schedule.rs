@@ -69,6 +69,9 @@ pub struct Schedule {
     pub light: LightFit,
     /// Iteration from which the light is fitted (before it, shading uses the initial light).
     pub light_from: usize,
+    /// Iterations of the last segment that only the light needs: a scene whose light is not
+    /// fitted (uniformly lit) runs that many fewer.
+    pub light_stage_iterations: usize,
     pub ambient_target: f64,
     pub curvature_epsilon: f64,
     /// The light's learning rate falls exponentially to this fraction between `light_from` and
@@ -127,6 +130,7 @@ impl Schedule {
             "checkpoint_every",
             "light",
             "light_from",
+            "light_stage_iterations",
             "ambient_target",
             "curvature_epsilon",
             "light_lr_decay",
@@ -224,6 +228,7 @@ impl Schedule {
             checkpoint_every: count(file, &table, "checkpoint_every", 250, 1)?,
             light,
             light_from: count(file, &table, "light_from", 0, 0)?,
+            light_stage_iterations: count(file, &table, "light_stage_iterations", 0, 0)?,
             ambient_target: number(file, &table, "ambient_target", "")?.unwrap_or(0.1),
             curvature_epsilon: number(file, &table, "curvature_epsilon", "")?.unwrap_or(0.02),
             light_lr_decay: match number(file, &table, "light_lr_decay", "")? {
@@ -250,6 +255,15 @@ impl Schedule {
         let span = self.iterations.saturating_sub(self.light_from).max(1) as f64;
         let progress = (iteration.saturating_sub(self.light_from) as f64 / span).clamp(0.0, 1.0);
         base * self.light_lr_decay.powf(progress)
+    }
+
+    /// The iteration count for a scene whose light is (or is not) fitted.
+    pub fn iterations_for(&self, fit_light: bool) -> usize {
+        if fit_light {
+            self.iterations
+        } else {
+            self.iterations.saturating_sub(self.light_stage_iterations).max(1)
+        }
     }
 
     /// Checks the schedule against what the scene can feed; returns whether the light is fitted.

@@ -258,16 +258,16 @@ impl Trainer {
         let schedule = self.schedule.clone();
         let w = |name: &str| schedule.weight(name, it);
         let model = self.model.take().ok_or_else(|| FitError::Input("the model was lost by an interrupted step".into()))?;
-        let deferred = render(&model.field, &pose, &rays, s, &jitter, &device);
+        let shading = self.fit_light && w("rgb") > 0.0;
+        let deferred = render(&model.field, &pose, &rays, s, &jitter, shading, &device);
         let target: Tensor<2> = Tensor::from_data(TensorData::new(colours, [r, 3]), &device);
         let mask: Tensor<1> = Tensor::from_data(TensorData::new(masks, [r]), &device);
         let posed = model.gaussians.posed(&pose);
         let mut terms: Vec<(&str, f64, Tensor<1>)> = Vec::new();
         if w("rgb") > 0.0 {
-            let colour = if self.fit_light {
-                model.light.shade(deferred.albedo.clone(), deferred.surface.clone(), deferred.normal.clone(), &detached(&posed))
-            } else {
-                deferred.albedo.clone()
+            let colour = match &deferred.normal {
+                Some(normal) => model.light.shade(deferred.albedo.clone(), deferred.surface.clone(), normal.clone(), &detached(&posed)),
+                None => deferred.albedo.clone(),
             };
             terms.push(("rgb", w("rgb"), crate::losses::rgb(colour, target)));
         }

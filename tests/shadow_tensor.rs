@@ -101,22 +101,8 @@ fn tensor_and_cpu_paths_agree() {
             let cpu = caster.transmittance(ray, false);
             worst = worst.max((cpu - tensor_value).abs());
             // And the f64 sum as the reference for both.
-            let exact: f64 = gaussians
-                .iter()
-                .map(|g| {
-                    optical_depth(
-                        g.mean.to_array(),
-                        g.rotation_columns(),
-                        g.scales.to_array(),
-                        g.amplitude,
-                        ray.origin.map(f64::from),
-                        ray.direction.map(f64::from),
-                        ray.t0 as f64,
-                        ray.t1 as f64,
-                    )
-                })
-                .sum();
-            assert!(((-exact).exp() - cpu as f64).abs() < 1e-6, "cpu vs f64: {} vs {}", cpu, (-exact).exp());
+            let exact = umbra::shadow::transmittance_f64(&gaussians, ray);
+            assert!((exact - cpu as f64).abs() < 1e-6, "cpu vs f64: {cpu} vs {exact}");
         }
         assert!(worst < 2e-6, "finite={finite}: worst |T_cpu - T_tensor| = {worst:e}");
     }

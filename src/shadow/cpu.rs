@@ -94,3 +94,17 @@ fn segment_within(centre: [f32; 3], ray: &ShadowRay, radius2: f32) -> bool {
     let d = [v[0] - along * ray.direction[0], v[1] - along * ray.direction[1], v[2] - along * ray.direction[2]];
     d[0] * d[0] + d[1] * d[1] + d[2] * d[2] <= radius2
 }
+
+/// Transmittance of a ray through posed Gaussians with every integral in f64 and no culling:
+/// the reference the f32 paths are measured against.
+pub fn transmittance_f64(gaussians: &[PosedGaussian], ray: &ShadowRay) -> f64 {
+    let origin = ray.origin.map(f64::from);
+    let direction = ray.direction.map(f64::from);
+    let tau: f64 = gaussians
+        .iter()
+        .map(|g| {
+            super::optical_depth(g.mean.to_array(), g.rotation_columns(), g.scales.to_array(), g.amplitude, origin, direction, ray.t0 as f64, ray.t1 as f64)
+        })
+        .sum();
+    (-tau).exp()
+}

@@ -8,5 +8,5 @@ mod integral;
 pub mod real;
 pub mod tensor;
 
-pub use cpu::{ShadowCaster, ShadowRay};
+pub use cpu::{transmittance_f64, ShadowCaster, ShadowRay};
 pub use integral::{erf_difference, optical_depth, optical_depth_f32, optical_depth_whitened, WhitenedGaussian, MIN_SCALE};
