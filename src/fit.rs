@@ -228,10 +228,13 @@ fn evaluate(trainer: &Trainer, out: &Path, on: &mut impl FnMut(TrainMessage)) ->
     on(TrainMessage::Evaluating { images: tests.len() });
     let dir = out.join("renders");
     std::fs::create_dir_all(&dir).map_err(|e| io(&dir, e))?;
+    // Inference on the plain backend: no autodiff graph is recorded (or held) for the renders.
+    let model = trainer.model()?.valid();
+    let device = trainer.device.clone().without_autodiff();
     let mut rows = Vec::new();
     let (mut pose_sum, mut pose_n) = (0.0, 0);
     for view in tests {
-        let image = crate::eval::render_view(trainer.model()?, scene, view.camera, view.frame, 48, &trainer.device, trainer.fit_light);
+        let image = crate::eval::render_view(&model, scene, view.camera, view.frame, 48, &device, trainer.fit_light);
         let psnr = crate::eval::psnr_srgb8(&image, &view.colour);
         let name = view.path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
         let png = crate::imageio::encode_png_rgb(&image).map_err(|e| io(&dir.join(&name), e))?;

@@ -146,3 +146,22 @@ fn uniform_scenes_skip_the_light_and_refuse_a_light_fitting_schedule() {
     assert!(stderr.contains("quick.toml: light:") && stderr.contains("uniformly lit"), "{stderr}");
     assert!(!dir.path().join("run2/fit.json").exists(), "nothing written");
 }
+
+#[test]
+fn point_lit_scenes_fit_a_light_position_and_ndarray_runs_the_same_step() {
+    let dir = TempDir::new("point");
+    let scene_path = tiny_scene(dir.path(), TrainingLight::Point);
+    let schedule = Schedule::parse(&QUICK.replace("iterations = 60", "iterations = 4"), Path::new("quick.toml")).unwrap();
+    for backend in [Backend::Flex, Backend::Ndarray] {
+        let scene = umbra::scene::Scene::load(&scene_path).unwrap();
+        let mut trainer = Trainer::new(scene, schedule.clone(), backend, 1).unwrap();
+        let before = trainer.model().unwrap().light.report();
+        assert_eq!(before["type"], "point");
+        for _ in 0..4 {
+            let stats = trainer.step().unwrap();
+            assert!(stats.total.is_finite() && stats.terms.contains_key("rgb"), "{backend:?}: {stats:?}");
+        }
+        let after = trainer.model().unwrap().light.report();
+        assert_ne!(before["position"], after["position"], "{backend:?}: the light position learns");
+    }
+}
