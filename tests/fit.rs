@@ -74,7 +74,8 @@ fn a_short_fit_lowers_the_loss_and_turns_the_light_toward_the_truth() {
     let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len() as f64;
     assert!(mean(&last) < 0.8 * mean(&first), "loss {} -> {}", mean(&first), mean(&last));
     let after = angle_to(&trainer.model().unwrap().light.report()["direction"], truth);
-    assert!(after < before - 5.0, "light direction error {before:.1} -> {after:.1} degrees");
+    eprintln!("loss {:.4} -> {:.4}, light error {before:.1} -> {after:.1} degrees", mean(&first), mean(&last));
+    assert!(after < 0.5 * before, "light direction error {before:.1} -> {after:.1} degrees");
 }
 
 #[test]
