@@ -34,8 +34,10 @@ pub struct LightModel {
 }
 
 /// Distance (m) the shadow ray starts off the surface, along the normal and along the ray, so a
-/// surface is not shadowed by the Gaussians that model its own skin.
-pub const SHADOW_START: f32 = 0.03;
+/// surface is not shadowed by the Gaussians that model its own skin. Measured on human-sun
+/// (default schedule): 0.03 m -> sun 4.0 deg off, 28.2 dB; 0.05 -> 2.3 deg, 27.3 dB;
+/// 0.065 -> 1.9 deg, 27.3 dB; 0.08 -> 1.6 deg, 27.0 dB.
+pub const SHADOW_START: f32 = 0.065;
 
 fn inverse_softplus(v: f32) -> f32 {
     (v.exp() - 1.0).ln()
