@@ -28,6 +28,21 @@ fn tiny_scene(dir: &Path, light: TrainingLight) -> std::path::PathBuf {
     out
 }
 
+/// Options for a fit of `scene` into `out` with the given schedule file, no evaluation.
+fn fit_options(scene: &Path, out: std::path::PathBuf, schedule: &Path, iterations: Option<usize>, seed: u64, resume: bool) -> FitOptions {
+    FitOptions {
+        scene: scene.to_path_buf(),
+        out,
+        schedule: schedule.to_path_buf(),
+        iterations,
+        seed,
+        resume,
+        force: false,
+        backend: Backend::Flex,
+        evaluate: false,
+    }
+}
+
 const QUICK: &str = r#"
 iterations = 60
 rays_per_batch = 256
@@ -84,17 +99,7 @@ fn resume_continues_where_the_fit_stopped() {
     let scene_path = tiny_scene(dir.path(), TrainingLight::Sun);
     let schedule_path = dir.path().join("quick.toml");
     std::fs::write(&schedule_path, QUICK.replace("iterations = 60", "iterations = 40")).unwrap();
-    let options = |out: &str, iterations: usize, resume: bool| FitOptions {
-        scene: scene_path.clone(),
-        out: dir.path().join(out),
-        schedule: schedule_path.clone(),
-        iterations: Some(iterations),
-        seed: 3,
-        resume,
-        force: false,
-        backend: Backend::Flex,
-        evaluate: false,
-    };
+    let options = |out: &str, iterations: usize, resume: bool| fit_options(&scene_path, dir.path().join(out), &schedule_path, Some(iterations), 3, resume);
     let straight = umbra::fit::fit(&options("straight", 40, false), |_| {}).unwrap();
     umbra::fit::fit(&options("resumed", 20, false), |_| {}).unwrap();
     // A second fit into the same folder without --resume is refused.
@@ -119,17 +124,7 @@ fn uniform_scenes_skip_the_light_and_refuse_a_light_fitting_schedule() {
     let scene_path = tiny_scene(dir.path(), TrainingLight::Uniform);
     let schedule_path = dir.path().join("quick.toml");
     std::fs::write(&schedule_path, QUICK.replace("iterations = 60", "iterations = 3")).unwrap();
-    let options = FitOptions {
-        scene: scene_path.clone(),
-        out: dir.path().join("run"),
-        schedule: schedule_path.clone(),
-        iterations: None,
-        seed: 0,
-        resume: false,
-        force: false,
-        backend: Backend::Flex,
-        evaluate: false,
-    };
+    let options = fit_options(&scene_path, dir.path().join("run"), &schedule_path, None, 0, false);
     let report = umbra::fit::fit(&options, |_| {}).unwrap();
     assert_eq!(report["light"]["type"], "uniform");
     let stages = report["stages"].as_array().unwrap();
