@@ -66,6 +66,10 @@ pub enum Command {
         /// Fewer sizes and shorter timings (a smoke run).
         #[arg(long)]
         quick: bool,
+        /// A training scene whose whole training steps `gradients` also times (default:
+        /// datasets-synthetic/human-sun when it exists).
+        #[arg(long)]
+        scene: Option<PathBuf>,
     },
 }
 
@@ -73,6 +77,8 @@ pub enum Command {
 pub enum BenchKind {
     /// Gaussian shadow casting: throughput, culling, closed form vs ray marching.
     Shadows,
+    /// SDF gradients (normals, Eikonal): forward-mode tangents vs central differences.
+    Gradients,
 }
 
 /// Runs the CLI and returns the process exit code.
@@ -84,7 +90,11 @@ pub fn main() -> i32 {
         Command::Fit { scene, out, schedule, iterations, seed, resume, force, backend, no_eval } => {
             fit(&crate::train::FitOptions { scene, out, schedule, iterations, seed, resume, force, backend, evaluate: !no_eval })
         }
-        Command::Bench { which: BenchKind::Shadows, out, quick } => crate::bench::shadows(&out, quick).map(|table| print!("{table}")),
+        Command::Bench { which: BenchKind::Shadows, out, quick, .. } => crate::bench::shadows(&out, quick).map(|table| print!("{table}")),
+        Command::Bench { which: BenchKind::Gradients, out, quick, scene } => {
+            let scene = scene.or_else(|| Some(PathBuf::from(crate::bench::DEFAULT_SCENE)).filter(|p| p.join("scene.json").exists()));
+            crate::bench::gradients(&out, quick, scene.as_deref()).map(|table| print!("{table}"))
+        }
     };
     match result {
         Ok(()) => 0,

@@ -51,7 +51,7 @@ pub fn render_view(model: &Avatar, scene: &Scene, camera: usize, frame: usize, s
             continue;
         }
         let jitter = vec![0.5; rays.len() * samples];
-        let deferred = render(&model.field, &pose_tensors, &rays, samples, &jitter, shaded, device);
+        let deferred = render(&model.field, &pose_tensors, &rays, samples, &jitter, shaded.then_some(crate::field::GRADIENT), device);
         let colour = match deferred.normal {
             Some(normal) if shaded => model.light.shade(deferred.albedo, deferred.surface, normal, &gaussians),
             _ => deferred.albedo,

@@ -3,7 +3,7 @@
 //! volume-renders the field's VolSDF density into accumulation, depth and albedo, and finds the
 //! surface point and its normal for deferred shading. Also renders whole views for evaluation.
 
-use crate::field::{AvatarField, PoseTensors};
+use crate::field::{AvatarField, GradientMethod, PoseTensors};
 use crate::gaussians::PosedGaussian;
 use burn::tensor::{Device, Tensor, TensorData};
 use glam::DVec3;
@@ -76,8 +76,17 @@ pub struct Deferred {
 
 /// Volume-renders `rays` through the field in `pose` with `samples` stratified samples per ray,
 /// `jitter` in [0, 1) per sample (`[R * S]` values; 0.5 for a deterministic render).
-/// Normals cost six more field evaluations per ray, so they are computed only when `normals`.
-pub fn render(field: &AvatarField, pose: &PoseTensors, rays: &RaySet, samples: usize, jitter: &[f32], normals: bool, device: &Device) -> Deferred {
+/// Normals cost a gradient of the SDF per ray, so they are computed only when `normals` says
+/// by which method.
+pub fn render(
+    field: &AvatarField,
+    pose: &PoseTensors,
+    rays: &RaySet,
+    samples: usize,
+    jitter: &[f32],
+    normals: Option<GradientMethod>,
+    device: &Device,
+) -> Deferred {
     let r = rays.len();
     let s = samples;
     let t1 = |v: &Vec<f32>| Tensor::<1>::from_data(TensorData::new(v.clone(), [r]), device);
@@ -100,8 +109,8 @@ pub fn render(field: &AvatarField, pose: &PoseTensors, rays: &RaySet, samples: u
     let albedo = (weights.clone().unsqueeze_dim::<3>(2) * out.albedo.reshape([r, s, 3])).sum_dim(1).reshape([r, 3]);
     let depth = (weights * t).sum_dim(1).reshape([r]) / (accumulation.clone() + 1e-6);
     let surface = origins + directions * depth.clone().reshape([r, 1]);
-    let normal = normals.then(|| {
-        let gradient = field.sdf_gradient(surface.clone(), pose, NORMAL_STEP);
+    let normal = normals.map(|method| {
+        let gradient = field.sdf_gradient(surface.clone(), pose, method);
         gradient.clone() / (gradient.clone() * gradient).sum_dim(1).sqrt().clamp_min(1e-6)
     });
     Deferred { accumulation, albedo, depth, surface, normal, sample_points: points, sample_density: density }

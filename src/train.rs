@@ -3,7 +3,7 @@
 //! and typed messages that the CLI turns into a progress bar. It skips what a scene does not
 //! need: a uniformly lit capture gets no light, no shadow rays and no light-fitting stage.
 
-use crate::field::{AvatarField, FieldConfig, PoseTensors};
+use crate::field::{AvatarField, FieldConfig, GradientMethod, PoseTensors};
 use crate::gaussians::{GaussianParams, GaussianSet};
 use crate::light::Light;
 use crate::render::{ray_bounds, render, RaySet};
@@ -122,6 +122,9 @@ pub struct Trainer {
     pub light_kind: LightKind,
     pub iteration: usize,
     pub stream: Stream,
+    /// How SDF gradients (normals, Eikonal, curvature) are taken; `GRADIENT` unless a
+    /// benchmark compares methods.
+    pub gradient: GradientMethod,
     bone_centres: Tensor<2>,
 }
 
@@ -202,6 +205,7 @@ impl Trainer {
             light_kind,
             iteration: 0,
             stream: Stream::new(seed, 0x7AA1, 0),
+            gradient: crate::field::GRADIENT,
             bone_centres,
         })
     }
@@ -259,7 +263,7 @@ impl Trainer {
         let w = |name: &str| schedule.weight(name, it);
         let model = self.model.take().ok_or_else(|| FitError::Input("the model was lost by an interrupted step".into()))?;
         let shading = self.fit_light && w("rgb") > 0.0;
-        let deferred = render(&model.field, &pose, &rays, s, &jitter, shading, &device);
+        let deferred = render(&model.field, &pose, &rays, s, &jitter, shading.then_some(self.gradient), &device);
         let target: Tensor<2> = Tensor::from_data(TensorData::new(colours, [r, 3]), &device);
         let mask: Tensor<1> = Tensor::from_data(TensorData::new(masks, [r]), &device);
         let posed = model.gaussians.posed(&pose);
@@ -295,14 +299,14 @@ impl Trainer {
             let q = self.schedule.regulariser_points;
             let idx = self.random_indices(q, r * s);
             let points = deferred.sample_points.clone().detach().select(0, idx);
-            let gradient = model.field.sdf_gradient(points.clone(), &pose, crate::render::NORMAL_STEP);
+            let gradient = model.field.sdf_gradient(points.clone(), &pose, self.gradient);
             if w("eikonal") > 0.0 {
                 terms.push(("eikonal", w("eikonal"), crate::losses::eikonal(gradient.clone())));
             }
             if w("curvature") > 0.0 {
                 let noise: Vec<f32> = (0..q * 3).map(|_| ((self.stream.uniform() - 0.5) * 2.0 * self.schedule.curvature_epsilon) as f32).collect();
                 let perturbed = points + Tensor::<2>::from_data(TensorData::new(noise, [q, 3]), &device);
-                let g2 = model.field.sdf_gradient(perturbed, &pose, crate::render::NORMAL_STEP);
+                let g2 = model.field.sdf_gradient(perturbed, &pose, self.gradient);
                 let unit = |g: Tensor<2>| g.clone() / (g.clone() * g).sum_dim(1).sqrt().clamp_min(1e-6);
                 terms.push(("curvature", w("curvature"), crate::losses::curvature(unit(gradient), unit(g2))));
             }

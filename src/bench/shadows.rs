@@ -1,6 +1,7 @@
-//! Benchmarks behind `umbra bench` and `cargo bench`: each prints ratios against a baseline
-//! measured in the same run and writes a Markdown table, a CSV and a PNG plot.
+//! The shadow benchmark: closed-form transmittance on the CPU and through burn, culling on and
+//! off, against ray marching.
 
+use super::{machine_peak_flops, time};
 use crate::gaussians::PosedGaussian;
 use crate::plot::{Chart, Series};
 use crate::shadow::tensor::{transmittance, GaussianTensors, RaySegments};
@@ -9,7 +10,6 @@ use crate::synth::trace::Stream;
 use burn::tensor::{Device, Tensor, TensorData};
 use glam::{DMat3, DQuat, DVec3};
 use std::path::Path;
-use std::time::Instant;
 
 /// Estimated floating-point work of one closed-form (ray, Gaussian) pair: about 80 arithmetic
 /// operations plus two erfc and one exp, each worth roughly 25 (the ratios below use 150).
@@ -46,18 +46,6 @@ pub fn sun_rays(n: usize, seed: u64) -> Vec<ShadowRay> {
         .collect()
 }
 
-/// Seconds per call of `f`, repeated until at least `budget` seconds have passed.
-fn time(budget: f64, mut f: impl FnMut()) -> f64 {
-    f();
-    let start = Instant::now();
-    let mut calls = 0;
-    while calls == 0 || start.elapsed().as_secs_f64() < budget {
-        f();
-        calls += 1;
-    }
-    start.elapsed().as_secs_f64() / calls as f64
-}
-
 /// Transmittance by the midpoint rule over `steps` samples up to where the ray leaves the
 /// cloud's bounding box: the approximation closed-form integration replaces.
 fn marched_transmittance(gaussians: &[PosedGaussian], ray: &ShadowRay, steps: usize, far: f32) -> f32 {
@@ -83,21 +71,6 @@ pub struct Row {
     pub seconds: f64,
     pub pairs_per_second: f64,
     pub max_error: Option<f64>,
-}
-
-fn machine_peak_flops() -> (f64, String) {
-    let info = std::fs::read_to_string("/proc/cpuinfo").unwrap_or_default();
-    let mhz = info.lines().find(|l| l.starts_with("cpu MHz")).and_then(|l| l.split(':').nth(1)).and_then(|v| v.trim().parse::<f64>().ok()).unwrap_or(2500.0);
-    let flags = info.lines().find(|l| l.starts_with("flags")).unwrap_or("");
-    let cores = std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1) as f64;
-    let (per_cycle, isa) = if flags.contains(" avx512f") {
-        (64.0, "AVX-512 FMA")
-    } else if flags.contains(" avx2") && flags.contains(" fma") {
-        (32.0, "AVX2 FMA")
-    } else {
-        (8.0, "SSE")
-    };
-    (cores * mhz * 1e6 * per_cycle, format!("{cores} cores x {mhz:.0} MHz x {per_cycle} f32 flop/cycle ({isa})"))
 }
 
 /// The shadow benchmark: both paths, culling on and off, 24 to 10,000 Gaussians, and the
