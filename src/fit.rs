@@ -163,7 +163,17 @@ pub fn fit(options: &FitOptions, mut on: impl FnMut(TrainMessage)) -> Result<ser
     while trainer.iteration < schedule.iterations {
         let it = trainer.iteration;
         let stats = trainer.step().map_err(|e| match e {
-            FitError::NonFinite { iteration, what, .. } => FitError::NonFinite { iteration, what, checkpoint: out.join(CHECKPOINT).display().to_string() },
+            FitError::NonFinite { iteration, what, .. } => {
+                let saved = std::fs::read_to_string(out.join(CHECKPOINT).join("state.json"))
+                    .ok()
+                    .and_then(|text| serde_json::from_str::<serde_json::Value>(&text).ok())
+                    .and_then(|state| state["iteration"].as_u64());
+                let checkpoint = match saved {
+                    Some(at) => format!("the last good checkpoint (iteration {at}) is kept in {}", out.join(CHECKPOINT).display()),
+                    None => "no checkpoint had been written yet".into(),
+                };
+                FitError::NonFinite { iteration, what, checkpoint }
+            }
             other => other,
         })?;
         *segment_seconds.entry(segment(&schedule, it)).or_default() += stats.seconds;

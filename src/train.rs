@@ -56,8 +56,13 @@ pub enum FitError {
     Input(String),
     #[error("{path}: {message}")]
     Io { path: PathBuf, message: String },
-    #[error("the fit diverged at iteration {iteration}: {what} is not finite; the last good checkpoint is kept in {checkpoint}")]
-    NonFinite { iteration: usize, what: String, checkpoint: String },
+    #[error("the fit diverged at iteration {iteration}: {what} is not finite; {checkpoint}")]
+    NonFinite {
+        iteration: usize,
+        what: String,
+        /// What became of the checkpoint, as a sentence for the user.
+        checkpoint: String,
+    },
 }
 
 pub fn io(path: &Path, e: impl std::fmt::Display) -> FitError {
@@ -135,6 +140,36 @@ fn detached(g: &GaussianTensors) -> GaussianTensors {
 
 fn scalar(t: &Tensor<1>) -> f64 {
     t.clone().into_data().convert::<f32>().try_to_vec::<f32>().ok().and_then(|v| v.first().copied()).unwrap_or(f32::NAN) as f64
+}
+
+/// The path (`field.hidden.0.weight`, ...) of the first parameter holding a NaN or an
+/// infinity: the update that put it there must not reach a checkpoint.
+pub fn first_non_finite<M: Module>(module: &M) -> Option<String> {
+    #[derive(Default)]
+    struct Finder {
+        path: Vec<String>,
+        found: Option<String>,
+    }
+    impl burn::module::ModuleVisitor for Finder {
+        fn enter_module(&mut self, name: &str, _: &str) {
+            self.path.push(name.to_string());
+        }
+        fn exit_module(&mut self, _: &str, _: &str) {
+            self.path.pop();
+        }
+        fn visit_float<const D: usize>(&mut self, param: &burn::module::Param<Tensor<D>>) {
+            if self.found.is_some() {
+                return;
+            }
+            let values = param.val().into_data().convert::<f32>().try_to_vec::<f32>().unwrap_or_default();
+            if values.iter().any(|v| !v.is_finite()) {
+                self.found = Some(self.path.iter().filter(|p| !p.is_empty()).cloned().collect::<Vec<_>>().join("."));
+            }
+        }
+    }
+    let mut finder = Finder::default();
+    module.visit(&mut finder);
+    finder.found
 }
 
 impl Trainer {
@@ -332,7 +367,12 @@ impl Trainer {
         let field = self.optimizers[0].1.step(lr_field, field, g_field);
         let gaussians = self.optimizers[1].1.step(lr_gaussians, gaussians, g_gaussians);
         let light = if light_active { self.optimizers[2].1.step(lr_light, light, g_light) } else { light };
-        self.model = Some(Avatar { field, gaussians, light });
+        let model = Avatar { field, gaussians, light };
+        let poisoned = first_non_finite(&model);
+        self.model = Some(model);
+        if let Some(name) = poisoned {
+            return Err(FitError::NonFinite { iteration: it, what: format!("the parameter {name} after the update"), checkpoint: String::new() });
+        }
         self.iteration += 1;
         stats.seconds = start.elapsed().as_secs_f64();
         Ok(stats)

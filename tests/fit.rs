@@ -161,3 +161,54 @@ fn point_lit_scenes_fit_a_light_position_and_ndarray_runs_the_same_step() {
         assert_ne!(before["position"], after["position"], "{backend:?}: the light position learns");
     }
 }
+
+/// A copy of `param` with its first value replaced by NaN.
+fn poisoned<const D: usize>(param: &burn::module::Param<burn::tensor::Tensor<D>>) -> burn::module::Param<burn::tensor::Tensor<D>> {
+    let value = param.val();
+    let shape = value.shape();
+    let mut data = value.into_data().convert::<f32>().try_to_vec::<f32>().unwrap();
+    data[0] = f32::NAN;
+    burn::module::Param::from_tensor(burn::tensor::Tensor::from_data(burn::tensor::TensorData::new(data, shape), &trainer_device()))
+}
+
+fn trainer_device() -> burn::tensor::Device {
+    Backend::Flex.device()
+}
+
+#[test]
+fn a_non_finite_parameter_or_loss_stops_the_fit_and_keeps_the_last_good_checkpoint() {
+    use burn::module::Module;
+    let dir = TempDir::new("nonfinite");
+    let scene_path = tiny_scene(dir.path(), TrainingLight::Sun);
+    let schedule =
+        Schedule::parse(&QUICK.replace("iterations = 60", "iterations = 8").replace("checkpoint_every = 20", "checkpoint_every = 2"), Path::new("quick.toml"))
+            .unwrap();
+
+    // A parameter this step's losses do not read (a sun has no intensity) is still checked.
+    let scene = umbra::scene::Scene::load(&scene_path).unwrap();
+    let mut trainer = Trainer::new(scene, schedule.clone(), Backend::Flex, 1).unwrap();
+    trainer.step().unwrap();
+    let mut model = trainer.model.take().unwrap();
+    model.light.log_intensity = poisoned(&model.light.log_intensity);
+    trainer.model = Some(model);
+    let err = trainer.step().unwrap_err().to_string();
+    assert!(err.contains("iteration 1") && err.contains("light.log_intensity"), "{err}");
+
+    // A fit whose loss turns NaN stops with an error that points at the checkpoint it kept.
+    let schedule_path = dir.path().join("quick.toml");
+    std::fs::write(&schedule_path, QUICK.replace("iterations = 60", "iterations = 8").replace("checkpoint_every = 20", "checkpoint_every = 2")).unwrap();
+    let out = dir.path().join("run");
+    umbra::fit::fit(&fit_options(&scene_path, out.clone(), &schedule_path, Some(4), 2, false), |_| {}).unwrap();
+    let scene = umbra::scene::Scene::load(&scene_path).unwrap();
+    let mut model = Trainer::new(scene, schedule, Backend::Flex, 2).unwrap().model.take().unwrap();
+    model.light.vector = poisoned(&model.light.vector);
+    let bpk = out.join("checkpoint/model.bpk");
+    model.save_file(&bpk).unwrap();
+    let before = std::fs::read(&bpk).unwrap();
+    std::fs::remove_file(out.join("fit.json")).unwrap();
+    let err = umbra::fit::fit(&fit_options(&scene_path, out.clone(), &schedule_path, Some(8), 2, true), |_| {}).unwrap_err().to_string();
+    assert!(err.contains("diverged at iteration 4") && err.contains("loss is not finite"), "{err}");
+    assert!(err.contains("checkpoint (iteration 4) is kept in") && err.contains("checkpoint"), "{err}");
+    assert_eq!(std::fs::read(&bpk).unwrap(), before, "the checkpoint is not overwritten");
+    assert!(!out.join("fit.json").exists(), "no report for a diverged fit");
+}
