@@ -56,6 +56,18 @@ pub enum Command {
         #[arg(long)]
         no_eval: bool,
     },
+    /// Render and score the test images of a fit (novel poses, novel views, relighting by the
+    /// scene's other suns, point lights, uniform light and environment maps, albedo) into
+    /// RUN/renders: PNGs, metrics.csv and metrics.md.
+    Render {
+        /// The run folder `umbra fit` wrote.
+        run: PathBuf,
+        /// The scene to render (default: the one in RUN/fit.json), e.g. with more test images.
+        #[arg(long)]
+        scene: Option<PathBuf>,
+        #[arg(long, value_enum, default_value_t = crate::train::Backend::Flex)]
+        backend: crate::train::Backend,
+    },
     /// Run a benchmark and write its table (Markdown, CSV) and plot (PNG).
     Bench {
         #[arg(value_enum)]
@@ -90,6 +102,7 @@ pub fn main() -> i32 {
         Command::Fit { scene, out, schedule, iterations, seed, resume, force, backend, no_eval } => {
             fit(&crate::train::FitOptions { scene, out, schedule, iterations, seed, resume, force, backend, evaluate: !no_eval })
         }
+        Command::Render { run, scene, backend } => render(&run, scene.as_deref(), backend),
         Command::Bench { which: BenchKind::Shadows, out, quick, .. } => crate::bench::shadows(&out, quick).map(|table| print!("{table}")),
         Command::Bench { which: BenchKind::Gradients, out, quick, scene } => {
             let scene = scene.or_else(|| Some(PathBuf::from(crate::bench::DEFAULT_SCENE)).filter(|p| p.join("scene.json").exists()));
@@ -154,7 +167,16 @@ fn fit(options: &crate::train::FitOptions) -> Result<(), String> {
             }
         }
         TrainMessage::Checkpoint { .. } => {}
-        TrainMessage::Evaluating { images } => bar.println(format!("rendering {images} test images")),
+        TrainMessage::Evaluating { images } => {
+            bar.println(format!("rendering {images} test images"));
+            bar.set_length(images as u64);
+            bar.set_position(0);
+            bar.reset_eta();
+        }
+        TrainMessage::Rendered { done, name, psnr, .. } => {
+            bar.set_position(done as u64);
+            bar.set_message(format!("{name}: {psnr:.2} dB"));
+        }
         TrainMessage::Done => bar.finish_and_clear(),
     })
     .map_err(|e| e.to_string())?;
@@ -163,9 +185,33 @@ fn fit(options: &crate::train::FitOptions) -> Result<(), String> {
     if let Some(e) = report["light_error_against_scene"]["direction_degrees"].as_f64() {
         println!("light direction error against the scene's sun: {e:.2} degrees");
     }
-    if let Some(p) = report["evaluation"]["novel_pose_psnr"].as_f64() {
-        println!("novel-pose PSNR: {p:.2} dB");
-    }
+    print_evaluation(&report["evaluation"]);
     println!("wall time: {:.1} s", report["wall_seconds"].as_f64().unwrap_or(0.0));
     Ok(())
+}
+
+fn render(run: &Path, scene: Option<&Path>, backend: crate::train::Backend) -> Result<(), String> {
+    use crate::train::TrainMessage;
+    let bar = progress_bar(0, "rendering");
+    let evaluation = crate::fit::render_run(run, scene, backend, |message| match message {
+        TrainMessage::Evaluating { images } => bar.set_length(images as u64),
+        TrainMessage::Rendered { done, name, psnr, .. } => {
+            bar.set_position(done as u64);
+            bar.set_message(format!("{name}: {psnr:.2} dB"));
+        }
+        _ => {}
+    })
+    .map_err(|e| e.to_string())?;
+    bar.finish_and_clear();
+    print_evaluation(&evaluation);
+    println!("wrote {}", run.join("renders").display());
+    Ok(())
+}
+
+fn print_evaluation(evaluation: &serde_json::Value) {
+    for (key, what) in [("novel_pose_psnr", "novel pose"), ("novel_view_psnr", "novel view"), ("relit_psnr", "relit"), ("albedo_psnr", "albedo")] {
+        if let Some(p) = evaluation[key].as_f64() {
+            println!("{what} PSNR: {p:.2} dB");
+        }
+    }
 }

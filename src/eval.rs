@@ -1,11 +1,17 @@
-//! Rendering whole views of a fitted avatar and scoring them: PSNR over the whole image in
-//! 8-bit sRGB, as the evaluation of novel poses, views and lighting uses it.
+//! Rendering whole views of a fitted avatar, in its fitted light, in any light of the scene or
+//! as albedo, and scoring them: PSNR over the whole image in 8-bit sRGB, as the evaluation of
+//! novel poses, views and lighting uses it.
 
+use crate::gaussians::PosedGaussian;
 use crate::imageio::{linear_to_srgb8, RgbImage};
+use crate::light::Light;
+use crate::relight::EnvironmentSampler;
 use crate::render::{ray_bounds, render, RaySet};
 use crate::scene::Scene;
+use crate::shading::{shade_lambertian, Emitter, LightKind};
 use crate::train::Avatar;
-use burn::tensor::{Device, Tensor};
+use burn::tensor::{Device, Tensor, TensorData};
+use glam::DVec3;
 
 /// PSNR (dB) between two images after 8-bit sRGB encoding, over every pixel and channel.
 pub fn psnr_srgb8(a: &RgbImage, b: &RgbImage) -> f64 {
@@ -27,14 +33,39 @@ fn values<const D: usize>(t: Tensor<D>) -> Vec<f32> {
     t.into_data().convert::<f32>().try_to_vec::<f32>().unwrap_or_default()
 }
 
-/// Renders view `view` of the scene's camera and frame, shaded by the fitted light (or albedo).
-pub fn render_view(model: &Avatar, scene: &Scene, camera: usize, frame: usize, samples: usize, device: &Device, shaded: bool) -> RgbImage {
+/// The light a view is rendered in.
+pub enum Lighting<'a> {
+    /// The fitted light (the albedo, for a uniformly lit fit).
+    Fitted,
+    /// Shadow-free reflectance: the fitted albedo times `albedo_scale`.
+    Albedo { albedo_scale: DVec3 },
+    /// A light of the scene the avatar was not fitted in, with the scale that turns the fitted
+    /// albedo into reflectance (`relight::albedo_scale`).
+    Known { light: &'a Light, albedo_scale: DVec3, samples: usize },
+}
+
+/// Renders the scene's `camera` in `frame` with `samples` samples per ray under `lighting`.
+pub fn render_view(model: &Avatar, scene: &Scene, camera: usize, frame: usize, samples: usize, device: &Device, lighting: &Lighting) -> RgbImage {
     let camera = &scene.cameras[camera];
     let pose = &scene.frames[frame].pose;
     let pose_tensors = crate::field::PoseTensors::new(pose, &scene.skeleton, device);
     let set = model.gaussians.to_set();
     let posed = set.pose(pose);
     let gaussians = model.gaussians.posed(&pose_tensors);
+    let casters = model.light.shadow_casters(&gaussians);
+    let needs_normals = match lighting {
+        Lighting::Fitted => model.light.kind != LightKind::Uniform,
+        Lighting::Albedo { .. } => false,
+        Lighting::Known { .. } => true,
+    };
+    // The sky's directions are drawn once per view, shared by all its pixels.
+    let sampler = match lighting {
+        Lighting::Known { light: Light::Environment { map, scale, .. }, samples, .. } => Some(EnvironmentSampler::new(map, *scale, *samples, frame as u64)),
+        Lighting::Known { light: Light::Uniform { radiance }, samples, .. } => Some(EnvironmentSampler::uniform(*radiance, *samples, frame as u64)),
+        _ => None,
+    };
+    let density_scale = values(model.light.density_scale()).first().copied().unwrap_or(1.0) as f64;
+    let sky_casters: Vec<PosedGaussian> = posed.iter().map(|g| PosedGaussian { amplitude: g.amplitude * density_scale, ..g.clone() }).collect();
     let mut image = RgbImage::new(camera.width, camera.height);
     let pixels: Vec<usize> = (0..camera.width * camera.height).collect();
     for chunk in pixels.chunks(1024) {
@@ -50,16 +81,47 @@ pub fn render_view(model: &Avatar, scene: &Scene, camera: usize, frame: usize, s
         if rays.is_empty() {
             continue;
         }
-        let jitter = vec![0.5; rays.len() * samples];
-        let deferred = render(&model.field, &pose_tensors, &rays, samples, &jitter, shaded.then_some(crate::field::GRADIENT), device);
-        let colour = match deferred.normal {
-            Some(normal) if shaded => model.light.shade(deferred.albedo, deferred.surface, normal, &gaussians),
-            _ => deferred.albedo,
+        let r = rays.len();
+        let jitter = vec![0.5; r * samples];
+        let deferred = render(&model.field, &pose_tensors, &rays, samples, &jitter, needs_normals.then_some(crate::field::GRADIENT), device);
+        let scaled =
+            |scale: &DVec3| deferred.albedo.clone() * Tensor::<1>::from_data(TensorData::new(scale.as_vec3().to_array().to_vec(), [3]), device).reshape([1, 3]);
+        let colour = match (lighting, &deferred.normal) {
+            (Lighting::Fitted, Some(normal)) => values(model.light.shade(deferred.albedo.clone(), deferred.surface.clone(), normal.clone(), &gaussians)),
+            (Lighting::Albedo { albedo_scale }, _) => values(scaled(albedo_scale)),
+            (Lighting::Known { light, albedo_scale, .. }, Some(normal)) => match (emitter(light, device), &sampler) {
+                (Some((emitter, ambient)), _) => {
+                    values(shade_lambertian(scaled(albedo_scale), deferred.surface.clone(), normal.clone(), &casters, ambient, &emitter))
+                }
+                (None, Some(sampler)) => {
+                    let points = vectors(values(deferred.surface.clone()));
+                    let normals = vectors(values(normal.clone()));
+                    let reflectance = vectors(values(scaled(albedo_scale)));
+                    let radiance = sampler.shade(&points, &normals, &sky_casters);
+                    reflectance.iter().zip(radiance).flat_map(|(a, l)| (*a * l).as_vec3().to_array()).collect()
+                }
+                (None, None) => values(deferred.albedo.clone()),
+            },
+            _ => values(deferred.albedo.clone()),
         };
-        let colour = values(colour.detach());
         for (k, &p) in hit.iter().enumerate() {
             image.pixels[p] = [colour[k * 3], colour[k * 3 + 1], colour[k * 3 + 2]];
         }
     }
     image
+}
+
+fn vectors(flat: Vec<f32>) -> Vec<DVec3> {
+    flat.chunks(3).map(|c| DVec3::new(c[0] as f64, c[1] as f64, c[2] as f64)).collect()
+}
+
+/// A sun or point light of the scene as an `Emitter` and its ambient; `None` for lights that
+/// are not a single direction (uniform, environment).
+fn emitter(light: &Light, device: &Device) -> Option<(Emitter, Tensor<1>)> {
+    let t = |v: DVec3| Tensor::<1>::from_data(TensorData::new(v.as_vec3().to_array().to_vec(), [3]), device);
+    match light {
+        Light::Directional { direction, irradiance, ambient } => Some((Emitter::Sun { direction: t(*direction), irradiance: t(*irradiance) }, t(*ambient))),
+        Light::Point { position, intensity, ambient } => Some((Emitter::Point { position: t(*position), intensity: t(*intensity) }, t(*ambient))),
+        Light::Uniform { .. } | Light::Environment { .. } => None,
+    }
 }

@@ -2,6 +2,7 @@
 //! `losses.csv`, `losses.png`, `gaussians.json`, renders), atomic checkpoints every N
 //! iterations, exact `--resume`, and the evaluation of the test images at the end.
 
+use crate::eval::{psnr_srgb8, render_view, Lighting};
 use crate::plot::{Chart, Series};
 use crate::scene::{Scene, Split};
 use crate::schedule::Schedule;
@@ -15,6 +16,9 @@ use std::path::Path;
 use std::time::Instant;
 
 const CHECKPOINT: &str = "checkpoint";
+/// The schedule a run was fitted with, copied into the run (rendering rebuilds the model
+/// from it; the original file may have moved).
+const SCHEDULE_COPY: &str = "schedule.toml";
 
 /// The three segments of the schedule, for timing and reporting.
 fn segment(schedule: &Schedule, iteration: usize) -> &'static str {
@@ -62,9 +66,7 @@ fn load_checkpoint(trainer: &mut Trainer, out: &Path) -> Result<Vec<(usize, Step
     let state: serde_json::Value = serde_json::from_str(&text).map_err(|e| io(&state_path, e))?;
     let iteration = state["iteration"].as_u64().ok_or_else(|| io(&state_path, "iteration: missing"))? as usize;
     let stream: u64 = state["stream"].as_str().and_then(|s| s.parse().ok()).ok_or_else(|| io(&state_path, "stream: missing"))?;
-    let model = trainer.model.take().ok_or_else(|| FitError::Input("no model".into()))?;
-    let model = model.try_load_file(dir.join("model.bpk")).map_err(|e| io(&dir.join("model.bpk"), format!("{e:?}")))?;
-    trainer.model = Some(model);
+    load_model(trainer, &dir)?;
     let mut optimizers = std::mem::take(&mut trainer.optimizers);
     for (name, optimizer) in optimizers.iter_mut() {
         let path = dir.join(format!("optimizer-{name}.bpk"));
@@ -75,6 +77,33 @@ fn load_checkpoint(trainer: &mut Trainer, out: &Path) -> Result<Vec<(usize, Step
     trainer.stream = Stream::from_state(stream);
     let csv = std::fs::read_to_string(dir.join("losses.csv")).map_err(|e| io(&dir.join("losses.csv"), e))?;
     Ok(parse_losses_csv(&csv))
+}
+
+/// Replaces the trainer's model by the one saved in checkpoint folder `dir`.
+fn load_model(trainer: &mut Trainer, dir: &Path) -> Result<(), FitError> {
+    let model = trainer.model.take().ok_or_else(|| FitError::Input("no model".into()))?;
+    let model = model.try_load_file(dir.join("model.bpk")).map_err(|e| io(&dir.join("model.bpk"), format!("cannot load the fitted model: {e:?}")))?;
+    trainer.model = Some(model);
+    Ok(())
+}
+
+/// Renders and scores the test images of a finished (or checkpointed) fit in `run`, with the
+/// scene it was fitted on or `scene`; writes `run/renders/` and returns the evaluation.
+pub fn render_run(run: &Path, scene: Option<&Path>, backend: crate::train::Backend, mut on: impl FnMut(TrainMessage)) -> Result<serde_json::Value, FitError> {
+    let schedule = Schedule::load(&run.join(SCHEDULE_COPY))?;
+    let scene_path = match scene {
+        Some(path) => path.to_path_buf(),
+        None => {
+            let report = run.join("fit.json");
+            let text = std::fs::read_to_string(&report).map_err(|e| io(&report, format!("{e} (pass --scene to name the scene)")))?;
+            let value: serde_json::Value = serde_json::from_str(&text).map_err(|e| io(&report, e))?;
+            value["scene"].as_str().map(std::path::PathBuf::from).ok_or_else(|| io(&report, "scene: missing (pass --scene)"))?
+        }
+    };
+    let scene = Scene::load(&scene_path)?;
+    let mut trainer = Trainer::new(scene, schedule, backend, 0)?;
+    load_model(&mut trainer, &run.join(CHECKPOINT))?;
+    evaluate(&trainer, run, &mut on)
 }
 
 fn losses_csv(history: &[(usize, StepStats)]) -> String {
@@ -154,6 +183,8 @@ pub fn fit(options: &FitOptions, mut on: impl FnMut(TrainMessage)) -> Result<ser
         let _ = std::fs::remove_dir_all(out.join(CHECKPOINT));
     }
     std::fs::create_dir_all(out).map_err(|e| io(out, e))?;
+    let schedule_text = std::fs::read(&options.schedule).map_err(|e| io(&options.schedule, e))?;
+    crate::imageio::write_atomic(&out.join(SCHEDULE_COPY), &schedule_text).map_err(|e| io(&out.join(SCHEDULE_COPY), e))?;
     let mut history = if options.resume { load_checkpoint(&mut trainer, out)? } else { Vec::new() };
     history.retain(|(i, _)| *i < trainer.iteration);
     let training_images = trainer.scene.views_in(Split::Train).count();
@@ -228,36 +259,128 @@ pub fn fit(options: &FitOptions, mut on: impl FnMut(TrainMessage)) -> Result<ser
     Ok(report)
 }
 
-/// Renders every test image the fitted light can reproduce and scores it (PSNR, sRGB 8-bit).
-fn evaluate(trainer: &Trainer, out: &Path, on: &mut impl FnMut(TrainMessage)) -> Result<serde_json::Value, FitError> {
+/// Samples of the sky per view when relighting by an environment or uniform light.
+pub const SKY_SAMPLES: usize = 256;
+
+/// Renders every test image of the scene (in the fitted light, or relit by the light the
+/// image names) and its albedo when the scene has one, scores them (PSNR, sRGB 8-bit, whole
+/// image) and writes `renders/*.png`, `renders/metrics.csv` and `renders/metrics.md`.
+pub fn evaluate(trainer: &Trainer, out: &Path, on: &mut impl FnMut(TrainMessage)) -> Result<serde_json::Value, FitError> {
     let scene = &trainer.scene;
     let train_frames: Vec<usize> = scene.views_in(Split::Train).map(|v| v.frame).collect();
     let train_cameras: Vec<usize> = scene.views_in(Split::Train).map(|v| v.camera).collect();
     let train_lights = scene.training_lights();
-    let tests: Vec<&crate::scene::View> = scene.views_in(Split::Test).filter(|v| train_lights.contains(&v.light.as_str())).collect();
+    let tests: Vec<&crate::scene::View> = scene.views_in(Split::Test).collect();
     on(TrainMessage::Evaluating { images: tests.len() });
     let dir = out.join("renders");
     std::fs::create_dir_all(&dir).map_err(|e| io(&dir, e))?;
     // Inference on the plain backend: no autodiff graph is recorded (or held) for the renders.
     let model = trainer.model()?.valid();
     let device = trainer.device.clone().without_autodiff();
+    let fitted_intensity = (model.light.kind == LightKind::Point).then(|| model.light.log_intensity.val().exp().into_scalar::<f32>() as f64);
+    let albedo_scale = train_lights.first().map(|name| crate::relight::albedo_scale(&scene.lights[*name], fitted_intensity)).unwrap_or(glam::DVec3::ONE);
     let mut rows = Vec::new();
-    let (mut pose_sum, mut pose_n) = (0.0, 0);
-    for view in tests {
-        let image = crate::eval::render_view(&model, scene, view.camera, view.frame, 48, &device, trainer.fit_light);
-        let psnr = crate::eval::psnr_srgb8(&image, &view.colour);
-        let name = view.path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
-        let png = crate::imageio::encode_png_rgb(&image).map_err(|e| io(&dir.join(&name), e))?;
-        crate::imageio::write_atomic(&dir.join(&name), &png).map_err(|e| io(&dir.join(&name), e))?;
+    let mut groups: BTreeMap<&str, (f64, usize)> = BTreeMap::new();
+    for (done, view) in tests.iter().enumerate() {
+        let relit = !train_lights.contains(&view.light.as_str());
+        let lighting = match relit {
+            false => Lighting::Fitted,
+            true => Lighting::Known { light: &scene.lights[&view.light], albedo_scale, samples: SKY_SAMPLES },
+        };
+        let image = render_view(&model, scene, view.camera, view.frame, 48, &device, &lighting);
+        let psnr = psnr_srgb8(&image, &view.colour);
+        let name = render_name(scene, view);
+        save_png(&dir.join(&name), &image)?;
+        let albedo_psnr = match &view.albedo {
+            Some(truth) => {
+                let albedo = render_view(&model, scene, view.camera, view.frame, 48, &device, &Lighting::Albedo { albedo_scale });
+                save_png(&dir.join(name.replace(".png", "-albedo.png")), &albedo)?;
+                Some(psnr_srgb8(&albedo, truth))
+            }
+            None => None,
+        };
         let novel_pose = !train_frames.contains(&view.frame);
         let novel_view = !train_cameras.contains(&view.camera);
-        if novel_pose && !novel_view {
-            pose_sum += psnr;
-            pose_n += 1;
+        let group = match (novel_pose, novel_view, relit) {
+            (_, _, true) => "relit",
+            (_, true, false) => "novel view",
+            (true, false, false) => "novel pose",
+            (false, false, false) => "training pose and view",
+        };
+        let entry = groups.entry(group).or_default();
+        entry.0 += psnr;
+        entry.1 += 1;
+        if let Some(a) = albedo_psnr {
+            let entry = groups.entry("albedo").or_default();
+            entry.0 += a;
+            entry.1 += 1;
         }
-        rows.push(json!({"image": name, "psnr": psnr, "novel_pose": novel_pose, "novel_view": novel_view}));
+        on(TrainMessage::Rendered { done: done + 1, total: tests.len(), name: name.clone(), psnr });
+        rows.push(ImageScore { image: name, light: view.light.clone(), group, psnr, albedo_psnr, novel_pose, novel_view, relit });
     }
-    Ok(json!({"novel_pose_psnr": if pose_n > 0 { json!(pose_sum / pose_n as f64) } else { json!(null) }, "images": rows}))
+    let mean = |g: &str| groups.get(g).map(|(sum, n)| json!(sum / *n as f64)).unwrap_or(json!(null));
+    write_text(&dir.join("metrics.csv"), &metrics_csv(&rows))?;
+    write_text(&dir.join("metrics.md"), &metrics_markdown(&rows, &groups))?;
+    Ok(json!({
+        "novel_pose_psnr": mean("novel pose"),
+        "novel_view_psnr": mean("novel view"),
+        "relit_psnr": mean("relit"),
+        "albedo_psnr": mean("albedo"),
+        "albedo_scale": albedo_scale.to_array(),
+        "images": rows,
+    }))
+}
+
+/// A render's file name: the test image's path inside the scene, flattened.
+fn render_name(scene: &Scene, view: &crate::scene::View) -> String {
+    let relative = view.path.strip_prefix(&scene.root).unwrap_or(&view.path).with_extension("png");
+    relative.to_string_lossy().replace(['/', '\\'], "_")
+}
+
+fn save_png(path: &Path, image: &crate::imageio::RgbImage) -> Result<(), FitError> {
+    let png = crate::imageio::encode_png_rgb(image).map_err(|e| io(path, e))?;
+    crate::imageio::write_atomic(path, &png).map_err(|e| io(path, e))
+}
+
+/// The score of one rendered test image.
+#[derive(serde::Serialize)]
+struct ImageScore {
+    image: String,
+    light: String,
+    group: &'static str,
+    psnr: f64,
+    albedo_psnr: Option<f64>,
+    novel_pose: bool,
+    novel_view: bool,
+    relit: bool,
+}
+
+impl ImageScore {
+    /// Image, light, group, PSNR and albedo PSNR (`missing` when none) as table cells.
+    fn cells(&self, digits: usize, missing: &str) -> String {
+        let albedo = self.albedo_psnr.map(|v| format!("{v:.digits$}")).unwrap_or_else(|| missing.into());
+        format!("{}|{}|{}|{:.digits$}|{albedo}", self.image, self.light, self.group, self.psnr)
+    }
+}
+
+fn metrics_csv(rows: &[ImageScore]) -> String {
+    let mut csv = String::from("image,light,group,psnr,albedo_psnr\n");
+    for r in rows {
+        csv += &(r.cells(3, "").replace('|', ",") + "\n");
+    }
+    csv
+}
+
+fn metrics_markdown(rows: &[ImageScore], groups: &BTreeMap<&str, (f64, usize)>) -> String {
+    let mut md = String::from("## Test images (PSNR, sRGB 8-bit, whole image)\n\n| group | images | mean PSNR (dB) |\n|---|---|---|\n");
+    for (group, (sum, n)) in groups {
+        md += &format!("| {group} | {n} | {:.2} |\n", sum / *n as f64);
+    }
+    md += "\n| image | light | group | PSNR (dB) | albedo PSNR (dB) |\n|---|---|---|---|---|\n";
+    for r in rows {
+        md += &format!("| {} |\n", r.cells(2, "-").replace('|', " | "));
+    }
+    md
 }
 
 /// How far the recovered light is from the one the scene states for its training images

@@ -11,6 +11,7 @@ pub mod imageio;
 pub mod light;
 pub mod losses;
 pub mod plot;
+pub mod relight;
 pub mod render;
 pub mod scene;
 pub mod schedule;

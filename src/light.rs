@@ -84,6 +84,19 @@ impl EnvironmentMap {
         uv_to_direction((x as f64 + 0.5) / self.image.width as f64, (y as f64 + 0.5) / self.image.height as f64)
     }
 
+    /// The mean radiance over the sphere (texels weighted by their solid angle).
+    pub fn mean_radiance(&self) -> DVec3 {
+        let (w, h) = (self.image.width, self.image.height);
+        let mut sum = DVec3::ZERO;
+        for y in 0..h {
+            for x in 0..w {
+                let p = self.image.get(x, y);
+                sum += DVec3::new(p[0] as f64, p[1] as f64, p[2] as f64) * self.texel_solid_angle(y);
+            }
+        }
+        sum / (4.0 * PI)
+    }
+
     /// Solid angle of a texel in row `y` (rows near the poles are smaller).
     pub fn texel_solid_angle(&self, y: usize) -> f64 {
         let h = self.image.height as f64;

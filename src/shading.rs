@@ -39,6 +39,42 @@ pub struct LightModel {
 /// 0.065 -> 1.9 deg, 27.3 dB; 0.08 -> 1.6 deg, 27.0 dB.
 pub const SHADOW_START: f32 = 0.065;
 
+/// A light that casts shadows, as tensors (learnable or fixed): RGB `irradiance` or
+/// `intensity` `[3]`, unit `direction` toward a sun or a point light's `position` `[3]`.
+pub enum Emitter {
+    Sun { direction: Tensor<1>, irradiance: Tensor<1> },
+    Point { position: Tensor<1>, intensity: Tensor<1> },
+}
+
+/// The image formation of the scene format, for training and relighting alike:
+/// `albedo x (ambient + E max(0, n.l) T)`, T the transmittance of `casters` along the shadow
+/// ray that starts `SHADOW_START` off the surface; a point light's E falls off as 1 / r^2 and
+/// its shadow ray ends at the light.
+pub fn shade_lambertian(
+    albedo: Tensor<2>,
+    points: Tensor<2>,
+    normals: Tensor<2>,
+    casters: &GaussianTensors,
+    ambient: Tensor<1>,
+    emitter: &Emitter,
+) -> Tensor<2> {
+    let [r, _] = points.dims();
+    let device = points.device();
+    let (direction, irradiance, t1) = match emitter {
+        Emitter::Sun { direction, irradiance } => (direction.clone().reshape([1, 3]).repeat_dim(0, r), irradiance.clone().reshape([1, 3]), None),
+        Emitter::Point { position, intensity } => {
+            let to_light = position.clone().reshape([1, 3]) - points.clone();
+            let distance = (to_light.clone() * to_light.clone()).sum_dim(1).sqrt().clamp_min(1e-3);
+            let irradiance = intensity.clone().reshape([1, 3]) / (distance.clone() * distance.clone());
+            (to_light / distance.clone(), irradiance, Some(distance.reshape([r])))
+        }
+    };
+    let cosine = (normals.clone() * direction.clone()).sum_dim(1).clamp_min(0.0);
+    let segments = RaySegments { origins: points + normals * SHADOW_START, directions: direction, t0: Tensor::full([r], SHADOW_START, &device), t1 };
+    let visibility = transmittance(casters, &segments).reshape([r, 1]);
+    albedo * (ambient.reshape([1, 3]) + irradiance * cosine * visibility)
+}
+
 fn inverse_softplus(v: f32) -> f32 {
     (v.exp() - 1.0).ln()
 }
@@ -71,24 +107,18 @@ impl LightModel {
     /// Shaded colour `[R, 3]` of surface points `[R, 3]` with normals `[R, 3]` and albedo `[R, 3]`.
     /// `gaussians` should be detached when the Gaussians must learn only from their own fit.
     pub fn shade(&self, albedo: Tensor<2>, points: Tensor<2>, normals: Tensor<2>, gaussians: &GaussianTensors) -> Tensor<2> {
-        let [r, _] = points.dims();
         let device = points.device();
-        let ambient = self.ambient().reshape([1, 3]);
-        let (direction, irradiance, t1) = match self.kind {
+        let emitter = match self.kind {
             LightKind::Uniform => return albedo,
-            LightKind::Directional => (self.direction().reshape([1, 3]).repeat_dim(0, r), Tensor::<2>::ones([r, 1], &device), None),
-            LightKind::Point => {
-                let to_light = self.vector.val().reshape([1, 3]) - points.clone();
-                let distance = (to_light.clone() * to_light.clone()).sum_dim(1).sqrt().clamp_min(1e-3);
-                let irradiance = self.log_intensity.val().exp().reshape([1, 1]) / (distance.clone() * distance.clone());
-                (to_light / distance.clone(), irradiance, Some(distance.reshape([r])))
-            }
+            LightKind::Directional => Emitter::Sun { direction: self.direction(), irradiance: Tensor::ones([3], &device) },
+            LightKind::Point => Emitter::Point { position: self.vector.val(), intensity: self.log_intensity.val().exp().repeat_dim(0, 3) },
         };
-        let cosine = (normals.clone() * direction.clone()).sum_dim(1).clamp_min(0.0);
-        let segments = RaySegments { origins: points + normals * SHADOW_START, directions: direction, t0: Tensor::full([r], SHADOW_START, &device), t1 };
-        let scaled = GaussianTensors { amplitudes: gaussians.amplitudes.clone() * self.density_scale(), ..gaussians.clone() };
-        let visibility = transmittance(&scaled, &segments).reshape([r, 1]);
-        albedo * (ambient + irradiance * cosine * visibility)
+        shade_lambertian(albedo, points, normals, &self.shadow_casters(gaussians), self.ambient(), &emitter)
+    }
+
+    /// The Gaussians as shadow casters: their optical depth times the fitted density scale.
+    pub fn shadow_casters(&self, gaussians: &GaussianTensors) -> GaussianTensors {
+        GaussianTensors { amplitudes: gaussians.amplitudes.clone() * self.density_scale(), ..gaussians.clone() }
     }
 
     /// The light as plain numbers for fit.json: direction or position, ambient, intensity.

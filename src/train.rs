@@ -77,6 +77,7 @@ pub enum TrainMessage {
     Step { iteration: usize, stats: StepStats },
     Checkpoint { iteration: usize },
     Evaluating { images: usize },
+    Rendered { done: usize, total: usize, name: String, psnr: f64 },
     Done,
 }
 

@@ -10,6 +10,10 @@ use umbra::synth::{Kind, SynthOptions, TestKind, TrainingLight};
 use umbra::train::{Backend, FitOptions, Trainer};
 
 fn tiny_scene(dir: &Path, light: TrainingLight) -> std::path::PathBuf {
+    tiny_scene_with_tests(dir, light, vec![TestKind::Poses])
+}
+
+fn tiny_scene_with_tests(dir: &Path, light: TrainingLight, test: Vec<TestKind>) -> std::path::PathBuf {
     let options = SynthOptions {
         character: Kind::Human,
         light,
@@ -17,7 +21,7 @@ fn tiny_scene(dir: &Path, light: TrainingLight) -> std::path::PathBuf {
         cameras: 4,
         frames: 2,
         test_frames: 1,
-        test: vec![TestKind::Poses],
+        test,
         samples: 8,
         seed: 5,
         meshes: false,
@@ -211,4 +215,45 @@ fn a_non_finite_parameter_or_loss_stops_the_fit_and_keeps_the_last_good_checkpoi
     assert!(err.contains("checkpoint (iteration 4) is kept in") && err.contains("checkpoint"), "{err}");
     assert_eq!(std::fs::read(&bpk).unwrap(), before, "the checkpoint is not overwritten");
     assert!(!out.join("fit.json").exists(), "no report for a diverged fit");
+}
+
+#[test]
+fn evaluation_renders_and_scores_every_test_image_and_umbra_render_repeats_it() {
+    let dir = TempDir::new("evaluate");
+    let scene_path = tiny_scene_with_tests(dir.path(), TrainingLight::Sun, vec![TestKind::Poses, TestKind::Views, TestKind::Relight]);
+    let scene = umbra::scene::Scene::load(&scene_path).unwrap();
+    let tests: Vec<_> = scene.views_in(umbra::scene::Split::Test).collect();
+    let schedule_path = dir.path().join("quick.toml");
+    std::fs::write(&schedule_path, QUICK.replace("iterations = 60", "iterations = 10")).unwrap();
+    let out = dir.path().join("run");
+    let mut options = fit_options(&scene_path, out.clone(), &schedule_path, None, 1, false);
+    options.evaluate = true;
+    let report = umbra::fit::fit(&options, |_| {}).unwrap();
+    let evaluation = &report["evaluation"];
+    for key in ["novel_pose_psnr", "novel_view_psnr", "relit_psnr", "albedo_psnr"] {
+        let psnr = evaluation[key].as_f64().unwrap_or(f64::NAN);
+        assert!(psnr.is_finite() && psnr > 5.0, "{key}: {psnr}");
+    }
+    let rows = evaluation["images"].as_array().unwrap();
+    assert_eq!(rows.len(), tests.len());
+    let lights: std::collections::BTreeSet<&str> = rows.iter().filter(|r| r["relit"] == true).map(|r| r["light"].as_str().unwrap()).collect();
+    assert_eq!(lights.into_iter().collect::<Vec<_>>(), ["lamp", "sky", "sun2"], "every kind of relighting light is rendered");
+    for row in rows {
+        let png = out.join("renders").join(row["image"].as_str().unwrap());
+        assert!(png.exists(), "{}", png.display());
+    }
+    let csv = std::fs::read_to_string(out.join("renders/metrics.csv")).unwrap();
+    assert_eq!(csv.lines().count(), tests.len() + 1);
+    assert!(std::fs::read_to_string(out.join("renders/metrics.md")).unwrap().contains("| relit |"));
+
+    // `umbra render` rebuilds the model from the run's checkpoint and gets the same scores.
+    std::fs::remove_dir_all(out.join("renders")).unwrap();
+    let run = std::process::Command::new(env!("CARGO_BIN_EXE_umbra")).args(["render", out.to_str().unwrap()]).output().unwrap();
+    assert!(run.status.success(), "{}", String::from_utf8_lossy(&run.stderr));
+    let again = std::fs::read_to_string(out.join("renders/metrics.csv")).unwrap();
+    assert_eq!(again, csv);
+    // A run folder without a fit is refused with the file named.
+    let run = std::process::Command::new(env!("CARGO_BIN_EXE_umbra")).args(["render", dir.path().to_str().unwrap()]).output().unwrap();
+    assert!(!run.status.success());
+    assert!(String::from_utf8_lossy(&run.stderr).contains("schedule.toml"), "{}", String::from_utf8_lossy(&run.stderr));
 }

@@ -1,0 +1,197 @@
+//! What a fitted avatar looks like under a light it was not fitted in: a sun or a point light
+//! (the training image formation with a known light), uniform light or an HDR environment map
+//! (importance-sampled directions whose visibility comes from the Gaussians). Also the scale
+//! that turns the fitted albedo, which carries the training light's strength, into reflectance.
+
+use crate::gaussians::PosedGaussian;
+use crate::light::{uv_to_direction, EnvironmentMap, Light};
+use crate::shading::SHADOW_START;
+use crate::shadow::{ShadowCaster, ShadowRay};
+use crate::synth::trace::Stream;
+use glam::DVec3;
+use rayon::prelude::*;
+use std::f64::consts::PI;
+
+/// How the fitted albedo maps to reflectance: the fit cannot separate the albedo's scale from
+/// the training light's strength (a sun is fitted with irradiance 1), so the light the scene
+/// states for its training images fixes it. `fitted_intensity` is a fitted point light's.
+pub fn albedo_scale(training: &Light, fitted_intensity: Option<f64>) -> DVec3 {
+    let inverse = |v: DVec3| DVec3::ONE / v.max(DVec3::splat(1e-8));
+    match training {
+        Light::Directional { irradiance, .. } => inverse(*irradiance),
+        Light::Point { intensity, .. } => inverse(*intensity) * fitted_intensity.unwrap_or(1.0),
+        Light::Uniform { radiance } => inverse(*radiance),
+        Light::Environment { map, scale, .. } => inverse(map.mean_radiance() * *scale),
+    }
+}
+
+/// A fixed set of directions drawn from an environment's radiance (times texel solid angle),
+/// stratified, with their radiance over pdf. Every pixel of a view shares them, so a render is
+/// free of per-pixel noise; its error is that of a `count`-point quadrature of the sky.
+pub struct EnvironmentSampler {
+    directions: Vec<DVec3>,
+    /// Radiance divided by the pdf (per steradian) of each direction.
+    weights: Vec<DVec3>,
+}
+
+impl EnvironmentSampler {
+    pub fn new(map: &EnvironmentMap, scale: f64, count: usize, seed: u64) -> Self {
+        let (w, h) = (map.image.width, map.image.height);
+        let luminance = |p: [f32; 3]| (0.2126 * p[0] + 0.7152 * p[1] + 0.0722 * p[2]).max(0.0) as f64;
+        let mean = (0..w * h).map(|k| luminance(map.image.pixels[k])).sum::<f64>() / (w * h) as f64;
+        // A floor so that dim texels are still sampled now and then (no direction has pdf 0).
+        let mass: Vec<f64> = (0..w * h).map(|k| (luminance(map.image.pixels[k]) + 0.05 * mean + 1e-12) * map.texel_solid_angle(k / w)).collect();
+        let total: f64 = mass.iter().sum();
+        let mut cumulative = Vec::with_capacity(mass.len());
+        let mut running = 0.0;
+        for m in &mass {
+            running += m / total;
+            cumulative.push(running);
+        }
+        let mut stream = Stream::new(seed, 0xE4F, 1);
+        let mut directions = Vec::with_capacity(count);
+        let mut weights = Vec::with_capacity(count);
+        for k in 0..count {
+            let target = (k as f64 + stream.uniform()) / count as f64;
+            let texel = cumulative.partition_point(|&c| c < target).min(mass.len() - 1);
+            let (x, y) = (texel % w, texel / w);
+            // Uniform in solid angle within the texel: uniform in u and in cos(theta).
+            let u = (x as f64 + stream.uniform()) / w as f64;
+            let (c0, c1) = ((y as f64 / h as f64 * PI).cos(), ((y + 1) as f64 / h as f64 * PI).cos());
+            let cosine = c0 + (c1 - c0) * stream.uniform();
+            let direction = uv_to_direction(u, cosine.clamp(-1.0, 1.0).acos() / PI);
+            let pdf = mass[texel] / total / map.texel_solid_angle(y);
+            directions.push(direction);
+            weights.push(map.lookup(direction) * scale / pdf);
+        }
+        Self { directions, weights }
+    }
+
+    /// Uniform radiance from every direction, as a sampler: a spherical Fibonacci lattice
+    /// (even in every direction, so any normal's hemisphere gets its share), randomly turned.
+    pub fn uniform(radiance: DVec3, count: usize, seed: u64) -> Self {
+        let mut stream = Stream::new(seed, 0xE4F, 2);
+        let turn = 2.0 * PI * stream.uniform();
+        let golden = PI * (3.0 - 5.0f64.sqrt());
+        let directions: Vec<DVec3> = (0..count)
+            .map(|k| {
+                let z = 1.0 - (2 * k + 1) as f64 / count as f64;
+                let phi = turn + golden * k as f64;
+                let r = (1.0 - z * z).max(0.0).sqrt();
+                DVec3::new(r * phi.cos(), z, r * phi.sin())
+            })
+            .collect();
+        Self { weights: vec![radiance * 4.0 * PI; count], directions }
+    }
+
+    pub fn len(&self) -> usize {
+        self.directions.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.directions.is_empty()
+    }
+
+    /// Outgoing radiance over albedo at each surface point (Lambertian, `1/pi` BRDF):
+    /// `(1 / (pi N)) sum_i L_i max(0, n . w_i) T(x, w_i) / p_i`, T from the Gaussians.
+    pub fn shade(&self, points: &[DVec3], normals: &[DVec3], casters: &[PosedGaussian]) -> Vec<DVec3> {
+        let caster = ShadowCaster::new(casters, 1e-4);
+        points
+            .par_iter()
+            .zip(normals)
+            .map(|(&x, &n)| {
+                let origin = (x + n * SHADOW_START as f64).as_vec3().to_array();
+                let mut sum = DVec3::ZERO;
+                for (d, weight) in self.directions.iter().zip(&self.weights) {
+                    let cosine = n.dot(*d);
+                    if cosine <= 0.0 {
+                        continue;
+                    }
+                    let ray = ShadowRay { origin, direction: d.as_vec3().to_array(), t0: SHADOW_START, t1: f32::INFINITY };
+                    sum += *weight * cosine * caster.transmittance(&ray, true) as f64;
+                }
+                sum / (PI * self.len().max(1) as f64)
+            })
+            .collect()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::imageio::RgbImage;
+    use glam::DMat3;
+
+    fn constant_map(value: f32) -> EnvironmentMap {
+        let mut image = RgbImage::new(16, 8);
+        image.pixels.iter_mut().for_each(|p| *p = [value, value * 0.5, value * 0.25]);
+        EnvironmentMap { image }
+    }
+
+    /// Dense quadrature over every texel of `(1/pi) sum L max(0, n.d) T(d) dOmega`, T by the f64
+    /// closed form: the reference the sampled estimate must approach.
+    fn quadrature(map: &EnvironmentMap, scale: f64, x: DVec3, n: DVec3, casters: &[PosedGaussian]) -> DVec3 {
+        let (w, h) = (map.image.width, map.image.height);
+        let mut sum = DVec3::ZERO;
+        for y in 0..h {
+            for column in 0..w {
+                let d = map.texel_direction(column, y);
+                let cosine = n.dot(d);
+                if cosine <= 0.0 {
+                    continue;
+                }
+                let origin = (x + n * SHADOW_START as f64).as_vec3().to_array();
+                let ray = ShadowRay { origin, direction: d.as_vec3().to_array(), t0: SHADOW_START, t1: f32::INFINITY };
+                let t = crate::shadow::transmittance_f64(casters, &ray);
+                let p = map.image.get(column, y);
+                sum += DVec3::new(p[0] as f64, p[1] as f64, p[2] as f64) * cosine * t * map.texel_solid_angle(y);
+            }
+        }
+        sum * scale / PI
+    }
+
+    fn close(a: DVec3, b: DVec3, tolerance: f64) {
+        assert!((a - b).abs().max_element() <= tolerance * b.abs().max_element().max(1e-3), "{a} vs {b}");
+    }
+
+    #[test]
+    fn uniform_light_gives_its_radiance_on_an_open_surface() {
+        let radiance = DVec3::new(0.8, 0.4, 0.2);
+        let normals = [DVec3::Y, DVec3::X, DVec3::new(0.3, -0.5, 0.8).normalize()];
+        let points = [DVec3::ZERO; 3];
+        for sampler in [EnvironmentSampler::uniform(radiance, 512, 1), EnvironmentSampler::new(&constant_map(0.8), 1.0, 512, 1)] {
+            for value in sampler.shade(&points, &normals, &[]) {
+                close(value, radiance, 0.02);
+            }
+        }
+    }
+
+    #[test]
+    fn sampled_sky_matches_dense_quadrature_with_and_without_an_occluder() {
+        let map = crate::synth::synthetic_sky(64, 32);
+        let sampler = EnvironmentSampler::new(&map, 1.5, 4096, 7);
+        let blob = PosedGaussian { mean: DVec3::new(0.1, 0.6, -0.2), axes: DMat3::IDENTITY, scales: DVec3::new(0.3, 0.1, 0.3), amplitude: 20.0 };
+        let normals = [DVec3::Y, DVec3::new(0.5, 0.55, -0.67).normalize(), DVec3::new(-0.7, 0.2, 0.3).normalize()];
+        let points = [DVec3::ZERO; 3];
+        for casters in [vec![], vec![blob]] {
+            let sampled = sampler.shade(&points, &normals, &casters);
+            for (k, n) in normals.iter().enumerate() {
+                close(sampled[k], quadrature(&map, 1.5, points[k], *n, &casters), 0.05);
+            }
+        }
+        // The occluder must matter, or the second pass tested nothing.
+        let open = sampler.shade(&points[..1], &normals[..1], &[])[0];
+        let shaded = sampler.shade(&points[..1], &normals[..1], &[blob])[0];
+        assert!(shaded.x < 0.7 * open.x, "{shaded} vs {open}");
+    }
+
+    #[test]
+    fn albedo_scale_undoes_the_training_light_strength() {
+        let sun = Light::Directional { direction: DVec3::Y, irradiance: DVec3::new(0.5, 1.0, 2.0), ambient: DVec3::ZERO };
+        close(albedo_scale(&sun, None), DVec3::new(2.0, 1.0, 0.5), 1e-12);
+        let lamp = Light::Point { position: DVec3::ZERO, intensity: DVec3::splat(4.0), ambient: DVec3::ZERO };
+        close(albedo_scale(&lamp, Some(8.0)), DVec3::splat(2.0), 1e-12);
+        let sky = Light::Environment { path: "sky.exr".into(), scale: 2.0, map: constant_map(0.8) };
+        close(albedo_scale(&sky, None), DVec3::new(1.0 / 1.6, 1.0 / 0.8, 1.0 / 0.4), 1e-6);
+    }
+}
