@@ -68,6 +68,56 @@ pub enum Command {
         #[arg(long, value_enum, default_value_t = crate::train::Backend::Flex)]
         backend: crate::train::Backend,
     },
+    /// Render a fitted avatar under a new light: a sun, a point light, uniform light or an HDR
+    /// environment map, in any of the scene's cameras and poses. Writes one PNG per view and a
+    /// contact sheet.
+    Relight {
+        /// The run folder `umbra fit` wrote.
+        run: PathBuf,
+        /// A light of the scene by name, a JSON file with one light in the scene format (e.g.
+        /// {"type": "directional", "direction": [0, 1, 1], "irradiance": [1, 1, 1]}), or an
+        /// equirectangular .exr environment map.
+        #[arg(long)]
+        light: String,
+        /// Cameras to render, by index (default: all), e.g. --camera 0,3.
+        #[arg(long, value_delimiter = ',')]
+        camera: Option<Vec<usize>>,
+        /// Frames to render, by position in the scene's frames (default: all).
+        #[arg(long, value_delimiter = ',')]
+        frame: Option<Vec<usize>>,
+        /// Sky directions per view for environment and uniform lights.
+        #[arg(long, default_value_t = crate::fit::SKY_SAMPLES)]
+        samples: usize,
+        /// The scene whose cameras and poses to use (default: the run's).
+        #[arg(long)]
+        scene: Option<PathBuf>,
+        /// Output folder (default: RUN/relit/LIGHT).
+        #[arg(long)]
+        out: Option<PathBuf>,
+        #[arg(long, value_enum, default_value_t = crate::train::Backend::Flex)]
+        backend: crate::train::Backend,
+    },
+    /// Fit one scene with several schedules and compare the runs in one table: light error,
+    /// PSNR of novel poses, views, relighting and albedo, time and final loss. Writes
+    /// OUT/<schedule>/ per run and OUT/ablation.{csv,md,png}.
+    Ablate {
+        scene: PathBuf,
+        /// A schedule to compare (at least two), e.g. --schedule schedules/default.toml.
+        #[arg(long = "schedule", required = true)]
+        schedules: Vec<PathBuf>,
+        #[arg(long)]
+        out: PathBuf,
+        /// Override every schedule's iteration count (a quick comparison).
+        #[arg(long)]
+        iterations: Option<usize>,
+        #[arg(long, default_value_t = 0)]
+        seed: u64,
+        /// Replace earlier runs in OUT.
+        #[arg(long)]
+        force: bool,
+        #[arg(long, value_enum, default_value_t = crate::train::Backend::Flex)]
+        backend: crate::train::Backend,
+    },
     /// Run a benchmark and write its table (Markdown, CSV) and plot (PNG).
     Bench {
         #[arg(value_enum)]
@@ -103,6 +153,12 @@ pub fn main() -> i32 {
             fit(&crate::train::FitOptions { scene, out, schedule, iterations, seed, resume, force, backend, evaluate: !no_eval })
         }
         Command::Render { run, scene, backend } => render(&run, scene.as_deref(), backend),
+        Command::Ablate { scene, schedules, out, iterations, seed, force, backend } => {
+            ablate(&crate::ablate::AblateOptions { scene, schedules, out, iterations, seed, force, backend })
+        }
+        Command::Relight { run, light, camera, frame, samples, scene, out, backend } => {
+            relight(&crate::relight::RelightOptions { run, scene, light, cameras: camera, frames: frame, samples, out, backend })
+        }
         Command::Bench { which: BenchKind::Shadows, out, quick, .. } => crate::bench::shadows(&out, quick).map(|table| print!("{table}")),
         Command::Bench { which: BenchKind::Gradients, out, quick, scene } => {
             let scene = scene.or_else(|| Some(PathBuf::from(crate::bench::DEFAULT_SCENE)).filter(|p| p.join("scene.json").exists()));
@@ -175,7 +231,7 @@ fn fit(options: &crate::train::FitOptions) -> Result<(), String> {
         }
         TrainMessage::Rendered { done, name, psnr, .. } => {
             bar.set_position(done as u64);
-            bar.set_message(format!("{name}: {psnr:.2} dB"));
+            bar.set_message(psnr.map(|p| format!("{name}: {p:.2} dB")).unwrap_or(name));
         }
         TrainMessage::Done => bar.finish_and_clear(),
     })
@@ -197,7 +253,7 @@ fn render(run: &Path, scene: Option<&Path>, backend: crate::train::Backend) -> R
         TrainMessage::Evaluating { images } => bar.set_length(images as u64),
         TrainMessage::Rendered { done, name, psnr, .. } => {
             bar.set_position(done as u64);
-            bar.set_message(format!("{name}: {psnr:.2} dB"));
+            bar.set_message(psnr.map(|p| format!("{name}: {p:.2} dB")).unwrap_or(name));
         }
         _ => {}
     })
@@ -205,6 +261,46 @@ fn render(run: &Path, scene: Option<&Path>, backend: crate::train::Backend) -> R
     bar.finish_and_clear();
     print_evaluation(&evaluation);
     println!("wrote {}", run.join("renders").display());
+    Ok(())
+}
+
+fn ablate(options: &crate::ablate::AblateOptions) -> Result<(), String> {
+    use crate::train::TrainMessage;
+    let bar = progress_bar(0, "fitting");
+    let runs = options.schedules.len();
+    let rows = crate::ablate::ablate(options, |k, name, message| match message {
+        TrainMessage::Started { first, iterations } => {
+            bar.set_length(iterations as u64);
+            bar.set_position(first as u64);
+            bar.reset_eta();
+            bar.set_message(format!("run {}/{runs} ({name})", k + 1));
+        }
+        TrainMessage::Step { iteration, .. } => bar.set_position(iteration as u64 + 1),
+        TrainMessage::Evaluating { .. } => bar.set_message(format!("run {}/{runs} ({name}): rendering", k + 1)),
+        _ => {}
+    })
+    .map_err(|e| e.to_string())?;
+    bar.finish_and_clear();
+    let table = std::fs::read_to_string(options.out.join("ablation.md")).unwrap_or_default();
+    print!("{table}");
+    println!("wrote {} ({} runs)", options.out.join("ablation.md").display(), rows.len());
+    Ok(())
+}
+
+fn relight(options: &crate::relight::RelightOptions) -> Result<(), String> {
+    use crate::train::TrainMessage;
+    let bar = progress_bar(0, "relighting");
+    let out = crate::relight::relight_run(options, |message| match message {
+        TrainMessage::Evaluating { images } => bar.set_length(images as u64),
+        TrainMessage::Rendered { done, name, .. } => {
+            bar.set_position(done as u64);
+            bar.set_message(name);
+        }
+        _ => {}
+    })
+    .map_err(|e| e.to_string())?;
+    bar.finish_and_clear();
+    println!("wrote {} (one PNG per view, sheet.png)", out.display());
     Ok(())
 }
 

@@ -90,6 +90,13 @@ fn load_model(trainer: &mut Trainer, dir: &Path) -> Result<(), FitError> {
 /// Renders and scores the test images of a finished (or checkpointed) fit in `run`, with the
 /// scene it was fitted on or `scene`; writes `run/renders/` and returns the evaluation.
 pub fn render_run(run: &Path, scene: Option<&Path>, backend: crate::train::Backend, mut on: impl FnMut(TrainMessage)) -> Result<serde_json::Value, FitError> {
+    let trainer = restore(run, scene, backend)?;
+    evaluate(&trainer, run, &mut on)
+}
+
+/// A fit rebuilt from its run folder (its schedule copy and last checkpoint), on the scene it
+/// was fitted on (from `fit.json`) or on `scene`.
+pub fn restore(run: &Path, scene: Option<&Path>, backend: crate::train::Backend) -> Result<Trainer, FitError> {
     let schedule = Schedule::load(&run.join(SCHEDULE_COPY))?;
     let scene_path = match scene {
         Some(path) => path.to_path_buf(),
@@ -103,7 +110,14 @@ pub fn render_run(run: &Path, scene: Option<&Path>, backend: crate::train::Backe
     let scene = Scene::load(&scene_path)?;
     let mut trainer = Trainer::new(scene, schedule, backend, 0)?;
     load_model(&mut trainer, &run.join(CHECKPOINT))?;
-    evaluate(&trainer, run, &mut on)
+    Ok(trainer)
+}
+
+/// The factor from the fitted albedo to reflectance (`relight::albedo_scale`) for a model
+/// fitted on `scene`.
+pub fn albedo_scale(scene: &Scene, model: &Avatar) -> glam::DVec3 {
+    let fitted_intensity = (model.light.kind == LightKind::Point).then(|| model.light.log_intensity.val().exp().into_scalar::<f32>() as f64);
+    scene.training_lights().first().map(|name| crate::relight::albedo_scale(&scene.lights[*name], fitted_intensity)).unwrap_or(glam::DVec3::ONE)
 }
 
 fn losses_csv(history: &[(usize, StepStats)]) -> String {
@@ -277,8 +291,7 @@ pub fn evaluate(trainer: &Trainer, out: &Path, on: &mut impl FnMut(TrainMessage)
     // Inference on the plain backend: no autodiff graph is recorded (or held) for the renders.
     let model = trainer.model()?.valid();
     let device = trainer.device.clone().without_autodiff();
-    let fitted_intensity = (model.light.kind == LightKind::Point).then(|| model.light.log_intensity.val().exp().into_scalar::<f32>() as f64);
-    let albedo_scale = train_lights.first().map(|name| crate::relight::albedo_scale(&scene.lights[*name], fitted_intensity)).unwrap_or(glam::DVec3::ONE);
+    let albedo_scale = albedo_scale(scene, &model);
     let mut rows = Vec::new();
     let mut groups: BTreeMap<&str, (f64, usize)> = BTreeMap::new();
     for (done, view) in tests.iter().enumerate() {
@@ -315,7 +328,7 @@ pub fn evaluate(trainer: &Trainer, out: &Path, on: &mut impl FnMut(TrainMessage)
             entry.0 += a;
             entry.1 += 1;
         }
-        on(TrainMessage::Rendered { done: done + 1, total: tests.len(), name: name.clone(), psnr });
+        on(TrainMessage::Rendered { done: done + 1, total: tests.len(), name: name.clone(), psnr: Some(psnr) });
         rows.push(ImageScore { image: name, light: view.light.clone(), group, psnr, albedo_psnr, novel_pose, novel_view, relit });
     }
     let mean = |g: &str| groups.get(g).map(|(sum, n)| json!(sum / *n as f64)).unwrap_or(json!(null));
@@ -337,7 +350,7 @@ fn render_name(scene: &Scene, view: &crate::scene::View) -> String {
     relative.to_string_lossy().replace(['/', '\\'], "_")
 }
 
-fn save_png(path: &Path, image: &crate::imageio::RgbImage) -> Result<(), FitError> {
+pub fn save_png(path: &Path, image: &crate::imageio::RgbImage) -> Result<(), FitError> {
     let png = crate::imageio::encode_png_rgb(image).map_err(|e| io(path, e))?;
     crate::imageio::write_atomic(path, &png).map_err(|e| io(path, e))
 }

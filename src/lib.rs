@@ -1,6 +1,7 @@
 //! umbra: relightable neural avatars from video. Bone-anchored anisotropic 3D Gaussians cast
 //! shadows by a closed-form ray integral; a staged fit recovers light, ambient and albedo.
 
+pub mod ablate;
 pub mod bench;
 pub mod cli;
 pub mod eval;

@@ -3,14 +3,20 @@
 //! (importance-sampled directions whose visibility comes from the Gaussians). Also the scale
 //! that turns the fitted albedo, which carries the training light's strength, into reflectance.
 
+use crate::eval::{render_view, Lighting};
 use crate::gaussians::PosedGaussian;
+use crate::imageio::RgbImage;
 use crate::light::{uv_to_direction, EnvironmentMap, Light};
+use crate::scene::Scene;
 use crate::shading::SHADOW_START;
 use crate::shadow::{ShadowCaster, ShadowRay};
 use crate::synth::trace::Stream;
+use crate::train::{io, Backend, FitError, TrainMessage};
+use burn::module::Module;
 use glam::DVec3;
 use rayon::prelude::*;
 use std::f64::consts::PI;
+use std::path::{Path, PathBuf};
 
 /// How the fitted albedo maps to reflectance: the fit cannot separate the albedo's scale from
 /// the training light's strength (a sun is fitted with irradiance 1), so the light the scene
@@ -116,10 +122,99 @@ impl EnvironmentSampler {
     }
 }
 
+/// What `umbra relight` renders.
+pub struct RelightOptions {
+    pub run: PathBuf,
+    /// The scene whose cameras and poses are rendered (default: the one the run was fitted on).
+    pub scene: Option<PathBuf>,
+    /// A light of the scene by name, a JSON file holding one light in the scene format, or an
+    /// equirectangular EXR (an environment light of scale 1).
+    pub light: String,
+    /// Camera indices (default: every camera).
+    pub cameras: Option<Vec<usize>>,
+    /// Frame positions in the scene's `frames` (default: every frame).
+    pub frames: Option<Vec<usize>>,
+    /// Sky directions per view for uniform and environment lights.
+    pub samples: usize,
+    /// Output folder (default: RUN/relit/LIGHT).
+    pub out: Option<PathBuf>,
+    pub backend: Backend,
+}
+
+/// The light `options.light` names and a label for it.
+fn resolve_light(scene: &Scene, spec: &str) -> Result<(Light, String), FitError> {
+    if let Some(light) = scene.lights.get(spec) {
+        return Ok((light.clone(), spec.to_string()));
+    }
+    let path = Path::new(spec);
+    let label = path.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_else(|| "light".into());
+    let is_exr = path.extension().is_some_and(|e| e.eq_ignore_ascii_case("exr"));
+    if is_exr {
+        let image = crate::imageio::read_rgb(path).map_err(|e| io(path, e))?;
+        if image.pixels.iter().any(|p| p.iter().any(|c| !c.is_finite())) {
+            return Err(io(path, "the environment map holds a non-finite value"));
+        }
+        return Ok((Light::Environment { path: path.to_path_buf(), scale: 1.0, map: EnvironmentMap { image } }, label));
+    }
+    if !path.exists() {
+        let names: Vec<&String> = scene.lights.keys().collect();
+        return Err(FitError::Input(format!("--light {spec:?}: neither a light of the scene ({names:?}) nor an existing .json or .exr file")));
+    }
+    Ok((crate::scene::load_light(path)?, label))
+}
+
+/// Indices from a flag, checked against how many there are.
+fn chosen(flag: &str, picked: &Option<Vec<usize>>, count: usize) -> Result<Vec<usize>, FitError> {
+    match picked {
+        None => Ok((0..count).collect()),
+        Some(list) => match list.iter().find(|&&k| k >= count) {
+            Some(bad) => Err(FitError::Input(format!("{flag} {bad}: out of range, the scene has {count}"))),
+            None => Ok(list.clone()),
+        },
+    }
+}
+
+/// Renders a fitted avatar under a new light for every chosen camera and frame; writes one PNG
+/// per view (`cCC_fFFFF.png`, the frame's position) and `sheet.png` (cameras down, frames
+/// across). Returns the output folder.
+pub fn relight_run(options: &RelightOptions, mut on: impl FnMut(TrainMessage)) -> Result<PathBuf, FitError> {
+    let trainer = crate::fit::restore(&options.run, options.scene.as_deref(), options.backend)?;
+    let scene = &trainer.scene;
+    let (light, label) = resolve_light(scene, &options.light)?;
+    let cameras = chosen("--camera", &options.cameras, scene.cameras.len())?;
+    let frames = chosen("--frame", &options.frames, scene.frames.len())?;
+    if options.samples == 0 {
+        return Err(FitError::Input("--samples must be at least 1".into()));
+    }
+    let out = options.out.clone().unwrap_or_else(|| options.run.join("relit").join(&label));
+    std::fs::create_dir_all(&out).map_err(|e| io(&out, e))?;
+    let model = trainer.model()?.valid();
+    let device = trainer.device.clone().without_autodiff();
+    let lighting = Lighting::Known { light: &light, albedo_scale: crate::fit::albedo_scale(scene, &model), samples: options.samples };
+    let total = cameras.len() * frames.len();
+    on(TrainMessage::Evaluating { images: total });
+    let (cell_w, cell_h) = cameras.iter().map(|&c| (scene.cameras[c].width, scene.cameras[c].height)).fold((0, 0), |a, b| (a.0.max(b.0), a.1.max(b.1)));
+    let mut sheet = RgbImage::new(cell_w * frames.len(), cell_h * cameras.len());
+    for (row, &camera) in cameras.iter().enumerate() {
+        for (column, &frame) in frames.iter().enumerate() {
+            let image = render_view(&model, scene, camera, frame, 48, &device, &lighting);
+            let name = format!("c{camera:02}_f{frame:04}.png");
+            crate::fit::save_png(&out.join(&name), &image)?;
+            for y in 0..image.height {
+                for x in 0..image.width {
+                    sheet.set(column * cell_w + x, row * cell_h + y, image.get(x, y));
+                }
+            }
+            on(TrainMessage::Rendered { done: row * frames.len() + column + 1, total, name, psnr: None });
+        }
+    }
+    crate::fit::save_png(&out.join("sheet.png"), &sheet)?;
+    Ok(out)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::imageio::RgbImage;
     use glam::DMat3;
 
     fn constant_map(value: f32) -> EnvironmentMap {

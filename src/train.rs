@@ -72,12 +72,33 @@ pub fn io(path: &Path, e: impl std::fmt::Display) -> FitError {
 /// What the fit tells whoever runs it.
 #[derive(Clone, Debug)]
 pub enum TrainMessage {
-    Loaded { scene: String, training_images: usize, frames: usize, light: LightKind },
-    Started { first: usize, iterations: usize },
-    Step { iteration: usize, stats: StepStats },
-    Checkpoint { iteration: usize },
-    Evaluating { images: usize },
-    Rendered { done: usize, total: usize, name: String, psnr: f64 },
+    Loaded {
+        scene: String,
+        training_images: usize,
+        frames: usize,
+        light: LightKind,
+    },
+    Started {
+        first: usize,
+        iterations: usize,
+    },
+    Step {
+        iteration: usize,
+        stats: StepStats,
+    },
+    Checkpoint {
+        iteration: usize,
+    },
+    Evaluating {
+        images: usize,
+    },
+    /// One image rendered, with its PSNR when there is a ground truth to score it against.
+    Rendered {
+        done: usize,
+        total: usize,
+        name: String,
+        psnr: Option<f64>,
+    },
     Done,
 }
 

@@ -252,8 +252,74 @@ fn evaluation_renders_and_scores_every_test_image_and_umbra_render_repeats_it() 
     assert!(run.status.success(), "{}", String::from_utf8_lossy(&run.stderr));
     let again = std::fs::read_to_string(out.join("renders/metrics.csv")).unwrap();
     assert_eq!(again, csv);
+
+    // `umbra relight` by a light of the scene and by a light file: one PNG per view and a sheet.
+    let cli = |args: &[&str]| std::process::Command::new(env!("CARGO_BIN_EXE_umbra")).args(args).output().unwrap();
+    let run = cli(&["relight", out.to_str().unwrap(), "--light", "sky", "--camera", "0,1", "--frame", "0,2", "--samples", "32"]);
+    assert!(run.status.success(), "{}", String::from_utf8_lossy(&run.stderr));
+    let sky = out.join("relit/sky");
+    for name in ["c00_f0000.png", "c01_f0002.png", "sheet.png"] {
+        assert!(sky.join(name).exists(), "{name}");
+    }
+    assert_eq!(std::fs::read_dir(&sky).unwrap().count(), 5);
+    let lamp = dir.path().join("lamp.json");
+    std::fs::write(&lamp, r#"{"type": "point", "position": [1.0, 2.0, 1.5], "intensity": [5, 5, 5]}"#).unwrap();
+    let run = cli(&["relight", out.to_str().unwrap(), "--light", lamp.to_str().unwrap(), "--camera", "0", "--frame", "1"]);
+    assert!(run.status.success(), "{}", String::from_utf8_lossy(&run.stderr));
+    assert!(out.join("relit/lamp/c00_f0001.png").exists());
+    // Bad input is named: a light file with a bad value, a camera that does not exist.
+    std::fs::write(&lamp, r#"{"type": "point", "position": [1.0, 2.0], "intensity": [5, 5, 5]}"#).unwrap();
+    let run = cli(&["relight", out.to_str().unwrap(), "--light", lamp.to_str().unwrap()]);
+    let stderr = String::from_utf8_lossy(&run.stderr);
+    assert!(!run.status.success() && stderr.contains("lamp.json") && stderr.contains("position"), "{stderr}");
+    let run = cli(&["relight", out.to_str().unwrap(), "--light", "sun2", "--camera", "99"]);
+    let stderr = String::from_utf8_lossy(&run.stderr);
+    assert!(!run.status.success() && stderr.contains("--camera 99"), "{stderr}");
+
     // A run folder without a fit is refused with the file named.
     let run = std::process::Command::new(env!("CARGO_BIN_EXE_umbra")).args(["render", dir.path().to_str().unwrap()]).output().unwrap();
     assert!(!run.status.success());
     assert!(String::from_utf8_lossy(&run.stderr).contains("schedule.toml"), "{}", String::from_utf8_lossy(&run.stderr));
+}
+
+#[test]
+fn ablate_compares_schedules_in_one_table_and_checks_them_all_first() {
+    let dir = TempDir::new("ablate");
+    let scene_path = tiny_scene(dir.path(), TrainingLight::Sun);
+    let base = dir.path().join("base.toml");
+    let no_eikonal = dir.path().join("no-eikonal.toml");
+    std::fs::write(&base, QUICK.replace("iterations = 60", "iterations = 4")).unwrap();
+    std::fs::write(&no_eikonal, QUICK.replace("iterations = 60", "iterations = 4").replace("eikonal = 0.05", "eikonal = 0.0")).unwrap();
+    let out = dir.path().join("ablation");
+    let options = |schedules: Vec<std::path::PathBuf>, out: std::path::PathBuf| umbra::ablate::AblateOptions {
+        scene: scene_path.clone(),
+        schedules,
+        out,
+        iterations: None,
+        seed: 1,
+        force: false,
+        backend: Backend::Flex,
+    };
+    let rows = umbra::ablate::ablate(&options(vec![base.clone(), no_eikonal.clone()], out.clone()), |_, _, _| {}).unwrap();
+    assert_eq!(rows.iter().map(|r| r.schedule.as_str()).collect::<Vec<_>>(), ["base", "no-eikonal"]);
+    assert!(rows.iter().all(|r| r.iterations == 4 && r.light_error_degrees.is_some() && r.novel_pose_psnr.is_some()), "{rows:?}");
+    let csv = std::fs::read_to_string(out.join("ablation.csv")).unwrap();
+    assert_eq!(csv.lines().count(), 3, "{csv}");
+    assert!(csv.lines().nth(2).unwrap().starts_with("no-eikonal,4,"), "{csv}");
+    for file in ["ablation.md", "ablation.png", "base/fit.json", "no-eikonal/fit.json", "base/renders/metrics.csv"] {
+        assert!(out.join(file).exists(), "{file}");
+    }
+    // Running again into the same folder needs --force.
+    let err = umbra::ablate::ablate(&options(vec![base.clone(), no_eikonal.clone()], out.clone()), |_, _, _| {}).unwrap_err().to_string();
+    assert!(err.contains("--force"), "{err}");
+    // An impossible schedule (a light stage on a uniformly lit scene) is refused before any run.
+    std::fs::create_dir_all(dir.path().join("uniform")).unwrap();
+    let uniform = tiny_scene_with_tests(&dir.path().join("uniform"), TrainingLight::Uniform, vec![TestKind::Poses]);
+    let light = dir.path().join("light.toml");
+    std::fs::write(&light, format!("light = \"fit\"\n{}", QUICK.replace("iterations = 60", "iterations = 4"))).unwrap();
+    let mut refused = options(vec![base.clone(), light], dir.path().join("refused"));
+    refused.scene = uniform;
+    let err = umbra::ablate::ablate(&refused, |_, _, _| {}).unwrap_err().to_string();
+    assert!(err.contains("light.toml") && err.contains("uniformly lit"), "{err}");
+    assert!(!dir.path().join("refused").exists(), "nothing written");
 }

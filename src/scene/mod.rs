@@ -110,6 +110,19 @@ impl Scene {
     }
 }
 
+/// Reads one light in the scene format from a JSON file (an environment's `path` is relative
+/// to that file's folder), e.g. for `umbra relight --light sunset.json`.
+pub fn load_light(file: &Path) -> Result<Light, SceneError> {
+    let root = file.parent().map(Path::to_path_buf).unwrap_or_default();
+    let text = std::fs::read_to_string(file).map_err(|e| SceneError {
+        file: file.to_path_buf(),
+        path: String::new(),
+        message: if e.kind() == std::io::ErrorKind::NotFound { "file not found".into() } else { format!("cannot read: {e}") },
+    })?;
+    let value = json::parse(&text, file)?;
+    Reader { root: &root, file }.light(&At::root(&value, file))
+}
+
 struct Reader<'a> {
     root: &'a Path,
     file: &'a Path,

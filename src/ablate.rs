@@ -1,0 +1,152 @@
+//! Ablations: one scene fitted with several schedules, each run in its own folder, compared in
+//! one table (light error, PSNR per test group, time, final loss) and one plot of PSNR
+//! against time. Every schedule is read and checked against the scene before the first run.
+
+use crate::plot::{Chart, Series};
+use crate::schedule::Schedule;
+use crate::train::{io, Backend, FitError, FitOptions, TrainMessage};
+use std::path::{Path, PathBuf};
+
+pub struct AblateOptions {
+    pub scene: PathBuf,
+    pub schedules: Vec<PathBuf>,
+    pub out: PathBuf,
+    pub iterations: Option<usize>,
+    pub seed: u64,
+    pub force: bool,
+    pub backend: Backend,
+}
+
+/// One run's line in the comparison.
+#[derive(Clone, Debug, serde::Serialize)]
+pub struct AblationRow {
+    pub schedule: String,
+    pub iterations: u64,
+    pub wall_seconds: f64,
+    pub light_error_degrees: Option<f64>,
+    pub light_error_metres: Option<f64>,
+    pub novel_pose_psnr: Option<f64>,
+    pub novel_view_psnr: Option<f64>,
+    pub relit_psnr: Option<f64>,
+    pub albedo_psnr: Option<f64>,
+    pub final_total: Option<f64>,
+}
+
+impl AblationRow {
+    fn from_report(schedule: String, report: &serde_json::Value) -> Self {
+        let evaluation = &report["evaluation"];
+        Self {
+            schedule,
+            iterations: report["iterations"].as_u64().unwrap_or(0),
+            wall_seconds: report["wall_seconds"].as_f64().unwrap_or(f64::NAN),
+            light_error_degrees: report["light_error_against_scene"]["direction_degrees"].as_f64(),
+            light_error_metres: report["light_error_against_scene"]["position_metres"].as_f64(),
+            novel_pose_psnr: evaluation["novel_pose_psnr"].as_f64(),
+            novel_view_psnr: evaluation["novel_view_psnr"].as_f64(),
+            relit_psnr: evaluation["relit_psnr"].as_f64(),
+            albedo_psnr: evaluation["albedo_psnr"].as_f64(),
+            final_total: report["final_total"].as_f64(),
+        }
+    }
+
+    /// The cells after the schedule's name, `missing` where a run has no such figure.
+    fn cells(&self, missing: &str) -> Vec<String> {
+        let f = |v: Option<f64>, digits: usize| v.map(|v| format!("{v:.digits$}")).unwrap_or_else(|| missing.to_string());
+        vec![
+            self.iterations.to_string(),
+            format!("{:.1}", self.wall_seconds),
+            f(self.light_error_degrees, 2),
+            f(self.light_error_metres, 3),
+            f(self.novel_pose_psnr, 2),
+            f(self.novel_view_psnr, 2),
+            f(self.relit_psnr, 2),
+            f(self.albedo_psnr, 2),
+            f(self.final_total, 5),
+        ]
+    }
+}
+
+const COLUMNS: [&str; 10] = [
+    "schedule",
+    "iterations",
+    "wall time (s)",
+    "light error (deg)",
+    "light error (m)",
+    "novel pose PSNR",
+    "novel view PSNR",
+    "relit PSNR",
+    "albedo PSNR",
+    "final loss",
+];
+
+/// The name a schedule's run folder and table row get: its file stem.
+fn run_name(schedule: &Path) -> String {
+    schedule.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_else(|| "schedule".into())
+}
+
+/// Runs every schedule on the scene (`on` hears each run's messages with its index) and
+/// writes `ablation.csv`, `ablation.md` and `ablation.png` into `options.out`.
+pub fn ablate(options: &AblateOptions, mut on: impl FnMut(usize, &str, TrainMessage)) -> Result<Vec<AblationRow>, FitError> {
+    if options.schedules.len() < 2 {
+        return Err(FitError::Input("an ablation compares at least two schedules (--schedule A.toml --schedule B.toml)".into()));
+    }
+    let scene = crate::scene::Scene::load(&options.scene)?;
+    let light = scene.training_lights().first().map(|name| scene.lights[*name].casts_shadows()).unwrap_or(false);
+    let mut names: Vec<String> = Vec::new();
+    for path in &options.schedules {
+        let schedule = Schedule::load(path)?;
+        schedule.check_against(light)?;
+        let name = run_name(path);
+        if names.contains(&name) {
+            return Err(FitError::Input(format!("{}: another schedule is also named {name:?}; runs are kept by file name", path.display())));
+        }
+        let folder = options.out.join(&name);
+        if folder.join("checkpoint").exists() && !options.force {
+            return Err(io(&folder, "holds an earlier run: pass --force to replace it, or choose another --out"));
+        }
+        names.push(name);
+    }
+    std::fs::create_dir_all(&options.out).map_err(|e| io(&options.out, e))?;
+    let mut rows = Vec::new();
+    for (k, (path, name)) in options.schedules.iter().zip(&names).enumerate() {
+        let fit = FitOptions {
+            scene: options.scene.clone(),
+            out: options.out.join(name),
+            schedule: path.clone(),
+            iterations: options.iterations,
+            seed: options.seed,
+            resume: false,
+            force: true,
+            backend: options.backend,
+            evaluate: true,
+        };
+        let report = crate::fit::fit(&fit, |message| on(k, name, message))?;
+        rows.push(AblationRow::from_report(name.clone(), &report));
+        write_tables(&options.out, &rows)?; // after every run, so a stopped ablation keeps its rows
+    }
+    Ok(rows)
+}
+
+fn write_tables(out: &Path, rows: &[AblationRow]) -> Result<(), FitError> {
+    let mut csv = COLUMNS.join(",") + "\n";
+    let mut md = format!("## Ablation\n\n| {} |\n|{}\n", COLUMNS.join(" | "), "---|".repeat(COLUMNS.len()));
+    for row in rows {
+        csv += &format!("{},{}\n", row.schedule, row.cells("").join(","));
+        md += &format!("| {} | {} |\n", row.schedule, row.cells("-").join(" | "));
+    }
+    md += "\nPSNR in dB over whole test images, sRGB 8-bit; light error against the light the scene states.\n";
+    for (name, text) in [("ablation.csv", &csv), ("ablation.md", &md)] {
+        crate::imageio::write_atomic(&out.join(name), text.as_bytes()).map_err(|e| io(&out.join(name), e))?;
+    }
+    let series =
+        rows.iter().filter_map(|r| r.novel_pose_psnr.map(|p| Series { name: r.schedule.clone(), points: vec![(r.wall_seconds, p)], lines: false })).collect();
+    let chart = Chart {
+        title: "ablation: novel-pose PSNR vs wall time".into(),
+        x_label: "wall time s".into(),
+        y_label: "PSNR dB".into(),
+        log_x: false,
+        log_y: false,
+        series,
+    };
+    chart.render(720, 480).save_png(&out.join("ablation.png")).map_err(|e| io(&out.join("ablation.png"), e))
+}
