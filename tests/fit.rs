@@ -66,6 +66,16 @@ eikonal = 0.05
 density = 0.5
 "#;
 
+/// A temp folder holding a tiny scene lit by `light` and `quick.toml`, the quick schedule cut
+/// to `iterations`.
+fn quick_setup(tag: &str, light: TrainingLight, iterations: usize) -> (TempDir, std::path::PathBuf, std::path::PathBuf) {
+    let dir = TempDir::new(tag);
+    let scene_path = tiny_scene(dir.path(), light);
+    let schedule_path = dir.path().join("quick.toml");
+    std::fs::write(&schedule_path, QUICK.replace("iterations = 60", &format!("iterations = {iterations}"))).unwrap();
+    (dir, scene_path, schedule_path)
+}
+
 fn angle_to(direction: &serde_json::Value, truth: glam::DVec3) -> f64 {
     let d = glam::DVec3::new(direction[0].as_f64().unwrap(), direction[1].as_f64().unwrap(), direction[2].as_f64().unwrap()).normalize();
     d.dot(truth.normalize()).clamp(-1.0, 1.0).acos().to_degrees()
@@ -99,10 +109,7 @@ fn a_short_fit_lowers_the_loss_and_turns_the_light_toward_the_truth() {
 
 #[test]
 fn resume_continues_where_the_fit_stopped() {
-    let dir = TempDir::new("resume");
-    let scene_path = tiny_scene(dir.path(), TrainingLight::Sun);
-    let schedule_path = dir.path().join("quick.toml");
-    std::fs::write(&schedule_path, QUICK.replace("iterations = 60", "iterations = 40")).unwrap();
+    let (dir, scene_path, schedule_path) = quick_setup("resume", TrainingLight::Sun, 40);
     let options = |out: &str, iterations: usize, resume: bool| fit_options(&scene_path, dir.path().join(out), &schedule_path, Some(iterations), 3, resume);
     let straight = umbra::fit::fit(&options("straight", 40, false), |_| {}).unwrap();
     umbra::fit::fit(&options("resumed", 20, false), |_| {}).unwrap();
@@ -124,10 +131,7 @@ fn resume_continues_where_the_fit_stopped() {
 
 #[test]
 fn uniform_scenes_skip_the_light_and_refuse_a_light_fitting_schedule() {
-    let dir = TempDir::new("uniform");
-    let scene_path = tiny_scene(dir.path(), TrainingLight::Uniform);
-    let schedule_path = dir.path().join("quick.toml");
-    std::fs::write(&schedule_path, QUICK.replace("iterations = 60", "iterations = 3")).unwrap();
+    let (dir, scene_path, schedule_path) = quick_setup("uniform", TrainingLight::Uniform, 3);
     let options = fit_options(&scene_path, dir.path().join("run"), &schedule_path, None, 0, false);
     let report = umbra::fit::fit(&options, |_| {}).unwrap();
     assert_eq!(report["light"]["type"], "uniform");
