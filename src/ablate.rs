@@ -26,9 +26,12 @@ pub struct AblationRow {
     pub light_error_degrees: Option<f64>,
     pub light_error_metres: Option<f64>,
     pub novel_pose_psnr: Option<f64>,
+    pub novel_pose_foreground_psnr: Option<f64>,
+    pub novel_pose_ssim: Option<f64>,
     pub novel_view_psnr: Option<f64>,
     pub relit_psnr: Option<f64>,
     pub albedo_psnr: Option<f64>,
+    pub albedo_foreground_psnr: Option<f64>,
     pub final_total: Option<f64>,
 }
 
@@ -42,9 +45,12 @@ impl AblationRow {
             light_error_degrees: report["light_error_against_scene"]["direction_degrees"].as_f64(),
             light_error_metres: report["light_error_against_scene"]["position_metres"].as_f64(),
             novel_pose_psnr: evaluation["novel_pose_psnr"].as_f64(),
+            novel_pose_foreground_psnr: evaluation["novel_pose_foreground_psnr"].as_f64(),
+            novel_pose_ssim: evaluation["novel_pose_ssim"].as_f64(),
             novel_view_psnr: evaluation["novel_view_psnr"].as_f64(),
             relit_psnr: evaluation["relit_psnr"].as_f64(),
             albedo_psnr: evaluation["albedo_psnr"].as_f64(),
+            albedo_foreground_psnr: evaluation["albedo_foreground_psnr"].as_f64(),
             final_total: report["final_total"].as_f64(),
         }
     }
@@ -58,24 +64,30 @@ impl AblationRow {
             f(self.light_error_degrees, 2),
             f(self.light_error_metres, 3),
             f(self.novel_pose_psnr, 2),
+            f(self.novel_pose_foreground_psnr, 2),
+            f(self.novel_pose_ssim, 4),
             f(self.novel_view_psnr, 2),
             f(self.relit_psnr, 2),
             f(self.albedo_psnr, 2),
+            f(self.albedo_foreground_psnr, 2),
             f(self.final_total, 5),
         ]
     }
 }
 
-const COLUMNS: [&str; 10] = [
+const COLUMNS: [&str; 13] = [
     "schedule",
     "iterations",
     "wall time (s)",
     "light error (deg)",
     "light error (m)",
     "novel pose PSNR",
+    "novel pose foreground PSNR",
+    "novel pose SSIM",
     "novel view PSNR",
     "relit PSNR",
     "albedo PSNR",
+    "albedo foreground PSNR",
     "final loss",
 ];
 

@@ -128,10 +128,25 @@ pub enum Command {
         /// Fewer sizes and shorter timings (a smoke run).
         #[arg(long)]
         quick: bool,
-        /// A training scene whose whole training steps `gradients` also times (default:
-        /// datasets-synthetic/human-sun when it exists).
+        /// A training scene whose whole training steps `gradients` also times, or that `fit`
+        /// fits (default: datasets-synthetic/human-sun for `gradients`,
+        /// datasets-synthetic/human-sun-128 for `fit`).
         #[arg(long)]
         scene: Option<PathBuf>,
+        /// `fit`: the field kinds to compare.
+        #[arg(long, value_enum, value_delimiter = ',', default_value = "mlp,grid")]
+        kinds: Vec<crate::schedule::FieldKind>,
+        /// `fit`: the schedule (its `[field] kind` is replaced by each of --kinds).
+        #[arg(long, default_value = "schedules/default.toml")]
+        schedule: PathBuf,
+        /// `fit`: scoring points per fit.
+        #[arg(long, default_value_t = 6)]
+        evaluations: usize,
+        /// `fit`: override the schedule's iteration count.
+        #[arg(long)]
+        iterations: Option<usize>,
+        #[arg(long, default_value_t = 0)]
+        seed: u64,
     },
 }
 
@@ -141,6 +156,9 @@ pub enum BenchKind {
     Shadows,
     /// SDF gradients (normals, Eikonal): forward-mode tangents vs central differences.
     Gradients,
+    /// Time against error: a scene fitted once per field kind, novel-pose foreground PSNR,
+    /// SSIM, albedo PSNR and light error along the way.
+    Fit,
 }
 
 /// Runs the CLI and returns the process exit code.
@@ -160,7 +178,12 @@ pub fn main() -> i32 {
             relight(&crate::relight::RelightOptions { run, scene, light, cameras: camera, frames: frame, samples, out, backend })
         }
         Command::Bench { which: BenchKind::Shadows, out, quick, .. } => crate::bench::shadows(&out, quick).map(|table| print!("{table}")),
-        Command::Bench { which: BenchKind::Gradients, out, quick, scene } => {
+        Command::Bench { which: BenchKind::Fit, out, scene, kinds, schedule, evaluations, iterations, seed, .. } => {
+            let scene = scene.unwrap_or_else(|| PathBuf::from("datasets-synthetic/human-sun-128"));
+            let options = crate::bench::FitBenchOptions { scene, schedule, out, kinds, evaluations, iterations, seed };
+            crate::bench::fit_curves(&options, |line| eprintln!("{line}")).map(|table| print!("{table}")).map_err(|e| e.to_string())
+        }
+        Command::Bench { which: BenchKind::Gradients, out, quick, scene, .. } => {
             let scene = scene.or_else(|| Some(PathBuf::from(crate::bench::DEFAULT_SCENE)).filter(|p| p.join("scene.json").exists()));
             crate::bench::gradients(&out, quick, scene.as_deref()).map(|table| print!("{table}"))
         }
@@ -305,9 +328,11 @@ fn relight(options: &crate::relight::RelightOptions) -> Result<(), String> {
 }
 
 fn print_evaluation(evaluation: &serde_json::Value) {
-    for (key, what) in [("novel_pose_psnr", "novel pose"), ("novel_view_psnr", "novel view"), ("relit_psnr", "relit"), ("albedo_psnr", "albedo")] {
-        if let Some(p) = evaluation[key].as_f64() {
-            println!("{what} PSNR: {p:.2} dB");
+    for (key, what) in [("novel_pose", "novel pose"), ("novel_view", "novel view"), ("relit", "relit"), ("albedo", "albedo")] {
+        if let Some(p) = evaluation[format!("{key}_psnr")].as_f64() {
+            let foreground = evaluation[format!("{key}_foreground_psnr")].as_f64().unwrap_or(f64::NAN);
+            let ssim = evaluation[format!("{key}_ssim")].as_f64().unwrap_or(f64::NAN);
+            println!("{what}: PSNR {p:.2} dB, foreground {foreground:.2} dB, SSIM {ssim:.4}");
         }
     }
 }

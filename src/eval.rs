@@ -1,9 +1,8 @@
 //! Rendering whole views of a fitted avatar, in its fitted light, in any light of the scene or
-//! as albedo, and scoring them: PSNR over the whole image in 8-bit sRGB, as the evaluation of
-//! novel poses, views and lighting uses it.
+//! as albedo; `metrics` scores them.
 
 use crate::gaussians::PosedGaussian;
-use crate::imageio::{linear_to_srgb8, RgbImage};
+use crate::imageio::RgbImage;
 use crate::light::Light;
 use crate::relight::EnvironmentSampler;
 use crate::render::{ray_bounds, render, RaySet};
@@ -13,21 +12,7 @@ use crate::train::Avatar;
 use burn::tensor::{Device, Tensor, TensorData};
 use glam::DVec3;
 
-/// PSNR (dB) between two images after 8-bit sRGB encoding, over every pixel and channel.
-pub fn psnr_srgb8(a: &RgbImage, b: &RgbImage) -> f64 {
-    let mut sum = 0.0;
-    for (p, q) in a.pixels.iter().zip(&b.pixels) {
-        for c in 0..3 {
-            let d = linear_to_srgb8(p[c]) as f64 - linear_to_srgb8(q[c]) as f64;
-            sum += d * d;
-        }
-    }
-    let mse = sum / (a.pixels.len() * 3) as f64;
-    if mse == 0.0 {
-        return f64::INFINITY;
-    }
-    10.0 * (255.0f64 * 255.0 / mse).log10()
-}
+pub use crate::metrics::psnr_srgb8;
 
 fn values<const D: usize>(t: Tensor<D>) -> Vec<f32> {
     t.into_data().convert::<f32>().try_to_vec::<f32>().unwrap_or_default()

@@ -2,7 +2,8 @@
 //! `losses.csv`, `losses.png`, `gaussians.json`, renders), atomic checkpoints every N
 //! iterations, exact `--resume`, and the evaluation of the test images at the end.
 
-use crate::eval::{psnr_srgb8, render_view, Lighting};
+use crate::eval::{render_view, Lighting};
+use crate::metrics::{score, ImageScores};
 use crate::plot::{Chart, Series};
 use crate::scene::{Scene, Split};
 use crate::schedule::Schedule;
@@ -70,6 +71,10 @@ fn load_checkpoint(trainer: &mut Trainer, out: &Path) -> Result<Vec<(usize, Step
     let mut optimizers = std::mem::take(&mut trainer.optimizers);
     for (name, optimizer) in optimizers.iter_mut() {
         let path = dir.join(format!("optimizer-{name}.bpk"));
+        // Checkpoints from before the feature tables had their own optimizer have no file for it.
+        if name == "features" && !path.exists() {
+            continue;
+        }
         *optimizer = optimizer.clone().load(&path).map_err(|e| io(&path, format!("{e:?}")))?;
     }
     trainer.optimizers = optimizers;
@@ -278,7 +283,8 @@ pub const SKY_SAMPLES: usize = 256;
 
 /// Renders every test image of the scene (in the fitted light, or relit by the light the
 /// image names) and its albedo when the scene has one, scores them (PSNR, sRGB 8-bit, whole
-/// image) and writes `renders/*.png`, `renders/metrics.csv` and `renders/metrics.md`.
+/// image, foreground and SSIM, `metrics`) and writes `renders/*.png`, `renders/metrics.csv` and
+/// `renders/metrics.md`.
 pub fn evaluate(trainer: &Trainer, out: &Path, on: &mut impl FnMut(TrainMessage)) -> Result<serde_json::Value, FitError> {
     let scene = &trainer.scene;
     let train_frames: Vec<usize> = scene.views_in(Split::Train).map(|v| v.frame).collect();
@@ -293,55 +299,69 @@ pub fn evaluate(trainer: &Trainer, out: &Path, on: &mut impl FnMut(TrainMessage)
     let device = trainer.device.clone().without_autodiff();
     let albedo_scale = albedo_scale(scene, &model);
     let mut rows = Vec::new();
-    let mut groups: BTreeMap<&str, (f64, usize)> = BTreeMap::new();
     for (done, view) in tests.iter().enumerate() {
         let relit = !train_lights.contains(&view.light.as_str());
         let lighting = match relit {
             false => Lighting::Fitted,
             true => Lighting::Known { light: &scene.lights[&view.light], albedo_scale, samples: SKY_SAMPLES },
         };
-        let image = render_view(&model, scene, view.camera, view.frame, 48, &device, &lighting);
-        let psnr = psnr_srgb8(&image, &view.colour);
+        let scored = score_view(&model, scene, view, &lighting, albedo_scale, &device);
         let name = render_name(scene, view);
-        save_png(&dir.join(&name), &image)?;
-        let albedo_psnr = match &view.albedo {
-            Some(truth) => {
-                let albedo = render_view(&model, scene, view.camera, view.frame, 48, &device, &Lighting::Albedo { albedo_scale });
-                save_png(&dir.join(name.replace(".png", "-albedo.png")), &albedo)?;
-                Some(psnr_srgb8(&albedo, truth))
-            }
-            None => None,
-        };
-        let novel_pose = !train_frames.contains(&view.frame);
-        let novel_view = !train_cameras.contains(&view.camera);
-        let group = match (novel_pose, novel_view, relit) {
-            (_, _, true) => "relit",
-            (_, true, false) => "novel view",
-            (true, false, false) => "novel pose",
-            (false, false, false) => "training pose and view",
-        };
-        let entry = groups.entry(group).or_default();
-        entry.0 += psnr;
-        entry.1 += 1;
-        if let Some(a) = albedo_psnr {
-            let entry = groups.entry("albedo").or_default();
-            entry.0 += a;
-            entry.1 += 1;
+        save_png(&dir.join(&name), &scored.image)?;
+        if let Some((albedo, _)) = &scored.albedo {
+            save_png(&dir.join(name.replace(".png", "-albedo.png")), albedo)?;
         }
-        on(TrainMessage::Rendered { done: done + 1, total: tests.len(), name: name.clone(), psnr: Some(psnr) });
-        rows.push(ImageScore { image: name, light: view.light.clone(), group, psnr, albedo_psnr, novel_pose, novel_view, relit });
+        let (scores, albedo) = (scored.scores, scored.albedo.map(|a| a.1));
+        let (novel_pose, novel_view) = (!train_frames.contains(&view.frame), !train_cameras.contains(&view.camera));
+        let group = test_group(novel_pose, novel_view, relit);
+        on(TrainMessage::Rendered { done: done + 1, total: tests.len(), name: name.clone(), psnr: Some(scores.psnr) });
+        rows.push(ImageScore { image: name, light: view.light.clone(), group, scores, albedo, novel_pose, novel_view, relit });
     }
-    let mean = |g: &str| groups.get(g).map(|(sum, n)| json!(sum / *n as f64)).unwrap_or(json!(null));
+    let groups = group_means(&rows);
+    let group = |g: &str| groups.iter().find(|m| m.group == g);
+    let field = |g: &str, pick: fn(&ImageScores) -> f64| group(g).map(|m| json!(pick(&m.scores))).unwrap_or(json!(null));
     write_text(&dir.join("metrics.csv"), &metrics_csv(&rows))?;
     write_text(&dir.join("metrics.md"), &metrics_markdown(&rows, &groups))?;
-    Ok(json!({
-        "novel_pose_psnr": mean("novel pose"),
-        "novel_view_psnr": mean("novel view"),
-        "relit_psnr": mean("relit"),
-        "albedo_psnr": mean("albedo"),
-        "albedo_scale": albedo_scale.to_array(),
-        "images": rows,
-    }))
+    let mut evaluation = serde_json::Map::new();
+    for (key, g) in [("novel_pose", "novel pose"), ("novel_view", "novel view"), ("relit", "relit"), ("albedo", "albedo")] {
+        evaluation.insert(format!("{key}_psnr"), field(g, |s| s.psnr));
+        evaluation.insert(format!("{key}_foreground_psnr"), field(g, |s| s.foreground_psnr));
+        evaluation.insert(format!("{key}_ssim"), field(g, |s| s.ssim));
+    }
+    evaluation.insert("groups".into(), json!(groups));
+    evaluation.insert("albedo_scale".into(), json!(albedo_scale.to_array()));
+    evaluation.insert("images".into(), json!(rows));
+    Ok(serde_json::Value::Object(evaluation))
+}
+
+/// The evaluation group of a test image.
+pub fn test_group(novel_pose: bool, novel_view: bool, relit: bool) -> &'static str {
+    match (novel_pose, novel_view, relit) {
+        (_, _, true) => "relit",
+        (_, true, false) => "novel view",
+        (true, false, false) => "novel pose",
+        (false, false, false) => "training pose and view",
+    }
+}
+
+/// A test view rendered and scored, with its albedo when the scene has the truth.
+pub struct ScoredView {
+    pub image: crate::imageio::RgbImage,
+    pub scores: ImageScores,
+    pub albedo: Option<(crate::imageio::RgbImage, ImageScores)>,
+}
+
+/// Renders one test view (48 samples per ray) in `lighting`, and its albedo where the scene
+/// has the truth, and scores both (`metrics::score`).
+pub fn score_view(model: &Avatar, scene: &Scene, view: &crate::scene::View, lighting: &Lighting, albedo_scale: glam::DVec3, device: &burn::tensor::Device) -> ScoredView {
+    let image = render_view(model, scene, view.camera, view.frame, 48, device, lighting);
+    let scores = score(&image, &view.colour, view.mask.as_ref());
+    let albedo = view.albedo.as_ref().map(|truth| {
+        let albedo = render_view(model, scene, view.camera, view.frame, 48, device, &Lighting::Albedo { albedo_scale });
+        let s = score(&albedo, truth, view.mask.as_ref());
+        (albedo, s)
+    });
+    ScoredView { image, scores, albedo }
 }
 
 /// A render's file name: the test image's path inside the scene, flattened.
@@ -355,50 +375,81 @@ pub fn save_png(path: &Path, image: &crate::imageio::RgbImage) -> Result<(), Fit
     crate::imageio::write_atomic(path, &png).map_err(|e| io(path, e))
 }
 
-/// The score of one rendered test image.
+/// The score of one rendered test image (and of its albedo, when the scene has one).
 #[derive(serde::Serialize)]
 struct ImageScore {
     image: String,
     light: String,
     group: &'static str,
-    psnr: f64,
-    albedo_psnr: Option<f64>,
+    #[serde(flatten)]
+    scores: ImageScores,
+    albedo: Option<ImageScores>,
     novel_pose: bool,
     novel_view: bool,
     relit: bool,
 }
 
-impl ImageScore {
-    /// Image, light, group, PSNR and albedo PSNR (`missing` when none) as table cells.
-    fn cells(&self, digits: usize, missing: &str) -> String {
-        let albedo = self.albedo_psnr.map(|v| format!("{v:.digits$}")).unwrap_or_else(|| missing.into());
-        format!("{}|{}|{}|{:.digits$}|{albedo}", self.image, self.light, self.group, self.psnr)
+/// The mean scores of one group of test images (novel pose, novel view, relit, albedo).
+#[derive(serde::Serialize)]
+struct GroupScores {
+    group: &'static str,
+    images: usize,
+    #[serde(flatten)]
+    scores: ImageScores,
+}
+
+/// Mean scores per group, in a fixed order; albedo renders form a group of their own.
+fn group_means(rows: &[ImageScore]) -> Vec<GroupScores> {
+    let mean = |group: &'static str, scores: Vec<ImageScores>| {
+        let n = scores.len() as f64;
+        let avg = |pick: fn(&ImageScores) -> f64| scores.iter().map(pick).sum::<f64>() / n;
+        GroupScores { group, images: scores.len(), scores: ImageScores { psnr: avg(|s| s.psnr), foreground_psnr: avg(|s| s.foreground_psnr), ssim: avg(|s| s.ssim) } }
+    };
+    let mut out = Vec::new();
+    for group in ["novel pose", "novel view", "relit", "training pose and view"] {
+        let scores: Vec<ImageScores> = rows.iter().filter(|r| r.group == group).map(|r| r.scores).collect();
+        if !scores.is_empty() {
+            out.push(mean(group, scores));
+        }
     }
+    let albedo: Vec<ImageScores> = rows.iter().filter_map(|r| r.albedo).collect();
+    if !albedo.is_empty() {
+        out.push(mean("albedo", albedo));
+    }
+    out
+}
+
+fn cells(s: &ImageScores, digits: usize) -> [String; 3] {
+    [format!("{:.digits$}", s.psnr), format!("{:.digits$}", s.foreground_psnr), format!("{:.4}", s.ssim)]
 }
 
 fn metrics_csv(rows: &[ImageScore]) -> String {
-    let mut csv = String::from("image,light,group,psnr,albedo_psnr\n");
+    let mut csv = String::from("image,light,group,psnr,foreground_psnr,ssim,albedo_psnr,albedo_foreground_psnr,albedo_ssim\n");
     for r in rows {
-        csv += &(r.cells(3, "").replace('|', ",") + "\n");
+        let albedo = r.albedo.map(|a| cells(&a, 3)).unwrap_or_else(|| [String::new(), String::new(), String::new()]);
+        csv += &format!("{},{},{},{},{}\n", r.image, r.light, r.group, cells(&r.scores, 3).join(","), albedo.join(","));
     }
     csv
 }
 
-fn metrics_markdown(rows: &[ImageScore], groups: &BTreeMap<&str, (f64, usize)>) -> String {
-    let mut md = String::from("## Test images (PSNR, sRGB 8-bit, whole image)\n\n| group | images | mean PSNR (dB) |\n|---|---|---|\n");
-    for (group, (sum, n)) in groups {
-        md += &format!("| {group} | {n} | {:.2} |\n", sum / *n as f64);
+fn metrics_markdown(rows: &[ImageScore], groups: &[GroupScores]) -> String {
+    let mut md = String::from(
+        "## Test images (sRGB 8-bit; foreground = ground-truth mask or any rendered pixel)\n\n| group | images | PSNR (dB) | foreground PSNR (dB) | SSIM |\n|---|---|---|---|---|\n",
+    );
+    for g in groups {
+        md += &format!("| {} | {} | {} |\n", g.group, g.images, cells(&g.scores, 2).join(" | "));
     }
-    md += "\n| image | light | group | PSNR (dB) | albedo PSNR (dB) |\n|---|---|---|---|---|\n";
+    md += "\n| image | light | group | PSNR (dB) | foreground PSNR (dB) | SSIM | albedo PSNR (dB) | albedo foreground PSNR (dB) | albedo SSIM |\n|---|---|---|---|---|---|---|---|---|\n";
     for r in rows {
-        md += &format!("| {} |\n", r.cells(2, "-").replace('|', " | "));
+        let albedo = r.albedo.map(|a| cells(&a, 2)).unwrap_or_else(|| ["-".into(), "-".into(), "-".into()]);
+        md += &format!("| {} | {} | {} | {} | {} |\n", r.image, r.light, r.group, cells(&r.scores, 2).join(" | "), albedo.join(" | "));
     }
     md
 }
 
 /// How far the recovered light is from the one the scene states for its training images
 /// (synthetic and evaluation scenes state it): degrees for a sun, metres for a point light.
-fn light_error(trainer: &Trainer, light: &serde_json::Value) -> serde_json::Value {
+pub fn light_error(trainer: &Trainer, light: &serde_json::Value) -> serde_json::Value {
     let lights = trainer.scene.training_lights();
     let vector = |v: &serde_json::Value| -> Option<glam::DVec3> { Some(glam::DVec3::new(v[0].as_f64()?, v[1].as_f64()?, v[2].as_f64()?)) };
     match (lights.first().map(|n| &trainer.scene.lights[*n]), trainer.fit_light) {

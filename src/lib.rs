@@ -11,6 +11,7 @@ pub mod gaussians;
 pub mod imageio;
 pub mod light;
 pub mod losses;
+pub mod metrics;
 pub mod plot;
 pub mod relight;
 pub mod render;

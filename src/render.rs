@@ -56,6 +56,12 @@ impl RaySet {
         self.near.len()
     }
 
+    /// The first `n` rays.
+    pub fn first(&self, n: usize) -> RaySet {
+        let n = n.min(self.len());
+        RaySet { origins: self.origins[..3 * n].to_vec(), directions: self.directions[..3 * n].to_vec(), near: self.near[..n].to_vec(), far: self.far[..n].to_vec() }
+    }
+
     pub fn is_empty(&self) -> bool {
         self.near.is_empty()
     }

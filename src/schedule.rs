@@ -8,8 +8,28 @@ use std::path::{Path, PathBuf};
 
 /// Every loss term a schedule can weight.
 pub const TERMS: [&str; 9] = ["rgb", "mask", "grey", "density", "sigma", "mean", "ambient", "eikonal", "curvature"];
-/// Parameter groups with their own learning rate.
-pub const GROUPS: [&str; 3] = ["field", "gaussians", "light"];
+/// Parameter groups with their own learning rate: the field's decoder (and the whole `mlp`
+/// field), the Gaussians, the light, and a `grid` field's feature tables.
+pub const GROUPS: [&str; 4] = ["field", "gaussians", "light", "features"];
+
+/// Which encoding the field uses (`field::FieldConfig`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, clap::ValueEnum)]
+#[serde(rename_all = "lowercase")]
+pub enum FieldKind {
+    /// Fourier features in every bone's frame into a 3 x 64 MLP.
+    Mlp,
+    /// Multiresolution feature grids in the nearest bones' frames into a small decoder.
+    Grid,
+}
+
+/// The `[field]` table: the kind and, for a grid, optional overrides of its shape.
+#[derive(Clone, Debug, PartialEq, serde::Serialize)]
+pub struct FieldSettings {
+    pub kind: FieldKind,
+    pub levels: Option<usize>,
+    pub table_log2: Option<u32>,
+    pub top_bones: Option<usize>,
+}
 
 #[derive(Clone, Copy, Debug, PartialEq, serde::Serialize)]
 pub struct Ramp {
@@ -80,6 +100,7 @@ pub struct Schedule {
     pub light_lr_decay: f64,
     pub learning_rates: BTreeMap<String, f64>,
     pub weights: BTreeMap<String, Ramp>,
+    pub field: FieldSettings,
 }
 
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
@@ -113,6 +134,44 @@ fn count(file: &Path, table: &toml::Table, key: &str, default: usize, min: usize
     }
 }
 
+fn parse_field(file: &Path, table: &toml::Table) -> Result<FieldSettings, ScheduleError> {
+    let field = match table.get("field") {
+        None => toml::Table::new(),
+        Some(toml::Value::Table(t)) => t.clone(),
+        Some(other) => return Err(err(file, "field", format!("expected a table, found {}", other.type_str()))),
+    };
+    let known = ["kind", "levels", "table_log2", "top_bones"];
+    for key in field.keys() {
+        if !known.contains(&key.as_str()) {
+            return Err(err(file, &format!("field.{key}"), format!("unknown key (known: {})", known.join(", "))));
+        }
+    }
+    let kind = match field.get("kind") {
+        None => FieldKind::Mlp,
+        Some(toml::Value::String(s)) if s == "mlp" => FieldKind::Mlp,
+        Some(toml::Value::String(s)) if s == "grid" => FieldKind::Grid,
+        Some(other) => return Err(err(file, "field.kind", format!("expected \"mlp\" or \"grid\", found {other}"))),
+    };
+    let bounded = |key: &str, lo: f64, hi: f64| -> Result<Option<f64>, ScheduleError> {
+        match number(file, &field, key, "field")? {
+            Some(v) if v.fract() != 0.0 || v < lo || v > hi => Err(err(file, &format!("field.{key}"), format!("must be a whole number within {lo}..={hi}, found {v}"))),
+            other => Ok(other),
+        }
+    };
+    let settings = FieldSettings {
+        kind,
+        levels: bounded("levels", 1.0, 16.0)?.map(|v| v as usize),
+        table_log2: bounded("table_log2", 8.0, 22.0)?.map(|v| v as u32),
+        top_bones: bounded("top_bones", 1.0, 8.0)?.map(|v| v as usize),
+    };
+    if kind == FieldKind::Mlp {
+        if let Some(key) = ["levels", "table_log2", "top_bones"].into_iter().find(|k| field.contains_key(*k)) {
+            return Err(err(file, &format!("field.{key}"), "applies to kind = \"grid\" only"));
+        }
+    }
+    Ok(settings)
+}
+
 impl Schedule {
     pub fn load(path: &Path) -> Result<Self, ScheduleError> {
         let text = std::fs::read_to_string(path).map_err(|e| err(path, "(file)", format!("cannot read: {e}")))?;
@@ -136,6 +195,7 @@ impl Schedule {
             "light_lr_decay",
             "learning_rates",
             "losses",
+            "field",
         ];
         for key in table.keys() {
             if !known.contains(&key.as_str()) {
@@ -164,7 +224,7 @@ impl Schedule {
                 return Err(err(file, &format!("learning_rates.{key}"), format!("unknown parameter group (known: {})", GROUPS.join(", "))));
             }
         }
-        for (group, default) in GROUPS.iter().zip([2e-3, 5e-3, 1e-2]) {
+        for (group, default) in GROUPS.iter().zip([2e-3, 5e-3, 1e-2, 1e-2]) {
             let v = number(file, &lr_table, group, "learning_rates")?.unwrap_or(default);
             if !(v > 0.0 && v < 10.0) {
                 return Err(err(file, &format!("learning_rates.{group}"), format!("must be within (0, 10), found {v}")));
@@ -218,6 +278,7 @@ impl Schedule {
         for term in TERMS {
             weights.entry(term.to_string()).or_insert(Ramp::constant(0.0));
         }
+        let field = parse_field(file, &table)?;
         let schedule = Schedule {
             file: file.to_path_buf(),
             iterations,
@@ -238,6 +299,7 @@ impl Schedule {
             },
             learning_rates,
             weights,
+            field,
         };
         Ok(schedule)
     }
@@ -322,6 +384,10 @@ mod tests {
         assert_eq!(error_of("[learning_rates]\nbrain = 1e-3\n[losses]\nmask = 1.0").key, "learning_rates.brain");
         assert_eq!(error_of("light = \"sometimes\"\n[losses]\nmask = 1.0").key, "light");
         assert_eq!(error_of("[losses]\nmask = \"lots\"").key, "losses.mask");
+        assert_eq!(error_of("[field]\nkind = \"voxels\"\n[losses]\nmask = 1.0").key, "field.kind");
+        assert_eq!(error_of("[field]\nkind = \"grid\"\nlevels = 0\n[losses]\nmask = 1.0").key, "field.levels");
+        assert_eq!(error_of("[field]\nlevels = 4\n[losses]\nmask = 1.0").key, "field.levels");
+        assert_eq!(error_of("[field]\nkind = \"grid\"\ncells = 4\n[losses]\nmask = 1.0").key, "field.cells");
         assert_eq!(error_of("[losses]\nmask = nan").key, "losses.mask.weight");
         let e = error_of("iterations = [");
         assert!(e.to_string().starts_with("s.toml: (syntax)"), "{e}");

@@ -155,6 +155,23 @@ pub struct Trainer {
     bone_centres: Tensor<2>,
 }
 
+/// The field the schedule asks for: the Fourier `mlp` field, or feature grids shaped by the
+/// body's `extent` (the diagonal of the posed skeleton's bounds, m) with the schedule's overrides.
+pub fn field_config(settings: &crate::schedule::FieldSettings, skeleton: &crate::skeleton::Skeleton, extent: f32) -> FieldConfig {
+    match settings.kind {
+        crate::schedule::FieldKind::Mlp => FieldConfig::for_bones(skeleton.len()),
+        crate::schedule::FieldKind::Grid => {
+            let mut config = FieldConfig::with_grid(skeleton.bones.iter().map(|b| b.length as f32).collect(), extent);
+            if let Some(grid) = config.grid.as_mut() {
+                grid.levels = settings.levels.unwrap_or(grid.levels);
+                grid.table_log2 = settings.table_log2.unwrap_or(grid.table_log2);
+                grid.top_bones = settings.top_bones.unwrap_or(grid.top_bones);
+            }
+            config
+        }
+    }
+}
+
 /// Gaussians detached from the graph, for the shadow pass (they learn only from their fit).
 fn detached(g: &GaussianTensors) -> GaussianTensors {
     GaussianTensors { means: g.means.clone().detach(), whiten: g.whiten.clone().detach(), amplitudes: g.amplitudes.clone().detach() }
@@ -242,14 +259,23 @@ impl Trainer {
             LightKind::Point => (centre + glam::DVec3::new(0.0, 2.5, 0.0)).as_vec3().to_array(),
             _ => [0.0, 1.0, 0.0],
         };
+        // The body's size: the largest diagonal of one frame's skeleton bounds (a character
+        // that walks across the scene is no bigger for it).
+        let extent = scene.frames.iter().map(|f| f.pose.bounds(&scene.skeleton)).map(|(a, b)| (b - a).length()).fold(0.0, f64::max);
+        let field_config = field_config(&schedule.field, &scene.skeleton, extent as f32);
         let model = Avatar {
-            field: FieldConfig::for_bones(scene.skeleton.len()).init(&device, seed),
+            field: field_config.init(&device, seed),
             gaussians: GaussianParams::from_set(&set, &device),
             light: LightModel::new(light_kind, initial, 0.3, &device),
         };
         let centres: Vec<f32> = set.gaussians.iter().flat_map(|g| [0.0, scene.skeleton.bones[g.bone].length as f32 / 2.0, 0.0]).collect();
         let bone_centres = Tensor::from_data(TensorData::new(centres, [set.len(), 3]), &device);
-        let optimizers = crate::schedule::GROUPS.iter().map(|g| (g.to_string(), AdamConfig::new().init())).collect();
+        // Feature tables get tiny, sparse gradients: Adam's epsilon must not swamp them
+        // (instant-NGP uses 1e-15).
+        let optimizers = crate::schedule::GROUPS
+            .iter()
+            .map(|&g| (g.to_string(), if g == "features" { AdamConfig::new().with_epsilon(1e-15).init() } else { AdamConfig::new().init() }))
+            .collect();
         Ok(Self {
             scene,
             schedule,
@@ -272,15 +298,15 @@ impl Trainer {
         self.model.as_ref().ok_or_else(|| FitError::Input("the model was lost by an interrupted step".into()))
     }
 
-    /// Samples a batch of rays from one random training frame.
-    fn batch(&mut self, set: &GaussianSet) -> (usize, RaySet, Vec<f32>, Vec<f32>) {
+    /// Samples a batch of rays from one random training frame. Rays that meet a Gaussian's
+    /// bound come first (the returned count): only they enter the field; the others are
+    /// background, whose colour and accumulation are known to be zero.
+    fn batch(&mut self, set: &GaussianSet) -> (usize, RaySet, Vec<f32>, Vec<f32>, usize) {
         let frame = (self.stream.uniform() * self.frames.len() as f64) as usize % self.frames.len();
         let data = &self.frames[frame];
         let pose = &self.scene.frames[data.position].pose;
         let posed = set.pose(pose);
-        let mut rays = RaySet::default();
-        let mut colours = Vec::with_capacity(self.schedule.rays_per_batch * 3);
-        let mut masks = Vec::with_capacity(self.schedule.rays_per_batch);
+        let mut drawn = Vec::with_capacity(self.schedule.rays_per_batch);
         for k in 0..self.schedule.rays_per_batch {
             let v = data.views[(self.stream.uniform() * data.views.len() as f64) as usize % data.views.len()];
             let view = &self.scene.views[v];
@@ -293,11 +319,22 @@ impl Trainer {
                 (self.stream.uniform() * pixels as f64) as usize % pixels
             };
             let ray = camera.pixel_ray(pixel % camera.width, pixel / camera.width);
-            rays.push(ray.origin, ray.direction, ray_bounds(ray.origin, ray.direction, &posed));
-            colours.extend(view.colour.pixels[pixel]);
-            masks.push(view.mask.as_ref().map(|m| m.foreground[pixel] as u8 as f32).unwrap_or(0.0));
+            let bounds = ray_bounds(ray.origin, ray.direction, &posed);
+            let mask = view.mask.as_ref().map(|m| m.foreground[pixel] as u8 as f32).unwrap_or(0.0);
+            drawn.push((ray, bounds, view.colour.pixels[pixel], mask));
         }
-        (frame, rays, colours, masks)
+        // A stable partition: hits first, in the order drawn.
+        let hits = drawn.iter().filter(|d| d.1.is_some()).count();
+        drawn.sort_by_key(|d| d.1.is_none());
+        let mut rays = RaySet::default();
+        let mut colours = Vec::with_capacity(drawn.len() * 3);
+        let mut masks = Vec::with_capacity(drawn.len());
+        for (ray, bounds, colour, mask) in drawn {
+            rays.push(ray.origin, ray.direction, bounds);
+            colours.extend(colour);
+            masks.push(mask);
+        }
+        (frame, rays, colours, masks, hits)
     }
 
     fn random_indices(&mut self, count: usize, below: usize) -> Tensor<1, Int> {
@@ -310,34 +347,41 @@ impl Trainer {
         let start = Instant::now();
         let it = self.iteration;
         let set = self.model()?.gaussians.to_set();
-        let (frame, rays, colours, masks) = self.batch(&set);
+        let (frame, rays, colours, masks, hits) = self.batch(&set);
         let r = rays.len();
+        // Only rays that meet a bound are rendered (at least one, so the graph is never empty);
+        // the rest are appended as background.
+        let rendered = hits.max(1);
         let s = self.schedule.samples_per_ray;
-        let jitter: Vec<f32> = (0..r * s).map(|_| self.stream.uniform() as f32).collect();
+        let jitter: Vec<f32> = (0..rendered * s).map(|_| self.stream.uniform() as f32).collect();
         let device = self.device.clone();
         let pose = self.frames[frame].pose_tensors.clone();
         let schedule = self.schedule.clone();
         let w = |name: &str| schedule.weight(name, it);
         let model = self.model.take().ok_or_else(|| FitError::Input("the model was lost by an interrupted step".into()))?;
         let shading = self.fit_light && w("rgb") > 0.0;
-        let deferred = render(&model.field, &pose, &rays, s, &jitter, shading.then_some(self.gradient), &device);
+        let deferred = render(&model.field, &pose, &rays.first(rendered), s, &jitter, shading.then_some(self.gradient), &device);
+        let background = |t: Tensor<2>| if rendered < r { Tensor::cat(vec![t, Tensor::zeros([r - rendered, 3], &device)], 0) } else { t };
+        let accumulation =
+            if rendered < r { Tensor::cat(vec![deferred.accumulation.clone(), Tensor::zeros([r - rendered], &device)], 0) } else { deferred.accumulation.clone() };
+        let albedo = background(deferred.albedo.clone());
         let target: Tensor<2> = Tensor::from_data(TensorData::new(colours, [r, 3]), &device);
         let mask: Tensor<1> = Tensor::from_data(TensorData::new(masks, [r]), &device);
         let posed = model.gaussians.posed(&pose);
         let mut terms: Vec<(&str, f64, Tensor<1>)> = Vec::new();
         if w("rgb") > 0.0 {
             let colour = match &deferred.normal {
-                Some(normal) => model.light.shade(deferred.albedo.clone(), deferred.surface.clone(), normal.clone(), &detached(&posed)),
-                None => deferred.albedo.clone(),
+                Some(normal) => background(model.light.shade(deferred.albedo.clone(), deferred.surface.clone(), normal.clone(), &detached(&posed))),
+                None => albedo.clone(),
             };
             terms.push(("rgb", w("rgb"), crate::losses::rgb(colour, target)));
         }
-        terms.push(("mask", w("mask"), crate::losses::mask(deferred.accumulation.clone(), mask.clone())));
+        terms.push(("mask", w("mask"), crate::losses::mask(accumulation, mask.clone())));
         if w("grey") > 0.0 {
-            terms.push(("grey", w("grey"), crate::losses::grey(deferred.albedo.clone(), mask)));
+            terms.push(("grey", w("grey"), crate::losses::grey(albedo, mask)));
         }
         if w("density") > 0.0 && self.schedule.density_points > 0 {
-            let idx = self.random_indices(self.schedule.density_points, r * s);
+            let idx = self.random_indices(self.schedule.density_points, rendered * s);
             let points = deferred.sample_points.clone().detach().select(0, idx.clone());
             let field_density = deferred.sample_density.clone().detach().select(0, idx);
             let mixture = GaussianParams::mixture_density(&posed, points);
@@ -354,7 +398,7 @@ impl Trainer {
         }
         if (w("eikonal") > 0.0 || w("curvature") > 0.0) && self.schedule.regulariser_points > 0 {
             let q = self.schedule.regulariser_points;
-            let idx = self.random_indices(q, r * s);
+            let idx = self.random_indices(q, rendered * s);
             let points = deferred.sample_points.clone().detach().select(0, idx);
             let gradient = model.field.sdf_gradient(points.clone(), &pose, self.gradient);
             if w("eikonal") > 0.0 {
@@ -380,13 +424,20 @@ impl Trainer {
         }
         let mut grads = total.backward();
         let light_active = self.fit_light && it >= self.schedule.light_from;
-        let Avatar { field, gaussians, light } = model;
+        let Avatar { mut field, gaussians, light } = model;
+        // A grid's feature tables have their own learning rate and optimizer.
+        let grid = field.grid.take();
+        let g_grid = grid.as_ref().map(|g| GradientsParams::from_module(&mut grads, g));
         let g_field = GradientsParams::from_module(&mut grads, &field);
         let g_gaussians = GradientsParams::from_module(&mut grads, &gaussians);
         let g_light = GradientsParams::from_module(&mut grads, &light);
         let lr = |g: &str| self.schedule.learning_rate(g, it);
-        let (lr_field, lr_gaussians, lr_light) = (lr("field"), lr("gaussians"), lr("light"));
-        let field = self.optimizers[0].1.step(lr_field, field, g_field);
+        let (lr_field, lr_gaussians, lr_light, lr_features) = (lr("field"), lr("gaussians"), lr("light"), lr("features"));
+        let mut field = self.optimizers[0].1.step(lr_field, field, g_field);
+        field.grid = match (grid, g_grid) {
+            (Some(grid), Some(g)) => Some(self.optimizers[3].1.step(lr_features, grid, g)),
+            (grid, _) => grid,
+        };
         let gaussians = self.optimizers[1].1.step(lr_gaussians, gaussians, g_gaussians);
         let light = if light_active { self.optimizers[2].1.step(lr_light, light, g_light) } else { light };
         let model = Avatar { field, gaussians, light };

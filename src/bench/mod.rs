@@ -1,9 +1,11 @@
 //! Benchmarks behind `umbra bench` and `cargo bench`: each prints ratios against a baseline
 //! measured in the same run and writes a Markdown table, a CSV and a PNG plot.
 
+mod fit;
 mod gradients;
 mod shadows;
 
+pub use fit::{fit_curves, CurvePoint, FitBenchOptions};
 pub use gradients::gradients;
 pub use shadows::{body_cloud, shadows, sun_rays, Row, FLOPS_PER_PAIR};
 

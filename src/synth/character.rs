@@ -13,6 +13,24 @@ pub enum Kind {
     Quadruped,
 }
 
+/// What the clothes look like.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, clap::ValueEnum, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Pattern {
+    /// One colour per bone, gently modulated (the shipped 64x64 scenes).
+    #[default]
+    Plain,
+    /// Fine, high-contrast clothing in bone-local coordinates: 6 cm checkers on the shirt and
+    /// sleeves, 4 cm stripes across the trousers, so that a blurred fit loses PSNR.
+    Clothing,
+}
+
+impl Pattern {
+    pub fn is_plain(&self) -> bool {
+        *self == Pattern::Plain
+    }
+}
+
 /// How a bone swings over the motion cycle: `amplitude * sin(2 pi phase + offset) + bias`
 /// radians about its rest-frame X axis (Z for `roll`).
 #[derive(Clone, Copy, Debug)]
@@ -47,6 +65,7 @@ pub struct Character {
     rest: Vec<DMat4>,
     /// Smooth-union width (metres) of the log-sum-exp blend between bone capsules.
     blend: f64,
+    pub pattern: Pattern,
 }
 
 fn bone(name: &'static str, parent: Option<usize>, head: [f64; 3], tail: [f64; 3], radii: (f64, f64), colour: [f64; 3], swing: Swing) -> BoneSpec {
@@ -126,7 +145,36 @@ impl Character {
         };
         let skeleton = Skeleton { bones: specs.iter().map(|s| Bone { name: s.name.into(), parent: s.parent, length: (s.tail - s.head).length() }).collect() };
         let rest = specs.iter().map(|s| rest_frame(s.head, s.tail)).collect();
-        Self { kind, skeleton, specs, rest, blend: 0.025 }
+        Self { kind, skeleton, specs, rest, blend: 0.025, pattern: Pattern::Plain }
+    }
+
+    pub fn with_pattern(self, pattern: Pattern) -> Self {
+        Self { pattern, ..self }
+    }
+
+    /// The albedo of bone `i`'s clothing at bone-local point `local`, before blending.
+    fn bone_albedo(&self, i: usize, local: DVec3) -> DVec3 {
+        let spec = &self.specs[i];
+        let base = DVec3::from_array(spec.colour);
+        let cell = |v: f64, size: f64| (v / size).floor() as i64;
+        match (self.pattern, spec.name) {
+            (Pattern::Clothing, "spine" | "chest" | "upper_arm_l" | "upper_arm_r") => {
+                let odd = (cell(local.x, 0.06) + cell(local.y, 0.06) + cell(local.z, 0.06)).rem_euclid(2) == 1;
+                if odd {
+                    DVec3::new(0.85, 0.83, 0.78)
+                } else {
+                    base
+                }
+            }
+            (Pattern::Clothing, "pelvis" | "thigh_l" | "thigh_r" | "shin_l" | "shin_r") => {
+                if cell(local.y, 0.04).rem_euclid(2) == 1 {
+                    DVec3::new(0.80, 0.62, 0.22)
+                } else {
+                    DVec3::new(0.12, 0.12, 0.16)
+                }
+            }
+            _ => base * (0.82 + 0.18 * (local.y * 38.0 + i as f64).sin() * (local.x * 25.0).cos() * (local.z * 31.0 + 0.5).sin()),
+        }
     }
 
     /// The pose at `phase` (cycles; 1.0 is one full stride) with the body `heading` radians
@@ -178,18 +226,15 @@ impl Character {
         self.sdf(pose, p).1.normalize()
     }
 
-    /// Albedo at a surface point: the blend-weighted colours of the nearby bones, modulated by
-    /// stripes and spots in each bone's local frame, kept within [0.1, 0.9].
+    /// Albedo at a surface point: the blend-weighted colours of the nearby bones (each by its
+    /// `Pattern` in the bone's local frame), kept within [0.1, 0.9].
     pub fn albedo(&self, pose: &Pose, p: DVec3) -> DVec3 {
         let k = self.blend;
         let mut best = f64::INFINITY;
         let mut parts = [(0.0f64, DVec3::ZERO); 32];
         for (i, spec) in self.specs.iter().enumerate() {
             let d = tapered_capsule(pose, &self.skeleton, i, spec, p).0;
-            let local = pose.to_local(i, p);
-            let pattern = 0.82 + 0.18 * (local.y * 38.0 + i as f64).sin() * (local.x * 25.0).cos() * (local.z * 31.0 + 0.5).sin();
-            let base = DVec3::from_array(spec.colour) * pattern;
-            parts[i] = (d, base);
+            parts[i] = (d, self.bone_albedo(i, pose.to_local(i, p)));
             best = best.min(d);
         }
         let mut sum = 0.0;

@@ -11,7 +11,7 @@ use crate::imageio::{self, Mask, RgbImage};
 use crate::light::{uv_to_direction, EnvironmentMap, Light};
 use crate::scene::{Camera, Split};
 use crate::skeleton::Pose;
-pub use character::{Character, Kind};
+pub use character::{Character, Kind, Pattern};
 use glam::{DMat4, DVec3};
 use rayon::prelude::*;
 use serde_json::{json, Value};
@@ -67,6 +67,10 @@ pub struct SynthOptions {
     /// Monte Carlo samples per pixel for uniform and environment light.
     #[arg(long, default_value_t = 256)]
     pub samples: usize,
+    /// The clothing's albedo pattern.
+    #[arg(long, value_enum, default_value_t = Pattern::Plain)]
+    #[serde(default, skip_serializing_if = "Pattern::is_plain")]
+    pub pattern: Pattern,
     /// Seed of camera placement and Monte Carlo sampling.
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
@@ -95,6 +99,7 @@ impl Default for SynthOptions {
             test_frames: 3,
             test: vec![TestKind::Poses, TestKind::Views, TestKind::Relight],
             samples: 256,
+            pattern: Pattern::Plain,
             seed: 0,
             meshes: false,
             mesh_cell: 0.02,
@@ -187,7 +192,7 @@ impl SynthOptions {
     /// Lays out cameras, frames, lights and views.
     pub fn plan(&self) -> Result<Plan, SynthError> {
         self.check()?;
-        let character = Character::new(self.character);
+        let character = Character::new(self.character).with_pattern(self.pattern);
         let mut stream = Stream::new(self.seed, 0xCA3E_4A5, 0);
         let (target, extent) = match self.character {
             Kind::Human => (DVec3::new(0.0, 0.9, 0.0), 1.05),

@@ -1,8 +1,17 @@
-//! The template-free neural field (burn, backend chosen by the `Device`): a point is expressed
-//! in every posed bone's local frame, blended by soft skinning weights from its distance to the
-//! bone segments, encoded with a few Fourier frequencies and fed to an MLP that predicts a
-//! residual signed distance and an albedo in [0, 1]. VolSDF turns the SDF into density with a
-//! Laplace CDF of learnable scale beta. The field knows nothing of lights.
+//! The template-free neural field (burn, backend chosen by the `Device`): a point is encoded
+//! relative to the posed bones, with soft skinning weights from its distance to the bone
+//! segments, and an MLP decodes the encoding into a residual signed distance (on a capsule
+//! prior) and an albedo in [0, 1]. VolSDF turns the SDF into density with a Laplace CDF of
+//! learnable scale beta. The field knows nothing of lights.
+//!
+//! Two encodings, chosen by the schedule's `[field] kind`: `mlp` expresses the point in every
+//! bone's frame with a few Fourier frequencies (capacity is the MLP's width); `grid` looks it up
+//! in multiresolution feature grids of its nearest bones (`grid`; capacity is the tables').
+//! Both give the SDF's exact spatial gradient by forward-mode tangents.
+
+pub mod grid;
+
+use grid::{BoneFrame, FeatureGrid, GridConfig, Skinning};
 
 use burn::module::{Module, Param};
 use burn::nn::{Linear, LinearConfig};
@@ -16,6 +25,8 @@ pub struct PoseTensors {
     pub rotations: Tensor<3>,
     pub translations: Tensor<2>,
     pub lengths: Tensor<1>,
+    /// The same bones on the CPU, for planning grid lookups.
+    pub frames: Vec<BoneFrame>,
 }
 
 impl PoseTensors {
@@ -25,7 +36,18 @@ impl PoseTensors {
         let rotations: Vec<f32> = pose.bone_to_world.iter().flat_map(|m| glam::DMat3::from_mat4(*m).transpose().to_cols_array().map(|v| v as f32)).collect();
         let translations: Vec<f32> = pose.bone_to_world.iter().flat_map(|m| m.w_axis.truncate().as_vec3().to_array()).collect();
         let lengths: Vec<f32> = skeleton.bones.iter().map(|bone| bone.length as f32).collect();
+        let frames = pose
+            .bone_to_world
+            .iter()
+            .zip(&skeleton.bones)
+            .map(|(m, bone)| BoneFrame {
+                axes: [m.x_axis, m.y_axis, m.z_axis].map(|a| a.truncate().as_vec3().to_array()),
+                origin: m.w_axis.truncate().as_vec3().to_array(),
+                length: bone.length as f32,
+            })
+            .collect();
         Self {
+            frames,
             rotations: Tensor::from_data(TensorData::new(rotations, [b, 3, 3]), device),
             translations: Tensor::from_data(TensorData::new(translations, [b, 3]), device),
             lengths: Tensor::from_data(TensorData::new(lengths, [b]), device),
@@ -58,11 +80,26 @@ pub struct FieldConfig {
     /// Radius (m) of the capsule prior the MLP's SDF is a residual of.
     pub prior_radius: f32,
     pub initial_beta: f32,
+    /// The grid encoding; `None` for the Fourier (`mlp`) one.
+    #[serde(default)]
+    pub grid: Option<GridConfig>,
 }
 
 impl FieldConfig {
+    /// The `mlp` field: Fourier features in every bone's frame into a 3 x 64 MLP.
     pub fn for_bones(bones: usize) -> Self {
-        Self { bones, hidden: 64, layers: 3, frequencies: vec![12.0, 25.0, 50.0], skinning_width: 0.05, prior_radius: 0.06, initial_beta: 0.03 }
+        Self { bones, hidden: 64, layers: 3, frequencies: vec![12.0, 25.0, 50.0], skinning_width: 0.05, prior_radius: 0.06, initial_beta: 0.03, grid: None }
+    }
+
+    /// The `grid` field: feature grids shaped by the body (`GridConfig::for_body`) into a
+    /// 2 x 64 decoder.
+    pub fn with_grid(bone_lengths: Vec<f32>, extent: f32) -> Self {
+        let bones = bone_lengths.len();
+        Self { layers: 2, grid: Some(GridConfig::for_body(bone_lengths, extent)), ..Self::for_bones(bones) }
+    }
+
+    fn skinning(&self) -> Skinning {
+        Skinning { sharpness: self.sharpness(), prior_radius: self.prior_radius }
     }
 
     /// The factor on squared distance in the skinning softmax's logits.
@@ -71,7 +108,10 @@ impl FieldConfig {
     }
 
     pub fn input_width(&self) -> usize {
-        self.bones * 3 * (1 + 2 * self.frequencies.len())
+        match &self.grid {
+            Some(grid) => grid.width(),
+            None => self.bones * 3 * (1 + 2 * self.frequencies.len()),
+        }
     }
 
     /// A field with weights drawn from our own seeded stream (uniform in +-1/sqrt(fan_in), as
@@ -97,6 +137,7 @@ impl FieldConfig {
         // A near-zero residual at the start: the initial surface is the capsule prior.
         let output = linear(width, 4, 0.01);
         AvatarField {
+            grid: self.grid.as_ref().map(|g| g.init(device, seed)),
             hidden,
             output,
             log_beta: Param::from_tensor(Tensor::from_data(TensorData::new(vec![self.initial_beta.ln()], [1]), device)),
@@ -107,6 +148,8 @@ impl FieldConfig {
 
 #[derive(Module, Debug)]
 pub struct AvatarField {
+    /// The feature grids of a `grid` field.
+    pub grid: Option<FeatureGrid>,
     pub hidden: Vec<Linear>,
     pub output: Linear,
     pub log_beta: Param<Tensor<1>>,
@@ -183,7 +226,7 @@ impl AvatarField {
     /// SDF (metres) and albedo of world points in a pose.
     pub fn forward(&self, points: Tensor<2>, pose: &PoseTensors) -> FieldOutput {
         let [n, _] = points.dims();
-        let Encoding { features, prior, .. } = self.encode(points, pose);
+        let (features, prior, _) = self.features(points, pose, false);
         let mut x = features;
         for layer in &self.hidden {
             x = relu(layer.forward(x));
@@ -218,9 +261,11 @@ impl AvatarField {
     /// tangent rows per point in the MLP, against six whole evaluations for central differences.
     pub fn sdf_and_gradient(&self, points: Tensor<2>, pose: &PoseTensors) -> (Tensor<1>, Tensor<2>) {
         let [n, _] = points.dims();
-        let encoding = self.encode(points, pose);
-        let (feature_tangents, prior_tangents) = encoding.tangents(&self.config, pose);
-        let Encoding { features, prior, .. } = encoding;
+        let device = points.device();
+        let (features, prior, tangents) = self.features(points, pose, true);
+        // `features` returns tangents whenever asked; zeros only keep this path panic-free.
+        let width = features.dims()[1];
+        let (feature_tangents, prior_tangents) = tangents.unwrap_or_else(|| (Tensor::zeros([3 * n, width], &device), Tensor::zeros([3, n], &device)));
         let mut x = features;
         let mut dx = feature_tangents; // [3N, F]
         for layer in &self.hidden {
@@ -239,7 +284,25 @@ impl AvatarField {
         (sdf, gradient)
     }
 
-    /// Encoded features and the capsule prior SDF of world points in a pose.
+    /// The decoder's input `[N, F]` and the capsule prior SDF `[N]` of world points in a pose,
+    /// by the field's encoding, with their derivatives along the world axes (`[3N, F]`
+    /// axis-major and `[3, N]`) when `tangents` says.
+    #[allow(clippy::type_complexity)]
+    fn features(&self, points: Tensor<2>, pose: &PoseTensors, tangents: bool) -> (Tensor<2>, Tensor<1>, Option<(Tensor<2>, Tensor<2>)>) {
+        match &self.grid {
+            Some(grid) => {
+                let g = grid.encode(points, &pose.frames, self.config.skinning(), tangents);
+                (g.features, g.prior, g.tangents)
+            }
+            None => {
+                let encoding = self.encode(points, pose);
+                let t = tangents.then(|| encoding.tangents(&self.config, pose));
+                (encoding.features, encoding.prior, t)
+            }
+        }
+    }
+
+    /// Fourier features in every bone's frame and the capsule prior SDF of world points.
     fn encode(&self, points: Tensor<2>, pose: &PoseTensors) -> Encoding {
         let config = self.config();
         let [n, _] = points.dims();

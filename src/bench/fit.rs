@@ -1,0 +1,188 @@
+//! Time against error (`umbra bench fit`): one scene fitted once per field kind with the same
+//! schedule otherwise, the training paused at evenly spaced iterations to score the novel-pose
+//! test images (foreground PSNR, SSIM), their albedo and the light direction; the curves of
+//! training wall time against each, both kinds on the same axes. Scoring time is not counted.
+
+use crate::eval::Lighting;
+use crate::fit::{albedo_scale, light_error, score_view, test_group};
+use crate::plot::{Chart, Series};
+use crate::scene::{Scene, Split};
+use crate::schedule::{FieldKind, Schedule};
+use crate::train::{Backend, FitError, Trainer};
+use burn::module::Module;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+#[derive(Clone, Debug)]
+pub struct FitBenchOptions {
+    pub scene: PathBuf,
+    pub schedule: PathBuf,
+    pub out: PathBuf,
+    pub kinds: Vec<FieldKind>,
+    /// Scoring points per fit (the last at the final iteration).
+    pub evaluations: usize,
+    pub iterations: Option<usize>,
+    pub seed: u64,
+}
+
+/// One scoring point of one fit.
+#[derive(Clone, Debug, serde::Serialize)]
+pub struct CurvePoint {
+    pub kind: FieldKind,
+    pub iteration: usize,
+    pub train_seconds: f64,
+    pub novel_pose_psnr: f64,
+    pub novel_pose_foreground_psnr: f64,
+    pub novel_pose_ssim: f64,
+    pub albedo_psnr: Option<f64>,
+    pub albedo_foreground_psnr: Option<f64>,
+    pub light_error_degrees: Option<f64>,
+    pub peak_rss_mib: Option<f64>,
+}
+
+/// The process's peak resident memory so far (Linux), MiB.
+fn peak_rss_mib() -> Option<f64> {
+    let status = std::fs::read_to_string("/proc/self/status").ok()?;
+    let line = status.lines().find(|l| l.starts_with("VmHWM:"))?;
+    line.split_whitespace().nth(1)?.parse::<f64>().ok().map(|kb| kb / 1024.0)
+}
+
+fn kind_name(kind: FieldKind) -> &'static str {
+    match kind {
+        FieldKind::Mlp => "mlp",
+        FieldKind::Grid => "grid",
+    }
+}
+
+/// Scores the novel-pose test images (training light, training cameras, unseen frames).
+fn score(trainer: &Trainer, kind: FieldKind, iteration: usize, train_seconds: f64) -> Result<CurvePoint, FitError> {
+    let scene = &trainer.scene;
+    let train_frames: Vec<usize> = scene.views_in(Split::Train).map(|v| v.frame).collect();
+    let train_cameras: Vec<usize> = scene.views_in(Split::Train).map(|v| v.camera).collect();
+    let lights = scene.training_lights();
+    let views: Vec<&crate::scene::View> = scene
+        .views_in(Split::Test)
+        .filter(|v| test_group(!train_frames.contains(&v.frame), !train_cameras.contains(&v.camera), !lights.contains(&v.light.as_str())) == "novel pose")
+        .collect();
+    if views.is_empty() {
+        return Err(FitError::Input(format!("{}: no novel-pose test images to score", scene.root.join("scene.json").display())));
+    }
+    let model = trainer.model()?.valid();
+    let device = trainer.device.clone().without_autodiff();
+    let scale = albedo_scale(scene, &model);
+    let scored: Vec<_> = views.iter().map(|v| score_view(&model, scene, v, &Lighting::Fitted, scale, &device)).collect();
+    let mean = |f: &dyn Fn(&crate::fit::ScoredView) -> Option<f64>| {
+        let values: Vec<f64> = scored.iter().filter_map(f).collect();
+        (!values.is_empty()).then(|| values.iter().sum::<f64>() / values.len() as f64)
+    };
+    let light = trainer.model()?.light.report();
+    Ok(CurvePoint {
+        kind,
+        iteration,
+        train_seconds,
+        novel_pose_psnr: mean(&|s| Some(s.scores.psnr)).unwrap_or(f64::NAN),
+        novel_pose_foreground_psnr: mean(&|s| Some(s.scores.foreground_psnr)).unwrap_or(f64::NAN),
+        novel_pose_ssim: mean(&|s| Some(s.scores.ssim)).unwrap_or(f64::NAN),
+        albedo_psnr: mean(&|s| s.albedo.as_ref().map(|a| a.1.psnr)),
+        albedo_foreground_psnr: mean(&|s| s.albedo.as_ref().map(|a| a.1.foreground_psnr)),
+        light_error_degrees: light_error(trainer, &light)["direction_degrees"].as_f64(),
+        peak_rss_mib: peak_rss_mib(),
+    })
+}
+
+/// Fits the scene once per kind, scoring along the way; writes `fit-curves.{csv,md}` and one
+/// PNG per measure into `out`; returns the Markdown table.
+pub fn fit_curves(options: &FitBenchOptions, mut on: impl FnMut(String)) -> Result<String, FitError> {
+    let scene = Scene::load(&options.scene)?;
+    let base = Schedule::load(&options.schedule)?;
+    if options.kinds.is_empty() || options.evaluations == 0 {
+        return Err(FitError::Input("bench fit needs at least one field kind and one evaluation".into()));
+    }
+    // Everything is checked before the output folder is made.
+    let mut trainers = Vec::new();
+    for &kind in &options.kinds {
+        let mut schedule = base.clone();
+        schedule.field.kind = kind;
+        let trainer = Trainer::new(scene.clone(), schedule.clone(), Backend::Flex, options.seed)?;
+        let iterations = options.iterations.unwrap_or_else(|| schedule.iterations_for(trainer.fit_light));
+        trainers.push((kind, trainer, iterations));
+    }
+    std::fs::create_dir_all(&options.out).map_err(|e| crate::train::io(&options.out, e))?;
+    let mut points = Vec::new();
+    for (kind, mut trainer, iterations) in trainers {
+        trainer.schedule.iterations = iterations;
+        let marks: Vec<usize> = (1..=options.evaluations).map(|k| (k * iterations).div_ceil(options.evaluations)).collect();
+        let mut train_seconds = 0.0;
+        let started = Instant::now();
+        while trainer.iteration < iterations {
+            let step = Instant::now();
+            trainer.step()?;
+            train_seconds += step.elapsed().as_secs_f64();
+            if marks.contains(&trainer.iteration) {
+                let point = score(&trainer, kind, trainer.iteration, train_seconds)?;
+                on(format!(
+                    "{} iteration {}/{iterations}: {:.1} s of training (eta {:.0} s), novel pose foreground {:.2} dB, SSIM {:.4}, albedo {}, light {}",
+                    kind_name(kind),
+                    trainer.iteration,
+                    train_seconds,
+                    started.elapsed().as_secs_f64() / trainer.iteration as f64 * (iterations - trainer.iteration) as f64,
+                    point.novel_pose_foreground_psnr,
+                    point.novel_pose_ssim,
+                    point.albedo_psnr.map(|v| format!("{v:.2} dB")).unwrap_or("-".into()),
+                    point.light_error_degrees.map(|v| format!("{v:.2} deg")).unwrap_or("-".into()),
+                ));
+                points.push(point);
+                write_outputs(&options.out, &scene, &points)?;
+            }
+        }
+    }
+    write_outputs(&options.out, &scene, &points)
+}
+
+fn write_outputs(out: &Path, scene: &Scene, points: &[CurvePoint]) -> Result<String, FitError> {
+    let f = |v: Option<f64>, digits: usize| v.map(|v| format!("{v:.digits$}")).unwrap_or_else(|| "-".into());
+    let mut csv = String::from("kind,iteration,train_seconds,novel_pose_psnr,novel_pose_foreground_psnr,novel_pose_ssim,albedo_psnr,albedo_foreground_psnr,light_error_degrees,peak_rss_mib\n");
+    let mut md = format!(
+        "## Time against error: {}\n\nTraining wall time (scoring excluded), novel-pose test images (sRGB 8-bit; foreground = mask or any rendered pixel).\n\n| field | iteration | training time (s) | novel pose PSNR | foreground PSNR | SSIM | albedo PSNR | albedo foreground PSNR | light error (deg) | peak RSS (MiB) |\n|---|---|---|---|---|---|---|---|---|---|\n",
+        scene.display_name()
+    );
+    for p in points {
+        let cells = [
+            kind_name(p.kind).to_string(),
+            p.iteration.to_string(),
+            format!("{:.1}", p.train_seconds),
+            format!("{:.2}", p.novel_pose_psnr),
+            format!("{:.2}", p.novel_pose_foreground_psnr),
+            format!("{:.4}", p.novel_pose_ssim),
+            f(p.albedo_psnr, 2),
+            f(p.albedo_foreground_psnr, 2),
+            f(p.light_error_degrees, 2),
+            f(p.peak_rss_mib, 0),
+        ];
+        csv += &(cells.join(",").replace(",-", ",") + "\n");
+        md += &format!("| {} |\n", cells.join(" | "));
+    }
+    let write = |name: &str, text: &str| crate::imageio::write_atomic(&out.join(name), text.as_bytes()).map_err(|e| crate::train::io(&out.join(name), e));
+    write("fit-curves.csv", &csv)?;
+    write("fit-curves.md", &md)?;
+    let charts: [(&str, &str, fn(&CurvePoint) -> Option<f64>); 3] = [
+        ("fit-foreground-psnr.png", "novel pose foreground PSNR (dB)", |p| Some(p.novel_pose_foreground_psnr)),
+        ("fit-albedo-psnr.png", "albedo PSNR (dB)", |p| p.albedo_psnr),
+        ("fit-light-error.png", "light direction error (degrees)", |p| p.light_error_degrees),
+    ];
+    for (file, label, pick) in charts {
+        let series: Vec<Series> = [FieldKind::Mlp, FieldKind::Grid]
+            .into_iter()
+            .filter_map(|kind| {
+                let pts: Vec<(f64, f64)> = points.iter().filter(|p| p.kind == kind).filter_map(|p| pick(p).filter(|v| v.is_finite()).map(|v| (p.train_seconds, v))).collect();
+                (!pts.is_empty()).then(|| Series { name: format!("{} field", kind_name(kind)), points: pts, lines: true })
+            })
+            .collect();
+        if series.is_empty() {
+            continue;
+        }
+        let chart = Chart { title: format!("{label} against training time"), x_label: "training wall time (s)".into(), y_label: label.into(), log_x: false, log_y: false, series };
+        chart.render(800, 500).save_png(&out.join(file)).map_err(|e| crate::train::io(&out.join(file), e))?;
+    }
+    Ok(md)
+}

@@ -1,0 +1,227 @@
+//! Image quality metrics on 8-bit sRGB, as an evaluation reads them: PSNR over the whole image,
+//! PSNR over the foreground only (a black background otherwise dominates the score of a small
+//! figure), and SSIM exactly as scikit-image computes it with `gaussian_weights=True,
+//! sigma=1.5, use_sample_covariance=False, data_range=255` (11-tap window, K1 = 0.01,
+//! K2 = 0.03, channel SSIMs averaged, the mean taken over pixels whose window lies inside).
+
+use crate::imageio::{linear_to_srgb8, Mask, RgbImage};
+
+/// The three scores of one rendered image against its ground truth.
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize)]
+pub struct ImageScores {
+    pub psnr: f64,
+    pub foreground_psnr: f64,
+    pub ssim: f64,
+}
+
+/// All three scores; `mask` is the ground-truth foreground when the scene has one.
+pub fn score(rendered: &RgbImage, truth: &RgbImage, mask: Option<&Mask>) -> ImageScores {
+    let foreground = foreground(rendered, truth, mask);
+    ImageScores { psnr: psnr_srgb8(rendered, truth), foreground_psnr: psnr_srgb8_where(rendered, truth, &foreground), ssim: ssim_srgb8(rendered, truth) }
+}
+
+fn srgb8(image: &RgbImage) -> Vec<[f64; 3]> {
+    image.pixels.iter().map(|p| [0, 1, 2].map(|c| linear_to_srgb8(p[c]) as f64)).collect()
+}
+
+/// The pixels that count as foreground: the ground-truth mask (or, without one, every pixel the
+/// truth does not leave black) together with every pixel the render does not leave black, so
+/// that a render is penalised both for missing the figure and for drawing outside it.
+pub fn foreground(rendered: &RgbImage, truth: &RgbImage, mask: Option<&Mask>) -> Vec<bool> {
+    let drawn = |image: &RgbImage, k: usize| image.pixels[k].iter().any(|&v| linear_to_srgb8(v) > 0);
+    (0..truth.pixels.len()).map(|k| mask.map(|m| m.foreground[k]).unwrap_or_else(|| drawn(truth, k)) || drawn(rendered, k)).collect()
+}
+
+/// PSNR (dB) after 8-bit sRGB encoding over every pixel and channel.
+pub fn psnr_srgb8(a: &RgbImage, b: &RgbImage) -> f64 {
+    psnr_srgb8_where(a, b, &vec![true; a.pixels.len()])
+}
+
+/// PSNR (dB) after 8-bit sRGB encoding over the pixels where `selected` holds; infinite for
+/// identical pixels (or none selected).
+pub fn psnr_srgb8_where(a: &RgbImage, b: &RgbImage, selected: &[bool]) -> f64 {
+    let (a, b) = (srgb8(a), srgb8(b));
+    let mut sum = 0.0;
+    let mut count = 0usize;
+    for k in (0..a.len()).filter(|&k| selected[k]) {
+        for c in 0..3 {
+            let d = a[k][c] - b[k][c];
+            sum += d * d;
+        }
+        count += 3;
+    }
+    if sum == 0.0 || count == 0 {
+        return f64::INFINITY;
+    }
+    10.0 * (255.0f64 * 255.0 / (sum / count as f64)).log10()
+}
+
+/// Radius of the Gaussian window: scikit-image's `int(truncate * sigma + 0.5)` with truncate 3.5.
+const SSIM_RADIUS: usize = 5;
+const SSIM_SIGMA: f64 = 1.5;
+
+/// The normalised 11-tap Gaussian window (separable).
+fn ssim_window() -> [f64; 2 * SSIM_RADIUS + 1] {
+    let mut w = [0.0; 2 * SSIM_RADIUS + 1];
+    for (k, v) in w.iter_mut().enumerate() {
+        let x = k as f64 - SSIM_RADIUS as f64;
+        *v = (-0.5 * x * x / (SSIM_SIGMA * SSIM_SIGMA)).exp();
+    }
+    let sum: f64 = w.iter().sum();
+    w.map(|v| v / sum)
+}
+
+/// Gaussian-weighted means over the window centred on every interior pixel (the pixels whose
+/// window lies inside the image): `[rows][cols]` of the interior, row-major.
+fn filtered(values: &[f64], width: usize, height: usize) -> Vec<f64> {
+    let w = ssim_window();
+    let r = SSIM_RADIUS;
+    let (iw, ih) = (width - 2 * r, height - 2 * r);
+    // Horizontal pass over every row, then vertical over the interior.
+    let mut rows = vec![0.0; height * iw];
+    for y in 0..height {
+        for x in 0..iw {
+            rows[y * iw + x] = (0..w.len()).map(|k| w[k] * values[y * width + x + k]).sum();
+        }
+    }
+    let mut out = vec![0.0; ih * iw];
+    for y in 0..ih {
+        for x in 0..iw {
+            out[y * iw + x] = (0..w.len()).map(|k| w[k] * rows[(y + k) * iw + x]).sum();
+        }
+    }
+    out
+}
+
+/// SSIM of two images in 8-bit sRGB: the mean over channels of each channel's mean SSIM over
+/// the interior pixels. Images smaller than the 11-pixel window score NaN, as scikit-image
+/// refuses them.
+pub fn ssim_srgb8(a: &RgbImage, b: &RgbImage) -> f64 {
+    let (width, height) = (a.width, a.height);
+    if width < 2 * SSIM_RADIUS + 1 || height < 2 * SSIM_RADIUS + 1 {
+        return f64::NAN;
+    }
+    let (a, b) = (srgb8(a), srgb8(b));
+    let c1 = (0.01f64 * 255.0).powi(2);
+    let c2 = (0.03f64 * 255.0).powi(2);
+    let mut total = 0.0;
+    for c in 0..3 {
+        let x: Vec<f64> = a.iter().map(|p| p[c]).collect();
+        let y: Vec<f64> = b.iter().map(|p| p[c]).collect();
+        let product = |p: &[f64], q: &[f64]| p.iter().zip(q).map(|(u, v)| u * v).collect::<Vec<f64>>();
+        let (ux, uy) = (filtered(&x, width, height), filtered(&y, width, height));
+        let (uxx, uyy, uxy) = (filtered(&product(&x, &x), width, height), filtered(&product(&y, &y), width, height), filtered(&product(&x, &y), width, height));
+        let mut sum = 0.0;
+        for k in 0..ux.len() {
+            let (vx, vy, vxy) = (uxx[k] - ux[k] * ux[k], uyy[k] - uy[k] * uy[k], uxy[k] - ux[k] * uy[k]);
+            let numerator = (2.0 * ux[k] * uy[k] + c1) * (2.0 * vxy + c2);
+            let denominator = (ux[k] * ux[k] + uy[k] * uy[k] + c1) * (vx + vy + c2);
+            sum += numerator / denominator;
+        }
+        total += sum / ux.len() as f64;
+    }
+    total / 3.0
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::imageio::srgb_to_linear;
+
+    /// An image from 8-bit sRGB values.
+    fn image(width: usize, height: usize, value: impl Fn(usize, usize, usize) -> u8) -> RgbImage {
+        let mut im = RgbImage::new(width, height);
+        for y in 0..height {
+            for x in 0..width {
+                im.set(x, y, [0, 1, 2].map(|c| srgb_to_linear(value(x, y, c) as f32 / 255.0)));
+            }
+        }
+        im
+    }
+
+    #[test]
+    fn the_srgb_round_trip_is_exact_for_every_8_bit_value() {
+        for v in 0..=255u8 {
+            assert_eq!(linear_to_srgb8(srgb_to_linear(v as f32 / 255.0)), v);
+        }
+    }
+
+    #[test]
+    fn psnr_by_hand() {
+        // One channel of one pixel off by 10 in a 2x2 image: MSE = 100 / 12.
+        let a = image(2, 2, |_, _, _| 100);
+        let b = image(2, 2, |x, y, c| if x == 0 && y == 0 && c == 0 { 110 } else { 100 });
+        let expected = 10.0 * (255.0f64 * 255.0 / (100.0 / 12.0)).log10();
+        assert!((psnr_srgb8(&a, &b) - expected).abs() < 1e-9);
+        // Over the foreground pixel only: MSE = 100 / 3.
+        let only = [true, false, false, false];
+        let expected = 10.0 * (255.0f64 * 255.0 / (100.0 / 3.0)).log10();
+        assert!((psnr_srgb8_where(&a, &b, &only) - expected).abs() < 1e-9);
+        assert_eq!(psnr_srgb8(&a, &a), f64::INFINITY);
+    }
+
+    #[test]
+    fn foreground_is_the_mask_or_anything_drawn() {
+        let truth = image(3, 1, |x, _, _| if x == 0 { 50 } else { 0 });
+        let rendered = image(3, 1, |x, _, _| if x == 2 { 9 } else { 0 });
+        let mask = Mask { width: 3, height: 1, foreground: vec![false, true, false] };
+        assert_eq!(foreground(&rendered, &truth, Some(&mask)), vec![false, true, true]);
+        assert_eq!(foreground(&rendered, &truth, None), vec![true, false, true]);
+    }
+
+    #[test]
+    fn ssim_of_constant_images_is_the_luminance_term() {
+        // Constant images: no variance, so SSIM = (2ab + C1) / (a^2 + b^2 + C1).
+        let (a, b) = (120.0f64, 80.0f64);
+        let c1 = (0.01f64 * 255.0).powi(2);
+        let expected = (2.0 * a * b + c1) / (a * a + b * b + c1);
+        let got = ssim_srgb8(&image(13, 12, |_, _, _| 120), &image(13, 12, |_, _, _| 80));
+        assert!((got - expected).abs() < 1e-12, "{got} vs {expected}");
+        assert!((ssim_srgb8(&image(12, 12, |x, y, _| (x * 20 + y) as u8), &image(12, 12, |x, y, _| (x * 20 + y) as u8)) - 1.0).abs() < 1e-12);
+        assert!(ssim_srgb8(&image(10, 12, |_, _, _| 1), &image(10, 12, |_, _, _| 1)).is_nan(), "smaller than the window");
+    }
+
+    #[test]
+    fn ssim_of_an_offset_copy_is_the_luminance_term_of_the_local_means() {
+        // y = x + d: variances and covariance are equal, so the structure term is exactly 1 and
+        // SSIM = mean of (2 ux (ux + d) + C1) / (ux^2 + (ux + d)^2 + C1). An 11x11 image has one
+        // interior pixel, whose weighted mean is computed here term by term.
+        let value = |x: usize, y: usize| ((x * 7 + y * 13) % 50) as u8 + 60;
+        let d = 30.0;
+        let a = image(11, 11, |x, y, _| value(x, y));
+        let b = image(11, 11, |x, y, _| value(x, y) + 30);
+        let g = |k: usize| (-0.5 * (k as f64 - 5.0).powi(2) / 2.25).exp();
+        let norm: f64 = (0..11).map(g).sum::<f64>().powi(2);
+        let ux: f64 = (0..11).flat_map(|y| (0..11).map(move |x| (x, y))).map(|(x, y)| g(x) * g(y) * value(x, y) as f64).sum::<f64>() / norm;
+        let c1 = (0.01f64 * 255.0).powi(2);
+        let expected = (2.0 * ux * (ux + d) + c1) / (ux * ux + (ux + d) * (ux + d) + c1);
+        let got = ssim_srgb8(&a, &b);
+        assert!((got - expected).abs() < 1e-12, "{got} vs {expected}");
+    }
+
+    #[test]
+    fn ssim_matches_scikit_image() {
+        // Pseudo-random 16x14 images from an LCG; reference values from scikit-image 0.26.0:
+        // structural_similarity(a, b, gaussian_weights=True, sigma=1.5,
+        // use_sample_covariance=False, data_range=255, channel_axis=2).
+        let lcg = |seed: u64| {
+            let mut s = seed;
+            move || {
+                s = s.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+                (s >> 56) as u8
+            }
+        };
+        let fill = |seed: u64, smooth: bool| {
+            let mut next = lcg(seed);
+            let raw: Vec<u8> = (0..16 * 14 * 3).map(|_| next()).collect();
+            image(16, 14, move |x, y, c| if smooth { ((x * 9 + y * 5 + c * 40) as u8).wrapping_add(raw[(y * 16 + x) * 3 + c] / 8) } else { raw[(y * 16 + x) * 3 + c] })
+        };
+        for (seed_a, seed_b, smooth, expected) in SKIMAGE_REFERENCE {
+            let got = ssim_srgb8(&fill(seed_a, smooth), &fill(seed_b, smooth));
+            assert!((got - expected).abs() < 1e-9, "seeds {seed_a}, {seed_b}: {got} vs scikit-image {expected}");
+        }
+    }
+
+    /// (seed of a, seed of b, smooth, scikit-image's SSIM); see `ssim_matches_scikit_image`.
+    const SKIMAGE_REFERENCE: [(u64, u64, bool, f64); 3] = [(1, 2, false, -0.06925288517787796), (3, 3, false, 1.0), (5, 6, true, 0.6844799119473582)];
+}

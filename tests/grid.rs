@@ -1,0 +1,290 @@
+//! The `grid` field: its lookup plan (rows inside the table, dense levels collision-free,
+//! coefficients that sum to one), the closed-form spatial tangents of the plan and of the whole
+//! SDF against finite differences, and the gradient to the feature table against finite
+//! differences of the loss.
+
+use burn::module::Param;
+use burn::tensor::{Device, Tensor, TensorData};
+use glam::DVec3;
+use umbra::field::grid::{lookup, Skinning};
+use umbra::field::{AvatarField, FieldConfig, PoseTensors};
+use umbra::synth::character::{Character, Kind};
+use umbra::synth::trace::Stream;
+
+fn values<const D: usize>(t: Tensor<D>) -> Vec<f32> {
+    t.into_data().convert::<f32>().try_to_vec::<f32>().unwrap()
+}
+
+struct Setup {
+    character: Character,
+    pose: umbra::skeleton::Pose,
+    config: FieldConfig,
+}
+
+fn setup() -> Setup {
+    let character = Character::new(Kind::Human);
+    let pose = character.pose(0.3, 0.2, DVec3::new(0.05, 0.0, -0.1));
+    let (lo, hi) = pose.bounds(&character.skeleton);
+    let config = FieldConfig::with_grid(character.skeleton.bones.iter().map(|b| b.length as f32).collect(), (hi - lo).length() as f32);
+    Setup { character, pose, config }
+}
+
+/// Points near the body's surface and a few farther out (outside some bones' boxes).
+fn points(s: &Setup, count: usize, seed: u64) -> Vec<DVec3> {
+    let mut stream = Stream::new(seed, 1, 0);
+    let bones = s.character.skeleton.len();
+    (0..count)
+        .map(|k| {
+            let b = (stream.uniform() * bones as f64) as usize % bones;
+            let along = stream.uniform() * s.character.skeleton.bones[b].length;
+            let spread = if k % 5 == 0 { 0.4 } else { 0.12 };
+            let local = DVec3::new((stream.uniform() - 0.5) * spread, along, (stream.uniform() - 0.5) * spread);
+            s.pose.to_world(b, local)
+        })
+        .collect()
+}
+
+fn flat(points: &[DVec3]) -> Vec<f32> {
+    points.iter().flat_map(|p| p.as_vec3().to_array()).collect()
+}
+
+fn skinning(config: &FieldConfig) -> Skinning {
+    Skinning { sharpness: -0.5 / (config.skinning_width * config.skinning_width), prior_radius: config.prior_radius }
+}
+
+#[test]
+fn the_plan_stays_in_the_table_and_interpolates_a_partition_of_unity() {
+    let s = setup();
+    let grid = s.config.grid.clone().unwrap();
+    let levels = grid.layout();
+    assert!(levels.first().unwrap().dense && !levels.last().unwrap().dense, "coarse levels are dense, the finest hashed");
+    let device = Device::flex();
+    let frames = PoseTensors::new(&s.pose, &s.character.skeleton, &device).frames;
+    let pts = points(&s, 200, 3);
+    let plan = lookup(&grid, &levels, &frames, skinning(&s.config), &flat(&pts), false);
+    let rows = grid.levels * grid.table_size();
+    assert!(plan.rows.iter().all(|&r| r >= 0 && (r as usize) < rows));
+    let per_level = grid.corners() / grid.levels;
+    for (p, chunk) in plan.coefficients.chunks(grid.corners()).enumerate() {
+        for (l, level) in chunk.chunks(per_level).enumerate() {
+            // Skinning weights sum to one and so do the trilinear weights of each bone's cell.
+            let sum: f32 = level.iter().sum();
+            assert!((sum - 1.0).abs() < 1e-5, "point {p} level {l}: {sum}");
+        }
+    }
+    // A dense level lays the bones' grids one after another: every row of level 0 lies
+    // within their total, which fits the level's table.
+    let dense = &levels[0];
+    let total: usize = dense.dims.iter().map(|d| d[0] * d[1] * d[2]).sum();
+    assert!(total <= grid.table_size());
+    let level0 = plan.rows.iter().enumerate().filter(|(k, _)| (k % grid.corners()) / per_level == 0);
+    assert!(level0.clone().all(|(_, &r)| (r as usize) < total));
+    assert!(dense.offsets.windows(2).zip(&dense.dims).all(|(o, d)| o[1] - o[0] == d[0] * d[1] * d[2]), "bones' grids do not overlap");
+}
+
+#[test]
+fn plan_tangents_match_finite_differences() {
+    let s = setup();
+    let grid = s.config.grid.clone().unwrap();
+    let levels = grid.layout();
+    let device = Device::flex();
+    let frames = PoseTensors::new(&s.pose, &s.character.skeleton, &device).frames;
+    let skin = skinning(&s.config);
+    let pts = points(&s, 60, 5);
+    let plan = lookup(&grid, &levels, &frames, skin, &flat(&pts), true);
+    let h = 5e-5f32;
+    let (mut checked, mut kinks) = (0, 0);
+    for (p, point) in pts.iter().enumerate() {
+        for axis in 0..3 {
+            let shifted = |sign: f32| {
+                let mut q = point.as_vec3().to_array();
+                q[axis] += sign * h;
+                lookup(&grid, &levels, &frames, skin, &q, false)
+            };
+            let (plus, minus, here) = (shifted(1.0), shifted(-1.0), lookup(&grid, &levels, &frames, skin, &point.as_vec3().to_array(), false));
+            // A cell face, a box face or a change of nearest bones within h makes a kink (or
+            // moves rows): central differences do not apply there, and those cases are counted.
+            if plus.rows != here.rows || minus.rows != here.rows {
+                kinks += 1;
+                continue;
+            }
+            let c = grid.corners();
+            let scale = 1.0 / grid.finest_cell;
+            let slopes: Vec<(f32, f32)> = (0..c).map(|k| ((plus.coefficients[k] - here.coefficients[k]) / h, (here.coefficients[k] - minus.coefficients[k]) / h)).collect();
+            if slopes.iter().any(|(f, b)| (f - b).abs() > 0.02 * scale) {
+                kinks += 1;
+                continue;
+            }
+            for (k, (forward, backward)) in slopes.into_iter().enumerate() {
+                let analytic = plan.coefficient_tangents[(p * c + k) * 3 + axis];
+                let central = 0.5 * (forward + backward);
+                assert!((analytic - central).abs() < 5e-3 * scale, "point {p} axis {axis} corner {k}: {analytic} vs {central}");
+                checked += 1;
+            }
+            let prior_fd = (plus.prior[0] - minus.prior[0]) / (2.0 * h);
+            assert!((plan.prior_tangents[p * 3 + axis] - prior_fd).abs() < 2e-3, "prior: {} vs {prior_fd}", plan.prior_tangents[p * 3 + axis]);
+        }
+    }
+    assert!(checked > 10_000 && kinks * 10 < pts.len() * 3, "checked {checked}, kinks {kinks}");
+}
+
+/// A grid field whose table and decoder hold O(1) random values, so its SDF has real structure.
+/// With `all_active`, every hidden unit's bias is large enough that no ReLU switches near the
+/// test points: the SDF is then smooth inside each cell and finite differences are sharp.
+fn busy_field(config: &FieldConfig, device: &Device, all_active: bool) -> AvatarField {
+    let mut field = config.init(device, 7);
+    let mut stream = Stream::new(11, 2, 0);
+    let grid = field.grid.take().unwrap();
+    let [rows, features] = grid.table.val().dims();
+    let table: Vec<f32> = (0..rows * features).map(|_| (stream.uniform() * 2.0 - 1.0) as f32).collect();
+    field.grid = Some(umbra::field::grid::FeatureGrid { table: Param::from_tensor(Tensor::from_data(TensorData::new(table, [rows, features]), device)), config: grid.config });
+    let [i, o] = field.output.weight.val().dims();
+    let w: Vec<f32> = (0..i * o).map(|_| (stream.uniform() * 2.0 - 1.0) as f32 * 0.3).collect();
+    field.output.weight = Param::from_tensor(Tensor::from_data(TensorData::new(w, [i, o]), device));
+    if all_active {
+        // Each feature lies in [-1, 1] (per level, weights summing to one over table values in
+        // [-1, 1]), so with 16 features and |w| <= 1/4 a first-layer bias of 5 keeps every unit
+        // on; non-negative weights after it keep the next layers on too. Small biases keep
+        // f32 rounding below the finite differences' resolution.
+        for (l, layer) in field.hidden.iter_mut().enumerate() {
+            let [inputs, width] = layer.weight.val().dims();
+            if l > 0 {
+                let w = values(layer.weight.val()).into_iter().map(f32::abs).collect::<Vec<_>>();
+                layer.weight = Param::from_tensor(Tensor::from_data(TensorData::new(w, [inputs, width]), device));
+            }
+            let bias = if l == 0 { 5.0 } else { 0.1 };
+            layer.bias = Some(Param::from_tensor(Tensor::from_data(TensorData::new(vec![bias; width], [width]), device)));
+        }
+    }
+    field
+}
+
+#[test]
+fn sdf_gradient_by_tangents_matches_finite_differences() {
+    let s = setup();
+    let device = Device::flex();
+    let field = busy_field(&s.config, &device, true);
+    let pose = PoseTensors::new(&s.pose, &s.character.skeleton, &device);
+    let pts = points(&s, 150, 9);
+    let grid_config = s.config.grid.clone().unwrap();
+    let levels = grid_config.layout();
+    let skin = skinning(&s.config);
+    let n = pts.len();
+    let tensor = |p: &[DVec3]| Tensor::<2>::from_data(TensorData::new(flat(p), [p.len(), 3]), &device);
+    let (sdf, gradient) = field.sdf_and_gradient(tensor(&pts), &pose);
+    let (sdf, gradient) = (values(sdf), values(gradient));
+    let plain = values(field.sdf(tensor(&pts), &pose));
+    for k in 0..n {
+        assert!((sdf[k] - plain[k]).abs() < 1e-6, "the tangent pass computes the same SDF");
+    }
+    // 1 mm: the SDF's f32 rounding (~1e-7 of its magnitude) stays far below h x the slope; a
+    // step this long often crosses a cell face, so those cases are skipped and many points used.
+    let h = 1e-3;
+    let (mut checked, mut kinks) = (0, 0);
+    for axis in 0..3 {
+        let shift = |sign: f64| pts.iter().map(|p| *p + DVec3::from_array([0, 1, 2].map(|a| if a == axis { sign * h } else { 0.0 }))).collect::<Vec<_>>();
+        let plus = values(field.sdf(tensor(&shift(1.0)), &pose));
+        let minus = values(field.sdf(tensor(&shift(-1.0)), &pose));
+        for k in 0..n {
+            let forward = (plus[k] - sdf[k]) as f64 / h;
+            let backward = (sdf[k] - minus[k]) as f64 / h;
+            // Rows that change within h (a cell face, another nearest bone): not differentiable.
+            let rows = |p: DVec3| lookup(&grid_config, &levels, &pose.frames, skin, &p.as_vec3().to_array(), false).rows;
+            if rows(shift(-1.0)[k]) != rows(pts[k]) || rows(pts[k]) != rows(shift(1.0)[k]) {
+                kinks += 1;
+                continue;
+            }
+            let central = 0.5 * (forward + backward);
+            let analytic = gradient[k * 3 + axis] as f64;
+            assert!((analytic - central).abs() < 2e-3 * central.abs().max(1.0), "point {k} axis {axis}: {analytic} vs {central} (forward {forward}, backward {backward})");
+            checked += 1;
+        }
+    }
+    assert!(checked >= 40, "checked {checked}, kinks {kinks}");
+}
+
+#[test]
+fn table_gradient_matches_finite_differences() {
+    let s = setup();
+    let device = Device::flex().autodiff();
+    let field = busy_field(&s.config, &device, false);
+    let pose = PoseTensors::new(&s.pose, &s.character.skeleton, &device);
+    let pts = points(&s, 30, 13);
+    let input = Tensor::<2>::from_data(TensorData::new(flat(&pts), [pts.len(), 3]), &device);
+    let loss = |f: &AvatarField| {
+        let out = f.forward(input.clone(), &pose);
+        (out.sdf.powf_scalar(2.0).sum() + out.albedo.sum()).reshape([1])
+    };
+    let grads = loss(&field).backward();
+    let grid = field.grid.as_ref().unwrap();
+    let analytic = values(grid.table.grad(&grads).unwrap());
+    let table = values(grid.table.val());
+    let features = grid.config.features;
+    // The entries with the largest gradients (they are touched by many corners).
+    let mut order: Vec<usize> = (0..analytic.len()).collect();
+    order.sort_by(|a, b| analytic[*b].abs().total_cmp(&analytic[*a].abs()));
+    let h = 1e-3f32;
+    let mut checked = 0;
+    for &k in order.iter().take(12) {
+        let perturbed = |delta: f32| {
+            let mut t = table.clone();
+            t[k] += delta;
+            let mut f = field.clone();
+            let g = f.grid.take().unwrap();
+            f.grid = Some(umbra::field::grid::FeatureGrid { table: Param::from_tensor(Tensor::from_data(TensorData::new(t, [table.len() / features, features]), &device)), config: g.config });
+            values(loss(&f))[0] as f64
+        };
+        let here = values(loss(&field))[0] as f64;
+        let (forward, backward) = ((perturbed(h) - here) / h as f64, (here - perturbed(-h)) / h as f64);
+        // A ReLU of the decoder switching within h: the one-sided slopes differ; skipped.
+        if (forward - backward).abs() > 2e-2 * forward.abs().max(1e-1) {
+            continue;
+        }
+        let fd = 0.5 * (forward + backward);
+        assert!((analytic[k] as f64 - fd).abs() < 2e-2 * fd.abs().max(1e-1), "entry {k}: {} vs {fd}", analytic[k]);
+        checked += 1;
+    }
+    assert!(checked >= 6, "only {checked} entries away from a kink");
+}
+
+#[test]
+fn feature_tangents_match_finite_differences() {
+    let s = setup();
+    let device = Device::flex();
+    let field = busy_field(&s.config, &device, false);
+    let grid = field.grid.as_ref().unwrap();
+    let frames = PoseTensors::new(&s.pose, &s.character.skeleton, &device).frames;
+    let skin = skinning(&s.config);
+    let pts = points(&s, 40, 9);
+    let n = pts.len();
+    let tensor = |p: &[DVec3]| Tensor::<2>::from_data(TensorData::new(flat(p), [p.len(), 3]), &device);
+    let encoded = grid.encode(tensor(&pts), &frames, skin, true);
+    let width = grid.config.width();
+    let (feature_tangents, _) = encoded.tangents.unwrap();
+    let (here, tangents) = (values(encoded.features), values(feature_tangents));
+    let levels = grid.config.layout();
+    let h = 1e-4;
+    let (mut checked, mut kinks) = (0, 0);
+    for axis in 0..3 {
+        let shift = |sign: f64| pts.iter().map(|p| *p + DVec3::from_array([0, 1, 2].map(|a| if a == axis { sign * h } else { 0.0 }))).collect::<Vec<_>>();
+        let plus = values(grid.encode(tensor(&shift(1.0)), &frames, skin, false).features);
+        let minus = values(grid.encode(tensor(&shift(-1.0)), &frames, skin, false).features);
+        for k in 0..n {
+            // Rows that change within h (a cell face, another nearest bone): not differentiable there.
+            let rows = |p: DVec3| lookup(&grid.config, &levels, &frames, skin, &p.as_vec3().to_array(), false).rows;
+            let (a, b, c) = (rows(shift(-1.0)[k]), rows(pts[k]), rows(shift(1.0)[k]));
+            if a != b || b != c {
+                kinks += 1;
+                continue;
+            }
+            for j in 0..width {
+                let central = (plus[k * width + j] - minus[k * width + j]) as f64 / (2.0 * h);
+                let analytic = tangents[(axis * n + k) * width + j] as f64;
+                assert!((analytic - central).abs() < 1e-2 * central.abs().max(1.0), "point {k} axis {axis} feature {j}: {analytic} vs {central} (value {})", here[k * width + j]);
+                checked += 1;
+            }
+        }
+    }
+    assert!(checked > 0 && kinks * 5 < 3 * n, "checked {checked}, kinks {kinks}");
+}
+
