@@ -136,7 +136,7 @@ pub enum Command {
         /// `fit`: the field kinds to compare.
         #[arg(long, value_enum, value_delimiter = ',', default_value = "mlp,grid")]
         kinds: Vec<crate::schedule::FieldKind>,
-        /// `fit`: the schedule (its `[field] kind` is replaced by each of --kinds).
+        /// `fit`, `steps`: the schedule (its `[field]` is replaced by each variant's).
         #[arg(long, default_value = "schedules/default.toml")]
         schedule: PathBuf,
         /// `fit`: scoring points per fit.
@@ -156,6 +156,8 @@ pub enum BenchKind {
     Shadows,
     /// SDF gradients (normals, Eikonal): forward-mode tangents vs central differences.
     Gradients,
+    /// Training-step cost per field kind, with and without the work a step need not do.
+    Steps,
     /// Time against error: a scene fitted once per field kind, novel-pose foreground PSNR,
     /// SSIM, albedo PSNR and light error along the way.
     Fit,
@@ -182,6 +184,10 @@ pub fn main() -> i32 {
             let scene = scene.unwrap_or_else(|| PathBuf::from("datasets-synthetic/human-sun-128"));
             let options = crate::bench::FitBenchOptions { scene, schedule, out, kinds, evaluations, iterations, seed };
             crate::bench::fit_curves(&options, |line| eprintln!("{line}")).map(|table| print!("{table}")).map_err(|e| e.to_string())
+        }
+        Command::Bench { which: BenchKind::Steps, out, quick, scene, schedule, .. } => {
+            let scene = scene.unwrap_or_else(|| PathBuf::from("datasets-synthetic/human-sun-128"));
+            crate::bench::steps(&scene, &schedule, &out, quick).map(|table| print!("{table}")).map_err(|e| e.to_string())
         }
         Command::Bench { which: BenchKind::Gradients, out, quick, scene, .. } => {
             let scene = scene.or_else(|| Some(PathBuf::from(crate::bench::DEFAULT_SCENE)).filter(|p| p.join("scene.json").exists()));

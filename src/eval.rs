@@ -5,7 +5,7 @@ use crate::gaussians::PosedGaussian;
 use crate::imageio::RgbImage;
 use crate::light::Light;
 use crate::relight::EnvironmentSampler;
-use crate::render::{ray_bounds, render, RaySet};
+use crate::render::{ray_bounds, render, RaySet, Sampling};
 use crate::scene::Scene;
 use crate::shading::{shade_lambertian, Emitter, LightKind};
 use crate::train::Avatar;
@@ -29,8 +29,11 @@ pub enum Lighting<'a> {
     Known { light: &'a Light, albedo_scale: DVec3, samples: usize },
 }
 
-/// Renders the scene's `camera` in `frame` with `samples` samples per ray under `lighting`.
-pub fn render_view(model: &Avatar, scene: &Scene, camera: usize, frame: usize, samples: usize, device: &Device, lighting: &Lighting) -> RgbImage {
+/// How whole views are sampled for evaluation and relighting: twice a training step's.
+pub const VIEW_SAMPLING: Sampling = Sampling { coarse: 48, fine: 32 };
+
+/// Renders the scene's `camera` in `frame`, sampled as `samples` says, under `lighting`.
+pub fn render_view(model: &Avatar, scene: &Scene, camera: usize, frame: usize, samples: Sampling, device: &Device, lighting: &Lighting) -> RgbImage {
     let camera = &scene.cameras[camera];
     let pose = &scene.frames[frame].pose;
     let pose_tensors = crate::field::PoseTensors::new(pose, &scene.skeleton, device);
@@ -67,7 +70,7 @@ pub fn render_view(model: &Avatar, scene: &Scene, camera: usize, frame: usize, s
             continue;
         }
         let r = rays.len();
-        let jitter = vec![0.5; r * samples];
+        let jitter = vec![0.5; r * samples.total()];
         let deferred = render(&model.field, &pose_tensors, &rays, samples, &jitter, needs_normals.then_some(crate::field::GRADIENT), device);
         let scaled =
             |scale: &DVec3| deferred.albedo.clone() * Tensor::<1>::from_data(TensorData::new(scale.as_vec3().to_array().to_vec(), [3]), device).reshape([1, 3]);

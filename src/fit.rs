@@ -351,13 +351,13 @@ pub struct ScoredView {
     pub albedo: Option<(crate::imageio::RgbImage, ImageScores)>,
 }
 
-/// Renders one test view (48 samples per ray) in `lighting`, and its albedo where the scene
+/// Renders one test view (`eval::VIEW_SAMPLING`) in `lighting`, and its albedo where the scene
 /// has the truth, and scores both (`metrics::score`).
 pub fn score_view(model: &Avatar, scene: &Scene, view: &crate::scene::View, lighting: &Lighting, albedo_scale: glam::DVec3, device: &burn::tensor::Device) -> ScoredView {
-    let image = render_view(model, scene, view.camera, view.frame, 48, device, lighting);
+    let image = render_view(model, scene, view.camera, view.frame, crate::eval::VIEW_SAMPLING, device, lighting);
     let scores = score(&image, &view.colour, view.mask.as_ref());
     let albedo = view.albedo.as_ref().map(|truth| {
-        let albedo = render_view(model, scene, view.camera, view.frame, 48, device, &Lighting::Albedo { albedo_scale });
+        let albedo = render_view(model, scene, view.camera, view.frame, crate::eval::VIEW_SAMPLING, device, &Lighting::Albedo { albedo_scale });
         let s = score(&albedo, truth, view.mask.as_ref());
         (albedo, s)
     });

@@ -197,7 +197,7 @@ pub fn relight_run(options: &RelightOptions, mut on: impl FnMut(TrainMessage)) -
     let mut sheet = RgbImage::new(cell_w * frames.len(), cell_h * cameras.len());
     for (row, &camera) in cameras.iter().enumerate() {
         for (column, &frame) in frames.iter().enumerate() {
-            let image = render_view(&model, scene, camera, frame, 48, &device, &lighting);
+            let image = render_view(&model, scene, camera, frame, crate::eval::VIEW_SAMPLING, &device, &lighting);
             let name = format!("c{camera:02}_f{frame:04}.png");
             crate::fit::save_png(&out.join(&name), &image)?;
             for y in 0..image.height {

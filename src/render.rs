@@ -2,8 +2,15 @@
 //! Gaussians' bounding spheres (rays that miss every one cost nothing and stay background),
 //! volume-renders the field's VolSDF density into accumulation, depth and albedo, and finds the
 //! surface point and its normal for deferred shading. Also renders whole views for evaluation.
+//!
+//! Sampling is hierarchical: a coarse pass of stratified samples, without gradients, finds
+//! where the density is; fine samples are drawn there by inverse transform of the coarse
+//! weights, and the differentiable pass renders coarse and fine samples together. A surface as
+//! thin as VolSDF's beta is then resolved along every ray, also the grazing rays of a
+//! silhouette, which coarse samples alone integrate into a halo.
 
 use crate::field::{AvatarField, GradientMethod, PoseTensors};
+use burn::module::Module;
 use crate::gaussians::PosedGaussian;
 use burn::tensor::{Device, Tensor, TensorData};
 use glam::DVec3;
@@ -80,37 +87,137 @@ pub struct Deferred {
     pub sample_density: Tensor<1>,
 }
 
-/// Volume-renders `rays` through the field in `pose` with `samples` stratified samples per ray,
-/// `jitter` in [0, 1) per sample (`[R * S]` values; 0.5 for a deterministic render).
+/// Samples per ray: `coarse` stratified over the ray's bound; `fine` more where the coarse
+/// pass found density (none: the coarse samples alone, rendered with gradients).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Sampling {
+    pub coarse: usize,
+    pub fine: usize,
+}
+
+impl Sampling {
+    /// Samples per ray in the differentiable pass.
+    pub fn total(&self) -> usize {
+        self.coarse + self.fine
+    }
+}
+
+/// Where each ray is sampled: distances `t` and the lengths `delta` of the intervals they
+/// stand for (`[R * S]` each, ray-major, ascending along each ray).
+struct Samples {
+    t: Vec<f32>,
+    delta: Vec<f32>,
+}
+
+/// Stratified samples over `[near, far]`: sample `k` at `near + (k + jitter) step`.
+fn stratified(rays: &RaySet, samples: usize, jitter: &[f32]) -> Samples {
+    let mut out = Samples { t: Vec::with_capacity(rays.len() * samples), delta: Vec::with_capacity(rays.len() * samples) };
+    for i in 0..rays.len() {
+        let step = (rays.far[i] - rays.near[i]) / samples as f32;
+        for k in 0..samples {
+            out.t.push(rays.near[i] + step * (k as f32 + jitter[i * samples + k]));
+            out.delta.push(step);
+        }
+    }
+    out
+}
+
+/// Adds `fine` samples per ray drawn by inverse transform from the coarse samples' weights
+/// (`[R * Sc]`) over their strata (a small uniform floor keeps empty rays sampled), merges
+/// them with the coarse ones in order and gives each sample the interval between the
+/// midpoints to its neighbours.
+fn refine(rays: &RaySet, coarse: &Samples, weights: &[f32], sampling: Sampling, jitter: &[f32]) -> Samples {
+    let (sc, sf) = (sampling.coarse, sampling.fine);
+    let s = sc + sf;
+    let mut out = Samples { t: Vec::with_capacity(rays.len() * s), delta: Vec::with_capacity(rays.len() * s) };
+    let mut merged = Vec::with_capacity(s);
+    for i in 0..rays.len() {
+        let (near, far) = (rays.near[i], rays.far[i]);
+        let step = (far - near) / sc as f32;
+        let w = &weights[i * sc..(i + 1) * sc];
+        let floor = 1e-2 * w.iter().sum::<f32>().max(1e-3) / sc as f32;
+        let mut cdf = Vec::with_capacity(sc + 1);
+        cdf.push(0.0f32);
+        for &wk in w {
+            cdf.push(cdf.last().copied().unwrap_or(0.0) + wk.max(0.0) + floor);
+        }
+        let total = cdf[sc];
+        merged.clear();
+        merged.extend_from_slice(&coarse.t[i * sc..(i + 1) * sc]);
+        let mut bin = 0;
+        for j in 0..sf {
+            let u = (j as f32 + jitter[i * sf + j]) / sf as f32 * total;
+            while bin + 1 < sc && cdf[bin + 1] < u {
+                bin += 1;
+            }
+            let inside = ((u - cdf[bin]) / (cdf[bin + 1] - cdf[bin]).max(1e-12)).clamp(0.0, 1.0);
+            merged.push(near + step * (bin as f32 + inside));
+        }
+        merged.sort_by(f32::total_cmp);
+        for k in 0..s {
+            let lo = if k == 0 { near } else { 0.5 * (merged[k - 1] + merged[k]) };
+            let hi = if k + 1 == s { far } else { 0.5 * (merged[k] + merged[k + 1]) };
+            out.t.push(merged[k]);
+            out.delta.push((hi - lo).max(0.0));
+        }
+    }
+    out
+}
+
+/// Per-sample compositing weights `T alpha` from densities and interval lengths `[R, S]`.
+fn compositing_weights(density: Tensor<2>, delta: Tensor<2>) -> Tensor<2> {
+    let optical = density * delta; // sigma delta
+    let alpha = optical.clone().neg().exp().neg() + 1.0;
+    // Transmittance before each sample: exp(-exclusive cumulative optical depth).
+    let before = (optical.clone().cumsum(1) - optical).neg().exp();
+    before * alpha
+}
+
+/// Points `o + t d` of every sample, `[R * S, 3]`.
+fn sample_points(origins: &Tensor<2>, directions: &Tensor<2>, t: &Tensor<2>) -> Tensor<2> {
+    let [r, s] = t.dims();
+    (origins.clone().unsqueeze_dim::<3>(1) + directions.clone().unsqueeze_dim::<3>(1) * t.clone().unsqueeze_dim::<3>(2)).reshape([r * s, 3])
+}
+
+/// Volume-renders `rays` through the field in `pose`, sampled as `sampling` says, with
+/// `jitter` in [0, 1) per sample (`[R * coarse]` values for the coarse strata, then
+/// `[R * fine]` for the fine draws; 0.5 everywhere for a deterministic render).
 /// Normals cost a gradient of the SDF per ray, so they are computed only when `normals` says
 /// by which method.
 pub fn render(
     field: &AvatarField,
     pose: &PoseTensors,
     rays: &RaySet,
-    samples: usize,
+    sampling: Sampling,
     jitter: &[f32],
     normals: Option<GradientMethod>,
     device: &Device,
 ) -> Deferred {
     let r = rays.len();
-    let s = samples;
-    let t1 = |v: &Vec<f32>| Tensor::<1>::from_data(TensorData::new(v.clone(), [r]), device);
     let origins: Tensor<2> = Tensor::from_data(TensorData::new(rays.origins.clone(), [r, 3]), device);
     let directions: Tensor<2> = Tensor::from_data(TensorData::new(rays.directions.clone(), [r, 3]), device);
-    let near = t1(&rays.near).reshape([r, 1]);
-    let far = t1(&rays.far).reshape([r, 1]);
-    let step = (far - near.clone()) / s as f32; // [R, 1]
-    let index: Vec<f32> = (0..r * s).map(|k| (k % s) as f32 + jitter[k]).collect();
-    let t: Tensor<2> = near + step.clone() * Tensor::<2>::from_data(TensorData::new(index, [r, s]), device); // [R, S]
-    let points = (origins.clone().unsqueeze_dim::<3>(1) + directions.clone().unsqueeze_dim::<3>(1) * t.clone().unsqueeze_dim::<3>(2)).reshape([r * s, 3]);
+    let coarse = stratified(rays, sampling.coarse, &jitter[..r * sampling.coarse]);
+    let samples = if sampling.fine == 0 {
+        coarse
+    } else {
+        // The coarse pass: no gradients, no graph.
+        let plain = device.clone().without_autodiff();
+        let sc = sampling.coarse;
+        let t = Tensor::<2>::from_data(TensorData::new(coarse.t.clone(), [r, sc]), &plain);
+        let delta = Tensor::<2>::from_data(TensorData::new(coarse.delta.clone(), [r, sc]), &plain);
+        let points = sample_points(&origins.clone().without_autodiff(), &directions.clone().without_autodiff(), &t);
+        let still = field.valid();
+        let density = still.density(still.sdf(points, pose)).reshape([r, sc]);
+        let weights = compositing_weights(density, delta).into_data().convert::<f32>().try_to_vec::<f32>().unwrap_or_else(|_| vec![0.0; r * sc]);
+        refine(rays, &coarse, &weights, sampling, &jitter[r * sc..])
+    };
+    let s = sampling.total();
+    let t = Tensor::<2>::from_data(TensorData::new(samples.t, [r, s]), device);
+    let delta = Tensor::<2>::from_data(TensorData::new(samples.delta, [r, s]), device);
+    let points = sample_points(&origins, &directions, &t);
     let out = field.forward(points.clone(), pose);
     let density = field.density(out.sdf);
-    let optical = density.clone().reshape([r, s]) * step; // sigma delta
-    let alpha = optical.clone().neg().exp().neg() + 1.0;
-    // Transmittance before each sample: exp(-exclusive cumulative optical depth).
-    let before = (optical.clone().cumsum(1) - optical).neg().exp();
-    let weights = before * alpha; // [R, S]
+    let weights = compositing_weights(density.clone().reshape([r, s]), delta); // [R, S]
     let accumulation = weights.clone().sum_dim(1).reshape([r]);
     let albedo = (weights.clone().unsqueeze_dim::<3>(2) * out.albedo.reshape([r, s, 3])).sum_dim(1).reshape([r, 3]);
     let depth = (weights * t).sum_dim(1).reshape([r]) / (accumulation.clone() + 1e-6);

@@ -82,6 +82,8 @@ pub struct Schedule {
     pub iterations: usize,
     pub rays_per_batch: usize,
     pub samples_per_ray: usize,
+    /// Samples per ray added where the coarse ones found density (hierarchical sampling).
+    pub fine_samples_per_ray: usize,
     /// Points per step for the Gaussian density fit, and for Eikonal and curvature.
     pub density_points: usize,
     pub regulariser_points: usize,
@@ -184,6 +186,7 @@ impl Schedule {
             "iterations",
             "rays_per_batch",
             "samples_per_ray",
+            "fine_samples_per_ray",
             "density_points",
             "regulariser_points",
             "checkpoint_every",
@@ -284,6 +287,7 @@ impl Schedule {
             iterations,
             rays_per_batch: count(file, &table, "rays_per_batch", 512, 1)?,
             samples_per_ray: count(file, &table, "samples_per_ray", 24, 2)?,
+            fine_samples_per_ray: count(file, &table, "fine_samples_per_ray", 0, 0)?,
             density_points: count(file, &table, "density_points", 256, 0)?,
             regulariser_points: count(file, &table, "regulariser_points", 128, 0)?,
             checkpoint_every: count(file, &table, "checkpoint_every", 250, 1)?,

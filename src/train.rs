@@ -6,7 +6,7 @@
 use crate::field::{AvatarField, FieldConfig, GradientMethod, PoseTensors};
 use crate::gaussians::{GaussianParams, GaussianSet};
 use crate::light::Light;
-use crate::render::{ray_bounds, render, RaySet};
+use crate::render::{ray_bounds, render, RaySet, Sampling};
 use crate::scene::{Scene, Split};
 use crate::schedule::Schedule;
 use crate::shading::{LightKind, LightModel};
@@ -132,9 +132,34 @@ struct FrameData {
     views: Vec<usize>,
 }
 
-/// Per training view: foreground pixel indices for balanced ray sampling.
+/// Per training view: pixel indices for balanced ray sampling.
 struct ViewData {
     foreground: Vec<usize>,
+    /// Pixels within `BOUNDARY_BAND` pixels of the silhouette's edge, on either side.
+    boundary: Vec<usize>,
+}
+
+/// Half-width (pixels) of the band around a silhouette that a third of each batch samples:
+/// there the surface's position is decided, and uniform sampling hits it rarely (a few
+/// percent of a view's pixels).
+const BOUNDARY_BAND: usize = 2;
+
+/// The pixels of `mask` within `band` pixels (Chebyshev) of a pixel of the other kind.
+fn boundary_pixels(mask: &crate::imageio::Mask, band: usize) -> Vec<usize> {
+    let (w, h) = (mask.width, mask.height);
+    let b = band as i64;
+    (0..w * h)
+        .filter(|&p| {
+            let (x, y) = ((p % w) as i64, (p / w) as i64);
+            let inside = mask.foreground[p];
+            (-b..=b).any(|dy| {
+                (-b..=b).any(|dx| {
+                    let (u, v) = (x + dx, y + dy);
+                    u >= 0 && v >= 0 && (u as usize) < w && (v as usize) < h && mask.foreground[v as usize * w + u as usize] != inside
+                })
+            })
+        })
+        .collect()
 }
 
 pub struct Trainer {
@@ -152,6 +177,9 @@ pub struct Trainer {
     /// How SDF gradients (normals, Eikonal, curvature) are taken; `GRADIENT` unless a
     /// benchmark compares methods.
     pub gradient: GradientMethod,
+    /// Render rays that miss every Gaussian bound too (as before they were skipped): only
+    /// for the benchmark that measures what skipping them saves.
+    pub render_missed_rays: bool,
     bone_centres: Tensor<2>,
 }
 
@@ -246,7 +274,10 @@ impl Trainer {
         let views = scene
             .views
             .iter()
-            .map(|v| ViewData { foreground: v.mask.as_ref().map(|m| (0..m.foreground.len()).filter(|&k| m.foreground[k]).collect()).unwrap_or_default() })
+            .map(|v| ViewData {
+                foreground: v.mask.as_ref().map(|m| (0..m.foreground.len()).filter(|&k| m.foreground[k]).collect()).unwrap_or_default(),
+                boundary: v.mask.as_ref().map(|m| boundary_pixels(m, BOUNDARY_BAND)).unwrap_or_default(),
+            })
             .collect();
         let set = GaussianSet::along_bones(&scene.skeleton, 4, 0.05, 10.0);
         let (lo, hi) = scene
@@ -289,6 +320,7 @@ impl Trainer {
             iteration: 0,
             stream: Stream::new(seed, 0x7AA1, 0),
             gradient: crate::field::GRADIENT,
+            render_missed_rays: false,
             bone_centres,
         })
     }
@@ -312,11 +344,16 @@ impl Trainer {
             let view = &self.scene.views[v];
             let camera = &self.scene.cameras[view.camera];
             let pixels = camera.width * camera.height;
-            let foreground = &self.views[v].foreground;
-            let pixel = if k % 2 == 0 && !foreground.is_empty() {
-                foreground[(self.stream.uniform() * foreground.len() as f64) as usize % foreground.len()]
-            } else {
+            // A third each from the foreground, the silhouette's band and the whole view.
+            let pool = match k % 3 {
+                0 => &self.views[v].foreground,
+                1 => &self.views[v].boundary,
+                _ => &Vec::new(),
+            };
+            let pixel = if pool.is_empty() {
                 (self.stream.uniform() * pixels as f64) as usize % pixels
+            } else {
+                pool[(self.stream.uniform() * pool.len() as f64) as usize % pool.len()]
             };
             let ray = camera.pixel_ray(pixel % camera.width, pixel / camera.width);
             let bounds = ray_bounds(ray.origin, ray.direction, &posed);
@@ -351,8 +388,9 @@ impl Trainer {
         let r = rays.len();
         // Only rays that meet a bound are rendered (at least one, so the graph is never empty);
         // the rest are appended as background.
-        let rendered = hits.max(1);
-        let s = self.schedule.samples_per_ray;
+        let rendered = if self.render_missed_rays { r } else { hits.max(1) };
+        let sampling = Sampling { coarse: self.schedule.samples_per_ray, fine: self.schedule.fine_samples_per_ray };
+        let s = sampling.total();
         let jitter: Vec<f32> = (0..rendered * s).map(|_| self.stream.uniform() as f32).collect();
         let device = self.device.clone();
         let pose = self.frames[frame].pose_tensors.clone();
@@ -360,7 +398,7 @@ impl Trainer {
         let w = |name: &str| schedule.weight(name, it);
         let model = self.model.take().ok_or_else(|| FitError::Input("the model was lost by an interrupted step".into()))?;
         let shading = self.fit_light && w("rgb") > 0.0;
-        let deferred = render(&model.field, &pose, &rays.first(rendered), s, &jitter, shading.then_some(self.gradient), &device);
+        let deferred = render(&model.field, &pose, &rays.first(rendered), sampling, &jitter, shading.then_some(self.gradient), &device);
         let background = |t: Tensor<2>| if rendered < r { Tensor::cat(vec![t, Tensor::zeros([r - rendered, 3], &device)], 0) } else { t };
         let accumulation =
             if rendered < r { Tensor::cat(vec![deferred.accumulation.clone(), Tensor::zeros([r - rendered], &device)], 0) } else { deferred.accumulation.clone() };

@@ -208,7 +208,7 @@ fn uniform_light_without_occlusion_is_albedo_times_radiance() {
 
 #[test]
 fn shipped_scenes_reproduce_byte_for_byte_from_their_options() {
-    for name in ["human-sun", "dog-sun", "human-mono"] {
+    for name in ["human-sun", "dog-sun", "human-mono", "human-sun-128"] {
         let shipped = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("datasets-synthetic").join(name);
         let text = std::fs::read_to_string(shipped.join("scene.json")).unwrap();
         let json: serde_json::Value = serde_json::from_str(&text).unwrap();

@@ -4,9 +4,11 @@
 mod fit;
 mod gradients;
 mod shadows;
+mod steps;
 
 pub use fit::{fit_curves, CurvePoint, FitBenchOptions};
 pub use gradients::gradients;
+pub use steps::steps;
 pub use shadows::{body_cloud, shadows, sun_rays, Row, FLOPS_PER_PAIR};
 
 use std::time::Instant;

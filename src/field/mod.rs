@@ -140,7 +140,7 @@ impl FieldConfig {
             grid: self.grid.as_ref().map(|g| g.init(device, seed)),
             hidden,
             output,
-            log_beta: Param::from_tensor(Tensor::from_data(TensorData::new(vec![self.initial_beta.ln()], [1]), device)),
+            beta_raw: Param::from_tensor(Tensor::from_data(TensorData::new(vec![self.initial_beta.ln() / BETA_RATE], [1]), device)),
             config: self.clone(),
         }
     }
@@ -152,7 +152,8 @@ pub struct AvatarField {
     pub grid: Option<FeatureGrid>,
     pub hidden: Vec<Linear>,
     pub output: Linear,
-    pub log_beta: Param<Tensor<1>>,
+    /// `ln(beta - MIN_BETA) / BETA_RATE`.
+    pub beta_raw: Param<Tensor<1>>,
     #[module(skip)]
     pub config: FieldConfig,
 }
@@ -218,6 +219,12 @@ pub struct FieldOutput {
 /// The smallest beta, so density stays finite.
 pub const MIN_BETA: f32 = 2e-3;
 
+/// How much faster than the network's weights beta moves under Adam (whose step does not
+/// depend on the gradient's scale): beta must fall from its start (3 cm) to a few millimetres
+/// within the fit's first few hundred steps, or every silhouette keeps a halo as wide as the
+/// Laplace tail (2-3 beta on each side); at the field's rate that takes over a thousand.
+const BETA_RATE: f32 = 10.0;
+
 impl AvatarField {
     fn config(&self) -> &FieldConfig {
         &self.config
@@ -243,7 +250,7 @@ impl AvatarField {
     }
 
     pub fn beta(&self) -> Tensor<1> {
-        self.log_beta.val().exp() + MIN_BETA
+        (self.beta_raw.val() * BETA_RATE).exp() + MIN_BETA
     }
 
     /// VolSDF density `(1 / beta) Psi_beta(-sdf)`, Psi the Laplace CDF.

@@ -1,0 +1,60 @@
+//! Where a grid lookup's time goes: planning on the CPU, the tensor gather and its backward,
+//! for one training step's worth of sample points (512 rays x 24 samples).
+use burn::tensor::{Device, Tensor, TensorData};
+use glam::DVec3;
+use std::time::Instant;
+use umbra::field::grid::{lookup, Skinning};
+use umbra::field::{FieldConfig, PoseTensors};
+use umbra::synth::character::{Character, Kind};
+use umbra::synth::trace::Stream;
+
+fn main() {
+    let character = Character::new(Kind::Human);
+    let pose = character.pose(0.3, 0.0, DVec3::ZERO);
+    let (lo, hi) = pose.bounds(&character.skeleton);
+    let config = FieldConfig::with_grid(character.skeleton.bones.iter().map(|b| b.length as f32).collect(), (hi - lo).length() as f32);
+    let grid = config.grid.clone().unwrap();
+    let levels = grid.layout();
+    let device = Device::flex().autodiff();
+    let tensors = PoseTensors::new(&pose, &character.skeleton, &device);
+    let mut s = Stream::new(1, 2, 3);
+    let n = 512 * 24;
+    let points: Vec<f32> = (0..n * 3).map(|k| (lo[k % 3] + (hi[k % 3] - lo[k % 3]) * s.uniform()) as f32).collect();
+    let skinning = Skinning { sharpness: -0.5 / (0.05f32 * 0.05), prior_radius: 0.06 };
+    let repeat = 10;
+    let t = Instant::now();
+    for _ in 0..repeat {
+        std::hint::black_box(lookup(&grid, &levels, &tensors.frames, skinning, &points, false));
+    }
+    println!("plan: {:.1} ms", t.elapsed().as_secs_f64() * 1e3 / repeat as f64);
+    let field = config.init(&device, 0);
+    let input = Tensor::<2>::from_data(TensorData::new(points.clone(), [n, 3]), &device);
+    let t = Instant::now();
+    for _ in 0..repeat {
+        let f = field.grid.as_ref().unwrap().encode(input.clone(), &tensors.frames, skinning, false);
+        std::hint::black_box(f.features.into_data());
+    }
+    println!("encode forward: {:.1} ms", t.elapsed().as_secs_f64() * 1e3 / repeat as f64);
+    let t = Instant::now();
+    for _ in 0..repeat {
+        let f = field.grid.as_ref().unwrap().encode(input.clone(), &tensors.frames, skinning, false);
+        let g = f.features.sum().backward();
+        std::hint::black_box(field.grid.as_ref().unwrap().table.grad(&g));
+    }
+    println!("encode forward + backward: {:.1} ms", t.elapsed().as_secs_f64() * 1e3 / repeat as f64);
+    let t = Instant::now();
+    for _ in 0..repeat {
+        let out = field.forward(input.clone(), &tensors);
+        let g = (out.sdf.sum() + out.albedo.sum()).backward();
+        std::hint::black_box(field.grid.as_ref().unwrap().table.grad(&g));
+    }
+    println!("field forward + backward: {:.1} ms", t.elapsed().as_secs_f64() * 1e3 / repeat as f64);
+    let mlp = FieldConfig::for_bones(character.skeleton.len()).init(&device, 0);
+    let t = Instant::now();
+    for _ in 0..repeat {
+        let out = mlp.forward(input.clone(), &tensors);
+        let g = (out.sdf.sum() + out.albedo.sum()).backward();
+        std::hint::black_box(mlp.output.weight.grad(&g));
+    }
+    println!("mlp field forward + backward: {:.1} ms", t.elapsed().as_secs_f64() * 1e3 / repeat as f64);
+}

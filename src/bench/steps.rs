@@ -1,0 +1,89 @@
+//! Training-step cost (`umbra bench steps`): milliseconds per step on a real scene for the
+//! field kinds, with and without the work a step need not do (rendering rays that miss every
+//! Gaussian bound; encoding a point in every bone instead of its nearest), in the schedule's
+//! first stage (silhouette and grey albedo) and its light stage (normals and shadow rays).
+//! Baseline: the `mlp` field as it was (every ray rendered), measured in the same run.
+
+use super::time;
+use crate::plot::{Chart, Series};
+use crate::scene::Scene;
+use crate::schedule::{FieldKind, FieldSettings, Schedule};
+use crate::train::{Backend, FitError, Trainer};
+use std::path::Path;
+
+struct Variant {
+    name: &'static str,
+    field: FieldSettings,
+    render_missed_rays: bool,
+}
+
+/// Milliseconds per step of `variant` from `iteration` (its stage), over `budget` seconds.
+fn step_ms(scene: &Scene, schedule: &Schedule, variant: &Variant, iteration: usize, budget: f64) -> Result<f64, FitError> {
+    let mut schedule = schedule.clone();
+    schedule.field = variant.field.clone();
+    let mut trainer = Trainer::new(scene.clone(), schedule, Backend::Flex, 0)?;
+    trainer.render_missed_rays = variant.render_missed_rays;
+    trainer.iteration = iteration;
+    let mut failure = None;
+    let seconds = time(budget, || {
+        if let Err(e) = trainer.step() {
+            failure = Some(e);
+        }
+    });
+    match failure {
+        Some(e) => Err(e),
+        None => Ok(seconds * 1e3),
+    }
+}
+
+/// Times the variants on `scene`; writes `steps.{md,csv,png}` into `out`, returns the table.
+pub fn steps(scene_path: &Path, schedule_path: &Path, out: &Path, quick: bool) -> Result<String, FitError> {
+    let scene = Scene::load(scene_path)?;
+    let schedule = Schedule::load(schedule_path)?;
+    let grid = |top_bones: Option<usize>| FieldSettings { kind: FieldKind::Grid, levels: None, table_log2: None, top_bones };
+    let mlp = FieldSettings { kind: FieldKind::Mlp, levels: None, table_log2: None, top_bones: None };
+    let variants = [
+        Variant { name: "mlp, every ray rendered (before)", field: mlp.clone(), render_missed_rays: true },
+        Variant { name: "mlp, missed rays skipped", field: mlp, render_missed_rays: false },
+        Variant { name: "grid, every bone per point", field: grid(Some(scene.skeleton.len())), render_missed_rays: false },
+        Variant { name: "grid, nearest 3 bones per point", field: grid(None), render_missed_rays: false },
+    ];
+    let stages = [("silhouette stage", 0), ("light stage", schedule.light_from + 200)];
+    let budget = if quick { 1.0 } else { 8.0 };
+    std::fs::create_dir_all(out).map_err(|e| crate::train::io(out, e))?;
+    let mut rows = Vec::new();
+    for (stage, iteration) in stages {
+        let mut baseline = None;
+        for v in &variants {
+            let ms = step_ms(&scene, &schedule, v, iteration, budget)?;
+            let base = *baseline.get_or_insert(ms);
+            rows.push((stage, v.name, ms, ms / base));
+        }
+    }
+    let mut md = format!(
+        "## Training step cost: {} ({} rays per batch, {} samples per ray)\n\n| stage | variant | ms per step | vs baseline |\n|---|---|---|---|\n",
+        scene.display_name(),
+        schedule.rays_per_batch,
+        schedule.samples_per_ray
+    );
+    let mut csv = String::from("stage,variant,ms_per_step,ratio\n");
+    for (stage, name, ms, ratio) in &rows {
+        md += &format!("| {stage} | {name} | {ms:.1} | {ratio:.2}x |\n");
+        csv += &format!("{stage},{name},{ms:.3},{ratio:.4}\n");
+    }
+    md += "\nBaseline: the first row of each stage (the mlp field rendering every ray), measured in the same run.\n";
+    let write = |name: &str, text: &str| crate::imageio::write_atomic(&out.join(name), text.as_bytes()).map_err(|e| crate::train::io(&out.join(name), e));
+    write("steps.md", &md)?;
+    write("steps.csv", &csv)?;
+    let series = stages
+        .iter()
+        .map(|(stage, _)| Series {
+            name: stage.to_string(),
+            points: rows.iter().filter(|r| r.0 == *stage).enumerate().map(|(k, r)| (k as f64 + 1.0, r.2)).collect(),
+            lines: true,
+        })
+        .collect();
+    let chart = Chart { title: "ms per training step by variant (1-4 as in steps.md)".into(), x_label: "variant".into(), y_label: "ms per step".into(), log_x: false, log_y: false, series };
+    chart.render(800, 500).save_png(&out.join("steps.png")).map_err(|e| crate::train::io(&out.join("steps.png"), e))?;
+    Ok(md)
+}
