@@ -353,7 +353,14 @@ pub struct ScoredView {
 
 /// Renders one test view (`eval::VIEW_SAMPLING`) in `lighting`, and its albedo where the scene
 /// has the truth, and scores both (`metrics::score`).
-pub fn score_view(model: &Avatar, scene: &Scene, view: &crate::scene::View, lighting: &Lighting, albedo_scale: glam::DVec3, device: &burn::tensor::Device) -> ScoredView {
+pub fn score_view(
+    model: &Avatar,
+    scene: &Scene,
+    view: &crate::scene::View,
+    lighting: &Lighting,
+    albedo_scale: glam::DVec3,
+    device: &burn::tensor::Device,
+) -> ScoredView {
     let image = render_view(model, scene, view.camera, view.frame, crate::eval::VIEW_SAMPLING, device, lighting);
     let scores = score(&image, &view.colour, view.mask.as_ref());
     let albedo = view.albedo.as_ref().map(|truth| {
@@ -403,7 +410,11 @@ fn group_means(rows: &[ImageScore]) -> Vec<GroupScores> {
     let mean = |group: &'static str, scores: Vec<ImageScores>| {
         let n = scores.len() as f64;
         let avg = |pick: fn(&ImageScores) -> f64| scores.iter().map(pick).sum::<f64>() / n;
-        GroupScores { group, images: scores.len(), scores: ImageScores { psnr: avg(|s| s.psnr), foreground_psnr: avg(|s| s.foreground_psnr), ssim: avg(|s| s.ssim) } }
+        GroupScores {
+            group,
+            images: scores.len(),
+            scores: ImageScores { psnr: avg(|s| s.psnr), foreground_psnr: avg(|s| s.foreground_psnr), ssim: avg(|s| s.ssim) },
+        }
     };
     let mut out = Vec::new();
     for group in ["novel pose", "novel view", "relit", "training pose and view"] {

@@ -214,7 +214,11 @@ mod tests {
         let fill = |seed: u64, smooth: bool| {
             let mut next = lcg(seed);
             let raw: Vec<u8> = (0..16 * 14 * 3).map(|_| next()).collect();
-            image(16, 14, move |x, y, c| if smooth { ((x * 9 + y * 5 + c * 40) as u8).wrapping_add(raw[(y * 16 + x) * 3 + c] / 8) } else { raw[(y * 16 + x) * 3 + c] })
+            image(
+                16,
+                14,
+                move |x, y, c| if smooth { ((x * 9 + y * 5 + c * 40) as u8).wrapping_add(raw[(y * 16 + x) * 3 + c] / 8) } else { raw[(y * 16 + x) * 3 + c] },
+            )
         };
         for (seed_a, seed_b, smooth, expected) in SKIMAGE_REFERENCE {
             let got = ssim_srgb8(&fill(seed_a, smooth), &fill(seed_b, smooth));

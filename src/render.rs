@@ -10,8 +10,8 @@
 //! silhouette, which coarse samples alone integrate into a halo.
 
 use crate::field::{AvatarField, GradientMethod, PoseTensors};
-use burn::module::Module;
 use crate::gaussians::PosedGaussian;
+use burn::module::Module;
 use burn::tensor::{Device, Tensor, TensorData};
 use glam::DVec3;
 
@@ -66,7 +66,12 @@ impl RaySet {
     /// The first `n` rays.
     pub fn first(&self, n: usize) -> RaySet {
         let n = n.min(self.len());
-        RaySet { origins: self.origins[..3 * n].to_vec(), directions: self.directions[..3 * n].to_vec(), near: self.near[..n].to_vec(), far: self.far[..n].to_vec() }
+        RaySet {
+            origins: self.origins[..3 * n].to_vec(),
+            directions: self.directions[..3 * n].to_vec(),
+            near: self.near[..n].to_vec(),
+            far: self.far[..n].to_vec(),
+        }
     }
 
     pub fn is_empty(&self) -> bool {

@@ -156,7 +156,9 @@ fn parse_field(file: &Path, table: &toml::Table) -> Result<FieldSettings, Schedu
     };
     let bounded = |key: &str, lo: f64, hi: f64| -> Result<Option<f64>, ScheduleError> {
         match number(file, &field, key, "field")? {
-            Some(v) if v.fract() != 0.0 || v < lo || v > hi => Err(err(file, &format!("field.{key}"), format!("must be a whole number within {lo}..={hi}, found {v}"))),
+            Some(v) if v.fract() != 0.0 || v < lo || v > hi => {
+                Err(err(file, &format!("field.{key}"), format!("must be a whole number within {lo}..={hi}, found {v}")))
+            }
             other => Ok(other),
         }
     };

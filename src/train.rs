@@ -400,8 +400,11 @@ impl Trainer {
         let shading = self.fit_light && w("rgb") > 0.0;
         let deferred = render(&model.field, &pose, &rays.first(rendered), sampling, &jitter, shading.then_some(self.gradient), &device);
         let background = |t: Tensor<2>| if rendered < r { Tensor::cat(vec![t, Tensor::zeros([r - rendered, 3], &device)], 0) } else { t };
-        let accumulation =
-            if rendered < r { Tensor::cat(vec![deferred.accumulation.clone(), Tensor::zeros([r - rendered], &device)], 0) } else { deferred.accumulation.clone() };
+        let accumulation = if rendered < r {
+            Tensor::cat(vec![deferred.accumulation.clone(), Tensor::zeros([r - rendered], &device)], 0)
+        } else {
+            deferred.accumulation.clone()
+        };
         let albedo = background(deferred.albedo.clone());
         let target: Tensor<2> = Tensor::from_data(TensorData::new(colours, [r, 3]), &device);
         let mask: Tensor<1> = Tensor::from_data(TensorData::new(masks, [r]), &device);

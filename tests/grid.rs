@@ -110,7 +110,8 @@ fn plan_tangents_match_finite_differences() {
             }
             let c = grid.corners();
             let scale = 1.0 / grid.finest_cell;
-            let slopes: Vec<(f32, f32)> = (0..c).map(|k| ((plus.coefficients[k] - here.coefficients[k]) / h, (here.coefficients[k] - minus.coefficients[k]) / h)).collect();
+            let slopes: Vec<(f32, f32)> =
+                (0..c).map(|k| ((plus.coefficients[k] - here.coefficients[k]) / h, (here.coefficients[k] - minus.coefficients[k]) / h)).collect();
             if slopes.iter().any(|(f, b)| (f - b).abs() > 0.02 * scale) {
                 kinks += 1;
                 continue;
@@ -137,7 +138,10 @@ fn busy_field(config: &FieldConfig, device: &Device, all_active: bool) -> Avatar
     let grid = field.grid.take().unwrap();
     let [rows, features] = grid.table.val().dims();
     let table: Vec<f32> = (0..rows * features).map(|_| (stream.uniform() * 2.0 - 1.0) as f32).collect();
-    field.grid = Some(umbra::field::grid::FeatureGrid { table: Param::from_tensor(Tensor::from_data(TensorData::new(table, [rows, features]), device)), config: grid.config });
+    field.grid = Some(umbra::field::grid::FeatureGrid {
+        table: Param::from_tensor(Tensor::from_data(TensorData::new(table, [rows, features]), device)),
+        config: grid.config,
+    });
     let [i, o] = field.output.weight.val().dims();
     let w: Vec<f32> = (0..i * o).map(|_| (stream.uniform() * 2.0 - 1.0) as f32 * 0.3).collect();
     field.output.weight = Param::from_tensor(Tensor::from_data(TensorData::new(w, [i, o]), device));
@@ -196,7 +200,10 @@ fn sdf_gradient_by_tangents_matches_finite_differences() {
             }
             let central = 0.5 * (forward + backward);
             let analytic = gradient[k * 3 + axis] as f64;
-            assert!((analytic - central).abs() < 2e-3 * central.abs().max(1.0), "point {k} axis {axis}: {analytic} vs {central} (forward {forward}, backward {backward})");
+            assert!(
+                (analytic - central).abs() < 2e-3 * central.abs().max(1.0),
+                "point {k} axis {axis}: {analytic} vs {central} (forward {forward}, backward {backward})"
+            );
             checked += 1;
         }
     }
@@ -231,7 +238,10 @@ fn table_gradient_matches_finite_differences() {
             t[k] += delta;
             let mut f = field.clone();
             let g = f.grid.take().unwrap();
-            f.grid = Some(umbra::field::grid::FeatureGrid { table: Param::from_tensor(Tensor::from_data(TensorData::new(t, [table.len() / features, features]), &device)), config: g.config });
+            f.grid = Some(umbra::field::grid::FeatureGrid {
+                table: Param::from_tensor(Tensor::from_data(TensorData::new(t, [table.len() / features, features]), &device)),
+                config: g.config,
+            });
             values(loss(&f))[0] as f64
         };
         let here = values(loss(&field))[0] as f64;
@@ -280,11 +290,14 @@ fn feature_tangents_match_finite_differences() {
             for j in 0..width {
                 let central = (plus[k * width + j] - minus[k * width + j]) as f64 / (2.0 * h);
                 let analytic = tangents[(axis * n + k) * width + j] as f64;
-                assert!((analytic - central).abs() < 1e-2 * central.abs().max(1.0), "point {k} axis {axis} feature {j}: {analytic} vs {central} (value {})", here[k * width + j]);
+                assert!(
+                    (analytic - central).abs() < 1e-2 * central.abs().max(1.0),
+                    "point {k} axis {axis} feature {j}: {analytic} vs {central} (value {})",
+                    here[k * width + j]
+                );
                 checked += 1;
             }
         }
     }
     assert!(checked > 0 && kinks * 5 < 3 * n, "checked {checked}, kinks {kinks}");
 }
-

@@ -174,14 +174,22 @@ fn write_outputs(out: &Path, scene: &Scene, points: &[CurvePoint]) -> Result<Str
         let series: Vec<Series> = [FieldKind::Mlp, FieldKind::Grid]
             .into_iter()
             .filter_map(|kind| {
-                let pts: Vec<(f64, f64)> = points.iter().filter(|p| p.kind == kind).filter_map(|p| pick(p).filter(|v| v.is_finite()).map(|v| (p.train_seconds, v))).collect();
+                let pts: Vec<(f64, f64)> =
+                    points.iter().filter(|p| p.kind == kind).filter_map(|p| pick(p).filter(|v| v.is_finite()).map(|v| (p.train_seconds, v))).collect();
                 (!pts.is_empty()).then(|| Series { name: format!("{} field", kind_name(kind)), points: pts, lines: true })
             })
             .collect();
         if series.is_empty() {
             continue;
         }
-        let chart = Chart { title: format!("{label} against training time"), x_label: "training wall time (s)".into(), y_label: label.into(), log_x: false, log_y: false, series };
+        let chart = Chart {
+            title: format!("{label} against training time"),
+            x_label: "training wall time (s)".into(),
+            y_label: label.into(),
+            log_x: false,
+            log_y: false,
+            series,
+        };
         chart.render(800, 500).save_png(&out.join(file)).map_err(|e| crate::train::io(&out.join(file), e))?;
     }
     Ok(md)

@@ -8,8 +8,8 @@ mod steps;
 
 pub use fit::{fit_curves, CurvePoint, FitBenchOptions};
 pub use gradients::gradients;
-pub use steps::steps;
 pub use shadows::{body_cloud, shadows, sun_rays, Row, FLOPS_PER_PAIR};
+pub use steps::steps;
 
 use std::time::Instant;
 

@@ -83,7 +83,14 @@ pub fn steps(scene_path: &Path, schedule_path: &Path, out: &Path, quick: bool) -
             lines: true,
         })
         .collect();
-    let chart = Chart { title: "ms per training step by variant (1-4 as in steps.md)".into(), x_label: "variant".into(), y_label: "ms per step".into(), log_x: false, log_y: false, series };
+    let chart = Chart {
+        title: "ms per training step by variant (1-4 as in steps.md)".into(),
+        x_label: "variant".into(),
+        y_label: "ms per step".into(),
+        log_x: false,
+        log_y: false,
+        series,
+    };
     chart.render(800, 500).save_png(&out.join("steps.png")).map_err(|e| crate::train::io(&out.join("steps.png"), e))?;
     Ok(md)
 }

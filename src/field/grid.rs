@@ -87,7 +87,8 @@ impl GridConfig {
                 let t = if self.levels > 1 { l as f32 / (self.levels - 1) as f32 } else { 1.0 };
                 let cell = self.coarsest_cell * (self.finest_cell / self.coarsest_cell).powf(t);
                 let across = ((2.0 * self.reach) / cell).ceil() as usize + 1;
-                let dims: Vec<[usize; 3]> = self.bone_lengths.iter().map(|&len| [across, ((len + 2.0 * self.reach) / cell).ceil() as usize + 1, across]).collect();
+                let dims: Vec<[usize; 3]> =
+                    self.bone_lengths.iter().map(|&len| [across, ((len + 2.0 * self.reach) / cell).ceil() as usize + 1, across]).collect();
                 let mut offsets = Vec::with_capacity(dims.len());
                 let mut total = 0usize;
                 for d in &dims {
@@ -127,7 +128,8 @@ impl Level {
             let d = self.dims[bone];
             self.offsets[bone] + v[0] + d[0] * (v[1] + d[1] * v[2])
         } else {
-            let h = (v[0] as u32) ^ (v[1] as u32).wrapping_mul(2_654_435_761) ^ (v[2] as u32).wrapping_mul(805_459_861) ^ (bone as u32).wrapping_mul(3_674_653_429);
+            let h =
+                (v[0] as u32) ^ (v[1] as u32).wrapping_mul(2_654_435_761) ^ (v[2] as u32).wrapping_mul(805_459_861) ^ (bone as u32).wrapping_mul(3_674_653_429);
             h as usize & self.table_mask
         };
         self.table_offset + within
@@ -190,8 +192,10 @@ pub fn lookup(config: &GridConfig, levels: &[Level], frames: &[BoneFrame], skinn
     };
     // Points in chunks across threads; each chunk writes its own slices of the plan.
     const CHUNK: usize = 64;
-    let tangent_chunks: Vec<&mut [f32]> = if tangents { plan.coefficient_tangents.chunks_mut(CHUNK * c * 3).collect() } else { (0..n.div_ceil(CHUNK)).map(|_| &mut [][..]).collect() };
-    let prior_tangent_chunks: Vec<&mut [f32]> = if tangents { plan.prior_tangents.chunks_mut(CHUNK * 3).collect() } else { (0..n.div_ceil(CHUNK)).map(|_| &mut [][..]).collect() };
+    let tangent_chunks: Vec<&mut [f32]> =
+        if tangents { plan.coefficient_tangents.chunks_mut(CHUNK * c * 3).collect() } else { (0..n.div_ceil(CHUNK)).map(|_| &mut [][..]).collect() };
+    let prior_tangent_chunks: Vec<&mut [f32]> =
+        if tangents { plan.prior_tangents.chunks_mut(CHUNK * 3).collect() } else { (0..n.div_ceil(CHUNK)).map(|_| &mut [][..]).collect() };
     plan.rows
         .par_chunks_mut(CHUNK * c)
         .zip(plan.coefficients.par_chunks_mut(CHUNK * c))
@@ -258,7 +262,12 @@ fn plan_point(
     let d_logits: Vec<[f32; 3]> = chosen.iter().map(|a| a.2.map(|g| g * skinning.sharpness)).collect();
     let mean_d_logit = [0, 1, 2].map(|x| (0..top).map(|j| weights[j] * d_logits[j][x]).sum::<f32>());
     let near: Vec<Near> = (0..top)
-        .map(|j| Near { bone: chosen[j].1, weight: weights[j], d_weight: [0, 1, 2].map(|x| weights[j] * (d_logits[j][x] - mean_d_logit[x])), local: chosen[j].3 })
+        .map(|j| Near {
+            bone: chosen[j].1,
+            weight: weights[j],
+            d_weight: [0, 1, 2].map(|x| weights[j] * (d_logits[j][x] - mean_d_logit[x])),
+            local: chosen[j].3,
+        })
         .collect();
     // The capsule prior: skinning-weighted distance to the segments, minus the radius.
     let mut prior = -skinning.prior_radius;
