@@ -132,19 +132,19 @@ pub fn fit_curves(options: &FitBenchOptions, mut on: impl FnMut(String)) -> Resu
                     point.light_error_degrees.map(|v| format!("{v:.2} deg")).unwrap_or("-".into()),
                 ));
                 points.push(point);
-                write_outputs(&options.out, &scene, &points)?;
+                write_outputs(&options.out, &options.scene, &points)?;
             }
         }
     }
-    write_outputs(&options.out, &scene, &points)
+    write_outputs(&options.out, &options.scene, &points)
 }
 
-fn write_outputs(out: &Path, scene: &Scene, points: &[CurvePoint]) -> Result<String, FitError> {
+fn write_outputs(out: &Path, scene: &Path, points: &[CurvePoint]) -> Result<String, FitError> {
     let f = |v: Option<f64>, digits: usize| v.map(|v| format!("{v:.digits$}")).unwrap_or_else(|| "-".into());
     let mut csv = String::from("kind,iteration,train_seconds,novel_pose_psnr,novel_pose_foreground_psnr,novel_pose_ssim,albedo_psnr,albedo_foreground_psnr,light_error_degrees,peak_rss_mib\n");
     let mut md = format!(
         "## Time against error: {}\n\nTraining wall time (scoring excluded), novel-pose test images (sRGB 8-bit; foreground = mask or any rendered pixel).\n\n| field | iteration | training time (s) | novel pose PSNR | foreground PSNR | SSIM | albedo PSNR | albedo foreground PSNR | light error (deg) | peak RSS (MiB) |\n|---|---|---|---|---|---|---|---|---|---|\n",
-        scene.display_name()
+        scene.display()
     );
     for p in points {
         let cells = [
