@@ -109,25 +109,34 @@ fn a_short_fit_lowers_the_loss_and_turns_the_light_toward_the_truth() {
 }
 
 #[test]
-fn resume_continues_where_the_fit_stopped() {
-    let (dir, scene_path, schedule_path) = quick_setup("resume", TrainingLight::Sun, 40);
-    let options = |out: &str, iterations: usize, resume: bool| fit_options(&scene_path, dir.path().join(out), &schedule_path, Some(iterations), 3, resume);
-    let straight = umbra::fit::fit(&options("straight", 40, false), |_| {}).unwrap();
-    umbra::fit::fit(&options("resumed", 20, false), |_| {}).unwrap();
-    // A second fit into the same folder without --resume is refused.
-    let err = umbra::fit::fit(&options("resumed", 40, false), |_| {}).unwrap_err();
-    assert!(err.to_string().contains("--resume"), "{err}");
-    let resumed = umbra::fit::fit(&options("resumed", 40, true), |_| {}).unwrap();
-    let a = std::fs::read_to_string(dir.path().join("straight/losses.csv")).unwrap();
-    let b = std::fs::read_to_string(dir.path().join("resumed/losses.csv")).unwrap();
-    let column = |text: &str| text.lines().skip(1).map(|l| l.split(',').nth(1).unwrap().parse::<f64>().unwrap()).collect::<Vec<_>>();
-    let (ta, tb) = (column(&a), column(&b));
-    assert_eq!(ta.len(), 40);
-    assert_eq!(tb.len(), 40);
-    for i in 0..40 {
-        assert!((ta[i] - tb[i]).abs() <= 1e-4 * ta[i].abs().max(1e-3), "iteration {i}: {} vs {}", ta[i], tb[i]);
+fn resume_continues_where_the_fit_stopped_with_either_field() {
+    for kind in ["mlp", "grid"] {
+        let (dir, scene_path, schedule_path) = quick_setup(&format!("resume-{kind}"), TrainingLight::Sun, 40);
+        // Hierarchical sampling too, so the coarse pass and its draws are part of what resumes.
+        let text = std::fs::read_to_string(&schedule_path).unwrap().replace("samples_per_ray = 16", "samples_per_ray = 8\nfine_samples_per_ray = 8");
+        std::fs::write(&schedule_path, format!("{text}\n[field]\nkind = \"{kind}\"\n")).unwrap();
+        let options = |out: &str, iterations: usize, resume: bool| fit_options(&scene_path, dir.path().join(out), &schedule_path, Some(iterations), 3, resume);
+        let straight = umbra::fit::fit(&options("straight", 40, false), |_| {}).unwrap();
+        umbra::fit::fit(&options("resumed", 20, false), |_| {}).unwrap();
+        // A second fit into the same folder without --resume is refused.
+        let err = umbra::fit::fit(&options("resumed", 40, false), |_| {}).unwrap_err();
+        assert!(err.to_string().contains("--resume"), "{err}");
+        let resumed = umbra::fit::fit(&options("resumed", 40, true), |_| {}).unwrap();
+        let a = std::fs::read_to_string(dir.path().join("straight/losses.csv")).unwrap();
+        let b = std::fs::read_to_string(dir.path().join("resumed/losses.csv")).unwrap();
+        let column = |text: &str| text.lines().skip(1).map(|l| l.split(',').nth(1).unwrap().parse::<f64>().unwrap()).collect::<Vec<_>>();
+        let (ta, tb) = (column(&a), column(&b));
+        assert_eq!(ta.len(), 40);
+        assert_eq!(tb.len(), 40);
+        for i in 0..40 {
+            assert!((ta[i] - tb[i]).abs() <= 1e-4 * ta[i].abs().max(1e-3), "{kind}, iteration {i}: {} vs {}", ta[i], tb[i]);
+        }
+        assert_eq!(straight["light"]["direction"], resumed["light"]["direction"], "{kind}");
+        // The run renders from its checkpoint and schedule copy, whatever the field.
+        let evaluation = umbra::fit::render_run(&dir.path().join("resumed"), None, Backend::Flex, |_| {}).unwrap();
+        let psnr = evaluation["novel_pose_foreground_psnr"].as_f64().unwrap_or(f64::NAN);
+        assert!(psnr.is_finite() && psnr > 5.0, "{kind}: {psnr}");
     }
-    assert_eq!(straight["light"]["direction"], resumed["light"]["direction"]);
 }
 
 #[test]

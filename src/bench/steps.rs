@@ -61,10 +61,11 @@ pub fn steps(scene_path: &Path, schedule_path: &Path, out: &Path, quick: bool) -
         }
     }
     let mut md = format!(
-        "## Training step cost: {} ({} rays per batch, {} samples per ray)\n\n| stage | variant | ms per step | vs baseline |\n|---|---|---|---|\n",
-        scene.display_name(),
+        "## Training step cost: {} ({} rays per batch, {} coarse + {} fine samples per ray)\n\n| stage | variant | ms per step | vs baseline |\n|---|---|---|---|\n",
+        scene_path.display(),
         schedule.rays_per_batch,
-        schedule.samples_per_ray
+        schedule.samples_per_ray,
+        schedule.fine_samples_per_ray
     );
     let mut csv = String::from("stage,variant,ms_per_step,ratio\n");
     for (stage, name, ms, ratio) in &rows {
