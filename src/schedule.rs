@@ -29,6 +29,9 @@ pub struct FieldSettings {
     pub levels: Option<usize>,
     pub table_log2: Option<u32>,
     pub top_bones: Option<usize>,
+    /// Coarse-to-fine: only the coarser half of a grid's levels until `fine_levels_from`, the
+    /// rest faded in one after another until `fine_levels_until` (none: all levels throughout).
+    pub fine_levels: Option<(usize, usize)>,
 }
 
 #[derive(Clone, Copy, Debug, PartialEq, serde::Serialize)]
@@ -142,7 +145,7 @@ fn parse_field(file: &Path, table: &toml::Table) -> Result<FieldSettings, Schedu
         Some(toml::Value::Table(t)) => t.clone(),
         Some(other) => return Err(err(file, "field", format!("expected a table, found {}", other.type_str()))),
     };
-    let known = ["kind", "levels", "table_log2", "top_bones"];
+    let known = ["kind", "levels", "table_log2", "top_bones", "fine_levels_from", "fine_levels_until"];
     for key in field.keys() {
         if !known.contains(&key.as_str()) {
             return Err(err(file, &format!("field.{key}"), format!("unknown key (known: {})", known.join(", "))));
@@ -167,9 +170,15 @@ fn parse_field(file: &Path, table: &toml::Table) -> Result<FieldSettings, Schedu
         levels: bounded("levels", 1.0, 16.0)?.map(|v| v as usize),
         table_log2: bounded("table_log2", 8.0, 22.0)?.map(|v| v as u32),
         top_bones: bounded("top_bones", 1.0, 8.0)?.map(|v| v as usize),
+        fine_levels: match (bounded("fine_levels_from", 0.0, 1e9)?, bounded("fine_levels_until", 0.0, 1e9)?) {
+            (None, None) => None,
+            (Some(from), Some(until)) if until >= from => Some((from as usize, until as usize)),
+            (Some(_), Some(_)) => return Err(err(file, "field.fine_levels_until", "must not come before fine_levels_from")),
+            _ => return Err(err(file, "field.fine_levels_from", "fine_levels_from and fine_levels_until go together")),
+        },
     };
     if kind == FieldKind::Mlp {
-        if let Some(key) = ["levels", "table_log2", "top_bones"].into_iter().find(|k| field.contains_key(*k)) {
+        if let Some(key) = ["levels", "table_log2", "top_bones", "fine_levels_from", "fine_levels_until"].into_iter().find(|k| field.contains_key(*k)) {
             return Err(err(file, &format!("field.{key}"), "applies to kind = \"grid\" only"));
         }
     }
@@ -314,6 +323,22 @@ impl Schedule {
         self.weights.get(term).map(|r| r.at(iteration)).unwrap_or(0.0)
     }
 
+    /// How many of a grid's `levels` are active at an iteration (`FieldSettings::fine_levels`).
+    pub fn active_levels(&self, levels: usize, iteration: usize) -> f32 {
+        let Some((from, until)) = self.field.fine_levels else {
+            return levels as f32;
+        };
+        let coarse = levels.div_ceil(2) as f32;
+        let progress = if until > from {
+            ((iteration as f32 - from as f32) / (until - from) as f32).clamp(0.0, 1.0)
+        } else if iteration >= from {
+            1.0
+        } else {
+            0.0
+        };
+        coarse + (levels as f32 - coarse) * progress
+    }
+
     /// The learning rate of a group at an iteration (with the light's decay in the last segment).
     pub fn learning_rate(&self, group: &str, iteration: usize) -> f64 {
         let base = self.learning_rates.get(group).copied().unwrap_or(1e-3);
@@ -397,6 +422,20 @@ mod tests {
         assert_eq!(error_of("[losses]\nmask = nan").key, "losses.mask.weight");
         let e = error_of("iterations = [");
         assert!(e.to_string().starts_with("s.toml: (syntax)"), "{e}");
+    }
+
+    #[test]
+    fn coarse_to_fine_opens_the_finer_half_of_the_levels_between_its_iterations() {
+        let s =
+            Schedule::parse("[field]\nkind = \"grid\"\nfine_levels_from = 100\nfine_levels_until = 200\n[losses]\nmask = 1.0", Path::new("c.toml")).unwrap();
+        assert_eq!(s.active_levels(8, 0), 4.0);
+        assert_eq!(s.active_levels(8, 100), 4.0);
+        assert_eq!(s.active_levels(8, 150), 6.0);
+        assert_eq!(s.active_levels(8, 500), 8.0);
+        let all = Schedule::parse("[field]\nkind = \"grid\"\n[losses]\nmask = 1.0", Path::new("a.toml")).unwrap();
+        assert_eq!(all.active_levels(8, 0), 8.0);
+        assert_eq!(error_of("[field]\nkind = \"grid\"\nfine_levels_from = 100\n[losses]\nmask = 1.0").key, "field.fine_levels_from");
+        assert_eq!(error_of("[field]\nkind = \"grid\"\nfine_levels_from = 100\nfine_levels_until = 50\n[losses]\nmask = 1.0").key, "field.fine_levels_until");
     }
 
     #[test]

@@ -396,7 +396,10 @@ impl Trainer {
         let pose = self.frames[frame].pose_tensors.clone();
         let schedule = self.schedule.clone();
         let w = |name: &str| schedule.weight(name, it);
-        let model = self.model.take().ok_or_else(|| FitError::Input("the model was lost by an interrupted step".into()))?;
+        let mut model = self.model.take().ok_or_else(|| FitError::Input("the model was lost by an interrupted step".into()))?;
+        if let Some(grid) = model.field.grid.as_mut() {
+            grid.active_levels = self.schedule.active_levels(grid.config.levels, it);
+        }
         let shading = self.fit_light && w("rgb") > 0.0;
         let deferred = render(&model.field, &pose, &rays.first(rendered), sampling, &jitter, shading.then_some(self.gradient), &device);
         let background = |t: Tensor<2>| if rendered < r { Tensor::cat(vec![t, Tensor::zeros([r - rendered, 3], &device)], 0) } else { t };

@@ -141,6 +141,7 @@ fn busy_field(config: &FieldConfig, device: &Device, all_active: bool) -> Avatar
     field.grid = Some(umbra::field::grid::FeatureGrid {
         table: Param::from_tensor(Tensor::from_data(TensorData::new(table, [rows, features]), device)),
         config: grid.config,
+        active_levels: grid.active_levels,
     });
     let [i, o] = field.output.weight.val().dims();
     let w: Vec<f32> = (0..i * o).map(|_| (stream.uniform() * 2.0 - 1.0) as f32 * 0.3).collect();
@@ -241,6 +242,7 @@ fn table_gradient_matches_finite_differences() {
             f.grid = Some(umbra::field::grid::FeatureGrid {
                 table: Param::from_tensor(Tensor::from_data(TensorData::new(t, [table.len() / features, features]), &device)),
                 config: g.config,
+                active_levels: g.active_levels,
             });
             values(loss(&f))[0] as f64
         };
@@ -300,4 +302,30 @@ fn feature_tangents_match_finite_differences() {
         }
     }
     assert!(checked > 0 && kinks * 5 < 3 * n, "checked {checked}, kinks {kinks}");
+}
+
+#[test]
+fn inactive_levels_contribute_nothing_and_a_fading_level_contributes_in_part() {
+    let s = setup();
+    let device = Device::flex();
+    let mut field = busy_field(&s.config, &device, false);
+    let frames = PoseTensors::new(&s.pose, &s.character.skeleton, &device).frames;
+    let pts = points(&s, 20, 21);
+    let input = Tensor::<2>::from_data(TensorData::new(flat(&pts), [pts.len(), 3]), &device);
+    let full = values(field.grid.as_ref().unwrap().encode(input.clone(), &frames, skinning(&s.config), false).features);
+    field.grid.as_mut().unwrap().active_levels = 4.5;
+    let encoded = field.grid.as_ref().unwrap().encode(input, &frames, skinning(&s.config), true);
+    let (faded, tangents) = (values(encoded.features), values(encoded.tangents.unwrap().0));
+    let f = s.config.grid.as_ref().unwrap().features;
+    let width = 8 * f;
+    for (k, (a, b)) in full.iter().zip(&faded).enumerate() {
+        let level = (k % width) / f;
+        let expected = match level {
+            0..=3 => *a,
+            4 => 0.5 * a,
+            _ => 0.0,
+        };
+        assert!((b - expected).abs() < 1e-6, "feature {k} (level {level}): {b} vs {expected}");
+    }
+    assert!(tangents.iter().enumerate().all(|(k, t)| (k % width) / f < 5 || *t == 0.0), "inactive levels have no spatial derivative");
 }

@@ -105,7 +105,11 @@ impl GridConfig {
         let mut stream = crate::synth::trace::Stream::new(seed, 0x6121D, 0);
         let n = self.levels * self.table_size();
         let values: Vec<f32> = (0..n * self.features).map(|_| ((stream.uniform() * 2.0 - 1.0) * 1e-4) as f32).collect();
-        FeatureGrid { table: Param::from_tensor(Tensor::from_data(TensorData::new(values, [n, self.features]), device)), config: self.clone() }
+        FeatureGrid {
+            table: Param::from_tensor(Tensor::from_data(TensorData::new(values, [n, self.features]), device)),
+            config: self.clone(),
+            active_levels: self.levels as f32,
+        }
     }
 }
 
@@ -157,6 +161,10 @@ pub struct FeatureGrid {
     pub table: Param<Tensor<2>>,
     #[module(skip)]
     pub config: GridConfig,
+    /// How many levels, coarsest first, contribute (fractional: the next one fades in); the
+    /// trainer sets it for a coarse-to-fine schedule, all of them otherwise.
+    #[module(skip)]
+    pub active_levels: f32,
 }
 
 /// How the skinning and the capsule prior are shaped (shared with the MLP field).
@@ -356,11 +364,24 @@ impl FeatureGrid {
         let coefficients: Tensor<2> = Tensor::from_data(TensorData::new(plan.coefficients, [m, 1]), &device);
         let features = (rows.clone() * coefficients).reshape([n, config.levels, corners, f]).sum_dim(2).reshape([n, config.levels * f]);
         let prior = Tensor::from_data(TensorData::new(plan.prior, [n]), &device);
+        // Levels beyond `active_levels` are faded out (coarse-to-fine).
+        let fade: Option<Tensor<2>> = (self.active_levels < config.levels as f32).then(|| {
+            let weights: Vec<f32> = (0..config.levels).flat_map(|l| std::iter::repeat_n((self.active_levels - l as f32).clamp(0.0, 1.0), f)).collect();
+            Tensor::from_data(TensorData::new(weights, [1, config.levels * f]), &device)
+        });
+        let features = match &fade {
+            Some(w) => features * w.clone(),
+            None => features,
+        };
         let tangents = tangents.then(|| {
             let d: Tensor<2> = Tensor::from_data(TensorData::new(plan.coefficient_tangents, [m, 3]), &device);
             let d = d.transpose().reshape([3, m, 1]);
             let feature_tangents = (rows.unsqueeze_dim::<3>(0) * d).reshape([3 * n, config.levels, corners, f]).sum_dim(2).reshape([3 * n, config.levels * f]);
             let prior_tangents: Tensor<2> = Tensor::from_data(TensorData::new(plan.prior_tangents, [n, 3]), &device);
+            let feature_tangents = match &fade {
+                Some(w) => feature_tangents * w.clone(),
+                None => feature_tangents,
+            };
             (feature_tangents, prior_tangents.transpose())
         });
         GridFeatures { features, prior, tangents }
