@@ -397,8 +397,10 @@ impl Trainer {
         let schedule = self.schedule.clone();
         let w = |name: &str| schedule.weight(name, it);
         let mut model = self.model.take().ok_or_else(|| FitError::Input("the model was lost by an interrupted step".into()))?;
+        // Coarse-to-fine protects the light's recovery: without a light to fit, every level
+        // works from the start.
         if let Some(grid) = model.field.grid.as_mut() {
-            grid.active_levels = self.schedule.active_levels(grid.config.levels, it);
+            grid.active_levels = if self.fit_light { self.schedule.active_levels(grid.config.levels, it) } else { grid.config.levels as f32 };
         }
         let shading = self.fit_light && w("rgb") > 0.0;
         let deferred = render(&model.field, &pose, &rays.first(rendered), sampling, &jitter, shading.then_some(self.gradient), &device);
