@@ -287,9 +287,7 @@ pub const SKY_SAMPLES: usize = 256;
 /// `renders/metrics.md`.
 pub fn evaluate(trainer: &Trainer, out: &Path, on: &mut impl FnMut(TrainMessage)) -> Result<serde_json::Value, FitError> {
     let scene = &trainer.scene;
-    let train_frames: Vec<usize> = scene.views_in(Split::Train).map(|v| v.frame).collect();
-    let train_cameras: Vec<usize> = scene.views_in(Split::Train).map(|v| v.camera).collect();
-    let train_lights = scene.training_lights();
+    let kinds = TestKinds::new(scene);
     let tests: Vec<&crate::scene::View> = scene.views_in(Split::Test).collect();
     on(TrainMessage::Evaluating { images: tests.len() });
     let dir = out.join("renders");
@@ -300,7 +298,7 @@ pub fn evaluate(trainer: &Trainer, out: &Path, on: &mut impl FnMut(TrainMessage)
     let albedo_scale = albedo_scale(scene, &model);
     let mut rows = Vec::new();
     for (done, view) in tests.iter().enumerate() {
-        let relit = !train_lights.contains(&view.light.as_str());
+        let TestKind { novel_pose, novel_view, relit, group } = kinds.of(view);
         let lighting = match relit {
             false => Lighting::Fitted,
             true => Lighting::Known { light: &scene.lights[&view.light], albedo_scale, samples: SKY_SAMPLES },
@@ -312,8 +310,6 @@ pub fn evaluate(trainer: &Trainer, out: &Path, on: &mut impl FnMut(TrainMessage)
             save_png(&dir.join(name.replace(".png", "-albedo.png")), albedo)?;
         }
         let (scores, albedo) = (scored.scores, scored.albedo.map(|a| a.1));
-        let (novel_pose, novel_view) = (!train_frames.contains(&view.frame), !train_cameras.contains(&view.camera));
-        let group = test_group(novel_pose, novel_view, relit);
         on(TrainMessage::Rendered { done: done + 1, total: tests.len(), name: name.clone(), psnr: Some(scores.psnr) });
         rows.push(ImageScore { image: name, light: view.light.clone(), group, scores, albedo, novel_pose, novel_view, relit });
     }
@@ -334,13 +330,41 @@ pub fn evaluate(trainer: &Trainer, out: &Path, on: &mut impl FnMut(TrainMessage)
     Ok(serde_json::Value::Object(evaluation))
 }
 
-/// The evaluation group of a test image.
-pub fn test_group(novel_pose: bool, novel_view: bool, relit: bool) -> &'static str {
-    match (novel_pose, novel_view, relit) {
-        (_, _, true) => "relit",
-        (_, true, false) => "novel view",
-        (true, false, false) => "novel pose",
-        (false, false, false) => "training pose and view",
+/// How a test image differs from the training images, and its evaluation group.
+pub struct TestKind {
+    pub novel_pose: bool,
+    pub novel_view: bool,
+    pub relit: bool,
+    pub group: &'static str,
+}
+
+/// What a scene trains on, to tell its test images apart.
+pub struct TestKinds {
+    frames: Vec<usize>,
+    cameras: Vec<usize>,
+    lights: Vec<String>,
+}
+
+impl TestKinds {
+    pub fn new(scene: &Scene) -> Self {
+        Self {
+            frames: scene.views_in(Split::Train).map(|v| v.frame).collect(),
+            cameras: scene.views_in(Split::Train).map(|v| v.camera).collect(),
+            lights: scene.training_lights().into_iter().map(String::from).collect(),
+        }
+    }
+
+    pub fn of(&self, view: &crate::scene::View) -> TestKind {
+        let novel_pose = !self.frames.contains(&view.frame);
+        let novel_view = !self.cameras.contains(&view.camera);
+        let relit = !self.lights.contains(&view.light);
+        let group = match (novel_pose, novel_view, relit) {
+            (_, _, true) => "relit",
+            (_, true, false) => "novel view",
+            (true, false, false) => "novel pose",
+            (false, false, false) => "training pose and view",
+        };
+        TestKind { novel_pose, novel_view, relit, group }
     }
 }
 

@@ -4,7 +4,7 @@
 //! training wall time against each, both kinds on the same axes. Scoring time is not counted.
 
 use crate::eval::Lighting;
-use crate::fit::{albedo_scale, light_error, score_view, test_group};
+use crate::fit::{albedo_scale, light_error, score_view, TestKinds};
 use crate::plot::{Chart, Series};
 use crate::scene::{Scene, Split};
 use crate::schedule::{FieldKind, Schedule};
@@ -57,13 +57,8 @@ fn kind_name(kind: FieldKind) -> &'static str {
 /// Scores the novel-pose test images (training light, training cameras, unseen frames).
 fn score(trainer: &Trainer, kind: FieldKind, iteration: usize, train_seconds: f64) -> Result<CurvePoint, FitError> {
     let scene = &trainer.scene;
-    let train_frames: Vec<usize> = scene.views_in(Split::Train).map(|v| v.frame).collect();
-    let train_cameras: Vec<usize> = scene.views_in(Split::Train).map(|v| v.camera).collect();
-    let lights = scene.training_lights();
-    let views: Vec<&crate::scene::View> = scene
-        .views_in(Split::Test)
-        .filter(|v| test_group(!train_frames.contains(&v.frame), !train_cameras.contains(&v.camera), !lights.contains(&v.light.as_str())) == "novel pose")
-        .collect();
+    let kinds = TestKinds::new(scene);
+    let views: Vec<&crate::scene::View> = scene.views_in(Split::Test).filter(|v| kinds.of(v).group == "novel pose").collect();
     if views.is_empty() {
         return Err(FitError::Input(format!("{}: no novel-pose test images to score", scene.root.join("scene.json").display())));
     }
