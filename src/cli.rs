@@ -203,15 +203,9 @@ pub fn main() -> i32 {
     }
 }
 
-/// A progress bar with an ETA on standard error.
-pub fn progress_bar(total: u64, what: &str) -> indicatif::ProgressBar {
-    let bar = indicatif::ProgressBar::new(total);
-    let style = indicatif::ProgressStyle::with_template("{msg} [{bar:30}] {pos}/{len} {elapsed_precise} eta {eta}")
-        .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar())
-        .progress_chars("=> ");
-    bar.set_style(style);
-    bar.set_message(what.to_string());
-    bar
+/// Progress with an ETA on standard error (a bar, or plain lines in a log).
+pub fn progress_bar(total: u64, what: &str) -> crate::progress::Progress {
+    crate::progress::Progress::new(total, what)
 }
 
 fn inspect(path: &Path) -> Result<(), String> {

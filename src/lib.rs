@@ -13,6 +13,7 @@ pub mod light;
 pub mod losses;
 pub mod metrics;
 pub mod plot;
+pub mod progress;
 pub mod relight;
 pub mod render;
 pub mod scene;

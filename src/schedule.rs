@@ -103,6 +103,11 @@ pub struct Schedule {
     /// the end, so the direction settles instead of jittering with the batch noise (the field
     /// keeps its rate: it is still learning colour then).
     pub light_lr_decay: f64,
+    /// The field's and the feature tables' learning rates fall exponentially to this fraction
+    /// between `field_lr_decay_from` and the end: Adam's steps at a constant rate keep the
+    /// fine features jittering with the batch noise, which blurs the detail they hold.
+    pub field_lr_decay: f64,
+    pub field_lr_decay_from: usize,
     pub learning_rates: BTreeMap<String, f64>,
     pub weights: BTreeMap<String, Ramp>,
     pub field: FieldSettings,
@@ -118,6 +123,15 @@ pub struct ScheduleError {
 
 fn err(file: &Path, key: &str, message: impl Into<String>) -> ScheduleError {
     ScheduleError { file: file.to_path_buf(), key: key.to_string(), message: message.into() }
+}
+
+/// A decay factor in (0, 1] (1, no decay, when absent).
+fn fraction(file: &Path, table: &toml::Table, key: &str) -> Result<f64, ScheduleError> {
+    match number(file, table, key, "")? {
+        None => Ok(1.0),
+        Some(v) if v > 0.0 && v <= 1.0 => Ok(v),
+        Some(v) => Err(err(file, key, format!("must be within (0, 1], found {v}"))),
+    }
 }
 
 fn number(file: &Path, table: &toml::Table, key: &str, prefix: &str) -> Result<Option<f64>, ScheduleError> {
@@ -207,6 +221,8 @@ impl Schedule {
             "ambient_target",
             "curvature_epsilon",
             "light_lr_decay",
+            "field_lr_decay",
+            "field_lr_decay_from",
             "learning_rates",
             "losses",
             "field",
@@ -307,11 +323,9 @@ impl Schedule {
             light_stage_iterations: count(file, &table, "light_stage_iterations", 0, 0)?,
             ambient_target: number(file, &table, "ambient_target", "")?.unwrap_or(0.1),
             curvature_epsilon: number(file, &table, "curvature_epsilon", "")?.unwrap_or(0.02),
-            light_lr_decay: match number(file, &table, "light_lr_decay", "")? {
-                None => 1.0,
-                Some(v) if v > 0.0 && v <= 1.0 => v,
-                Some(v) => return Err(err(file, "light_lr_decay", format!("must be within (0, 1], found {v}"))),
-            },
+            light_lr_decay: fraction(file, &table, "light_lr_decay")?,
+            field_lr_decay: fraction(file, &table, "field_lr_decay")?,
+            field_lr_decay_from: count(file, &table, "field_lr_decay_from", 0, 0)?,
             learning_rates,
             weights,
             field,
@@ -342,12 +356,14 @@ impl Schedule {
     /// The learning rate of a group at an iteration (with the light's decay in the last segment).
     pub fn learning_rate(&self, group: &str, iteration: usize) -> f64 {
         let base = self.learning_rates.get(group).copied().unwrap_or(1e-3);
-        if group != "light" {
-            return base;
-        }
-        let span = self.iterations.saturating_sub(self.light_from).max(1) as f64;
-        let progress = (iteration.saturating_sub(self.light_from) as f64 / span).clamp(0.0, 1.0);
-        base * self.light_lr_decay.powf(progress)
+        let (decay, from) = match group {
+            "light" => (self.light_lr_decay, self.light_from),
+            "field" | "features" => (self.field_lr_decay, self.field_lr_decay_from),
+            _ => return base,
+        };
+        let span = self.iterations.saturating_sub(from).max(1) as f64;
+        let progress = (iteration.saturating_sub(from) as f64 / span).clamp(0.0, 1.0);
+        base * decay.powf(progress)
     }
 
     /// The iteration count for a scene whose light is (or is not) fitted.
