@@ -29,19 +29,33 @@ fn main() {
     println!("plan: {:.1} ms", t.elapsed().as_secs_f64() * 1e3 / repeat as f64);
     let field = config.init(&device, 0);
     let input = Tensor::<2>::from_data(TensorData::new(points.clone(), [n, 3]), &device);
-    let t = Instant::now();
-    for _ in 0..repeat {
-        let f = field.grid.as_ref().unwrap().encode(input.clone(), &tensors.frames, skinning, false);
-        std::hint::black_box(f.features.into_data());
+    for (name, composite) in [("fused op", false), ("composite of tensor ops", true)] {
+        let mut grid = field.grid.clone().unwrap();
+        grid.composite = composite;
+        let encode = |tangents: bool| grid.encode(input.clone(), &tensors.frames, skinning, tangents);
+        let t = Instant::now();
+        for _ in 0..repeat {
+            std::hint::black_box(encode(false).features.into_data());
+        }
+        println!("{name}: encode forward: {:.1} ms", t.elapsed().as_secs_f64() * 1e3 / repeat as f64);
+        for tangents in [false, true] {
+            let t = Instant::now();
+            for _ in 0..repeat {
+                let f = encode(tangents);
+                let mut loss = f.features.sum();
+                if let Some((d, _)) = f.tangents {
+                    loss = loss + d.sum();
+                }
+                let g = loss.backward();
+                std::hint::black_box(grid.table.grad(&g));
+            }
+            println!(
+                "{name}: encode forward + backward{}: {:.1} ms",
+                if tangents { " with tangents" } else { "" },
+                t.elapsed().as_secs_f64() * 1e3 / repeat as f64
+            );
+        }
     }
-    println!("encode forward: {:.1} ms", t.elapsed().as_secs_f64() * 1e3 / repeat as f64);
-    let t = Instant::now();
-    for _ in 0..repeat {
-        let f = field.grid.as_ref().unwrap().encode(input.clone(), &tensors.frames, skinning, false);
-        let g = f.features.sum().backward();
-        std::hint::black_box(field.grid.as_ref().unwrap().table.grad(&g));
-    }
-    println!("encode forward + backward: {:.1} ms", t.elapsed().as_secs_f64() * 1e3 / repeat as f64);
     let t = Instant::now();
     for _ in 0..repeat {
         let out = field.forward(input.clone(), &tensors);

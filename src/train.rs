@@ -326,6 +326,14 @@ impl Trainer {
     }
 
     /// The current model (it is only out of the trainer while a step runs).
+    /// Runs the grid's lookup as the composite of tensor ops instead of the fused op (for the
+    /// step benchmark's comparison; a no-op for the `mlp` field).
+    pub fn set_composite_lookup(&mut self, composite: bool) {
+        if let Some(grid) = self.model.as_mut().and_then(|m| m.field.grid.as_mut()) {
+            grid.composite = composite;
+        }
+    }
+
     pub fn model(&self) -> Result<&Avatar, FitError> {
         self.model.as_ref().ok_or_else(|| FitError::Input("the model was lost by an interrupted step".into()))
     }

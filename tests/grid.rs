@@ -63,7 +63,7 @@ fn the_plan_stays_in_the_table_and_interpolates_a_partition_of_unity() {
     let pts = points(&s, 200, 3);
     let plan = lookup(&grid, &levels, &frames, skinning(&s.config), &flat(&pts), false);
     let rows = grid.levels * grid.table_size();
-    assert!(plan.rows.iter().all(|&r| r >= 0 && (r as usize) < rows));
+    assert!(plan.rows.iter().all(|&r| (r as usize) < rows));
     let per_level = grid.corners() / grid.levels;
     for (p, chunk) in plan.coefficients.chunks(grid.corners()).enumerate() {
         for (l, level) in chunk.chunks(per_level).enumerate() {
@@ -142,6 +142,7 @@ fn busy_field(config: &FieldConfig, device: &Device, all_active: bool) -> Avatar
         table: Param::from_tensor(Tensor::from_data(TensorData::new(table, [rows, features]), device)),
         config: grid.config,
         active_levels: grid.active_levels,
+        composite: false,
     });
     let [i, o] = field.output.weight.val().dims();
     let w: Vec<f32> = (0..i * o).map(|_| (stream.uniform() * 2.0 - 1.0) as f32 * 0.3).collect();
@@ -243,6 +244,7 @@ fn table_gradient_matches_finite_differences() {
                 table: Param::from_tensor(Tensor::from_data(TensorData::new(t, [table.len() / features, features]), &device)),
                 config: g.config,
                 active_levels: g.active_levels,
+                composite: g.composite,
             });
             values(loss(&f))[0] as f64
         };
@@ -328,4 +330,61 @@ fn inactive_levels_contribute_nothing_and_a_fading_level_contributes_in_part() {
         assert!((b - expected).abs() < 1e-6, "feature {k} (level {level}): {b} vs {expected}");
     }
     assert!(tangents.iter().enumerate().all(|(k, t)| (k % width) / f < 5 || *t == 0.0), "inactive levels have no spatial derivative");
+}
+
+/// The fused interpolation op against the composite of tensor ops it replaced: the same
+/// features, tangents and table gradient (for a loss weighing every output differently), with
+/// the finest level half faded in, on both CPU backends; and it is linear in the table, so a
+/// finite difference of the loss along a random direction must match the gradient exactly.
+#[test]
+#[allow(deprecated)] // burn-ndarray stays our --backend ndarray
+fn fused_interpolation_matches_the_composite_and_its_gradient() {
+    let s = setup();
+    for device in [Device::flex().autodiff(), Device::ndarray().autodiff()] {
+        let mut field = busy_field(&s.config, &device, false);
+        let grid = field.grid.as_mut().unwrap();
+        grid.active_levels = grid.config.levels as f32 - 1.5;
+        let grid = field.grid.as_ref().unwrap();
+        let pose = PoseTensors::new(&s.pose, &s.character.skeleton, &device);
+        let pts = points(&s, 120, 21);
+        let input = || Tensor::<2>::from_data(TensorData::new(flat(&pts), [pts.len(), 3]), &device);
+        let mut stream = Stream::new(5, 5, 5);
+        let n = pts.len();
+        let width = grid.config.levels * grid.config.features;
+        let weights: Vec<f32> = (0..4 * n * width).map(|_| (stream.uniform() * 2.0 - 1.0) as f32).collect();
+        let weights = Tensor::<2>::from_data(TensorData::new(weights, [4 * n, width]), &device);
+        let run = |composite: bool| {
+            let mut grid = grid.clone();
+            grid.composite = composite;
+            let f = grid.encode(input(), &pose.frames, skinning(&s.config), true);
+            let (tangents, _) = f.tangents.unwrap();
+            let out = Tensor::cat(vec![f.features, tangents], 0);
+            let loss = (out.clone() * weights.clone()).sum();
+            let grads = loss.clone().backward();
+            let g = grid.table.grad(&grads).unwrap();
+            (values(out.inner()), values(loss.inner()), values(g))
+        };
+        let (fused, loss, fused_grad) = run(false);
+        let (composite, _, composite_grad) = run(true);
+        let worst = fused.iter().zip(&composite).map(|(a, b)| (a - b).abs()).fold(0.0f32, f32::max);
+        assert!(worst < 1e-4, "outputs differ by {worst}");
+        let scale = composite_grad.iter().map(|v| v.abs()).fold(0.0f32, f32::max);
+        let worst = fused_grad.iter().zip(&composite_grad).map(|(a, b)| (a - b).abs()).fold(0.0f32, f32::max);
+        assert!(scale > 1e-3 && worst < 1e-4 * scale.max(1.0), "gradients differ by {worst} (largest {scale})");
+        // Directional finite difference in f64 of the (linear) loss.
+        let table = values(grid.table.val().inner());
+        let [rows, features] = grid.table.val().dims();
+        let direction: Vec<f32> = (0..table.len()).map(|_| (stream.uniform() * 2.0 - 1.0) as f32).collect();
+        let h = 1e-2f32;
+        let shifted: Vec<f32> = table.iter().zip(&direction).map(|(t, d)| t + h * d).collect();
+        let mut moved = field.clone();
+        moved.grid.as_mut().unwrap().table = Param::from_tensor(Tensor::from_data(TensorData::new(shifted, [rows, features]), &device));
+        let moved_grid = moved.grid.as_ref().unwrap();
+        let f = moved_grid.encode(input(), &pose.frames, skinning(&s.config), true);
+        let out = Tensor::cat(vec![f.features, f.tangents.unwrap().0], 0);
+        let moved_loss = values((out * weights.clone()).sum().inner())[0];
+        let fd = (moved_loss as f64 - loss[0] as f64) / h as f64;
+        let analytic: f64 = fused_grad.iter().zip(&direction).map(|(g, d)| *g as f64 * *d as f64).sum();
+        assert!((fd - analytic).abs() < 1e-3 * analytic.abs().max(1.0), "finite difference {fd} vs gradient {analytic}");
+    }
 }

@@ -1,6 +1,7 @@
 //! Training-step cost (`umbra bench steps`): milliseconds per step on a real scene for the
 //! field kinds, with and without the work a step need not do (rendering rays that miss every
-//! Gaussian bound; encoding a point in every bone instead of its nearest), in the schedule's
+//! Gaussian bound; encoding a point in every bone instead of its nearest; the grid's lookup as
+//! a composite of tensor ops instead of one fused op), in the schedule's
 //! first stage (silhouette and grey albedo) and its light stage (normals and shadow rays).
 //! Baseline: the `mlp` field as it was (every ray rendered), measured in the same run.
 
@@ -15,6 +16,8 @@ struct Variant {
     name: &'static str,
     field: FieldSettings,
     render_missed_rays: bool,
+    /// The grid's lookup as the composite of tensor ops (before the fused op).
+    composite_lookup: bool,
 }
 
 /// Milliseconds per step of `variant` from `iteration` (its stage), over `budget` seconds.
@@ -23,6 +26,7 @@ fn step_ms(scene: &Scene, schedule: &Schedule, variant: &Variant, iteration: usi
     schedule.field = variant.field.clone();
     let mut trainer = Trainer::new(scene.clone(), schedule, Backend::Flex, 0)?;
     trainer.render_missed_rays = variant.render_missed_rays;
+    trainer.set_composite_lookup(variant.composite_lookup);
     trainer.iteration = iteration;
     let mut failure = None;
     let seconds = time(budget, || {
@@ -43,10 +47,16 @@ pub fn steps(scene_path: &Path, schedule_path: &Path, out: &Path, quick: bool) -
     let grid = |top_bones: Option<usize>| FieldSettings { kind: FieldKind::Grid, levels: None, table_log2: None, top_bones, fine_levels: None };
     let mlp = FieldSettings { kind: FieldKind::Mlp, levels: None, table_log2: None, top_bones: None, fine_levels: None };
     let variants = [
-        Variant { name: "mlp, every ray rendered (before)", field: mlp.clone(), render_missed_rays: true },
-        Variant { name: "mlp, missed rays skipped", field: mlp, render_missed_rays: false },
-        Variant { name: "grid, every bone per point", field: grid(Some(scene.skeleton.len())), render_missed_rays: false },
-        Variant { name: "grid, nearest 3 bones per point", field: grid(None), render_missed_rays: false },
+        Variant { name: "mlp, every ray rendered (before)", field: mlp.clone(), render_missed_rays: true, composite_lookup: false },
+        Variant { name: "mlp, missed rays skipped", field: mlp, render_missed_rays: false, composite_lookup: false },
+        Variant {
+            name: "grid, every bone per point, composite lookup",
+            field: grid(Some(scene.skeleton.len())),
+            render_missed_rays: false,
+            composite_lookup: true,
+        },
+        Variant { name: "grid, nearest 3 bones, composite lookup", field: grid(None), render_missed_rays: false, composite_lookup: true },
+        Variant { name: "grid, nearest 3 bones, fused lookup op", field: grid(None), render_missed_rays: false, composite_lookup: false },
     ];
     let stages = [("silhouette stage", 0), ("light stage", schedule.light_from + 200)];
     let budget = if quick { 1.0 } else { 8.0 };
@@ -85,7 +95,7 @@ pub fn steps(scene_path: &Path, schedule_path: &Path, out: &Path, quick: bool) -
         })
         .collect();
     let chart = Chart {
-        title: "ms per training step by variant (1-4 as in steps.md)".into(),
+        title: "ms per training step by variant (1-5 as in steps.md)".into(),
         x_label: "variant".into(),
         y_label: "ms per step".into(),
         log_x: false,

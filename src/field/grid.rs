@@ -109,6 +109,7 @@ impl GridConfig {
             table: Param::from_tensor(Tensor::from_data(TensorData::new(values, [n, self.features]), device)),
             config: self.clone(),
             active_levels: self.levels as f32,
+            composite: false,
         }
     }
 }
@@ -165,6 +166,10 @@ pub struct FeatureGrid {
     /// trainer sets it for a coarse-to-fine schedule, all of them otherwise.
     #[module(skip)]
     pub active_levels: f32,
+    /// How the lookup runs: the fused op (default) or, for comparison, the composite of tensor
+    /// ops it replaced.
+    #[module(skip)]
+    pub composite: bool,
 }
 
 /// How the skinning and the capsule prior are shaped (shared with the MLP field).
@@ -180,7 +185,7 @@ pub struct Skinning {
 /// the capsule prior and its gradient (`[N, 3]`).
 #[derive(Clone, Debug, Default)]
 pub struct Lookup {
-    pub rows: Vec<i64>,
+    pub rows: Vec<u32>,
     pub coefficients: Vec<f32>,
     pub coefficient_tangents: Vec<f32>,
     pub prior: Vec<f32>,
@@ -211,13 +216,25 @@ pub fn lookup(config: &GridConfig, levels: &[Level], frames: &[BoneFrame], skinn
         .zip(tangent_chunks.into_par_iter().zip(prior_tangent_chunks))
         .enumerate()
         .for_each(|(chunk, (((rows, coefficients), prior), (d_coefficients, d_prior)))| {
+            let mut scratch = Scratch::default();
             for k in 0..prior.len() {
                 let i = chunk * CHUNK + k;
                 let point = [points[3 * i], points[3 * i + 1], points[3 * i + 2]];
                 let span = k * c..(k + 1) * c;
                 let d_coefficients = if tangents { Some(&mut d_coefficients[k * c * 3..(k + 1) * c * 3]) } else { None };
                 let d_prior = if tangents { Some(&mut d_prior[k * 3..k * 3 + 3]) } else { None };
-                prior[k] = plan_point(config, levels, frames, skinning, point, &mut rows[span.clone()], &mut coefficients[span], d_coefficients, d_prior);
+                prior[k] = plan_point(
+                    config,
+                    levels,
+                    frames,
+                    skinning,
+                    point,
+                    &mut scratch,
+                    &mut rows[span.clone()],
+                    &mut coefficients[span],
+                    d_coefficients,
+                    d_prior,
+                );
             }
         });
     plan
@@ -232,6 +249,15 @@ struct Near {
     local: [f32; 3],
 }
 
+/// Buffers one thread reuses from point to point (a point's plan allocates nothing).
+#[derive(Default)]
+struct Scratch {
+    /// Per bone: squared distance to its segment, index, the distance's world gradient, the
+    /// point in its frame.
+    all: Vec<(f32, usize, [f32; 3], [f32; 3])>,
+    near: Vec<Near>,
+}
+
 /// Plans one point's corners; returns its capsule prior SDF.
 #[allow(clippy::too_many_arguments)]
 fn plan_point(
@@ -240,43 +266,49 @@ fn plan_point(
     frames: &[BoneFrame],
     skinning: Skinning,
     point: [f32; 3],
-    rows: &mut [i64],
+    scratch: &mut Scratch,
+    rows: &mut [u32],
     coefficients: &mut [f32],
     mut d_coefficients: Option<&mut [f32]>,
     d_prior: Option<&mut [f32]>,
 ) -> f32 {
     // Squared distance to every bone segment and its world gradient 2 R offset.
-    let mut all: Vec<(f32, usize, [f32; 3], [f32; 3])> = frames
-        .iter()
-        .enumerate()
-        .map(|(b, f)| {
-            let local = f.to_local(point);
-            let offset = [local[0], local[1] - local[1].clamp(0.0, f.length), local[2]];
-            let d2 = offset[0] * offset[0] + offset[1] * offset[1] + offset[2] * offset[2];
-            let g = [0, 1, 2].map(|a| 2.0 * (f.axes[0][a] * offset[0] + f.axes[1][a] * offset[1] + f.axes[2][a] * offset[2]));
-            (d2, b, g, local)
-        })
-        .collect();
+    let all = &mut scratch.all;
+    all.clear();
+    all.extend(frames.iter().enumerate().map(|(b, f)| {
+        let local = f.to_local(point);
+        let offset = [local[0], local[1] - local[1].clamp(0.0, f.length), local[2]];
+        let d2 = offset[0] * offset[0] + offset[1] * offset[1] + offset[2] * offset[2];
+        let g = [0, 1, 2].map(|a| 2.0 * (f.axes[0][a] * offset[0] + f.axes[1][a] * offset[1] + f.axes[2][a] * offset[2]));
+        (d2, b, g, local)
+    }));
     let top = config.top_bones.min(all.len()).max(1);
-    all.select_nth_unstable_by(top - 1, |a, b| a.0.total_cmp(&b.0));
+    if top < all.len() {
+        all.select_nth_unstable_by(top - 1, |a, b| a.0.total_cmp(&b.0));
+    }
     let chosen = &mut all[..top];
-    chosen.sort_by_key(|a| a.1);
+    chosen.sort_unstable_by_key(|a| a.1);
     // Softmax over the chosen bones (shifted by the largest logit) and its gradient.
-    let logits: Vec<f32> = chosen.iter().map(|a| a.0 * skinning.sharpness).collect();
-    let max = logits.iter().cloned().fold(f32::NEG_INFINITY, f32::max);
-    let exps: Vec<f32> = logits.iter().map(|l| (l - max).exp()).collect();
-    let sum: f32 = exps.iter().sum();
-    let weights: Vec<f32> = exps.iter().map(|e| e / sum).collect();
-    let d_logits: Vec<[f32; 3]> = chosen.iter().map(|a| a.2.map(|g| g * skinning.sharpness)).collect();
-    let mean_d_logit = [0, 1, 2].map(|x| (0..top).map(|j| weights[j] * d_logits[j][x]).sum::<f32>());
-    let near: Vec<Near> = (0..top)
-        .map(|j| Near {
-            bone: chosen[j].1,
-            weight: weights[j],
-            d_weight: [0, 1, 2].map(|x| weights[j] * (d_logits[j][x] - mean_d_logit[x])),
-            local: chosen[j].3,
-        })
-        .collect();
+    let max = chosen.iter().map(|a| a.0 * skinning.sharpness).fold(f32::NEG_INFINITY, f32::max);
+    let near = &mut scratch.near;
+    near.clear();
+    near.extend(chosen.iter().map(|a| Near {
+        bone: a.1,
+        weight: (a.0 * skinning.sharpness - max).exp(),
+        d_weight: a.2.map(|g| g * skinning.sharpness),
+        local: a.3,
+    }));
+    let sum: f32 = near.iter().map(|nb| nb.weight).sum();
+    for nb in near.iter_mut() {
+        nb.weight /= sum;
+    }
+    // d w_j = w_j (d logit_j - sum_k w_k d logit_k); `d_weight` holds d logit_j until here.
+    let mean_d_logit = [0, 1, 2].map(|x| near.iter().map(|nb| nb.weight * nb.d_weight[x]).sum::<f32>());
+    for nb in near.iter_mut() {
+        nb.d_weight = [0, 1, 2].map(|x| nb.weight * (nb.d_weight[x] - mean_d_logit[x]));
+    }
+    let near = &scratch.near;
+    let chosen = &scratch.all[..top];
     // The capsule prior: skinning-weighted distance to the segments, minus the radius.
     let mut prior = -skinning.prior_radius;
     let mut gradient = [0.0f32; 3];
@@ -292,7 +324,7 @@ fn plan_point(
     }
     let mut k = 0;
     for level in levels {
-        for nb in &near {
+        for nb in near {
             let frame = &frames[nb.bone];
             let dims = level.dims[nb.bone];
             // Grid coordinates, clamped to the box (a clamped axis has no spatial derivative).
@@ -319,7 +351,7 @@ fn plan_point(
                 let bit = [corner & 1, (corner >> 1) & 1, (corner >> 2) & 1];
                 let factor = [0, 1, 2].map(|m| if bit[m] == 1 { fraction[m] } else { 1.0 - fraction[m] });
                 let trilinear = factor[0] * factor[1] * factor[2];
-                rows[k] = level.row(nb.bone, [base[0] + bit[0], base[1] + bit[1], base[2] + bit[2]]) as i64;
+                rows[k] = level.row(nb.bone, [base[0] + bit[0], base[1] + bit[1], base[2] + bit[2]]) as u32;
                 coefficients[k] = nb.weight * trilinear;
                 if let Some(d) = d_coefficients.as_deref_mut() {
                     // d trilinear / d u_m: the other two factors, signed by the corner's side.
@@ -348,41 +380,78 @@ pub struct GridFeatures {
 }
 
 impl FeatureGrid {
+    /// Plans the lookup of `points` (a tensor) in the posed bones `frames`.
+    fn plan(&self, points: Tensor<2>, frames: &[BoneFrame], skinning: Skinning, tangents: bool) -> (Lookup, usize) {
+        let [n, _] = points.dims();
+        let values = points.into_data().convert::<f32>().try_to_vec::<f32>().unwrap_or_else(|_| vec![f32::NAN; n * 3]);
+        let levels = self.config.layout();
+        (lookup(&self.config, &levels, frames, skinning, &values, tangents), n)
+    }
+
+    /// Each level's weight: levels beyond `active_levels` are faded out (coarse to fine).
+    fn fade(&self) -> Vec<f32> {
+        (0..self.config.levels).map(|l| (self.active_levels - l as f32).clamp(0.0, 1.0)).collect()
+    }
+
     /// Looks `points` up in the posed bones `frames`.
     pub fn encode(&self, points: Tensor<2>, frames: &[BoneFrame], skinning: Skinning, tangents: bool) -> GridFeatures {
+        if self.composite {
+            self.encode_composite(points, frames, skinning, tangents)
+        } else {
+            self.encode_fused(points, frames, skinning, tangents)
+        }
+    }
+
+    /// The lookup as one fused op (`interpolate`).
+    fn encode_fused(&self, points: Tensor<2>, frames: &[BoneFrame], skinning: Skinning, tangents: bool) -> GridFeatures {
         let device = points.device();
-        let [n, _] = points.dims();
-        let values = points.into_data().convert::<f32>().try_to_vec::<f32>().unwrap_or_else(|_| vec![0.0; n * 3]);
         let config = &self.config;
-        let levels = config.layout();
-        let plan = lookup(config, &levels, frames, skinning, &values, tangents);
+        let (plan, n) = self.plan(points, frames, skinning, tangents);
+        let width = config.levels * config.features;
+        let fused = super::interpolate::Plan {
+            points: n,
+            levels: config.levels,
+            corners: config.corners() / config.levels,
+            features: config.features,
+            rows: plan.rows,
+            coefficients: plan.coefficients,
+            tangents: tangents.then_some(plan.coefficient_tangents),
+            fade: self.fade(),
+        };
+        let out = super::interpolate::interpolate(self.table.val(), fused);
+        let features = out.clone().slice([0..n, 0..width]);
+        let prior = Tensor::from_data(TensorData::new(plan.prior, [n]), &device);
+        let tangents = tangents.then(|| {
+            let prior_tangents: Tensor<2> = Tensor::from_data(TensorData::new(plan.prior_tangents, [n, 3]), &device);
+            (out.slice([n..4 * n, 0..width]), prior_tangents.transpose())
+        });
+        GridFeatures { features, prior, tangents }
+    }
+
+    /// The same lookup as a composite of tensor ops (`select` of every corner's row, a product
+    /// and a sum): the reference the fused op is tested against, and the step benchmark's
+    /// "before".
+    fn encode_composite(&self, points: Tensor<2>, frames: &[BoneFrame], skinning: Skinning, tangents: bool) -> GridFeatures {
+        let device = points.device();
+        let config = &self.config;
+        let (plan, n) = self.plan(points, frames, skinning, tangents);
         let corners = config.corners() / config.levels;
         let m = plan.rows.len();
-        let rows_index: Tensor<1, Int> = Tensor::from_data(TensorData::new(plan.rows, [m]), &device);
+        let rows_index: Tensor<1, Int> = Tensor::from_data(TensorData::new(plan.rows.iter().map(|&r| r as i64).collect::<Vec<_>>(), [m]), &device);
         let rows = self.table.val().select(0, rows_index); // [M, F]
         let f = config.features;
         let coefficients: Tensor<2> = Tensor::from_data(TensorData::new(plan.coefficients, [m, 1]), &device);
         let features = (rows.clone() * coefficients).reshape([n, config.levels, corners, f]).sum_dim(2).reshape([n, config.levels * f]);
         let prior = Tensor::from_data(TensorData::new(plan.prior, [n]), &device);
-        // Levels beyond `active_levels` are faded out (coarse-to-fine).
-        let fade: Option<Tensor<2>> = (self.active_levels < config.levels as f32).then(|| {
-            let weights: Vec<f32> = (0..config.levels).flat_map(|l| std::iter::repeat_n((self.active_levels - l as f32).clamp(0.0, 1.0), f)).collect();
-            Tensor::from_data(TensorData::new(weights, [1, config.levels * f]), &device)
-        });
-        let features = match &fade {
-            Some(w) => features * w.clone(),
-            None => features,
-        };
+        let fade: Vec<f32> = self.fade().into_iter().flat_map(|w| std::iter::repeat_n(w, f)).collect();
+        let fade: Tensor<2> = Tensor::from_data(TensorData::new(fade, [1, config.levels * f]), &device);
+        let features = features * fade.clone();
         let tangents = tangents.then(|| {
             let d: Tensor<2> = Tensor::from_data(TensorData::new(plan.coefficient_tangents, [m, 3]), &device);
             let d = d.transpose().reshape([3, m, 1]);
             let feature_tangents = (rows.unsqueeze_dim::<3>(0) * d).reshape([3 * n, config.levels, corners, f]).sum_dim(2).reshape([3 * n, config.levels * f]);
             let prior_tangents: Tensor<2> = Tensor::from_data(TensorData::new(plan.prior_tangents, [n, 3]), &device);
-            let feature_tangents = match &fade {
-                Some(w) => feature_tangents * w.clone(),
-                None => feature_tangents,
-            };
-            (feature_tangents, prior_tangents.transpose())
+            (feature_tangents * fade, prior_tangents.transpose())
         });
         GridFeatures { features, prior, tangents }
     }

@@ -10,6 +10,7 @@
 //! Both give the SDF's exact spatial gradient by forward-mode tangents.
 
 pub mod grid;
+pub mod interpolate;
 
 use grid::{BoneFrame, FeatureGrid, GridConfig, Skinning};
 
