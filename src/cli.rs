@@ -261,6 +261,18 @@ fn fit(options: &crate::train::FitOptions) -> Result<(), String> {
     .map_err(|e| e.to_string())?;
     println!("wrote {}", options.out.join("fit.json").display());
     println!("light: {}", report["light"]);
+    if let Some(search) = report["sun_search"].as_object() {
+        let start = search
+            .get("error_against_scene")
+            .and_then(|e| e["direction_degrees"].as_f64())
+            .map(|e| format!(", {e:.2} degrees from the scene's sun"))
+            .unwrap_or_default();
+        println!(
+            "sun search: {} directions scored on {} surface samples; the light started from the best{start}",
+            search.get("candidates").and_then(|c| c.as_u64()).unwrap_or(0),
+            search.get("samples").and_then(|c| c.as_u64()).unwrap_or(0)
+        );
+    }
     if let Some(e) = report["light_error_against_scene"]["direction_degrees"].as_f64() {
         println!("light direction error against the scene's sun: {e:.2} degrees");
     }

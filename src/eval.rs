@@ -53,7 +53,7 @@ pub fn render_view(model: &Avatar, scene: &Scene, camera: usize, frame: usize, s
         _ => None,
     };
     let density_scale = values(model.light.density_scale()).first().copied().unwrap_or(1.0) as f64;
-    let sky_casters: Vec<PosedGaussian> = posed.iter().map(|g| PosedGaussian { amplitude: g.amplitude * density_scale, ..g.clone() }).collect();
+    let sky_casters: Vec<PosedGaussian> = posed.iter().map(|g| PosedGaussian { amplitude: g.amplitude * density_scale, ..*g }).collect();
     let mut image = RgbImage::new(camera.width, camera.height);
     let pixels: Vec<usize> = (0..camera.width * camera.height).collect();
     for chunk in pixels.chunks(1024) {

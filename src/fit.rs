@@ -46,7 +46,13 @@ fn save_checkpoint(trainer: &Trainer, out: &Path, history: &[(usize, StepStats)]
         let path = temp.join(format!("optimizer-{name}.bpk"));
         optimizer.save(&path).map_err(|e| io(&path, format!("{e:?}")))?;
     }
-    let state = json!({"iteration": trainer.iteration, "stream": trainer.stream.state().to_string()});
+    // The sun search and its cone are part of the state: a resumed fit keeps the same cone.
+    let state = json!({
+        "iteration": trainer.iteration,
+        "stream": trainer.stream.state().to_string(),
+        "sun_search": trainer.sun_search,
+        "sun_cone": trainer.sun_cone.map(|(axis, angle)| json!({"axis": axis.to_array(), "angle_radians": angle})),
+    });
     write_text(&temp.join("state.json"), &state.to_string())?;
     write_text(&temp.join("losses.csv"), &losses_csv(history))?;
     let target = out.join(CHECKPOINT);
@@ -80,6 +86,21 @@ fn load_checkpoint(trainer: &mut Trainer, out: &Path) -> Result<Vec<(usize, Step
     trainer.optimizers = optimizers;
     trainer.iteration = iteration;
     trainer.stream = Stream::from_state(stream);
+    trainer.sun_search = serde_json::from_value(state["sun_search"].clone()).map_err(|e| io(&state_path, format!("sun_search: {e}")))?;
+    trainer.sun_cone = match &state["sun_cone"] {
+        serde_json::Value::Null => None,
+        cone => {
+            let axis: [f64; 3] = serde_json::from_value(cone["axis"].clone()).map_err(|e| io(&state_path, format!("sun_cone.axis: {e}")))?;
+            let angle = cone["angle_radians"]
+                .as_f64()
+                .filter(|a| a.is_finite() && *a >= 0.0)
+                .ok_or_else(|| io(&state_path, "sun_cone.angle_radians: missing or not a finite angle"))?;
+            if !axis.iter().all(|c| c.is_finite()) || glam::DVec3::from_array(axis).length() < 1e-9 {
+                return Err(io(&state_path, "sun_cone.axis: not a finite non-zero vector"));
+            }
+            Some((glam::DVec3::from_array(axis), angle))
+        }
+    };
     let csv = std::fs::read_to_string(dir.join("losses.csv")).map_err(|e| io(&dir.join("losses.csv"), e))?;
     Ok(parse_losses_csv(&csv))
 }
@@ -257,7 +278,22 @@ pub fn fit(options: &FitOptions, mut on: impl FnMut(TrainMessage)) -> Result<ser
     };
     stages.push(light_stage);
     let last = history.last().map(|(_, s)| s.clone()).unwrap_or_default();
+    // The sun search's start, with its own error against the scene's sun when it has one.
+    let sun_search = trainer.sun_search.as_ref().map(|r| {
+        let mut value = serde_json::to_value(r).unwrap_or(json!(null));
+        let start = json!({"direction": r.best.direction});
+        value["error_against_scene"] = light_error(&trainer, &start);
+        value
+    });
     let light_error = light_error(&trainer, &light);
+    // One schedule serves every capture: with one camera the sun search is what keeps the
+    // light from sliding behind the body (fit.json says which case this was).
+    let training_cameras: std::collections::BTreeSet<usize> = trainer.scene.views_in(crate::scene::Split::Train).map(|v| v.camera).collect();
+    let capture = json!({
+        "training_cameras": training_cameras.len(),
+        "monocular": training_cameras.len() == 1,
+        "light_start": if trainer.sun_search.is_some() { "sun search over the sphere, then gradient descent within the search lattice's spacing" } else { "the schedule's initial light, then gradient descent" },
+    });
     let report = json!({
         "scene": options.scene.display().to_string(),
         "light": light,
@@ -272,6 +308,8 @@ pub fn fit(options: &FitOptions, mut on: impl FnMut(TrainMessage)) -> Result<ser
         "wall_seconds": wall.elapsed().as_secs_f64(),
         "evaluation": evaluation,
         "light_error_against_scene": light_error,
+        "sun_search": sun_search,
+        "capture": capture,
     });
     write_text(&out.join("fit.json"), &serde_json::to_string_pretty(&report).unwrap_or_default())?;
     on(TrainMessage::Done);

@@ -21,5 +21,6 @@ pub mod schedule;
 pub mod shading;
 pub mod shadow;
 pub mod skeleton;
+pub mod sun_search;
 pub mod synth;
 pub mod train;

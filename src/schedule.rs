@@ -108,6 +108,9 @@ pub struct Schedule {
     /// fine features jittering with the batch noise, which blurs the detail they hold.
     pub field_lr_decay: f64,
     pub field_lr_decay_from: usize,
+    /// Sun directions scored over the sphere when a sun starts to be fitted (`sun_search`); 0
+    /// leaves the start to the initial direction and gradient descent alone.
+    pub sun_search: usize,
     pub learning_rates: BTreeMap<String, f64>,
     pub weights: BTreeMap<String, Ramp>,
     pub field: FieldSettings,
@@ -223,6 +226,7 @@ impl Schedule {
             "light_lr_decay",
             "field_lr_decay",
             "field_lr_decay_from",
+            "sun_search",
             "learning_rates",
             "losses",
             "field",
@@ -326,6 +330,7 @@ impl Schedule {
             light_lr_decay: fraction(file, &table, "light_lr_decay")?,
             field_lr_decay: fraction(file, &table, "field_lr_decay")?,
             field_lr_decay_from: count(file, &table, "field_lr_decay_from", 0, 0)?,
+            sun_search: count(file, &table, "sun_search", 0, 0)?,
             learning_rates,
             weights,
             field,
@@ -463,5 +468,21 @@ mod tests {
         let auto = Schedule::parse("[losses]\nmask = 1.0", Path::new("a.toml")).unwrap();
         assert!(!auto.check_against(false).unwrap());
         assert!(auto.check_against(true).unwrap());
+    }
+
+    #[test]
+    fn learning_rates_decay_exponentially_over_their_segment() {
+        let s = Schedule::parse(
+            "iterations = 1000\nlight_from = 200\nlight_lr_decay = 0.1\nfield_lr_decay = 0.01\nfield_lr_decay_from = 600\n[learning_rates]\nfield = 1.0\nfeatures = 1.0\nlight = 1.0\ngaussians = 1.0\n[losses]\nmask = 1.0",
+            Path::new("d.toml"),
+        )
+        .unwrap();
+        let close = |a: f64, b: f64| (a - b).abs() < 1e-12;
+        assert!(close(s.learning_rate("field", 600), 1.0) && close(s.learning_rate("field", 800), 0.1) && close(s.learning_rate("field", 1000), 0.01));
+        assert!(close(s.learning_rate("features", 800), 0.1), "the feature tables decay with the field");
+        assert!(close(s.learning_rate("light", 200), 1.0) && close(s.learning_rate("light", 600), 0.1f64.sqrt()));
+        assert!(close(s.learning_rate("gaussians", 999), 1.0));
+        assert_eq!(error_of("field_lr_decay = 0\n[losses]\nmask = 1.0").key, "field_lr_decay");
+        assert_eq!(error_of("sun_search = -1\n[losses]\nmask = 1.0").key, "sun_search");
     }
 }

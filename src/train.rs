@@ -181,6 +181,10 @@ pub struct Trainer {
     /// for the benchmark that measures what skipping them saves.
     pub render_missed_rays: bool,
     bone_centres: Tensor<2>,
+    /// What the sun search found, once it has run (`sun_search`).
+    pub sun_search: Option<crate::sun_search::SearchReport>,
+    /// The cone (axis, half-angle in radians) the sun's direction stays in after the search.
+    pub sun_cone: Option<(glam::DVec3, f64)>,
 }
 
 /// The field the schedule asks for: the Fourier `mlp` field, or feature grids shaped by the
@@ -198,6 +202,36 @@ pub fn field_config(settings: &crate::schedule::FieldSettings, skeleton: &crate:
             config
         }
     }
+}
+
+/// How far (in the search lattice's spacings, 7.2 degrees at 256 directions) gradient descent
+/// may take the sun from the search's best. The search scores directions with the albedo still
+/// grey and the geometry early, so it can be off by more than its lattice's spacing (dog-sun:
+/// 14 degrees), and the gradient must be free to correct that; with one camera the gradient
+/// also drifts wherever it is free to. Measured at 1, 2 and 3 spacings: human-mono (seed 0)
+/// 0.90 / 2.71 / 5.09 degrees, dog-sun 7.51 / 2.72 / 2.60; at 2, human-mono seeds 1 and 2:
+/// 1.02 and 1.01.
+pub const SUN_CONE_SPACINGS: f64 = 2.0;
+
+/// The light with its sun direction rotated back onto the cone of half-angle `angle` around
+/// `axis` when a step took it outside (ambient and shadow density untouched).
+fn keep_in_cone(mut light: LightModel, axis: glam::DVec3, angle: f64, device: &Device) -> LightModel {
+    let values = light.vector.val().into_data().convert::<f32>().try_to_vec::<f32>().unwrap_or_default();
+    if values.len() != 3 {
+        return light;
+    }
+    let v = glam::DVec3::new(values[0] as f64, values[1] as f64, values[2] as f64);
+    let axis = axis.normalize();
+    if v.length() < 1e-12 || v.normalize().dot(axis) >= angle.cos() {
+        return light;
+    }
+    // Rotate within the plane of axis and v, to the cone's edge, keeping v's length.
+    let across = v - axis * v.dot(axis);
+    let side = if across.length() > 1e-12 { across.normalize() } else { axis.any_orthonormal_vector() };
+    let clamped = (axis * angle.cos() + side * angle.sin()) * v.length();
+    let device = device.clone();
+    light.vector = light.vector.map(|_| Tensor::from_data(TensorData::new(clamped.as_vec3().to_array().to_vec(), [3]), &device).require_grad());
+    light
 }
 
 /// Gaussians detached from the graph, for the shadow pass (they learn only from their fit).
@@ -321,6 +355,8 @@ impl Trainer {
             stream: Stream::new(seed, 0x7AA1, 0),
             gradient: crate::field::GRADIENT,
             render_missed_rays: false,
+            sun_search: None,
+            sun_cone: None,
             bone_centres,
         })
     }
@@ -387,10 +423,104 @@ impl Trainer {
         Tensor::from_data(TensorData::new(idx, [count]), &self.device)
     }
 
+    /// Training frames for the sun search: up to this many, evenly spread over the capture.
+    const SEARCH_FRAMES: usize = 8;
+    /// Foreground rays per search frame.
+    const SEARCH_RAYS: usize = 256;
+
+    /// Scores sun directions over the sphere on surface samples of several frames (with the
+    /// Gaussians' cast shadows) and starts the light from the best (`sun_search`).
+    fn search_sun(&mut self) -> Result<(), FitError> {
+        let model = self.model()?.valid();
+        let device = self.device.clone().without_autodiff();
+        let set = model.gaussians.to_set();
+        let density_scale = scalar(&model.light.density_scale());
+        let count = self.frames.len().min(Self::SEARCH_FRAMES).max(1);
+        let mut samples = Vec::new();
+        let mut casters = Vec::new();
+        for k in 0..count {
+            let data = &self.frames[k * self.frames.len() / count];
+            let pose = &self.scene.frames[data.position].pose;
+            let mut posed = set.pose(pose);
+            for g in posed.iter_mut() {
+                g.amplitude *= density_scale;
+            }
+            let mut rays = RaySet::default();
+            let mut colours = Vec::new();
+            for _ in 0..Self::SEARCH_RAYS {
+                let v = data.views[(self.stream.uniform() * data.views.len() as f64) as usize % data.views.len()];
+                let pool = &self.views[v].foreground;
+                if pool.is_empty() {
+                    continue;
+                }
+                let pixel = pool[(self.stream.uniform() * pool.len() as f64) as usize % pool.len()];
+                let view = &self.scene.views[v];
+                let camera = &self.scene.cameras[view.camera];
+                let ray = camera.pixel_ray(pixel % camera.width, pixel / camera.width);
+                if let Some(bounds) = ray_bounds(ray.origin, ray.direction, &posed) {
+                    rays.push(ray.origin, ray.direction, Some(bounds));
+                    colours.push(view.colour.pixels[pixel]);
+                }
+            }
+            if rays.is_empty() {
+                continue;
+            }
+            let sampling = Sampling { coarse: self.schedule.samples_per_ray, fine: self.schedule.fine_samples_per_ray };
+            let jitter: Vec<f32> = (0..rays.len() * sampling.total()).map(|_| self.stream.uniform() as f32).collect();
+            let pose_tensors = PoseTensors::new(pose, &self.scene.skeleton, &device);
+            let deferred = render(&model.field, &pose_tensors, &rays, sampling, &jitter, Some(self.gradient), &device);
+            let host = |t: Tensor<2>| t.into_data().convert::<f32>().try_to_vec::<f32>().unwrap_or_default();
+            let accumulation = deferred.accumulation.into_data().convert::<f32>().try_to_vec::<f32>().unwrap_or_default();
+            let (points, albedo) = (host(deferred.surface), host(deferred.albedo));
+            let normals = deferred.normal.map(host).unwrap_or_default();
+            let frame = casters.len();
+            for (i, colour) in colours.iter().enumerate() {
+                // Only rays that found the surface: a grazing ray's point and normal are blends.
+                if accumulation.get(i).is_none_or(|a| *a < 0.9) || normals.len() < 3 * (i + 1) || points.len() < 3 * (i + 1) {
+                    continue;
+                }
+                let three = |v: &[f32]| [v[3 * i], v[3 * i + 1], v[3 * i + 2]];
+                let n = three(&normals);
+                let length = (n[0] * n[0] + n[1] * n[1] + n[2] * n[2]).sqrt();
+                if !(length > 1e-6) {
+                    continue;
+                }
+                samples.push(crate::sun_search::SurfaceSample {
+                    frame,
+                    point: three(&points),
+                    normal: n.map(|c| c / length),
+                    albedo: three(&albedo),
+                    colour: *colour,
+                });
+            }
+            casters.push(crate::shadow::ShadowCaster::new(&posed, 1e-3));
+        }
+        if samples.is_empty() {
+            return Ok(());
+        }
+        let report = crate::sun_search::search(&samples, &casters, self.schedule.sun_search, 64, crate::shading::SHADOW_START);
+        let mut model = self.model.take().ok_or_else(|| FitError::Input("the model was lost by an interrupted step".into()))?;
+        let d = report.best.direction.map(|c| c as f32);
+        let device = self.device.clone();
+        // The same parameter (its id keys the optimizer's state), a new value.
+        model.light.vector = model.light.vector.map(|_| Tensor::from_data(TensorData::new(d.to_vec(), [3]), &device).require_grad());
+        self.model = Some(model);
+        // Gradient descent refines the direction within SUN_CONE_SPACINGS lattice spacings of
+        // the search's best and no farther: with one camera it otherwise slides back to the
+        // minimum the search escaped.
+        let spacing = (4.0 / self.schedule.sun_search as f64).sqrt();
+        self.sun_cone = Some((glam::DVec3::from_array(report.best.direction), spacing * SUN_CONE_SPACINGS));
+        self.sun_search = Some(report);
+        Ok(())
+    }
+
     /// One iteration: forward, losses, backward, an Adam step per group.
     pub fn step(&mut self) -> Result<StepStats, FitError> {
         let start = Instant::now();
         let it = self.iteration;
+        if it == self.schedule.light_from && self.fit_light && self.light_kind == LightKind::Directional && self.schedule.sun_search > 0 {
+            self.search_sun()?;
+        }
         let set = self.model()?.gaussians.to_set();
         let (frame, rays, colours, masks, hits) = self.batch(&set);
         let r = rays.len();
@@ -494,6 +624,10 @@ impl Trainer {
         };
         let gaussians = self.optimizers[1].1.step(lr_gaussians, gaussians, g_gaussians);
         let light = if light_active { self.optimizers[2].1.step(lr_light, light, g_light) } else { light };
+        let light = match self.sun_cone {
+            Some((axis, angle)) => keep_in_cone(light, axis, angle, &self.device),
+            None => light,
+        };
         let model = Avatar { field, gaussians, light };
         let poisoned = first_non_finite(&model);
         self.model = Some(model);

@@ -108,12 +108,49 @@ fn a_short_fit_lowers_the_loss_and_turns_the_light_toward_the_truth() {
     assert!(after < 0.5 * before, "light direction error {before:.1} -> {after:.1} degrees");
 }
 
+/// When the light starts to be fitted, the sun search scores directions on surface samples and
+/// the light starts from the best; however hard the light's steps push afterwards (a learning
+/// rate 50x the default, which does reach the cone's edge), the direction stays within the
+/// cone around that start.
+#[test]
+fn the_sun_search_seeds_the_light_and_its_cone_holds_it() {
+    let dir = TempDir::new("sun-search");
+    let scene_path = tiny_scene(dir.path(), TrainingLight::Sun);
+    let scene = umbra::scene::Scene::load(&scene_path).unwrap();
+    let text = QUICK.replace("light_from = 0", "light_from = 40\nsun_search = 64").replace("light = 5e-2", "light = 1.0");
+    let schedule = Schedule::parse(&text, Path::new("search.toml")).unwrap();
+    let mut trainer = Trainer::new(scene, schedule, Backend::Flex, 1).unwrap();
+    for _ in 0..40 {
+        trainer.step().unwrap();
+    }
+    assert!(trainer.sun_search.is_none(), "the search waits for light_from");
+    trainer.step().unwrap();
+    let report = trainer.sun_search.clone().expect("the search ran at light_from");
+    assert!(report.samples > 50 && report.candidates == 64 + 64, "{report:?}");
+    let start = glam::DVec3::from_array(report.best.direction);
+    let cone = (4.0f64 / 64.0).sqrt().to_degrees() * umbra::train::SUN_CONE_SPACINGS;
+    let mut widest: f64 = 0.0;
+    for _ in 0..15 {
+        trainer.step().unwrap();
+        let now = angle_to(&trainer.model().unwrap().light.report()["direction"], start);
+        assert!(now <= cone + 1e-3, "the direction left the cone: {now:.2} > {cone:.2} degrees");
+        widest = widest.max(now);
+    }
+    assert!(widest > 0.5 * cone, "the steps pressed the direction toward the cone's edge ({widest:.2} of {cone:.2} degrees)");
+}
+
 #[test]
 fn resume_continues_where_the_fit_stopped_with_either_field() {
     for kind in ["mlp", "grid"] {
         let (dir, scene_path, schedule_path) = quick_setup(&format!("resume-{kind}"), TrainingLight::Sun, 40);
-        // Hierarchical sampling too, so the coarse pass and its draws are part of what resumes.
-        let text = std::fs::read_to_string(&schedule_path).unwrap().replace("samples_per_ray = 16", "samples_per_ray = 8\nfine_samples_per_ray = 8");
+        // Hierarchical sampling too, so the coarse pass and its draws are part of what resumes;
+        // and the sun search at iteration 10 with a light rate that presses the direction
+        // against the search's cone, so the checkpoint at 20 must carry the cone.
+        let text = std::fs::read_to_string(&schedule_path)
+            .unwrap()
+            .replace("samples_per_ray = 16", "samples_per_ray = 8\nfine_samples_per_ray = 8")
+            .replace("light_from = 0", "light_from = 10\nsun_search = 512")
+            .replace("light = 5e-2", "light = 2.0");
         std::fs::write(&schedule_path, format!("{text}\n[field]\nkind = \"{kind}\"\n")).unwrap();
         let options = |out: &str, iterations: usize, resume: bool| fit_options(&scene_path, dir.path().join(out), &schedule_path, Some(iterations), 3, resume);
         let straight = umbra::fit::fit(&options("straight", 40, false), |_| {}).unwrap();

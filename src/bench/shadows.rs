@@ -24,7 +24,7 @@ pub fn body_cloud(n: usize, seed: u64) -> Vec<PosedGaussian> {
             let axis = DVec3::new(s.uniform() - 0.5, s.uniform() - 0.5, s.uniform() - 0.5).normalize_or(DVec3::Y);
             PosedGaussian {
                 mean: DVec3::new((s.uniform() - 0.5) * 0.6, s.uniform() * 1.7, (s.uniform() - 0.5) * 0.4),
-                axes: DMat3::from_quat(DQuat::from_axis_angle(axis, s.uniform() * 6.28)),
+                axes: DMat3::from_quat(DQuat::from_axis_angle(axis, s.uniform() * std::f64::consts::TAU)),
                 scales: DVec3::new(0.03 + 0.08 * s.uniform(), 0.03 + 0.1 * s.uniform(), 0.03 + 0.08 * s.uniform()) * shrink,
                 amplitude: 8.0 + 8.0 * s.uniform(),
             }
