@@ -129,6 +129,7 @@ pub fn ablate(options: &AblateOptions, mut on: impl FnMut(usize, &str, TrainMess
             seed: options.seed,
             resume: false,
             force: true,
+            force_schedule: false,
             backend: options.backend,
             evaluate: true,
         };

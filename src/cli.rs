@@ -50,6 +50,10 @@ pub enum Command {
         /// Replace an earlier run in the same folder.
         #[arg(long)]
         force: bool,
+        /// With --resume: continue although the schedule or --iterations differs from the run's
+        /// (the learning-rate decays and stages then follow the new one).
+        #[arg(long, requires = "resume")]
+        force_schedule: bool,
         #[arg(long, value_enum, default_value_t = crate::train::Backend::Flex)]
         backend: crate::train::Backend,
         /// Skip rendering and scoring the test images at the end.
@@ -169,8 +173,8 @@ pub fn main() -> i32 {
     let result = match cli.command {
         Command::Inspect { scene } => inspect(&scene),
         Command::Synth { out, force, options } => synth(&out, force, &options),
-        Command::Fit { scene, out, schedule, iterations, seed, resume, force, backend, no_eval } => {
-            fit(&crate::train::FitOptions { scene, out, schedule, iterations, seed, resume, force, backend, evaluate: !no_eval })
+        Command::Fit { scene, out, schedule, iterations, seed, resume, force, force_schedule, backend, no_eval } => {
+            fit(&crate::train::FitOptions { scene, out, schedule, iterations, seed, resume, force, force_schedule, backend, evaluate: !no_eval })
         }
         Command::Render { run, scene, backend } => render(&run, scene.as_deref(), backend),
         Command::Ablate { scene, schedules, out, iterations, seed, force, backend } => {

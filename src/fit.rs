@@ -13,10 +13,12 @@ use crate::train::{io, Avatar, FitError, FitOptions, StepStats, TrainMessage, Tr
 use burn::module::Module;
 use serde_json::json;
 use std::collections::BTreeMap;
-use std::path::Path;
+use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 const CHECKPOINT: &str = "checkpoint";
+/// Where the previous checkpoint waits while a new one is swapped in.
+const OLD_CHECKPOINT: &str = ".checkpoint.old";
 /// The schedule a run was fitted with, copied into the run (rendering rebuilds the model
 /// from it; the original file may have moved).
 const SCHEDULE_COPY: &str = "schedule.toml";
@@ -49,25 +51,38 @@ fn save_checkpoint(trainer: &Trainer, out: &Path, history: &[(usize, StepStats)]
     // The sun search and its cone are part of the state: a resumed fit keeps the same cone.
     let state = json!({
         "iteration": trainer.iteration,
+        "iterations_total": trainer.schedule.iterations,
         "stream": trainer.stream.state().to_string(),
         "sun_search": trainer.sun_search,
         "sun_cone": trainer.sun_cone.map(|(axis, angle)| json!({"axis": axis.to_array(), "angle_radians": angle})),
     });
     write_text(&temp.join("state.json"), &state.to_string())?;
     write_text(&temp.join("losses.csv"), &losses_csv(history))?;
+    // Some complete checkpoint is on disk at every moment: the previous one is set aside (and
+    // an older one set aside before deleted) only while a complete one sits in `checkpoint/`,
+    // and a kill between the two renames leaves `.checkpoint.old`, which `existing_checkpoint`
+    // finds.
     let target = out.join(CHECKPOINT);
-    let old = out.join(".checkpoint.old");
-    let _ = std::fs::remove_dir_all(&old);
-    if target.exists() {
+    let old = out.join(OLD_CHECKPOINT);
+    if target.join("state.json").is_file() {
+        let _ = std::fs::remove_dir_all(&old);
         std::fs::rename(&target, &old).map_err(|e| io(&target, e))?;
+    } else {
+        let _ = std::fs::remove_dir_all(&target);
     }
     std::fs::rename(&temp, &target).map_err(|e| io(&target, e))?;
     let _ = std::fs::remove_dir_all(&old);
     Ok(())
 }
 
+/// The run's last complete checkpoint folder: `checkpoint/`, or the one an interrupted swap
+/// left aside.
+pub fn existing_checkpoint(out: &Path) -> Option<PathBuf> {
+    [CHECKPOINT, OLD_CHECKPOINT].iter().map(|name| out.join(name)).find(|dir| dir.join("state.json").is_file())
+}
+
 fn load_checkpoint(trainer: &mut Trainer, out: &Path) -> Result<Vec<(usize, StepStats)>, FitError> {
-    let dir = out.join(CHECKPOINT);
+    let dir = existing_checkpoint(out).ok_or_else(|| io(out, "holds no checkpoint to resume"))?;
     let state_path = dir.join("state.json");
     let text = std::fs::read_to_string(&state_path).map_err(|e| io(&state_path, format!("cannot resume: {e}")))?;
     let state: serde_json::Value = serde_json::from_str(&text).map_err(|e| io(&state_path, e))?;
@@ -135,7 +150,8 @@ pub fn restore(run: &Path, scene: Option<&Path>, backend: crate::train::Backend)
     };
     let scene = Scene::load(&scene_path)?;
     let mut trainer = Trainer::new(scene, schedule, backend, 0)?;
-    load_model(&mut trainer, &run.join(CHECKPOINT))?;
+    let checkpoint = existing_checkpoint(run).ok_or_else(|| io(run, "holds no checkpoint"))?;
+    load_model(&mut trainer, &checkpoint)?;
     Ok(trainer)
 }
 
@@ -198,11 +214,66 @@ fn losses_chart(history: &[(usize, StepStats)]) -> Chart {
     Chart { title: format!("losses (running mean of {window})"), x_label: "iteration".into(), y_label: "loss".into(), log_x: false, log_y: true, series }
 }
 
+/// A `--resume` must continue the run as it was scheduled: the same schedule text and the same
+/// iteration count (the learning-rate decays and the stages depend on both), unless
+/// `force_schedule`; and never fewer iterations than are done.
+fn check_continuation(out: &Path, schedule_text: &str, iterations: usize, force_schedule: bool) -> Result<(), FitError> {
+    let checkpoint = existing_checkpoint(out).ok_or_else(|| io(out, "holds no checkpoint to resume"))?;
+    let state_path = checkpoint.join("state.json");
+    let text = std::fs::read_to_string(&state_path).map_err(|e| io(&state_path, e))?;
+    let state: serde_json::Value = serde_json::from_str(&text).map_err(|e| io(&state_path, e))?;
+    let done = state["iteration"].as_u64().ok_or_else(|| io(&state_path, "iteration: missing"))? as usize;
+    if iterations < done {
+        return Err(io(out, format!("has {done} iterations done; resuming to {iterations} would run nothing (nothing was written)")));
+    }
+    if force_schedule {
+        return Ok(());
+    }
+    let mut changes = Vec::new();
+    if let Some(total) = state["iterations_total"].as_u64() {
+        if total as usize != iterations {
+            changes.push(format!("the iteration count ({total} -> {iterations})"));
+        }
+    }
+    let copy = out.join(SCHEDULE_COPY);
+    if let Ok(previous) = std::fs::read_to_string(&copy) {
+        let old: Vec<&str> = previous.lines().map(str::trim).filter(|l| !l.is_empty()).collect();
+        let new: Vec<&str> = schedule_text.lines().map(str::trim).filter(|l| !l.is_empty()).collect();
+        let removed: Vec<&str> = old.iter().filter(|l| !new.contains(l)).copied().collect();
+        let added: Vec<&str> = new.iter().filter(|l| !old.contains(l)).copied().collect();
+        if !removed.is_empty() || !added.is_empty() {
+            let show = |v: &[&str]| v.iter().take(3).map(|l| format!("`{l}`")).collect::<Vec<_>>().join(", ");
+            changes.push(format!("the schedule (the run's {} has {}; the new one has {})", copy.display(), show(&removed), show(&added)));
+        }
+    }
+    if changes.is_empty() {
+        return Ok(());
+    }
+    Err(io(
+        out,
+        format!(
+            "--resume would change {}: it would not continue the same fit; pass --force-schedule to continue anyway (nothing was written)",
+            changes.join(" and ")
+        ),
+    ))
+}
+
+/// Whether `dir` exists and holds entries but none of a run's (checkpoint, fit.json, the
+/// schedule copy, an interrupted checkpoint swap).
+fn holds_foreign_files(dir: &Path) -> bool {
+    let Ok(entries) = std::fs::read_dir(dir) else {
+        return false;
+    };
+    let names: Vec<String> = entries.filter_map(|e| e.ok()).map(|e| e.file_name().to_string_lossy().into_owned()).collect();
+    let run_marks = [CHECKPOINT, "fit.json", SCHEDULE_COPY, OLD_CHECKPOINT, ".checkpoint.tmp"];
+    !names.is_empty() && !names.iter().any(|n| run_marks.contains(&n.as_str()))
+}
+
 /// Runs the fit described by `options`, reporting through `on`; returns fit.json's content.
 pub fn fit(options: &FitOptions, mut on: impl FnMut(TrainMessage)) -> Result<serde_json::Value, FitError> {
     let wall = Instant::now();
     let scene = Scene::load(&options.scene)?;
-    let mut schedule = Schedule::load(&options.schedule)?;
+    let (mut schedule, schedule_text) = Schedule::read(&options.schedule)?;
     if let Some(n) = options.iterations {
         if n == 0 {
             return Err(FitError::Input("--iterations must be at least 1".into()));
@@ -210,8 +281,15 @@ pub fn fit(options: &FitOptions, mut on: impl FnMut(TrainMessage)) -> Result<ser
         schedule.iterations = n;
     }
     let out = &options.out;
-    if out.join(CHECKPOINT).exists() && !options.resume && !options.force {
+    if existing_checkpoint(out).is_some() && !options.resume && !options.force {
         return Err(io(out, "holds a checkpoint of an earlier fit: pass --resume to continue it, --force to replace it, or choose another --out"));
+    }
+    if options.resume && existing_checkpoint(out).is_none() {
+        return Err(io(out, "holds no checkpoint to resume (nothing was written)"));
+    }
+    // A folder holding files but no run is the user's: it is not written into without --force.
+    if !options.resume && !options.force && holds_foreign_files(out) {
+        return Err(io(out, "exists, is not empty and is not an umbra run (no checkpoint, fit.json or schedule.toml): pass --force to write into it anyway, or choose another --out"));
     }
     // Everything is validated before the run folder is touched: a refused fit writes nothing.
     let mut trainer = Trainer::new(scene, schedule.clone(), options.backend, options.seed)?;
@@ -221,11 +299,15 @@ pub fn fit(options: &FitOptions, mut on: impl FnMut(TrainMessage)) -> Result<ser
     trainer.schedule.iterations = schedule.iterations;
     if options.force && !options.resume {
         let _ = std::fs::remove_dir_all(out.join(CHECKPOINT));
+        let _ = std::fs::remove_dir_all(out.join(OLD_CHECKPOINT));
     }
-    std::fs::create_dir_all(out).map_err(|e| io(out, e))?;
-    let schedule_text = std::fs::read(&options.schedule).map_err(|e| io(&options.schedule, e))?;
-    crate::imageio::write_atomic(&out.join(SCHEDULE_COPY), &schedule_text).map_err(|e| io(&out.join(SCHEDULE_COPY), e))?;
+    // The checkpoint is loaded (and so validated) before the run's schedule copy is replaced.
+    if options.resume {
+        check_continuation(out, &schedule_text, schedule.iterations, options.force_schedule)?;
+    }
     let mut history = if options.resume { load_checkpoint(&mut trainer, out)? } else { Vec::new() };
+    std::fs::create_dir_all(out).map_err(|e| io(out, e))?;
+    crate::imageio::write_atomic(&out.join(SCHEDULE_COPY), schedule_text.as_bytes()).map_err(|e| io(&out.join(SCHEDULE_COPY), e))?;
     history.retain(|(i, _)| *i < trainer.iteration);
     let training_images = trainer.scene.views_in(Split::Train).count();
     on(TrainMessage::Loaded { scene: trainer.scene.display_name(), training_images, frames: trainer.scene.frames.len(), light: trainer.light_kind });
@@ -295,7 +377,8 @@ pub fn fit(options: &FitOptions, mut on: impl FnMut(TrainMessage)) -> Result<ser
         "light_start": if trainer.sun_search.is_some() { "sun search over the sphere, then gradient descent within the search lattice's spacing" } else { "the schedule's initial light, then gradient descent" },
     });
     let report = json!({
-        "scene": options.scene.display().to_string(),
+        // Absolute, so the run renders from any working folder.
+        "scene": std::fs::canonicalize(&options.scene).unwrap_or_else(|_| options.scene.clone()).display().to_string(),
         "light": light,
         "stages": stages,
         "iterations": schedule.iterations,

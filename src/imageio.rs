@@ -112,11 +112,48 @@ fn io_error(path: &Path, e: std::io::Error) -> ImageError {
     }
 }
 
+/// The most pixels an image may declare (an 8K x 8K environment map): a header claiming more
+/// is refused before anything is decoded, so a small hostile file cannot take minutes and
+/// gigabytes.
+pub const MAX_PIXELS: usize = 1 << 26;
+
+/// An image's width and height from its header alone (PNG or EXR), nothing decoded.
+pub fn dimensions(path: &Path) -> Result<(usize, usize), ImageError> {
+    if !path.is_file() {
+        return Err(ImageError::NotFound(path.display().to_string()));
+    }
+    let decode_error = |e: String| ImageError::Decode(path.display().to_string(), e);
+    match kind(path) {
+        Some("png") => {
+            let file = std::fs::File::open(path).map_err(|e| io_error(path, e))?;
+            let reader = image::ImageReader::with_format(std::io::BufReader::new(file), image::ImageFormat::Png);
+            let (w, h) = guarded(path, || reader.into_dimensions().map_err(|e| decode_error(e.to_string())))?;
+            Ok((w as usize, h as usize))
+        }
+        Some(_) => guarded(path, || {
+            let meta = exr::meta::MetaData::read_from_file(path, false).map_err(|e| decode_error(e.to_string()))?;
+            let header = meta.headers.first().ok_or_else(|| decode_error("no layer".into()))?;
+            Ok((header.layer_size.width(), header.layer_size.height()))
+        }),
+        None => Err(ImageError::UnsupportedType(path.display().to_string())),
+    }
+}
+
+/// Refuses a header that declares more than `MAX_PIXELS`.
+fn check_declared_size(path: &Path) -> Result<(), ImageError> {
+    let (w, h) = dimensions(path)?;
+    if w.saturating_mul(h) > MAX_PIXELS {
+        return Err(ImageError::Decode(path.display().to_string(), format!("declares {w}x{h} pixels, more than the {MAX_PIXELS} allowed")));
+    }
+    Ok(())
+}
+
 /// Reads a colour image: sRGB PNG (8 or 16 bit) to linear, EXR as linear (alpha ignored).
 pub fn read_rgb(path: &Path) -> Result<RgbImage, ImageError> {
     if !path.is_file() {
         return Err(ImageError::NotFound(path.display().to_string()));
     }
+    check_declared_size(path)?;
     match kind(path) {
         Some("png") => {
             let img = decode_png(path)?;
@@ -157,6 +194,7 @@ pub fn read_mask(path: &Path) -> Result<Mask, ImageError> {
     if kind(path) != Some("png") {
         return Err(ImageError::UnsupportedType(format!("{} (masks are PNG)", path.display())));
     }
+    check_declared_size(path)?;
     let img = decode_png(path)?;
     let (width, height) = (img.width() as usize, img.height() as usize);
     // to_rgba8 keeps the first channel as is for grey, RGB and RGBA inputs (16-bit scaled to 8).

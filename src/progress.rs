@@ -1,6 +1,6 @@
 //! Progress of long work on standard error: a bar with an ETA when a person watches a terminal,
-//! plain lines (position, percentage, elapsed time, ETA) every tenth of the work or half
-//! minute when nobody does (a log file, CI, `nohup`), where indicatif would print nothing.
+//! plain lines (position, percentage, elapsed time, ETA, the latest message) every tenth of
+//! the work and at least every ten seconds when nobody does (a log file, CI, `nohup`), where indicatif would print nothing.
 
 use std::io::IsTerminal;
 use std::sync::Mutex;
@@ -8,8 +8,8 @@ use std::time::{Duration, Instant};
 
 /// How often a plain line is printed at most: every this fraction of the work...
 const LINE_FRACTION: f64 = 0.1;
-/// ...or after this long without one.
-const LINE_INTERVAL: Duration = Duration::from_secs(30);
+/// ...or after this long without one (a silent log longer than this looks hung).
+const LINE_INTERVAL: Duration = Duration::from_secs(10);
 
 pub struct Progress {
     bar: Option<indicatif::ProgressBar>,

@@ -79,6 +79,11 @@ pub enum LightFit {
     Off,
 }
 
+/// Where `umbra` looks for its default schedule, relative to the working folder...
+pub const DEFAULT_PATH: &str = "schedules/default.toml";
+/// ...and the copy compiled in, used when that file is not there.
+pub const DEFAULT_TEXT: &str = include_str!("../schedules/default.toml");
+
 #[derive(Clone, Debug, PartialEq, serde::Serialize)]
 pub struct Schedule {
     pub file: PathBuf,
@@ -204,8 +209,18 @@ fn parse_field(file: &Path, table: &toml::Table) -> Result<FieldSettings, Schedu
 
 impl Schedule {
     pub fn load(path: &Path) -> Result<Self, ScheduleError> {
-        let text = std::fs::read_to_string(path).map_err(|e| err(path, "(file)", format!("cannot read: {e}")))?;
-        Self::parse(&text, path)
+        Self::read(path).map(|(schedule, _)| schedule)
+    }
+
+    /// The schedule at `path` and its text. The default schedule's path works from any folder:
+    /// when `schedules/default.toml` is not there, the copy compiled into the binary is used.
+    pub fn read(path: &Path) -> Result<(Self, String), ScheduleError> {
+        let text = match std::fs::read_to_string(path) {
+            Ok(text) => text,
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound && path == Path::new(DEFAULT_PATH) => DEFAULT_TEXT.to_string(),
+            Err(e) => return Err(err(path, "(file)", format!("cannot read: {e}"))),
+        };
+        Ok((Self::parse(&text, path)?, text))
     }
 
     pub fn parse(text: &str, file: &Path) -> Result<Self, ScheduleError> {
@@ -398,7 +413,7 @@ impl Schedule {
 mod tests {
     use super::*;
 
-    const DEFAULT: &str = include_str!("../schedules/default.toml");
+    const DEFAULT: &str = DEFAULT_TEXT;
 
     #[test]
     fn default_schedule_parses_and_stages_in_order() {

@@ -120,6 +120,9 @@ pub struct FitOptions {
     pub resume: bool,
     /// Replace an earlier run's checkpoint and outputs in `out`.
     pub force: bool,
+    /// With `resume`: continue even though the schedule or the iteration count differs from
+    /// the run's (otherwise refused: it would not be the continuation it claims).
+    pub force_schedule: bool,
     pub backend: Backend,
     /// Render and score the test images at the end.
     pub evaluate: bool,

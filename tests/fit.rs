@@ -43,6 +43,8 @@ fn fit_options(scene: &Path, out: std::path::PathBuf, schedule: &Path, iteration
         seed,
         resume,
         force: false,
+        // The resume test stops a fit early by asking for fewer iterations, then continues it.
+        force_schedule: resume,
         backend: Backend::Flex,
         evaluate: false,
     }

@@ -149,6 +149,55 @@ fn corrupt_files_are_errors_not_panics() {
     expect_path(broken(|s, _| s["images"][0]["path"] = json!("scene.json")), "images[0].path", "unsupported");
 }
 
+/// A PNG that is nothing but a valid signature and header declaring `w x h` RGB pixels and a
+/// few bytes of broken image data: decoding it would fail, so an error that names its size proves the size was
+/// read from the header and checked first.
+fn png_header_only(w: u32, h: u32) -> Vec<u8> {
+    fn crc32(bytes: &[u8]) -> u32 {
+        let mut crc = 0xFFFF_FFFFu32;
+        for &b in bytes {
+            crc ^= b as u32;
+            for _ in 0..8 {
+                crc = if crc & 1 == 1 { (crc >> 1) ^ 0xEDB8_8320 } else { crc >> 1 };
+            }
+        }
+        !crc
+    }
+    let mut ihdr = b"IHDR".to_vec();
+    ihdr.extend(w.to_be_bytes());
+    ihdr.extend(h.to_be_bytes());
+    ihdr.extend([8, 2, 0, 0, 0]);
+    let mut png = b"\x89PNG\r\n\x1a\n".to_vec();
+    png.extend(13u32.to_be_bytes());
+    png.extend(&ihdr);
+    png.extend(crc32(&ihdr).to_be_bytes());
+    // An image-data chunk whose bytes are not a valid stream: headers end at its start.
+    let idat = [b"IDAT".as_slice(), &[0x78, 0x9c, 0, 0, 0, 0]].concat();
+    png.extend(6u32.to_be_bytes());
+    png.extend(&idat);
+    png.extend(crc32(&idat).to_be_bytes());
+    png.extend(0u32.to_be_bytes());
+    png.extend(b"IEND");
+    png.extend(crc32(b"IEND").to_be_bytes());
+    png
+}
+
+#[test]
+fn an_image_size_is_checked_from_its_header_before_decoding() {
+    let huge = png_header_only(20_000, 20_000);
+    expect_path(broken(|_, dir| std::fs::write(dir.join("images/a.png"), &huge).unwrap()), "images[0].path", "20000x20000, but its camera is");
+    expect_path(broken(|_, dir| std::fs::write(dir.join("masks/a.png"), &huge).unwrap()), "images[0].mask", "20000x20000, but its camera is");
+    let dir = TempDir::new("header");
+    let small = dir.path().join("small.png");
+    std::fs::write(&small, png_header_only(7, 3)).unwrap();
+    assert_eq!(umbra::imageio::dimensions(&small).unwrap(), (7, 3));
+    // Where no camera fixes the size (an environment map), a header above the cap is refused.
+    let path = dir.path().join("huge.png");
+    std::fs::write(&path, png_header_only(20_000, 20_000)).unwrap();
+    let err = umbra::imageio::read_rgb(&path).unwrap_err().to_string();
+    assert!(err.contains("20000x20000") && err.contains("allowed"), "{err}");
+}
+
 fn broken_text(edit: impl FnOnce(String) -> String) -> umbra::scene::SceneError {
     let dir = TempDir::new("text");
     let scene = valid_scene(dir.path());

@@ -365,7 +365,14 @@ fn check_size(p: &Pending, (w, h): (usize, usize), expected: (usize, usize)) -> 
     Ok(())
 }
 
+/// The image's size from its header must be its camera's before anything is decoded.
+fn check_header(p: &Pending, expected: (usize, usize)) -> Result<(), SceneError> {
+    let size = imageio::dimensions(&p.file).map_err(|e| pending_error(p, image_message(e, &p.relative)))?;
+    check_size(p, size, expected)
+}
+
 fn decode_rgb(p: &Pending, w: usize, h: usize) -> Result<RgbImage, SceneError> {
+    check_header(p, (w, h))?;
     let image = imageio::read_rgb(&p.file).map_err(|e| pending_error(p, image_message(e, &p.relative)))?;
     check_size(p, (image.width, image.height), (w, h))?;
     if image.pixels.iter().any(|px| px.iter().any(|c| !c.is_finite())) {
@@ -375,6 +382,7 @@ fn decode_rgb(p: &Pending, w: usize, h: usize) -> Result<RgbImage, SceneError> {
 }
 
 fn decode_mask(p: &Pending, w: usize, h: usize) -> Result<Mask, SceneError> {
+    check_header(p, (w, h))?;
     let mask = imageio::read_mask(&p.file).map_err(|e| pending_error(p, image_message(e, &p.relative)))?;
     check_size(p, (mask.width, mask.height), (w, h))?;
     Ok(mask)

@@ -1,0 +1,165 @@
+//! Run folders that cannot hurt the user: a fit started from any folder (the default schedule
+//! is compiled in, the scene path is stored absolute), a user's folder is never written into
+//! without --force, a failing --resume writes nothing, and a checkpoint swap interrupted between
+//! its two renames still leaves a checkpoint that resumes and renders.
+
+mod common;
+
+use common::TempDir;
+use std::path::{Path, PathBuf};
+use umbra::synth::{Kind, SynthOptions, TestKind, TrainingLight};
+
+fn tiny_scene(dir: &Path) -> PathBuf {
+    let options = SynthOptions {
+        character: Kind::Human,
+        light: TrainingLight::Sun,
+        size: 24,
+        cameras: 3,
+        frames: 2,
+        test_frames: 1,
+        test: vec![TestKind::Poses],
+        samples: 4,
+        seed: 9,
+        meshes: false,
+        mesh_cell: 0.02,
+        ..SynthOptions::default()
+    };
+    let out = dir.join("scene");
+    umbra::synth::generate(&options, &out, false, |_, _| {}).unwrap();
+    out
+}
+
+fn umbra(cwd: &Path, args: &[&str]) -> std::process::Output {
+    std::process::Command::new(env!("CARGO_BIN_EXE_umbra")).current_dir(cwd).args(args).output().unwrap()
+}
+
+/// Every file under `dir` with its bytes, to prove a refused command wrote nothing.
+fn snapshot(dir: &Path) -> Vec<(PathBuf, Vec<u8>)> {
+    let mut out = Vec::new();
+    let mut stack = vec![dir.to_path_buf()];
+    while let Some(d) = stack.pop() {
+        if let Ok(entries) = std::fs::read_dir(&d) {
+            for e in entries.flatten() {
+                let p = e.path();
+                if p.is_dir() {
+                    stack.push(p);
+                } else {
+                    out.push((p.clone(), std::fs::read(&p).unwrap_or_default()));
+                }
+            }
+        }
+    }
+    out.sort();
+    out
+}
+
+#[test]
+fn a_fit_started_elsewhere_uses_the_built_in_schedule_and_its_run_renders_from_anywhere() {
+    let dir = TempDir::new("relocatable");
+    let scene = tiny_scene(dir.path());
+    let elsewhere = dir.path().join("elsewhere");
+    std::fs::create_dir_all(&elsewhere).unwrap();
+    let run = dir.path().join("run");
+    // No schedules/ folder in `elsewhere`: the default schedule is the compiled-in copy.
+    let out = umbra(&elsewhere, &["fit", scene.to_str().unwrap(), "--out", run.to_str().unwrap(), "--iterations", "3"]);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let report: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(run.join("fit.json")).unwrap()).unwrap();
+    assert!(Path::new(report["scene"].as_str().unwrap()).is_absolute(), "{}", report["scene"]);
+    assert_eq!(std::fs::read_to_string(run.join("schedule.toml")).unwrap(), umbra::schedule::DEFAULT_TEXT);
+    // A run moved to another folder renders from a third one.
+    let moved = dir.path().join("moved-run");
+    std::fs::rename(&run, &moved).unwrap();
+    let out = umbra(&elsewhere, &["render", moved.to_str().unwrap()]);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+}
+
+#[test]
+fn a_users_folder_is_not_written_into_and_a_failing_resume_writes_nothing() {
+    let dir = TempDir::new("foreign");
+    let scene = tiny_scene(dir.path());
+    let cwd = std::env::current_dir().unwrap();
+    let mine = dir.path().join("my-files");
+    std::fs::create_dir_all(&mine).unwrap();
+    std::fs::write(mine.join("gaussians.json"), "my own file").unwrap();
+    let before = snapshot(&mine);
+    let out = umbra(&cwd, &["fit", scene.to_str().unwrap(), "--out", mine.to_str().unwrap(), "--iterations", "2"]);
+    assert!(!out.status.success());
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(stderr.contains("not an umbra run") && stderr.contains("--force"), "{stderr}");
+    assert_eq!(before, snapshot(&mine), "nothing written into the user's folder");
+    // --resume on a folder that does not exist: an error, and the folder is not created.
+    let missing = dir.path().join("no-such-run");
+    let out = umbra(&cwd, &["fit", scene.to_str().unwrap(), "--out", missing.to_str().unwrap(), "--resume"]);
+    assert!(!out.status.success());
+    assert!(!missing.exists(), "a failed --resume created the folder");
+    // A run whose checkpoint is corrupt: --resume fails and its schedule copy is unchanged.
+    let run = dir.path().join("run");
+    let out = umbra(&cwd, &["fit", scene.to_str().unwrap(), "--out", run.to_str().unwrap(), "--iterations", "2"]);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    std::fs::write(run.join("checkpoint/state.json"), "{ not json").unwrap();
+    let other = dir.path().join("other.toml");
+    std::fs::write(&other, umbra::schedule::DEFAULT_TEXT.replace("iterations = 1800", "iterations = 1700")).unwrap();
+    let before = snapshot(&run);
+    let out = umbra(&cwd, &["fit", scene.to_str().unwrap(), "--out", run.to_str().unwrap(), "--resume", "--schedule", other.to_str().unwrap()]);
+    assert!(!out.status.success());
+    assert_eq!(before, snapshot(&run), "a failing --resume changed the run");
+}
+
+#[test]
+fn a_checkpoint_swap_interrupted_between_its_renames_still_resumes_and_renders() {
+    let dir = TempDir::new("swap");
+    let scene = tiny_scene(dir.path());
+    let cwd = std::env::current_dir().unwrap();
+    let run = dir.path().join("run");
+    let out = umbra(&cwd, &["fit", scene.to_str().unwrap(), "--out", run.to_str().unwrap(), "--iterations", "2"]);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    // The state a kill between `checkpoint -> .checkpoint.old` and `.checkpoint.tmp ->
+    // checkpoint` leaves: no checkpoint/, the previous one aside, the new one complete in tmp.
+    std::fs::rename(run.join("checkpoint"), run.join(".checkpoint.old")).unwrap();
+    let tmp = run.join(".checkpoint.tmp");
+    std::fs::create_dir_all(&tmp).unwrap();
+    for entry in std::fs::read_dir(run.join(".checkpoint.old")).unwrap().flatten() {
+        std::fs::copy(entry.path(), tmp.join(entry.file_name())).unwrap();
+    }
+    let out = umbra(&cwd, &["render", run.to_str().unwrap()]);
+    assert!(out.status.success(), "render after an interrupted swap: {}", String::from_utf8_lossy(&out.stderr));
+    // Without --resume the set-aside checkpoint still counts as an earlier fit.
+    let out = umbra(&cwd, &["fit", scene.to_str().unwrap(), "--out", run.to_str().unwrap(), "--iterations", "4"]);
+    assert!(!out.status.success() && String::from_utf8_lossy(&out.stderr).contains("--resume"));
+    let out = umbra(&cwd, &["fit", scene.to_str().unwrap(), "--out", run.to_str().unwrap(), "--iterations", "4", "--resume", "--force-schedule"]);
+    assert!(out.status.success(), "resume after an interrupted swap: {}", String::from_utf8_lossy(&out.stderr));
+    let state: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(run.join("checkpoint/state.json")).unwrap()).unwrap();
+    assert_eq!(state["iteration"], 4);
+    assert!(!run.join(".checkpoint.old").exists(), "the set-aside checkpoint is removed once a new one is in place");
+}
+
+#[test]
+fn resume_refuses_another_schedule_or_iteration_count_unless_forced() {
+    let dir = TempDir::new("continuation");
+    let scene = tiny_scene(dir.path());
+    let cwd = std::env::current_dir().unwrap();
+    let run = dir.path().join("run");
+    let run_arg = run.to_str().unwrap();
+    let scene_arg = scene.to_str().unwrap();
+    let out = umbra(&cwd, &["fit", scene_arg, "--out", run_arg, "--iterations", "3"]);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let before = snapshot(&run);
+    // Another iteration count: refused, saying what changed, nothing written.
+    let out = umbra(&cwd, &["fit", scene_arg, "--out", run_arg, "--iterations", "5", "--resume"]);
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success() && stderr.contains("iteration count (3 -> 5)") && stderr.contains("--force-schedule"), "{stderr}");
+    // Another schedule: refused, naming a changed line.
+    let other = dir.path().join("other.toml");
+    std::fs::write(&other, umbra::schedule::DEFAULT_TEXT.replace("rays_per_batch = 512", "rays_per_batch = 256")).unwrap();
+    let out = umbra(&cwd, &["fit", scene_arg, "--out", run_arg, "--iterations", "3", "--resume", "--schedule", other.to_str().unwrap()]);
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success() && stderr.contains("rays_per_batch = 256"), "{stderr}");
+    // Fewer iterations than are done: refused even when forced.
+    let out = umbra(&cwd, &["fit", scene_arg, "--out", run_arg, "--iterations", "2", "--resume", "--force-schedule"]);
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success() && stderr.contains("would run nothing"), "{stderr}");
+    assert_eq!(before, snapshot(&run), "refused resumes wrote nothing");
+    // The same schedule and count resume (here: nothing left, an honest no-op) and forced ones run.
+    let out = umbra(&cwd, &["fit", scene_arg, "--out", run_arg, "--iterations", "5", "--resume", "--force-schedule", "--no-eval"]);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+}
