@@ -6,7 +6,7 @@ mod common;
 use common::TempDir;
 use std::path::Path;
 use umbra::schedule::Schedule;
-use umbra::synth::{Kind, SynthOptions, TestKind, TrainingLight};
+use umbra::synth::{TestKind, TrainingLight};
 use umbra::train::{Backend, FitOptions, Trainer};
 
 fn tiny_scene(dir: &Path, light: TrainingLight) -> std::path::PathBuf {
@@ -14,23 +14,7 @@ fn tiny_scene(dir: &Path, light: TrainingLight) -> std::path::PathBuf {
 }
 
 fn tiny_scene_with_tests(dir: &Path, light: TrainingLight, test: Vec<TestKind>) -> std::path::PathBuf {
-    let options = SynthOptions {
-        character: Kind::Human,
-        light,
-        size: 32,
-        cameras: 4,
-        frames: 2,
-        test_frames: 1,
-        test,
-        samples: 8,
-        seed: 5,
-        meshes: false,
-        mesh_cell: 0.02,
-        ..SynthOptions::default()
-    };
-    let out = dir.join("scene");
-    umbra::synth::generate(&options, &out, false, |_, _| {}).unwrap();
-    out
+    common::tiny_synth(dir, light, 32, 4, test, 5)
 }
 
 /// Options for a fit of `scene` into `out` with the given schedule file, no evaluation.

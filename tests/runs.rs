@@ -7,26 +7,10 @@ mod common;
 
 use common::TempDir;
 use std::path::{Path, PathBuf};
-use umbra::synth::{Kind, SynthOptions, TestKind, TrainingLight};
+use umbra::synth::{TestKind, TrainingLight};
 
 fn tiny_scene(dir: &Path) -> PathBuf {
-    let options = SynthOptions {
-        character: Kind::Human,
-        light: TrainingLight::Sun,
-        size: 24,
-        cameras: 3,
-        frames: 2,
-        test_frames: 1,
-        test: vec![TestKind::Poses],
-        samples: 4,
-        seed: 9,
-        meshes: false,
-        mesh_cell: 0.02,
-        ..SynthOptions::default()
-    };
-    let out = dir.join("scene");
-    umbra::synth::generate(&options, &out, false, |_, _| {}).unwrap();
-    out
+    common::tiny_synth(dir, TrainingLight::Sun, 24, 3, vec![TestKind::Poses], 9)
 }
 
 fn umbra(cwd: &Path, args: &[&str]) -> std::process::Output {

@@ -109,3 +109,25 @@ pub fn example_scene() -> PathBuf {
     assert!(p.join("scene.json").is_file(), "the fixture {} is missing: ../shared must sit beside the repository", p.display());
     p
 }
+
+/// A tiny synthetic walking human (`size` pixels square, `cameras` cameras, two frames and one
+/// test frame), written into `dir/scene`.
+pub fn tiny_synth(dir: &Path, light: umbra::synth::TrainingLight, size: usize, cameras: usize, test: Vec<umbra::synth::TestKind>, seed: u64) -> PathBuf {
+    let options = umbra::synth::SynthOptions {
+        character: umbra::synth::Kind::Human,
+        light,
+        size,
+        cameras,
+        frames: 2,
+        test_frames: 1,
+        test,
+        samples: 8,
+        seed,
+        meshes: false,
+        mesh_cell: 0.02,
+        ..umbra::synth::SynthOptions::default()
+    };
+    let out = dir.join("scene");
+    umbra::synth::generate(&options, &out, false, |_, _| {}).unwrap();
+    out
+}
