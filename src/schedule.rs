@@ -500,4 +500,21 @@ mod tests {
         assert_eq!(error_of("field_lr_decay = 0\n[losses]\nmask = 1.0").key, "field_lr_decay");
         assert_eq!(error_of("sun_search = -1\n[losses]\nmask = 1.0").key, "sun_search");
     }
+
+    /// Every shipped ablation parses and differs from the default schedule (in its settings,
+    /// not only its comments).
+    #[test]
+    fn shipped_ablations_parse_and_differ_from_the_default() {
+        let folder = Path::new(env!("CARGO_MANIFEST_DIR")).join("schedules/ablations");
+        let default = Schedule::parse(DEFAULT, Path::new("x.toml")).unwrap();
+        let mut count = 0;
+        for entry in std::fs::read_dir(&folder).unwrap().flatten() {
+            let path = entry.path();
+            let text = std::fs::read_to_string(&path).unwrap();
+            let ablation = Schedule::parse(&text, Path::new("x.toml")).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+            assert_ne!(ablation, default, "{} is the default schedule", path.display());
+            count += 1;
+        }
+        assert!(count >= 8, "{count} ablations in {}", folder.display());
+    }
 }
