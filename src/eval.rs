@@ -52,8 +52,7 @@ pub fn render_view(model: &Avatar, scene: &Scene, camera: usize, frame: usize, s
         Lighting::Known { light: Light::Uniform { radiance }, samples, .. } => Some(EnvironmentSampler::uniform(*radiance, *samples, frame as u64)),
         _ => None,
     };
-    let density_scale = values(model.light.density_scale()).first().copied().unwrap_or(1.0) as f64;
-    let sky_casters: Vec<PosedGaussian> = posed.iter().map(|g| PosedGaussian { amplitude: g.amplitude * density_scale, ..*g }).collect();
+    let sky_casters: Vec<PosedGaussian> = model.light.shadow_casters_posed(&posed);
     let mut image = RgbImage::new(camera.width, camera.height);
     let pixels: Vec<usize> = (0..camera.width * camera.height).collect();
     for chunk in pixels.chunks(1024) {

@@ -374,7 +374,7 @@ pub fn fit(options: &FitOptions, mut on: impl FnMut(TrainMessage)) -> Result<ser
     let capture = json!({
         "training_cameras": training_cameras.len(),
         "monocular": training_cameras.len() == 1,
-        "light_start": if trainer.sun_search.is_some() { "sun search over the sphere, then gradient descent within the search lattice's spacing" } else { "the schedule's initial light, then gradient descent" },
+        "light_start": if trainer.sun_search.is_some() { "sun search over the sphere, then gradient descent within a cone around its best" } else { "the schedule's initial light, then gradient descent" },
     });
     let report = json!({
         // Absolute, so the run renders from any working folder.

@@ -123,6 +123,12 @@ impl LightModel {
         GaussianTensors { amplitudes: gaussians.amplitudes.clone() * self.density_scale(), ..gaussians.clone() }
     }
 
+    /// The same for posed Gaussians on the CPU (rendering's sky visibility, the sun search).
+    pub fn shadow_casters_posed(&self, posed: &[crate::gaussians::PosedGaussian]) -> Vec<crate::gaussians::PosedGaussian> {
+        let scale = self.density_scale().into_data().convert::<f64>().try_to_vec::<f64>().ok().and_then(|v| v.first().copied()).unwrap_or(1.0);
+        posed.iter().map(|g| crate::gaussians::PosedGaussian { amplitude: g.amplitude * scale, ..*g }).collect()
+    }
+
     /// The light as plain numbers for fit.json: direction or position, ambient, intensity.
     pub fn report(&self) -> serde_json::Value {
         let v = |t: Tensor<1>| t.into_data().convert::<f32>().try_to_vec::<f32>().unwrap_or_default();

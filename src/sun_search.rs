@@ -75,10 +75,11 @@ pub fn cap(centre: DVec3, angle: f64, n: usize) -> Vec<DVec3> {
         .collect()
 }
 
-/// Least squares of `y = a x + k x s` with `a, k >= 0`; returns the squared residual.
-fn residual(xs: &[f64], ss: &[f64], ys: &[f64]) -> f64 {
+/// Least squares of `y = a x + k x s` with `a, k >= 0` over `(x, s, y)` triples; returns the
+/// squared residual.
+fn residual(triples: impl Iterator<Item = (f64, f64, f64)>) -> f64 {
     let (mut xx, mut xxs, mut xsxs, mut xy, mut xsy, mut yy) = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0);
-    for ((&x, &s), &y) in xs.iter().zip(ss).zip(ys) {
+    for (x, s, y) in triples {
         let z = x * s;
         xx += x * x;
         xxs += x * z;
@@ -121,12 +122,7 @@ pub fn score(samples: &[SurfaceSample], casters: &[ShadowCaster], direction: DVe
             (cosine * visibility) as f64
         })
         .collect();
-    let mut total = 0.0;
-    for channel in 0..3 {
-        let xs: Vec<f64> = samples.iter().map(|s| s.albedo[channel] as f64).collect();
-        let ys: Vec<f64> = samples.iter().map(|s| s.colour[channel] as f64).collect();
-        total += residual(&xs, &shading, &ys);
-    }
+    let total: f64 = (0..3).map(|c| residual(samples.iter().zip(&shading).map(|(s, &k)| (s.albedo[c] as f64, k, s.colour[c] as f64)))).sum();
     total / (3 * samples.len().max(1)) as f64
 }
 
@@ -176,12 +172,13 @@ mod tests {
         let ss: Vec<f64> = (0..50).map(|k| (k * 7 % 11) as f64 / 10.0).collect();
         let ys: Vec<f64> = xs.iter().zip(&ss).map(|(x, s)| x * (0.2 + 0.9 * s)).collect();
         let energy: f64 = ys.iter().map(|y| y * y).sum();
-        assert!(residual(&xs, &ss, &ys) < 1e-12 * energy);
+        let triples = |ys: &[f64]| xs.iter().zip(&ss).zip(ys).map(|((&x, &s), &y)| (x, s, y)).collect::<Vec<_>>();
+        assert!(residual(triples(&ys).into_iter()) < 1e-12 * energy);
         // A sun that darkens (negative k) is not allowed: the residual is that of a >= 0, k = 0.
         let ys_neg: Vec<f64> = xs.iter().zip(&ss).map(|(x, s)| x * (0.9 - 0.5 * s)).collect();
         let best_ambient = xs.iter().zip(&ys_neg).map(|(x, y)| x * y).sum::<f64>() / xs.iter().map(|x| x * x).sum::<f64>();
         let expected: f64 = xs.iter().zip(&ys_neg).map(|(x, y)| (y - best_ambient * x).powi(2)).sum();
-        assert!((residual(&xs, &ss, &ys_neg) - expected).abs() < 1e-12);
+        assert!((residual(triples(&ys_neg).into_iter()) - expected).abs() < 1e-12);
     }
 
     /// A sphere of samples lit by a known sun, no casters, seen from one side: the search finds

@@ -364,7 +364,6 @@ impl Trainer {
         })
     }
 
-    /// The current model (it is only out of the trainer while a step runs).
     /// Runs the grid's lookup as the composite of tensor ops instead of the fused op (for the
     /// step benchmark's comparison; a no-op for the `mlp` field).
     pub fn set_composite_lookup(&mut self, composite: bool) {
@@ -373,6 +372,7 @@ impl Trainer {
         }
     }
 
+    /// The current model (it is only out of the trainer while a step runs).
     pub fn model(&self) -> Result<&Avatar, FitError> {
         self.model.as_ref().ok_or_else(|| FitError::Input("the model was lost by an interrupted step".into()))
     }
@@ -381,13 +381,13 @@ impl Trainer {
     /// bound come first (the returned count): only they enter the field; the others are
     /// background, whose colour and accumulation are known to be zero.
     fn batch(&mut self, set: &GaussianSet) -> (usize, RaySet, Vec<f32>, Vec<f32>, usize) {
-        let frame = (self.stream.uniform() * self.frames.len() as f64) as usize % self.frames.len();
+        let frame = self.stream.below(self.frames.len());
         let data = &self.frames[frame];
         let pose = &self.scene.frames[data.position].pose;
         let posed = set.pose(pose);
         let mut drawn = Vec::with_capacity(self.schedule.rays_per_batch);
         for k in 0..self.schedule.rays_per_batch {
-            let v = data.views[(self.stream.uniform() * data.views.len() as f64) as usize % data.views.len()];
+            let v = data.views[self.stream.below(data.views.len())];
             let view = &self.scene.views[v];
             let camera = &self.scene.cameras[view.camera];
             let pixels = camera.width * camera.height;
@@ -397,11 +397,7 @@ impl Trainer {
                 1 => &self.views[v].boundary,
                 _ => &Vec::new(),
             };
-            let pixel = if pool.is_empty() {
-                (self.stream.uniform() * pixels as f64) as usize % pixels
-            } else {
-                pool[(self.stream.uniform() * pool.len() as f64) as usize % pool.len()]
-            };
+            let pixel = if pool.is_empty() { self.stream.below(pixels) } else { pool[self.stream.below(pool.len())] };
             let ray = camera.pixel_ray(pixel % camera.width, pixel / camera.width);
             let bounds = ray_bounds(ray.origin, ray.direction, &posed);
             let mask = view.mask.as_ref().map(|m| m.foreground[pixel] as u8 as f32).unwrap_or(0.0);
@@ -422,7 +418,7 @@ impl Trainer {
     }
 
     fn random_indices(&mut self, count: usize, below: usize) -> Tensor<1, Int> {
-        let idx: Vec<i64> = (0..count).map(|_| ((self.stream.uniform() * below as f64) as usize % below) as i64).collect();
+        let idx: Vec<i64> = (0..count).map(|_| self.stream.below(below) as i64).collect();
         Tensor::from_data(TensorData::new(idx, [count]), &self.device)
     }
 
@@ -437,26 +433,23 @@ impl Trainer {
         let model = self.model()?.valid();
         let device = self.device.clone().without_autodiff();
         let set = model.gaussians.to_set();
-        let density_scale = scalar(&model.light.density_scale());
-        let count = self.frames.len().min(Self::SEARCH_FRAMES).max(1);
+        let count = self.frames.len().clamp(1, Self::SEARCH_FRAMES);
         let mut samples = Vec::new();
         let mut casters = Vec::new();
         for k in 0..count {
             let data = &self.frames[k * self.frames.len() / count];
             let pose = &self.scene.frames[data.position].pose;
-            let mut posed = set.pose(pose);
-            for g in posed.iter_mut() {
-                g.amplitude *= density_scale;
-            }
+            // Bounds and shadows from the Gaussians as the light casts them (density scaled).
+            let posed = model.light.shadow_casters_posed(&set.pose(pose));
             let mut rays = RaySet::default();
             let mut colours = Vec::new();
             for _ in 0..Self::SEARCH_RAYS {
-                let v = data.views[(self.stream.uniform() * data.views.len() as f64) as usize % data.views.len()];
+                let v = data.views[self.stream.below(data.views.len())];
                 let pool = &self.views[v].foreground;
                 if pool.is_empty() {
                     continue;
                 }
-                let pixel = pool[(self.stream.uniform() * pool.len() as f64) as usize % pool.len()];
+                let pixel = pool[self.stream.below(pool.len())];
                 let view = &self.scene.views[v];
                 let camera = &self.scene.cameras[view.camera];
                 let ray = camera.pixel_ray(pixel % camera.width, pixel / camera.width);
@@ -485,7 +478,7 @@ impl Trainer {
                 let three = |v: &[f32]| [v[3 * i], v[3 * i + 1], v[3 * i + 2]];
                 let n = three(&normals);
                 let length = (n[0] * n[0] + n[1] * n[1] + n[2] * n[2]).sqrt();
-                if !(length > 1e-6) {
+                if length.is_nan() || length <= 1e-6 {
                     continue;
                 }
                 samples.push(crate::sun_search::SurfaceSample {
@@ -628,8 +621,8 @@ impl Trainer {
         let gaussians = self.optimizers[1].1.step(lr_gaussians, gaussians, g_gaussians);
         let light = if light_active { self.optimizers[2].1.step(lr_light, light, g_light) } else { light };
         let light = match self.sun_cone {
-            Some((axis, angle)) => keep_in_cone(light, axis, angle, &self.device),
-            None => light,
+            Some((axis, angle)) if light_active => keep_in_cone(light, axis, angle, &self.device),
+            _ => light,
         };
         let model = Avatar { field, gaussians, light };
         let poisoned = first_non_finite(&model);

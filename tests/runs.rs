@@ -17,6 +17,19 @@ fn umbra(cwd: &Path, args: &[&str]) -> std::process::Output {
     std::process::Command::new(env!("CARGO_BIN_EXE_umbra")).current_dir(cwd).args(args).output().unwrap()
 }
 
+/// Runs `umbra args` in `cwd` and requires it to succeed.
+fn succeeds(cwd: &Path, args: &[&str]) {
+    let out = umbra(cwd, args);
+    assert!(out.status.success(), "umbra {args:?}: {}", String::from_utf8_lossy(&out.stderr));
+}
+
+/// Runs `umbra args` in `cwd`, requires it to fail and returns its standard error.
+fn fails(cwd: &Path, args: &[&str]) -> String {
+    let out = umbra(cwd, args);
+    assert!(!out.status.success(), "umbra {args:?} should have failed");
+    String::from_utf8_lossy(&out.stderr).into_owned()
+}
+
 /// Every file under `dir` with its bytes, to prove a refused command wrote nothing.
 fn snapshot(dir: &Path) -> Vec<(PathBuf, Vec<u8>)> {
     let mut out = Vec::new();
@@ -45,16 +58,14 @@ fn a_fit_started_elsewhere_uses_the_built_in_schedule_and_its_run_renders_from_a
     std::fs::create_dir_all(&elsewhere).unwrap();
     let run = dir.path().join("run");
     // No schedules/ folder in `elsewhere`: the default schedule is the compiled-in copy.
-    let out = umbra(&elsewhere, &["fit", scene.to_str().unwrap(), "--out", run.to_str().unwrap(), "--iterations", "3"]);
-    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    succeeds(&elsewhere, &["fit", scene.to_str().unwrap(), "--out", run.to_str().unwrap(), "--iterations", "3"]);
     let report: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(run.join("fit.json")).unwrap()).unwrap();
     assert!(Path::new(report["scene"].as_str().unwrap()).is_absolute(), "{}", report["scene"]);
     assert_eq!(std::fs::read_to_string(run.join("schedule.toml")).unwrap(), umbra::schedule::DEFAULT_TEXT);
     // A run moved to another folder renders from a third one.
     let moved = dir.path().join("moved-run");
     std::fs::rename(&run, &moved).unwrap();
-    let out = umbra(&elsewhere, &["render", moved.to_str().unwrap()]);
-    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    succeeds(&elsewhere, &["render", moved.to_str().unwrap()]);
 }
 
 #[test]
@@ -66,26 +77,21 @@ fn a_users_folder_is_not_written_into_and_a_failing_resume_writes_nothing() {
     std::fs::create_dir_all(&mine).unwrap();
     std::fs::write(mine.join("gaussians.json"), "my own file").unwrap();
     let before = snapshot(&mine);
-    let out = umbra(&cwd, &["fit", scene.to_str().unwrap(), "--out", mine.to_str().unwrap(), "--iterations", "2"]);
-    assert!(!out.status.success());
-    let stderr = String::from_utf8_lossy(&out.stderr);
+    let stderr = fails(&cwd, &["fit", scene.to_str().unwrap(), "--out", mine.to_str().unwrap(), "--iterations", "2"]);
     assert!(stderr.contains("not an umbra run") && stderr.contains("--force"), "{stderr}");
     assert_eq!(before, snapshot(&mine), "nothing written into the user's folder");
     // --resume on a folder that does not exist: an error, and the folder is not created.
     let missing = dir.path().join("no-such-run");
-    let out = umbra(&cwd, &["fit", scene.to_str().unwrap(), "--out", missing.to_str().unwrap(), "--resume"]);
-    assert!(!out.status.success());
+    fails(&cwd, &["fit", scene.to_str().unwrap(), "--out", missing.to_str().unwrap(), "--resume"]);
     assert!(!missing.exists(), "a failed --resume created the folder");
     // A run whose checkpoint is corrupt: --resume fails and its schedule copy is unchanged.
     let run = dir.path().join("run");
-    let out = umbra(&cwd, &["fit", scene.to_str().unwrap(), "--out", run.to_str().unwrap(), "--iterations", "2"]);
-    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    succeeds(&cwd, &["fit", scene.to_str().unwrap(), "--out", run.to_str().unwrap(), "--iterations", "2"]);
     std::fs::write(run.join("checkpoint/state.json"), "{ not json").unwrap();
     let other = dir.path().join("other.toml");
     std::fs::write(&other, umbra::schedule::DEFAULT_TEXT.replace("iterations = 1800", "iterations = 1700")).unwrap();
     let before = snapshot(&run);
-    let out = umbra(&cwd, &["fit", scene.to_str().unwrap(), "--out", run.to_str().unwrap(), "--resume", "--schedule", other.to_str().unwrap()]);
-    assert!(!out.status.success());
+    fails(&cwd, &["fit", scene.to_str().unwrap(), "--out", run.to_str().unwrap(), "--resume", "--schedule", other.to_str().unwrap()]);
     assert_eq!(before, snapshot(&run), "a failing --resume changed the run");
 }
 
@@ -95,8 +101,7 @@ fn a_checkpoint_swap_interrupted_between_its_renames_still_resumes_and_renders()
     let scene = tiny_scene(dir.path());
     let cwd = std::env::current_dir().unwrap();
     let run = dir.path().join("run");
-    let out = umbra(&cwd, &["fit", scene.to_str().unwrap(), "--out", run.to_str().unwrap(), "--iterations", "2"]);
-    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    succeeds(&cwd, &["fit", scene.to_str().unwrap(), "--out", run.to_str().unwrap(), "--iterations", "2"]);
     // The state a kill between `checkpoint -> .checkpoint.old` and `.checkpoint.tmp ->
     // checkpoint` leaves: no checkpoint/, the previous one aside, the new one complete in tmp.
     std::fs::rename(run.join("checkpoint"), run.join(".checkpoint.old")).unwrap();
@@ -105,13 +110,10 @@ fn a_checkpoint_swap_interrupted_between_its_renames_still_resumes_and_renders()
     for entry in std::fs::read_dir(run.join(".checkpoint.old")).unwrap().flatten() {
         std::fs::copy(entry.path(), tmp.join(entry.file_name())).unwrap();
     }
-    let out = umbra(&cwd, &["render", run.to_str().unwrap()]);
-    assert!(out.status.success(), "render after an interrupted swap: {}", String::from_utf8_lossy(&out.stderr));
+    succeeds(&cwd, &["render", run.to_str().unwrap()]);
     // Without --resume the set-aside checkpoint still counts as an earlier fit.
-    let out = umbra(&cwd, &["fit", scene.to_str().unwrap(), "--out", run.to_str().unwrap(), "--iterations", "4"]);
-    assert!(!out.status.success() && String::from_utf8_lossy(&out.stderr).contains("--resume"));
-    let out = umbra(&cwd, &["fit", scene.to_str().unwrap(), "--out", run.to_str().unwrap(), "--iterations", "4", "--resume", "--force-schedule"]);
-    assert!(out.status.success(), "resume after an interrupted swap: {}", String::from_utf8_lossy(&out.stderr));
+    assert!(fails(&cwd, &["fit", scene.to_str().unwrap(), "--out", run.to_str().unwrap(), "--iterations", "4"]).contains("--resume"));
+    succeeds(&cwd, &["fit", scene.to_str().unwrap(), "--out", run.to_str().unwrap(), "--iterations", "4", "--resume", "--force-schedule"]);
     let state: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(run.join("checkpoint/state.json")).unwrap()).unwrap();
     assert_eq!(state["iteration"], 4);
     assert!(!run.join(".checkpoint.old").exists(), "the set-aside checkpoint is removed once a new one is in place");
@@ -125,25 +127,20 @@ fn resume_refuses_another_schedule_or_iteration_count_unless_forced() {
     let run = dir.path().join("run");
     let run_arg = run.to_str().unwrap();
     let scene_arg = scene.to_str().unwrap();
-    let out = umbra(&cwd, &["fit", scene_arg, "--out", run_arg, "--iterations", "3"]);
-    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    succeeds(&cwd, &["fit", scene_arg, "--out", run_arg, "--iterations", "3"]);
     let before = snapshot(&run);
     // Another iteration count: refused, saying what changed, nothing written.
-    let out = umbra(&cwd, &["fit", scene_arg, "--out", run_arg, "--iterations", "5", "--resume"]);
-    let stderr = String::from_utf8_lossy(&out.stderr);
-    assert!(!out.status.success() && stderr.contains("iteration count (3 -> 5)") && stderr.contains("--force-schedule"), "{stderr}");
+    let stderr = fails(&cwd, &["fit", scene_arg, "--out", run_arg, "--iterations", "5", "--resume"]);
+    assert!(stderr.contains("iteration count (3 -> 5)") && stderr.contains("--force-schedule"), "{stderr}");
     // Another schedule: refused, naming a changed line.
     let other = dir.path().join("other.toml");
     std::fs::write(&other, umbra::schedule::DEFAULT_TEXT.replace("rays_per_batch = 512", "rays_per_batch = 256")).unwrap();
-    let out = umbra(&cwd, &["fit", scene_arg, "--out", run_arg, "--iterations", "3", "--resume", "--schedule", other.to_str().unwrap()]);
-    let stderr = String::from_utf8_lossy(&out.stderr);
-    assert!(!out.status.success() && stderr.contains("rays_per_batch = 256"), "{stderr}");
+    let stderr = fails(&cwd, &["fit", scene_arg, "--out", run_arg, "--iterations", "3", "--resume", "--schedule", other.to_str().unwrap()]);
+    assert!(stderr.contains("rays_per_batch = 256"), "{stderr}");
     // Fewer iterations than are done: refused even when forced.
-    let out = umbra(&cwd, &["fit", scene_arg, "--out", run_arg, "--iterations", "2", "--resume", "--force-schedule"]);
-    let stderr = String::from_utf8_lossy(&out.stderr);
-    assert!(!out.status.success() && stderr.contains("would run nothing"), "{stderr}");
+    let stderr = fails(&cwd, &["fit", scene_arg, "--out", run_arg, "--iterations", "2", "--resume", "--force-schedule"]);
+    assert!(stderr.contains("would run nothing"), "{stderr}");
     assert_eq!(before, snapshot(&run), "refused resumes wrote nothing");
-    // The same schedule and count resume (here: nothing left, an honest no-op) and forced ones run.
-    let out = umbra(&cwd, &["fit", scene_arg, "--out", run_arg, "--iterations", "5", "--resume", "--force-schedule", "--no-eval"]);
-    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    // A forced resume to more iterations runs.
+    succeeds(&cwd, &["fit", scene_arg, "--out", run_arg, "--iterations", "5", "--resume", "--force-schedule", "--no-eval"]);
 }

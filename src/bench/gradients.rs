@@ -44,7 +44,7 @@ fn field_with_residual(device: &Device) -> (AvatarField, PoseTensors, Vec<f32>, 
     let bones = character.skeleton.len();
     let points: Vec<f32> = (0..8192)
         .flat_map(|_| {
-            let b = (s.uniform() * bones as f64) as usize % bones;
+            let b = s.below(bones);
             let (head, tail) = pose.segment(&character.skeleton, b);
             let p = head + (tail - head) * s.uniform() + DVec3::new(s.uniform() - 0.5, s.uniform() - 0.5, s.uniform() - 0.5) * 0.2;
             p.as_vec3().to_array()

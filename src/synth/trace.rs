@@ -118,6 +118,11 @@ impl Stream {
     pub fn uniform(&mut self) -> f64 {
         (self.next_u64() >> 11) as f64 / (1u64 << 53) as f64
     }
+
+    /// An index in `0..n` (`n` > 0), from one uniform draw.
+    pub fn below(&mut self, n: usize) -> usize {
+        (self.uniform() * n as f64) as usize % n.max(1)
+    }
 }
 
 /// A cosine-weighted direction about `normal`, sample `k` of `n` stratified on a square grid.
