@@ -222,6 +222,15 @@ fn nan_infinity_and_truncation_are_reported() {
 }
 
 #[test]
+fn numbers_beyond_f32_are_refused_by_their_json_path() {
+    expect_path(broken(|s, _| s["cameras"][0]["fx"] = json!(1e39)), "cameras[0].fx", "f32");
+    expect_path(broken(|s, _| s["skeleton"]["bones"][0]["length"] = json!(1e30)), "skeleton.bones[0].length", "f32");
+    expect_path(broken(|s, _| s["frames"][0]["bone_to_world"][0][0][3] = json!(-1e20)), "frames[0].bone_to_world[0][0][3]", "f32");
+    expect_path(broken(|s, _| s["lights"]["sun"]["direction"] = json!([1e200, 1e200, 0])), "lights.sun.direction[0]", "f32");
+    expect_path(broken(|s, _| s["lights"]["lamp"]["intensity"] = json!([1e39, 1, 1])), "lights.lamp.intensity[0]", "f32");
+}
+
+#[test]
 fn inspect_exits_non_zero_with_the_json_path_and_writes_nothing() {
     let dir = TempDir::new("cli");
     let mut scene = valid_scene(dir.path());

@@ -31,6 +31,10 @@ pub struct At<'a> {
 
 pub type Result<T> = std::result::Result<T, SceneError>;
 
+/// The largest magnitude a number of a scene may have: its square (lengths and dot products
+/// square coordinates) stays finite in f32, whose largest value is 3.4e38.
+pub const MAX_MAGNITUDE: f64 = 1e18;
+
 impl<'a> At<'a> {
     pub fn root(value: &'a Value, file: &'a Path) -> Self {
         Self { value, path: String::new(), file }
@@ -81,11 +85,16 @@ impl<'a> At<'a> {
         self.value.as_str().ok_or_else(|| self.error(format!("expected a string, found {}", describe(self.value))))
     }
 
-    /// A finite number (serde_json already refuses NaN and Infinity literals).
+    /// A finite number whose magnitude the f32 maths of the fit can square
+    /// (`MAX_MAGNITUDE`): a value finite in f64 but not in f32 (1e39) would pass here and blow
+    /// up in the fit, blamed on it. serde_json already refuses NaN and Infinity literals.
     pub fn f64(&self) -> Result<f64> {
         let v = self.value.as_f64().ok_or_else(|| self.error(format!("expected a number, found {}", describe(self.value))))?;
         if !v.is_finite() {
             return Err(self.error("must be finite"));
+        }
+        if v.abs() > MAX_MAGNITUDE {
+            return Err(self.error(format!("magnitude {v:e} is beyond {MAX_MAGNITUDE:e}: umbra computes in f32, where its square overflows")));
         }
         Ok(v)
     }
