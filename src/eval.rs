@@ -30,7 +30,7 @@ pub enum Lighting<'a> {
 }
 
 /// How whole views are sampled for evaluation and relighting: twice a training step's.
-pub const VIEW_SAMPLING: Sampling = Sampling { coarse: 48, fine: 32 };
+pub const VIEW_SAMPLING: Sampling = Sampling { coarse: 48, probe: 0, fine: 32 };
 
 /// Renders the scene's `camera` in `frame`, sampled as `samples` says, under `lighting`.
 pub fn render_view(model: &Avatar, scene: &Scene, camera: usize, frame: usize, samples: Sampling, device: &Device, lighting: &Lighting) -> RgbImage {
@@ -69,7 +69,7 @@ pub fn render_view(model: &Avatar, scene: &Scene, camera: usize, frame: usize, s
             continue;
         }
         let r = rays.len();
-        let jitter = vec![0.5; r * samples.total()];
+        let jitter = vec![0.5; r * samples.draws()];
         let deferred = render(&model.field, &pose_tensors, &rays, samples, &jitter, needs_normals.then_some(crate::field::GRADIENT), device);
         let scaled =
             |scale: &DVec3| deferred.albedo.clone() * Tensor::<1>::from_data(TensorData::new(scale.as_vec3().to_array().to_vec(), [3]), device).reshape([1, 3]);

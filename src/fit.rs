@@ -5,6 +5,7 @@
 use crate::eval::{render_view, Lighting};
 use crate::metrics::{score, ImageScores};
 use crate::plot::{Chart, Series};
+use crate::scene::identity::file_checksum;
 use crate::scene::{Scene, Split};
 use crate::schedule::Schedule;
 use crate::shading::LightKind;
@@ -48,8 +49,18 @@ fn save_checkpoint(trainer: &Trainer, out: &Path, history: &[(usize, StepStats)]
         let path = temp.join(format!("optimizer-{name}.bpk"));
         optimizer.save(&path).map_err(|e| io(&path, format!("{e:?}")))?;
     }
+    let mut checksums = serde_json::Map::new();
+    for file in checkpoint_files(trainer) {
+        let sum = file_checksum(&temp.join(&file)).map_err(|e| io(&temp.join(&file), e))?;
+        checksums.insert(file, json!(sum));
+    }
     // The sun search and its cone are part of the state: a resumed fit keeps the same cone.
+    // The scene's identity and the files' checksums let a load refuse another scene's run or
+    // a damaged file.
     let state = json!({
+        "skeleton": trainer.scene.skeleton_identity(),
+        "training_data": trainer.scene.training_identity(),
+        "checksums": checksums,
         "iteration": trainer.iteration,
         "iterations_total": trainer.schedule.iterations,
         "stream": trainer.stream.state().to_string(),
@@ -75,6 +86,55 @@ fn save_checkpoint(trainer: &Trainer, out: &Path, history: &[(usize, StepStats)]
     Ok(())
 }
 
+/// The files of a checkpoint that hold parameters: the model and one per optimizer.
+fn checkpoint_files(trainer: &Trainer) -> Vec<String> {
+    std::iter::once("model.bpk".to_string()).chain(trainer.optimizers.iter().map(|(name, _)| format!("optimizer-{name}.bpk"))).collect()
+}
+
+/// Reads a checkpoint's `state.json` and checks it against `scene` (the skeleton, and the
+/// training data when `resuming`) and the checksums of the files it lists. Checkpoints written
+/// before these were recorded pass unchecked.
+fn verified_state(dir: &Path, scene: &Scene, resuming: bool) -> Result<serde_json::Value, FitError> {
+    let state_path = dir.join("state.json");
+    let text = std::fs::read_to_string(&state_path).map_err(|e| io(&state_path, format!("cannot read the checkpoint: {e}")))?;
+    let state: serde_json::Value = serde_json::from_str(&text).map_err(|e| io(&state_path, e))?;
+    let scene_file = crate::scene::scene_file(&scene.root);
+    if let Some(skeleton) = state["skeleton"].as_str() {
+        if skeleton != scene.skeleton_identity() {
+            return Err(io(
+                &state_path,
+                format!("skeleton: this run was fitted on another skeleton than {}'s (bone names, parents or lengths differ)", scene_file.display()),
+            ));
+        }
+    }
+    if resuming {
+        if let Some(data) = state["training_data"].as_str() {
+            if data != scene.training_identity() {
+                return Err(io(
+                    &state_path,
+                    format!(
+                        "training_data: this run was fitted on other training images, cameras or poses than {}'s: resume it on its own scene",
+                        scene_file.display()
+                    ),
+                ));
+            }
+        }
+    }
+    if let Some(sums) = state["checksums"].as_object() {
+        for (file, expected) in sums {
+            let path = dir.join(file);
+            let found = file_checksum(&path).map_err(|e| io(&path, format!("listed in the checkpoint but unreadable: {e}")))?;
+            if Some(found.as_str()) != expected.as_str() {
+                return Err(io(
+                    &path,
+                    format!("checksum {found} differs from {} recorded in state.json: the file is damaged", expected.as_str().unwrap_or("?")),
+                ));
+            }
+        }
+    }
+    Ok(state)
+}
+
 /// The run's last complete checkpoint folder: `checkpoint/`, or the one an interrupted swap
 /// left aside.
 pub fn existing_checkpoint(out: &Path) -> Option<PathBuf> {
@@ -84,8 +144,7 @@ pub fn existing_checkpoint(out: &Path) -> Option<PathBuf> {
 fn load_checkpoint(trainer: &mut Trainer, out: &Path) -> Result<Vec<(usize, StepStats)>, FitError> {
     let dir = existing_checkpoint(out).ok_or_else(|| io(out, "holds no checkpoint to resume"))?;
     let state_path = dir.join("state.json");
-    let text = std::fs::read_to_string(&state_path).map_err(|e| io(&state_path, format!("cannot resume: {e}")))?;
-    let state: serde_json::Value = serde_json::from_str(&text).map_err(|e| io(&state_path, e))?;
+    let state = verified_state(&dir, &trainer.scene, true)?;
     let iteration = state["iteration"].as_u64().ok_or_else(|| io(&state_path, "iteration: missing"))? as usize;
     let stream: u64 = state["stream"].as_str().and_then(|s| s.parse().ok()).ok_or_else(|| io(&state_path, "stream: missing"))?;
     load_model(trainer, &dir)?;
@@ -151,6 +210,7 @@ pub fn restore(run: &Path, scene: Option<&Path>, backend: crate::train::Backend)
     let scene = Scene::load(&scene_path)?;
     let mut trainer = Trainer::new(scene, schedule, backend, 0)?;
     let checkpoint = existing_checkpoint(run).ok_or_else(|| io(run, "holds no checkpoint"))?;
+    verified_state(&checkpoint, &trainer.scene, false)?;
     load_model(&mut trainer, &checkpoint)?;
     Ok(trainer)
 }
@@ -393,10 +453,18 @@ pub fn fit(options: &FitOptions, mut on: impl FnMut(TrainMessage)) -> Result<ser
         "light_error_against_scene": light_error,
         "sun_search": sun_search,
         "capture": capture,
+        "field": field_report(&trainer),
     });
     write_text(&out.join("fit.json"), &serde_json::to_string_pretty(&report).unwrap_or_default())?;
     on(TrainMessage::Done);
     Ok(report)
+}
+
+/// The fitted field's kind and its VolSDF beta (m): how sharp its surface ended.
+fn field_report(trainer: &Trainer) -> serde_json::Value {
+    let Ok(model) = trainer.model() else { return serde_json::Value::Null };
+    let beta = model.field.beta().into_data().convert::<f32>().try_to_vec::<f32>().ok().and_then(|v| v.first().copied());
+    json!({"kind": if model.field.grid.is_some() { "grid" } else { "mlp" }, "beta": beta})
 }
 
 /// Samples of the sky per view when relighting by an environment or uniform light.

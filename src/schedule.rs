@@ -92,6 +92,9 @@ pub struct Schedule {
     pub samples_per_ray: usize,
     /// Samples per ray added where the coarse ones found density (hierarchical sampling).
     pub fine_samples_per_ray: usize,
+    /// Samples per ray, without gradients, that locate the surface between the coarse and the
+    /// fine samples (`render::Sampling::probe`).
+    pub probe_samples_per_ray: usize,
     /// Points per step for the Gaussian density fit, and for Eikonal and curvature.
     pub density_points: usize,
     pub regulariser_points: usize,
@@ -208,6 +211,11 @@ fn parse_field(file: &Path, table: &toml::Table) -> Result<FieldSettings, Schedu
 }
 
 impl Schedule {
+    /// How a training step samples its rays.
+    pub fn sampling(&self) -> crate::render::Sampling {
+        crate::render::Sampling { coarse: self.samples_per_ray, probe: self.probe_samples_per_ray, fine: self.fine_samples_per_ray }
+    }
+
     pub fn load(path: &Path) -> Result<Self, ScheduleError> {
         Self::read(path).map(|(schedule, _)| schedule)
     }
@@ -230,6 +238,7 @@ impl Schedule {
             "rays_per_batch",
             "samples_per_ray",
             "fine_samples_per_ray",
+            "probe_samples_per_ray",
             "density_points",
             "regulariser_points",
             "checkpoint_every",
@@ -334,6 +343,7 @@ impl Schedule {
             rays_per_batch: count(file, &table, "rays_per_batch", 512, 1)?,
             samples_per_ray: count(file, &table, "samples_per_ray", 24, 2)?,
             fine_samples_per_ray: count(file, &table, "fine_samples_per_ray", 0, 0)?,
+            probe_samples_per_ray: count(file, &table, "probe_samples_per_ray", 0, 0)?,
             density_points: count(file, &table, "density_points", 256, 0)?,
             regulariser_points: count(file, &table, "regulariser_points", 128, 0)?,
             checkpoint_every: count(file, &table, "checkpoint_every", 250, 1)?,

@@ -6,7 +6,7 @@
 use crate::field::{AvatarField, FieldConfig, GradientMethod, PoseTensors};
 use crate::gaussians::{GaussianParams, GaussianSet};
 use crate::light::Light;
-use crate::render::{ray_bounds, render, RaySet, Sampling};
+use crate::render::{ray_bounds, render, RaySet};
 use crate::scene::{Scene, Split};
 use crate::schedule::Schedule;
 use crate::shading::{LightKind, LightModel};
@@ -461,8 +461,8 @@ impl Trainer {
             if rays.is_empty() {
                 continue;
             }
-            let sampling = Sampling { coarse: self.schedule.samples_per_ray, fine: self.schedule.fine_samples_per_ray };
-            let jitter: Vec<f32> = (0..rays.len() * sampling.total()).map(|_| self.stream.uniform() as f32).collect();
+            let sampling = self.schedule.sampling();
+            let jitter: Vec<f32> = (0..rays.len() * sampling.draws()).map(|_| self.stream.uniform() as f32).collect();
             let pose_tensors = PoseTensors::new(pose, &self.scene.skeleton, &device);
             let deferred = render(&model.field, &pose_tensors, &rays, sampling, &jitter, Some(self.gradient), &device);
             let host = |t: Tensor<2>| t.into_data().convert::<f32>().try_to_vec::<f32>().unwrap_or_default();
@@ -523,9 +523,9 @@ impl Trainer {
         // Only rays that meet a bound are rendered (at least one, so the graph is never empty);
         // the rest are appended as background.
         let rendered = if self.render_missed_rays { r } else { hits.max(1) };
-        let sampling = Sampling { coarse: self.schedule.samples_per_ray, fine: self.schedule.fine_samples_per_ray };
+        let sampling = self.schedule.sampling();
         let s = sampling.total();
-        let jitter: Vec<f32> = (0..rendered * s).map(|_| self.stream.uniform() as f32).collect();
+        let jitter: Vec<f32> = (0..rendered * sampling.draws()).map(|_| self.stream.uniform() as f32).collect();
         let device = self.device.clone();
         let pose = self.frames[frame].pose_tensors.clone();
         let schedule = self.schedule.clone();

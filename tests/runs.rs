@@ -144,3 +144,47 @@ fn resume_refuses_another_schedule_or_iteration_count_unless_forced() {
     // A forced resume to more iterations runs.
     succeeds(&cwd, &["fit", scene_arg, "--out", run_arg, "--iterations", "5", "--resume", "--force-schedule", "--no-eval"]);
 }
+
+#[test]
+fn a_run_refuses_another_scene_and_a_damaged_checkpoint() {
+    let dir = TempDir::new("identity");
+    let scene = tiny_scene(dir.path());
+    let cwd = std::env::current_dir().unwrap();
+    let run = dir.path().join("run");
+    let run_arg = run.to_str().unwrap();
+    succeeds(&cwd, &["fit", scene.to_str().unwrap(), "--out", run_arg, "--iterations", "2", "--no-eval"]);
+    let before = snapshot(&run);
+    // The same capture but one bone 10% longer: another skeleton, same bone count.
+    let longer = dir.path().join("longer");
+    std::fs::create_dir_all(&longer).unwrap();
+    for entry in walk_files(&scene) {
+        let target = longer.join(entry.strip_prefix(&scene).unwrap());
+        std::fs::create_dir_all(target.parent().unwrap()).unwrap();
+        std::fs::copy(&entry, &target).unwrap();
+    }
+    let mut json: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(longer.join("scene.json")).unwrap()).unwrap();
+    let length = json["skeleton"]["bones"][1]["length"].as_f64().unwrap();
+    json["skeleton"]["bones"][1]["length"] = serde_json::json!(length * 1.1);
+    std::fs::write(longer.join("scene.json"), serde_json::to_string(&json).unwrap()).unwrap();
+    let stderr = fails(&cwd, &["render", run_arg, "--scene", longer.to_str().unwrap()]);
+    assert!(stderr.contains("state.json") && stderr.contains("skeleton"), "{stderr}");
+    // Another capture of the same skeleton: renders, but the fit does not resume on it.
+    let other = common::tiny_synth(&dir.path().join("other"), TrainingLight::Sun, 24, 3, vec![TestKind::Poses], 10);
+    let stderr = fails(&cwd, &["fit", other.to_str().unwrap(), "--out", run_arg, "--iterations", "2", "--resume"]);
+    assert!(stderr.contains("training_data"), "{stderr}");
+    assert_eq!(before, snapshot(&run), "refused commands wrote nothing");
+    // One flipped byte in the model: refused by its checksum.
+    let model = run.join("checkpoint/model.bpk");
+    let mut bytes = std::fs::read(&model).unwrap();
+    let middle = bytes.len() / 2;
+    bytes[middle] ^= 0x40;
+    std::fs::write(&model, bytes).unwrap();
+    let stderr = fails(&cwd, &["render", run_arg]);
+    assert!(stderr.contains("model.bpk") && stderr.contains("checksum"), "{stderr}");
+    assert!(!run.join("renders").exists(), "nothing rendered from a damaged checkpoint");
+}
+
+/// Every file under `dir`.
+fn walk_files(dir: &Path) -> Vec<PathBuf> {
+    snapshot(dir).into_iter().map(|(p, _)| p).collect()
+}

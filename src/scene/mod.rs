@@ -3,6 +3,7 @@
 //! reported with the file and the JSON path of the offending value.
 
 mod camera;
+pub mod identity;
 pub mod json;
 
 pub use camera::{Camera, Ray};
