@@ -5,6 +5,7 @@
 use crate::eval::{render_view, Lighting};
 use crate::metrics::{score, ImageScores};
 use crate::plot::{Chart, Series};
+use crate::run_lock::RunLock;
 use crate::scene::identity::file_checksum;
 use crate::scene::{Scene, Split};
 use crate::schedule::Schedule;
@@ -191,6 +192,7 @@ fn load_model(trainer: &mut Trainer, dir: &Path) -> Result<(), FitError> {
 /// scene it was fitted on or `scene`; writes `run/renders/` and returns the evaluation.
 pub fn render_run(run: &Path, scene: Option<&Path>, backend: crate::train::Backend, mut on: impl FnMut(TrainMessage)) -> Result<serde_json::Value, FitError> {
     let trainer = restore(run, scene, backend)?;
+    let _lock = RunLock::acquire(run, "render")?;
     evaluate(&trainer, run, &mut on)
 }
 
@@ -367,6 +369,7 @@ pub fn fit(options: &FitOptions, mut on: impl FnMut(TrainMessage)) -> Result<ser
     }
     let mut history = if options.resume { load_checkpoint(&mut trainer, out)? } else { Vec::new() };
     std::fs::create_dir_all(out).map_err(|e| io(out, e))?;
+    let _lock = RunLock::acquire(out, "fit")?;
     crate::imageio::write_atomic(&out.join(SCHEDULE_COPY), schedule_text.as_bytes()).map_err(|e| io(&out.join(SCHEDULE_COPY), e))?;
     history.retain(|(i, _)| *i < trainer.iteration);
     let training_images = trainer.scene.views_in(Split::Train).count();

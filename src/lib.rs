@@ -16,6 +16,7 @@ pub mod plot;
 pub mod progress;
 pub mod relight;
 pub mod render;
+pub mod run_lock;
 pub mod scene;
 pub mod schedule;
 pub mod shading;

@@ -187,6 +187,7 @@ pub fn relight_run(options: &RelightOptions, mut on: impl FnMut(TrainMessage)) -
         return Err(FitError::Input("--samples must be at least 1".into()));
     }
     let out = options.out.clone().unwrap_or_else(|| options.run.join("relit").join(&label));
+    let _lock = crate::run_lock::RunLock::acquire(&options.run, "relight")?;
     std::fs::create_dir_all(&out).map_err(|e| io(&out, e))?;
     let model = trainer.model()?.valid();
     let device = trainer.device.clone().without_autodiff();

@@ -188,3 +188,25 @@ fn a_run_refuses_another_scene_and_a_damaged_checkpoint() {
 fn walk_files(dir: &Path) -> Vec<PathBuf> {
     snapshot(dir).into_iter().map(|(p, _)| p).collect()
 }
+
+#[test]
+fn a_run_folder_in_use_is_refused_and_a_stale_lock_taken_over() {
+    let dir = TempDir::new("lock");
+    let scene = tiny_scene(dir.path());
+    let cwd = std::env::current_dir().unwrap();
+    let run = dir.path().join("run");
+    let run_arg = run.to_str().unwrap();
+    succeeds(&cwd, &["fit", scene.to_str().unwrap(), "--out", run_arg, "--iterations", "2", "--no-eval"]);
+    assert!(!run.join(".lock").exists(), "the lock is released when the fit ends");
+    // A lock held by a running process (this test's): fit and render refuse, nothing written.
+    std::fs::write(run.join(".lock"), format!("{} fit", std::process::id())).unwrap();
+    let before = snapshot(&run);
+    let stderr = fails(&cwd, &["fit", scene.to_str().unwrap(), "--out", run_arg, "--iterations", "3", "--resume", "--force-schedule"]);
+    assert!(stderr.contains("another umbra fit") && stderr.contains(&std::process::id().to_string()), "{stderr}");
+    assert!(fails(&cwd, &["render", run_arg]).contains("another umbra"));
+    assert_eq!(before, snapshot(&run), "refused commands wrote nothing");
+    // A lock left by a process that is gone (above Linux's largest pid): taken over.
+    std::fs::write(run.join(".lock"), "4194305 fit").unwrap();
+    succeeds(&cwd, &["render", run_arg]);
+    assert!(!run.join(".lock").exists());
+}

@@ -1,0 +1,65 @@
+//! One process at a time in a run folder: `fit`, `render` and `relight` hold `RUN/.lock`
+//! (created exclusively, holding the process id) while they work and remove it when done, so
+//! two fits cannot interleave checkpoints and a render cannot read a half-written run. A lock
+//! whose process is gone (a killed fit) is taken over.
+
+use crate::train::{io, FitError};
+use std::io::Write;
+use std::path::{Path, PathBuf};
+
+pub const LOCK_FILE: &str = ".lock";
+
+/// Held while a command works in a run folder; dropping it releases the folder.
+#[derive(Debug)]
+pub struct RunLock {
+    path: PathBuf,
+}
+
+impl RunLock {
+    /// Locks the existing folder `run` for `command`, or says which process holds it.
+    pub fn acquire(run: &Path, command: &str) -> Result<Self, FitError> {
+        let path = run.join(LOCK_FILE);
+        for _ in 0..2 {
+            match std::fs::OpenOptions::new().write(true).create_new(true).open(&path) {
+                Ok(mut file) => {
+                    writeln!(file, "{} {command}", std::process::id()).map_err(|e| io(&path, e))?;
+                    return Ok(Self { path });
+                }
+                Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => {
+                    let text = std::fs::read_to_string(&path).unwrap_or_default();
+                    let holder = text.split_whitespace().next().and_then(|p| p.parse::<u32>().ok());
+                    match holder {
+                        Some(pid) if !process_is_gone(pid) => {
+                            let what = text.split_whitespace().nth(1).unwrap_or("umbra");
+                            return Err(io(
+                                run,
+                                format!(
+                                    "another umbra {what} (process {pid}) is working in this run folder; wait for it, or remove {} if no umbra runs there",
+                                    path.display()
+                                ),
+                            ));
+                        }
+                        // A lock left by a process that no longer runs (or unreadable): taken over.
+                        _ => {
+                            let _ = std::fs::remove_file(&path);
+                        }
+                    }
+                }
+                Err(e) => return Err(io(&path, e)),
+            }
+        }
+        Err(io(&path, "could not be created"))
+    }
+}
+
+impl Drop for RunLock {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_file(&self.path);
+    }
+}
+
+/// Whether process `pid` has certainly exited. Known only where `/proc` lists processes
+/// (Linux); elsewhere a lock is never assumed stale.
+fn process_is_gone(pid: u32) -> bool {
+    Path::new("/proc/self").exists() && !Path::new(&format!("/proc/{pid}")).exists()
+}
