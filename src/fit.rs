@@ -412,7 +412,7 @@ pub fn fit(options: &FitOptions, mut on: impl FnMut(TrainMessage)) -> Result<ser
     stages.push(json!({"name": "density fitting", "ran": true, "seconds": segment_seconds.get("density fitting").copied().unwrap_or(0.0)}));
     stages.push(json!({"name": "Gaussian fitting", "ran": schedule.weights["density"].ever_active(schedule.iterations), "from": density_hold, "seconds": segment_seconds.get("Gaussian fitting").copied().unwrap_or(0.0)}));
     let light_stage = if trainer.fit_light {
-        json!({"name": "light and RGB fitting", "ran": true, "from": schedule.light_from, "seconds": segment_seconds.get("light and RGB fitting").copied().unwrap_or(0.0)})
+        json!({"name": "light and RGB fitting", "ran": schedule.iterations > schedule.light_from, "from": schedule.light_from, "seconds": segment_seconds.get("light and RGB fitting").copied().unwrap_or(0.0)})
     } else {
         let why = if trainer.light_kind == LightKind::Uniform && schedule.light != crate::schedule::LightFit::Off {
             "every training image is uniformly lit: no light direction, no shadow rays; RGB fits the albedo directly"

@@ -360,6 +360,20 @@ impl Schedule {
             weights,
             field,
         };
+        // A weighted loss with no points to evaluate it on would be dropped silently.
+        for (points, key, terms) in
+            [(schedule.density_points, "density_points", &["density"][..]), (schedule.regulariser_points, "regulariser_points", &["eikonal", "curvature"][..])]
+        {
+            if let Some(term) = terms.iter().find(|t| schedule.weights.get(**t).is_some_and(|r| r.ever_active(iterations))) {
+                if points == 0 {
+                    return Err(err(
+                        file,
+                        key,
+                        format!("is 0 while losses.{term} has weight: the {term} loss would silently do nothing (set its weight to 0 instead)"),
+                    ));
+                }
+            }
+        }
         Ok(schedule)
     }
 
@@ -466,6 +480,9 @@ mod tests {
         assert_eq!(error_of("[field]\nlevels = 4\n[losses]\nmask = 1.0").key, "field.levels");
         assert_eq!(error_of("[field]\nkind = \"grid\"\ncells = 4\n[losses]\nmask = 1.0").key, "field.cells");
         assert_eq!(error_of("[losses]\nmask = nan").key, "losses.mask.weight");
+        assert_eq!(error_of("density_points = 0\n[losses]\nmask = 1.0\ndensity = 0.5").key, "density_points");
+        assert_eq!(error_of("regulariser_points = 0\n[losses]\nmask = 1.0\ncurvature = 0.1").key, "regulariser_points");
+        assert!(Schedule::parse("regulariser_points = 0\n[losses]\nmask = 1.0", Path::new("s.toml")).is_ok(), "no weight, no points needed");
         let e = error_of("iterations = [");
         assert!(e.to_string().starts_with("s.toml: (syntax)"), "{e}");
     }

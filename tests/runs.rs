@@ -61,6 +61,10 @@ fn a_fit_started_elsewhere_uses_the_built_in_schedule_and_its_run_renders_from_a
     succeeds(&elsewhere, &["fit", scene.to_str().unwrap(), "--out", run.to_str().unwrap(), "--iterations", "3"]);
     let report: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(run.join("fit.json")).unwrap()).unwrap();
     assert!(Path::new(report["scene"].as_str().unwrap()).is_absolute(), "{}", report["scene"]);
+    // Three iterations end long before the light stage's start: it did not run.
+    let stages = report["stages"].as_array().unwrap();
+    let light = stages.iter().find(|s| s["name"] == "light and RGB fitting").unwrap();
+    assert_eq!(light["ran"], false, "{light}");
     assert_eq!(std::fs::read_to_string(run.join("schedule.toml")).unwrap(), umbra::schedule::DEFAULT_TEXT);
     // A run moved to another folder renders from a third one.
     let moved = dir.path().join("moved-run");

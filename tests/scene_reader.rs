@@ -142,6 +142,29 @@ fn image_rules() {
 }
 
 #[test]
+fn paths_stay_inside_the_scene_folder_and_name_files() {
+    // The image exists outside the scene's folder: still refused, before it is read.
+    let outside = |path: &'static str| {
+        move |s: &mut Value, dir: &std::path::Path| {
+            std::fs::copy(dir.join("images/a.png"), dir.parent().unwrap().join("a-outside.png")).unwrap();
+            s["images"][0]["path"] = json!(path);
+        }
+    };
+    expect_path(broken(outside("../a-outside.png")), "images[0].path", "inside");
+    expect_path(broken(|s, dir| s["images"][0]["path"] = json!(dir.join("images/a.png").to_str().unwrap())), "images[0].path", "relative");
+    expect_path(broken(|s, _| s["images"][0]["mask"] = json!("masks")), "images[0].mask", "directory");
+    #[cfg(unix)]
+    expect_path(
+        broken(|s, dir| {
+            std::os::unix::fs::symlink(dir.join("loop.png"), dir.join("loop.png")).unwrap();
+            s["images"][0]["path"] = json!("loop.png");
+        }),
+        "images[0].path",
+        "cannot be read",
+    );
+}
+
+#[test]
 fn corrupt_files_are_errors_not_panics() {
     expect_path(broken(|_, dir| std::fs::write(dir.join("images/a.png"), b"\x89PNG\r\n\x1a\n not really").unwrap()), "images[0].path", "decode");
     expect_path(broken(|_, dir| std::fs::write(dir.join("masks/a.png"), b"").unwrap()), "images[0].mask", "decode");

@@ -224,13 +224,22 @@ impl Reader<'_> {
         Ok(frames)
     }
 
+    /// The file a path of the scene names: relative to the scene's folder and inside it (the
+    /// format says so; `/etc/...` or `../..` would read a user's other files), and a readable
+    /// regular file (a directory or a symlink loop is said to be one, not "not found").
     fn existing_file(&self, node: &At) -> Result<PathBuf, SceneError> {
         let relative = node.str()?;
-        let file = self.root.join(relative);
-        if !file.is_file() {
-            return Err(node.error(format!("file not found: {relative}")));
+        let path = Path::new(relative);
+        if path.is_absolute() || path.components().any(|c| !matches!(c, std::path::Component::Normal(_) | std::path::Component::CurDir)) {
+            return Err(node.error(format!("{relative}: paths must be relative to the scene's folder and stay inside it")));
         }
-        Ok(file)
+        let file = self.root.join(relative);
+        match std::fs::metadata(&file) {
+            Ok(meta) if meta.is_file() => Ok(file),
+            Ok(_) => Err(node.error(format!("{relative} is a directory, not a file"))),
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => Err(node.error(format!("file not found: {relative}"))),
+            Err(e) => Err(node.error(format!("{relative} cannot be read: {e}"))),
+        }
     }
 
     fn lights(&self, node: &At) -> Result<BTreeMap<String, Light>, SceneError> {
@@ -340,10 +349,7 @@ impl Reader<'_> {
 
     fn pending(&self, node: &At) -> Result<Pending, SceneError> {
         let relative = node.str()?.to_string();
-        let file = self.root.join(&relative);
-        if !file.is_file() {
-            return Err(node.error(format!("file not found: {relative}")));
-        }
+        let file = self.existing_file(node)?;
         Ok(Pending { scene_file: self.file.to_path_buf(), json_path: node.path.clone(), file, relative })
     }
 }
