@@ -3,6 +3,7 @@
 //! iterations, exact `--resume`, and the evaluation of the test images at the end.
 
 use crate::eval::{render_view, Lighting};
+use crate::imageio::RgbImage;
 use crate::metrics::{score, ImageScores};
 use crate::plot::{Chart, Series};
 use crate::run_lock::RunLock;
@@ -470,13 +471,17 @@ fn field_report(trainer: &Trainer) -> serde_json::Value {
     json!({"kind": if model.field.grid.is_some() { "grid" } else { "mlp" }, "beta": beta})
 }
 
+/// How much `compare.png` amplifies the difference between a render and its truth.
+pub const COMPARE_GAIN: f32 = 4.0;
+
 /// Samples of the sky per view when relighting by an environment or uniform light.
 pub const SKY_SAMPLES: usize = 256;
 
 /// Renders every test image of the scene (in the fitted light, or relit by the light the
 /// image names) and its albedo when the scene has one, scores them (PSNR, sRGB 8-bit, whole
-/// image, foreground and SSIM, `metrics`) and writes `renders/*.png`, `renders/metrics.csv` and
-/// `renders/metrics.md`.
+/// image, foreground and SSIM, `metrics`) and writes `renders/*.png`, `renders/metrics.csv`,
+/// `renders/metrics.md` and `renders/compare.png` (a row per test image: the truth, the render
+/// and their difference times `COMPARE_GAIN`, then the same for its albedo).
 pub fn evaluate(trainer: &Trainer, out: &Path, on: &mut impl FnMut(TrainMessage)) -> Result<serde_json::Value, FitError> {
     let scene = &trainer.scene;
     let kinds = TestKinds::new(scene);
@@ -489,6 +494,7 @@ pub fn evaluate(trainer: &Trainer, out: &Path, on: &mut impl FnMut(TrainMessage)
     let device = trainer.device.clone().without_autodiff();
     let albedo_scale = albedo_scale(scene, &model);
     let mut rows = Vec::new();
+    let mut compare: Vec<Vec<RgbImage>> = Vec::new();
     for (done, view) in tests.iter().enumerate() {
         let TestKind { novel_pose, novel_view, relit, group } = kinds.of(view);
         let lighting = match relit {
@@ -498,13 +504,20 @@ pub fn evaluate(trainer: &Trainer, out: &Path, on: &mut impl FnMut(TrainMessage)
         let scored = score_view(&model, scene, view, &lighting, albedo_scale, &device);
         let name = render_name(scene, view);
         save_png(&dir.join(&name), &scored.image)?;
+        let mut row = vec![view.colour.clone(), scored.image.clone(), scored.image.difference(&view.colour, COMPARE_GAIN)];
         if let Some((albedo, _)) = &scored.albedo {
             save_png(&dir.join(name.replace(".png", "-albedo.png")), albedo)?;
+            if let Some(truth) = &view.albedo {
+                row.extend([truth.clone(), albedo.clone(), albedo.difference(truth, COMPARE_GAIN)]);
+            }
         }
+        compare.push(row);
         let (scores, albedo) = (scored.scores, scored.albedo.map(|a| a.1));
         on(TrainMessage::Rendered { done: done + 1, total: tests.len(), name: name.clone(), psnr: Some(scores.psnr) });
         rows.push(ImageScore { image: name, light: view.light.clone(), group, scores, albedo, novel_pose, novel_view, relit });
     }
+    let cells: Vec<Vec<&RgbImage>> = compare.iter().map(|row| row.iter().collect()).collect();
+    save_png(&dir.join("compare.png"), &RgbImage::tiled(&cells))?;
     let groups = group_means(&rows);
     let group = |g: &str| groups.iter().find(|m| m.group == g);
     let field = |g: &str, pick: fn(&ImageScores) -> f64| group(g).map(|m| json!(pick(&m.scores))).unwrap_or(json!(null));
@@ -562,9 +575,9 @@ impl TestKinds {
 
 /// A test view rendered and scored, with its albedo when the scene has the truth.
 pub struct ScoredView {
-    pub image: crate::imageio::RgbImage,
+    pub image: RgbImage,
     pub scores: ImageScores,
-    pub albedo: Option<(crate::imageio::RgbImage, ImageScores)>,
+    pub albedo: Option<(RgbImage, ImageScores)>,
 }
 
 /// Renders one test view (`eval::VIEW_SAMPLING`) in `lighting`, and its albedo where the scene

@@ -24,6 +24,36 @@ impl RgbImage {
     pub fn set(&mut self, x: usize, y: usize, value: [f32; 3]) {
         self.pixels[y * self.width + x] = value;
     }
+
+    /// Copies `image` in with its top-left corner at `(x0, y0)`, clipped to this image.
+    pub fn blit(&mut self, image: &RgbImage, x0: usize, y0: usize) {
+        for y in 0..image.height.min(self.height.saturating_sub(y0)) {
+            for x in 0..image.width.min(self.width.saturating_sub(x0)) {
+                self.set(x0 + x, y0 + y, image.get(x, y));
+            }
+        }
+    }
+
+    /// Images laid out in rows (missing cells stay black), each cell as large as the largest.
+    pub fn tiled(rows: &[Vec<&RgbImage>]) -> RgbImage {
+        let cell_w = rows.iter().flatten().map(|i| i.width).max().unwrap_or(0);
+        let cell_h = rows.iter().flatten().map(|i| i.height).max().unwrap_or(0);
+        let columns = rows.iter().map(Vec::len).max().unwrap_or(0);
+        let mut sheet = RgbImage::new(cell_w * columns, cell_h * rows.len());
+        for (r, row) in rows.iter().enumerate() {
+            for (c, image) in row.iter().enumerate() {
+                sheet.blit(image, c * cell_w, r * cell_h);
+            }
+        }
+        sheet
+    }
+
+    /// `gain` times the absolute difference to `other` per channel, clamped to 1 (both the
+    /// same size), so that small errors show in a side-by-side sheet.
+    pub fn difference(&self, other: &RgbImage, gain: f32) -> RgbImage {
+        let pixels = self.pixels.iter().zip(&other.pixels).map(|(a, b)| std::array::from_fn(|k| ((a[k] - b[k]).abs() * gain).min(1.0))).collect();
+        RgbImage { width: self.width, height: self.height, pixels }
+    }
 }
 
 /// A foreground mask, row-major, top row first.
@@ -273,6 +303,19 @@ mod tests {
             let linear = srgb_to_linear(code as f32 / 255.0);
             assert_eq!(linear_to_srgb8(linear), code);
         }
+    }
+
+    #[test]
+    fn tiles_place_each_image_at_its_cell_and_differences_are_amplified_and_clamped() {
+        let mut a = RgbImage::new(2, 1);
+        a.set(1, 0, [0.5, 0.1, 0.0]);
+        let b = RgbImage::new(1, 2);
+        let sheet = RgbImage::tiled(&[vec![&a, &b], vec![&b]]);
+        assert_eq!((sheet.width, sheet.height), (4, 4), "cells as large as the largest image");
+        assert_eq!(sheet.get(1, 0), [0.5, 0.1, 0.0]);
+        assert_eq!(sheet.get(3, 3), [0.0; 3]);
+        let d = a.difference(&RgbImage::new(2, 1), 4.0);
+        assert_eq!(d.get(1, 0), [1.0, 0.4, 0.0]);
     }
 
     #[test]

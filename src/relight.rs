@@ -201,11 +201,7 @@ pub fn relight_run(options: &RelightOptions, mut on: impl FnMut(TrainMessage)) -
             let image = render_view(&model, scene, camera, frame, crate::eval::VIEW_SAMPLING, &device, &lighting);
             let name = format!("c{camera:02}_f{frame:04}.png");
             crate::fit::save_png(&out.join(&name), &image)?;
-            for y in 0..image.height {
-                for x in 0..image.width {
-                    sheet.set(column * cell_w + x, row * cell_h + y, image.get(x, y));
-                }
-            }
+            sheet.blit(&image, column * cell_w, row * cell_h);
             on(TrainMessage::Rendered { done: row * frames.len() + column + 1, total, name, psnr: None });
         }
     }
