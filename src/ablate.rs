@@ -1,12 +1,19 @@
 //! Ablations: one scene fitted with several schedules, each run in its own folder, compared in
 //! one table (light error, PSNR per test group, time, final loss) and one plot of PSNR
 //! against time. Every schedule is read and checked against the scene before the first run.
+//!
+//! Resumable and shareable: a run that finished with the same schedule, iteration count and
+//! seed is reused, an interrupted one resumed, and one that another process is fitting (its
+//! folder is locked, `run_lock`) left to it, so several invocations pointed at one folder
+//! (on one machine, or on several sharing a disk) split the work; each writes the table of
+//! every run finished so far.
 
 use crate::plot::{Chart, Series};
 use crate::schedule::Schedule;
 use crate::train::{io, Backend, FitError, FitOptions, TrainMessage};
 use std::path::{Path, PathBuf};
 
+#[derive(Clone, Debug)]
 pub struct AblateOptions {
     pub scene: PathBuf,
     pub schedules: Vec<PathBuf>,
@@ -96,48 +103,119 @@ fn run_name(schedule: &Path) -> String {
     schedule.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_else(|| "schedule".into())
 }
 
+/// What an ablation found in a run's folder.
+enum RunState {
+    /// Nothing of a run yet (or `--force`): fit from the start.
+    Fresh,
+    /// A checkpoint of this schedule but no report: resume it.
+    Interrupted,
+    /// Finished with this schedule, iteration count and seed: its report.
+    Finished(serde_json::Value),
+}
+
+/// The state of the run in `folder` for `schedule_text`; an error when the folder holds a run
+/// of another schedule, iteration count or seed (unless `force`).
+fn run_state(folder: &Path, schedule_text: &str, options: &AblateOptions) -> Result<RunState, FitError> {
+    if options.force || crate::fit::existing_checkpoint(folder).is_none() {
+        return Ok(RunState::Fresh);
+    }
+    let copy = std::fs::read_to_string(folder.join(crate::fit::SCHEDULE_COPY)).unwrap_or_default();
+    if copy != schedule_text {
+        return Err(io(folder, "holds a run of another schedule: pass --force to replace it, or choose another --out"));
+    }
+    let Some(report) = std::fs::read_to_string(folder.join("fit.json")).ok().and_then(|t| serde_json::from_str::<serde_json::Value>(&t).ok()) else {
+        return Ok(RunState::Interrupted);
+    };
+    let same_seed = report["seed"].as_u64() == Some(options.seed);
+    let same_length = options.iterations.is_none_or(|n| report["iterations"].as_u64() == Some(n as u64));
+    if !same_seed || !same_length {
+        return Err(io(folder, "holds a run with another seed or iteration count: pass --force to replace it, or choose another --out"));
+    }
+    Ok(RunState::Finished(report))
+}
+
+/// What one invocation of `ablate` did.
+#[derive(Debug)]
+pub struct AblationSummary {
+    /// Every finished run's row, in the order of the schedules.
+    pub rows: Vec<AblationRow>,
+    /// Runs this invocation fitted (or resumed).
+    pub fitted: usize,
+    /// Runs left to the processes that hold their folders.
+    pub elsewhere: Vec<String>,
+}
+
 /// Runs every schedule on the scene (`on` hears each run's messages with its index) and
 /// writes `ablation.csv`, `ablation.md` and `ablation.png` into `options.out`.
-pub fn ablate(options: &AblateOptions, mut on: impl FnMut(usize, &str, TrainMessage)) -> Result<Vec<AblationRow>, FitError> {
+pub fn ablate(options: &AblateOptions, mut on: impl FnMut(usize, &str, TrainMessage)) -> Result<AblationSummary, FitError> {
     if options.schedules.len() < 2 {
         return Err(FitError::Input("an ablation compares at least two schedules (--schedule A.toml --schedule B.toml)".into()));
     }
     let scene = crate::scene::Scene::load(&options.scene)?;
     let light = scene.training_lights().first().map(|name| scene.lights[*name].casts_shadows()).unwrap_or(false);
     let mut names: Vec<String> = Vec::new();
+    let mut texts: Vec<String> = Vec::new();
     for path in &options.schedules {
-        let schedule = Schedule::load(path)?;
+        let (schedule, text) = Schedule::read(path)?;
         schedule.check_against(light)?;
         let name = run_name(path);
         if names.contains(&name) {
             return Err(FitError::Input(format!("{}: another schedule is also named {name:?}; runs are kept by file name", path.display())));
         }
-        let folder = options.out.join(&name);
-        if folder.join("checkpoint").exists() && !options.force {
-            return Err(io(&folder, "holds an earlier run: pass --force to replace it, or choose another --out"));
-        }
+        run_state(&options.out.join(&name), &text, options)?;
         names.push(name);
+        texts.push(text);
     }
     std::fs::create_dir_all(&options.out).map_err(|e| io(&options.out, e))?;
-    let mut rows = Vec::new();
+    let mut summary = AblationSummary { rows: Vec::new(), fitted: 0, elsewhere: Vec::new() };
     for (k, (path, name)) in options.schedules.iter().zip(&names).enumerate() {
+        let folder = options.out.join(name);
+        let resume = match run_state(&folder, &texts[k], options)? {
+            RunState::Finished(_) => continue,
+            RunState::Interrupted => true,
+            RunState::Fresh => false,
+        };
         let fit = FitOptions {
             scene: options.scene.clone(),
-            out: options.out.join(name),
+            out: folder.clone(),
             schedule: path.clone(),
             iterations: options.iterations,
             seed: options.seed,
-            resume: false,
-            force: true,
+            resume,
+            force: !resume,
             force_schedule: false,
             backend: options.backend,
             evaluate: true,
         };
-        let report = crate::fit::fit(&fit, |message| on(k, name, message))?;
-        rows.push(AblationRow::from_report(name.clone(), &report));
-        write_tables(&options.out, &rows)?; // after every run, so a stopped ablation keeps its rows
+        match crate::fit::fit(&fit, |message| on(k, name, message)) {
+            Ok(_) => summary.fitted += 1,
+            // Another invocation holds this run: it will finish it.
+            Err(_) if crate::run_lock::held_elsewhere(&folder) => {
+                summary.elsewhere.push(name.clone());
+                continue;
+            }
+            Err(e) => return Err(e),
+        }
+        // After every run, so a stopped ablation keeps its rows.
+        summary.rows = finished_rows(options, &names, &texts);
+        write_tables(&options.out, &summary.rows)?;
     }
-    Ok(rows)
+    summary.rows = finished_rows(options, &names, &texts);
+    write_tables(&options.out, &summary.rows)?;
+    Ok(summary)
+}
+
+/// The rows of every run in `options.out` that has finished with its schedule.
+fn finished_rows(options: &AblateOptions, names: &[String], texts: &[String]) -> Vec<AblationRow> {
+    let reuse = AblateOptions { force: false, ..options.clone() };
+    names
+        .iter()
+        .zip(texts)
+        .filter_map(|(name, text)| match run_state(&options.out.join(name), text, &reuse) {
+            Ok(RunState::Finished(report)) => Some(AblationRow::from_report(name.clone(), &report)),
+            _ => None,
+        })
+        .collect()
 }
 
 fn write_tables(out: &Path, rows: &[AblationRow]) -> Result<(), FitError> {

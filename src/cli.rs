@@ -307,7 +307,7 @@ fn ablate(options: &crate::ablate::AblateOptions) -> Result<(), String> {
     use crate::train::TrainMessage;
     let bar = progress_bar(0, "fitting");
     let runs = options.schedules.len();
-    let rows = crate::ablate::ablate(options, |k, name, message| match message {
+    let summary = crate::ablate::ablate(options, |k, name, message| match message {
         TrainMessage::Started { first, iterations } => {
             bar.set_length(iterations as u64);
             bar.set_position(first as u64);
@@ -322,7 +322,10 @@ fn ablate(options: &crate::ablate::AblateOptions) -> Result<(), String> {
     bar.finish_and_clear();
     let table = std::fs::read_to_string(options.out.join("ablation.md")).unwrap_or_default();
     print!("{table}");
-    println!("wrote {} ({} runs)", options.out.join("ablation.md").display(), rows.len());
+    println!("wrote {} ({} finished runs, {} fitted now)", options.out.join("ablation.md").display(), summary.rows.len(), summary.fitted);
+    if !summary.elsewhere.is_empty() {
+        println!("left to the processes fitting them: {} (run ablate again when they end to refresh the table)", summary.elsewhere.join(", "));
+    }
     Ok(())
 }
 

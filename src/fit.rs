@@ -24,7 +24,7 @@ const CHECKPOINT: &str = "checkpoint";
 const OLD_CHECKPOINT: &str = ".checkpoint.old";
 /// The schedule a run was fitted with, copied into the run (rendering rebuilds the model
 /// from it; the original file may have moved).
-const SCHEDULE_COPY: &str = "schedule.toml";
+pub const SCHEDULE_COPY: &str = "schedule.toml";
 
 /// The three segments of the schedule, for timing and reporting.
 fn segment(schedule: &Schedule, iteration: usize) -> &'static str {
@@ -360,17 +360,19 @@ pub fn fit(options: &FitOptions, mut on: impl FnMut(TrainMessage)) -> Result<ser
     let saved = if options.iterations.is_some() { 0 } else { schedule.iterations - schedule.iterations_for(trainer.fit_light) };
     schedule.iterations -= saved;
     trainer.schedule.iterations = schedule.iterations;
-    if options.force && !options.resume {
-        let _ = std::fs::remove_dir_all(out.join(CHECKPOINT));
-        let _ = std::fs::remove_dir_all(out.join(OLD_CHECKPOINT));
-    }
     // The checkpoint is loaded (and so validated) before the run's schedule copy is replaced.
     if options.resume {
         check_continuation(out, &schedule_text, schedule.iterations, options.force_schedule)?;
     }
-    let mut history = if options.resume { load_checkpoint(&mut trainer, out)? } else { Vec::new() };
+    // The folder is locked before anything in it changes: a forced fit must not delete the
+    // checkpoint of a fit that is still running there.
     std::fs::create_dir_all(out).map_err(|e| io(out, e))?;
     let _lock = RunLock::acquire(out, "fit")?;
+    if options.force && !options.resume {
+        let _ = std::fs::remove_dir_all(out.join(CHECKPOINT));
+        let _ = std::fs::remove_dir_all(out.join(OLD_CHECKPOINT));
+    }
+    let mut history = if options.resume { load_checkpoint(&mut trainer, out)? } else { Vec::new() };
     crate::imageio::write_atomic(&out.join(SCHEDULE_COPY), schedule_text.as_bytes()).map_err(|e| io(&out.join(SCHEDULE_COPY), e))?;
     history.retain(|(i, _)| *i < trainer.iteration);
     let training_images = trainer.scene.views_in(Split::Train).count();

@@ -58,6 +58,15 @@ impl Drop for RunLock {
     }
 }
 
+/// Whether another live process holds `run`'s lock.
+pub fn held_elsewhere(run: &Path) -> bool {
+    let text = std::fs::read_to_string(run.join(LOCK_FILE)).unwrap_or_default();
+    match text.split_whitespace().next().and_then(|p| p.parse::<u32>().ok()) {
+        Some(pid) => pid != std::process::id() && !process_is_gone(pid),
+        None => false,
+    }
+}
+
 /// Whether process `pid` has certainly exited. Known only where `/proc` lists processes
 /// (Linux); elsewhere a lock is never assumed stale.
 fn process_is_gone(pid: u32) -> bool {

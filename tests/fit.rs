@@ -343,7 +343,9 @@ fn ablate_compares_schedules_in_one_table_and_checks_them_all_first() {
         force: false,
         backend: Backend::Flex,
     };
-    let rows = umbra::ablate::ablate(&options(vec![base.clone(), no_eikonal.clone()], out.clone()), |_, _, _| {}).unwrap();
+    let summary = umbra::ablate::ablate(&options(vec![base.clone(), no_eikonal.clone()], out.clone()), |_, _, _| {}).unwrap();
+    let rows = summary.rows;
+    assert_eq!(summary.fitted, 2);
     assert_eq!(rows.iter().map(|r| r.schedule.as_str()).collect::<Vec<_>>(), ["base", "no-eikonal"]);
     assert!(rows.iter().all(|r| r.iterations == 4 && r.light_error_degrees.is_some() && r.novel_pose_psnr.is_some()), "{rows:?}");
     let csv = std::fs::read_to_string(out.join("ablation.csv")).unwrap();
@@ -352,9 +354,27 @@ fn ablate_compares_schedules_in_one_table_and_checks_them_all_first() {
     for file in ["ablation.md", "ablation.png", "base/fit.json", "no-eikonal/fit.json", "base/renders/metrics.csv"] {
         assert!(out.join(file).exists(), "{file}");
     }
-    // Running again into the same folder needs --force.
+    // Resumable: run again, finished runs are reused (their reports untouched), an interrupted
+    // one (a checkpoint, no report) is resumed, one locked by another live process is left to it.
+    let report = std::fs::read(out.join("base/fit.json")).unwrap();
+    let again = umbra::ablate::ablate(&options(vec![base.clone(), no_eikonal.clone()], out.clone()), |_, _, _| {}).unwrap();
+    assert_eq!((again.fitted, again.rows.len()), (0, 2));
+    assert_eq!(report, std::fs::read(out.join("base/fit.json")).unwrap(), "a finished run is not refitted");
+    std::fs::remove_file(out.join("no-eikonal/fit.json")).unwrap();
+    let resumed = umbra::ablate::ablate(&options(vec![base.clone(), no_eikonal.clone()], out.clone()), |_, _, _| {}).unwrap();
+    assert_eq!((resumed.fitted, resumed.rows.len()), (1, 2));
+    std::fs::remove_file(out.join("no-eikonal/fit.json")).unwrap();
+    let mut holder = std::process::Command::new("sleep").arg("30").spawn().unwrap();
+    std::fs::write(out.join("no-eikonal/.lock"), format!("{} fit", holder.id())).unwrap();
+    let shared = umbra::ablate::ablate(&options(vec![base.clone(), no_eikonal.clone()], out.clone()), |_, _, _| {});
+    let _ = holder.kill();
+    let shared = shared.unwrap();
+    assert_eq!((shared.fitted, shared.rows.len(), shared.elsewhere.clone()), (0, 1, vec!["no-eikonal".to_string()]));
+    // A folder holding a run of another schedule needs --force.
+    std::fs::write(&no_eikonal, QUICK.replace("iterations = 60", "iterations = 4").replace("eikonal = 0.05", "eikonal = 0.01")).unwrap();
+    std::fs::remove_file(out.join("no-eikonal/.lock")).unwrap();
     let err = umbra::ablate::ablate(&options(vec![base.clone(), no_eikonal.clone()], out.clone()), |_, _, _| {}).unwrap_err().to_string();
-    assert!(err.contains("--force"), "{err}");
+    assert!(err.contains("another schedule") && err.contains("--force"), "{err}");
     // An impossible schedule (a light stage on a uniformly lit scene) is refused before any run.
     std::fs::create_dir_all(dir.path().join("uniform")).unwrap();
     let uniform = tiny_scene_with_tests(&dir.path().join("uniform"), TrainingLight::Uniform, vec![TestKind::Poses]);
