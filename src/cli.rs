@@ -165,6 +165,8 @@ pub enum BenchKind {
     /// Time against error: a scene fitted once per field kind, novel-pose foreground PSNR,
     /// SSIM, albedo PSNR and light error along the way.
     Fit,
+    /// Where the time goes: milliseconds per part of a training step and of a render.
+    Breakdown,
 }
 
 /// Runs the CLI and returns the process exit code.
@@ -192,6 +194,10 @@ pub fn main() -> i32 {
         Command::Bench { which: BenchKind::Steps, out, quick, scene, schedule, .. } => {
             let scene = scene.unwrap_or_else(|| PathBuf::from("datasets-synthetic/human-sun-128"));
             crate::bench::steps(&scene, &schedule, &out, quick).map(|table| print!("{table}")).map_err(|e| e.to_string())
+        }
+        Command::Bench { which: BenchKind::Breakdown, out, quick, scene, schedule, .. } => {
+            let scene = scene.unwrap_or_else(|| PathBuf::from("datasets-synthetic/human-sun-128"));
+            crate::bench::breakdown(&scene, &schedule, &out, quick).map(|table| print!("{table}")).map_err(|e| e.to_string())
         }
         Command::Bench { which: BenchKind::Gradients, out, quick, scene, .. } => {
             let scene = scene.or_else(|| Some(PathBuf::from(crate::bench::DEFAULT_SCENE)).filter(|p| p.join("scene.json").exists()));

@@ -245,7 +245,7 @@ fn parse_losses_csv(text: &str) -> Vec<(usize, StepStats)> {
         };
         let terms =
             crate::schedule::TERMS.iter().enumerate().filter_map(|(k, t)| cells.get(3 + k).and_then(|c| c.parse().ok()).map(|v| (t.to_string(), v))).collect();
-        rows.push((it, StepStats { total, terms, seconds }));
+        rows.push((it, StepStats { total, terms, seconds, phases: Vec::new() }));
     }
     rows
 }

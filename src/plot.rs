@@ -100,6 +100,14 @@ impl Canvas {
         }
     }
 
+    pub fn fill(&mut self, x0: i64, y0: i64, x1: i64, y1: i64, c: [u8; 3]) {
+        for y in y0..y1 {
+            for x in x0..x1 {
+                self.set(x, y, c);
+            }
+        }
+    }
+
     pub fn save_png(&self, path: &Path) -> Result<(), String> {
         let raw: Vec<u8> = self.pixels.iter().flatten().copied().collect();
         let png = crate::imageio::encode_png_raw(&raw, self.width, self.height, image::ExtendedColorType::Rgb8).map_err(|e| e.to_string())?;
@@ -210,6 +218,46 @@ impl Chart {
                 }
             }
             canvas.text(left as i64 + 10, top as i64 + 6 + 14 * i as i64, &s.name, 2, c);
+        }
+        canvas
+    }
+}
+
+/// Horizontal bars: one group of bars per label, one bar per series (its colour), values
+/// written beside them.
+pub struct BarChart {
+    pub title: String,
+    pub unit: String,
+    pub labels: Vec<String>,
+    /// Series name and one value per label.
+    pub series: Vec<(String, Vec<f64>)>,
+}
+
+impl BarChart {
+    pub fn render(&self, width: usize) -> Canvas {
+        let (bar, gap, left, top) = (12i64, 10i64, 330i64, 40i64);
+        let group = bar * self.series.len().max(1) as i64 + gap;
+        let height = (top + group * self.labels.len() as i64 + 30 + 16 * self.series.len() as i64) as usize;
+        let mut canvas = Canvas::new(width, height);
+        canvas.text(10, 10, &self.title, 2, [0, 0, 0]);
+        let max = self.series.iter().flat_map(|(_, v)| v.iter().copied()).filter(|v| v.is_finite()).fold(0.0f64, f64::max).max(1e-12);
+        let span = (width as i64 - left - 90) as f64;
+        for (i, label) in self.labels.iter().enumerate() {
+            let y = top + group * i as i64;
+            canvas.text(10, y + 2, label, 1, [0, 0, 0]);
+            for (k, (_, values)) in self.series.iter().enumerate() {
+                let v = values.get(i).copied().unwrap_or(0.0);
+                let y = y + bar * k as i64;
+                let end = left + (v.max(0.0) / max * span).round() as i64;
+                canvas.fill(left, y, end.max(left + 1), y + bar - 2, COLOURS[k % COLOURS.len()]);
+                canvas.text(end + 4, y + 2, &format!("{v:.1} {}", self.unit), 1, [0, 0, 0]);
+            }
+        }
+        let legend = top + group * self.labels.len() as i64 + 10;
+        for (k, (name, _)) in self.series.iter().enumerate() {
+            let y = legend + 16 * k as i64;
+            canvas.fill(10, y, 22, y + 10, COLOURS[k % COLOURS.len()]);
+            canvas.text(28, y + 2, name, 1, [0, 0, 0]);
         }
         canvas
     }

@@ -90,7 +90,13 @@ pub struct Deferred {
     /// Every sample point `[R * S, 3]` and the field's density there `[R * S]`.
     pub sample_points: Tensor<2>,
     pub sample_density: Tensor<1>,
+    /// Wall seconds of the three parts (`RENDER_PARTS`), for the cost breakdown.
+    pub seconds: [f64; 3],
 }
+
+/// The parts of `render` whose time `Deferred::seconds` holds.
+pub const RENDER_PARTS: [&str; 3] =
+    ["surface search (coarse + probe samples, no gradients)", "field forward (differentiable samples)", "normals (SDF gradient at the surface)"];
 
 /// Samples per ray: `coarse` stratified over the ray's bound; `probe` more, without gradients,
 /// where the coarse pass found density, only to locate the surface more finely; `fine` more
@@ -179,42 +185,68 @@ fn importance(bins: &[(f32, f32)], weights: &[f32], count: usize, jitter: &[f32]
 }
 
 /// For every ray, `count` distances drawn by `importance` from its samples' weights
-/// (`[R * S]`) over their intervals, merged with the samples in order: each merged sample's
-/// interval runs between the midpoints to its neighbours. The merged set holds `base` (the
-/// coarse samples) and the draws, not necessarily the samples the weights belong to.
-fn refine(rays: &RaySet, samples: &Samples, weights: &[f32], count: usize, jitter: &[f32], base: &Samples) -> Samples {
+/// (`[R * S]`) over their intervals: `[R * count]`, ascending along each ray.
+fn draw(rays: &RaySet, samples: &Samples, weights: &[f32], count: usize, jitter: &[f32]) -> Vec<f32> {
     let r = rays.len();
     let s = samples.t.len() / r.max(1);
-    let sb = base.t.len() / r.max(1);
-    let n = r * (sb + count);
-    let mut out = Samples { t: Vec::with_capacity(n), lo: Vec::with_capacity(n), delta: Vec::with_capacity(n) };
-    let mut merged = Vec::with_capacity(sb + count);
+    let mut out = Vec::with_capacity(r * count);
     for i in 0..r {
-        let (near, far) = (rays.near[i], rays.far[i]);
         let bins: Vec<(f32, f32)> = (i * s..(i + 1) * s).map(|k| (samples.lo[k], samples.lo[k] + samples.delta[k])).collect();
-        merged.clear();
-        merged.extend_from_slice(&base.t[i * sb..(i + 1) * sb]);
-        importance(&bins, &weights[i * s..(i + 1) * s], count, &jitter[i * count..(i + 1) * count], &mut merged);
-        merged.sort_by(f32::total_cmp);
-        for (k, (lo, hi)) in intervals(&merged, near, far).enumerate() {
-            out.t.push(merged[k]);
-            out.lo.push(lo);
-            out.delta.push(hi - lo);
-        }
+        importance(&bins, &weights[i * s..(i + 1) * s], count, &jitter[i * count..(i + 1) * count], &mut out);
     }
     out
 }
 
-/// Compositing weights `[R * S]` of `samples` by the field's density, without gradients.
-fn probe_weights(field: &AvatarField, pose: &PoseTensors, origins: &Tensor<2>, directions: &Tensor<2>, samples: &Samples, r: usize) -> Vec<f32> {
-    let plain = origins.device().without_autodiff();
+/// Merges two sets of ascending distances per ray (`[R * na]` and `[R * nb]`), carrying a value
+/// per distance (the density) when given; each merged sample stands for the interval between
+/// the midpoints to its neighbours.
+fn merge(rays: &RaySet, a: &[f32], na: usize, b: &[f32], nb: usize, values: Option<(&[f32], &[f32])>) -> (Samples, Vec<f32>) {
+    let r = rays.len();
+    let n = r * (na + nb);
+    let mut out = Samples { t: Vec::with_capacity(n), lo: Vec::with_capacity(n), delta: Vec::with_capacity(n) };
+    let mut merged_values = Vec::with_capacity(if values.is_some() { n } else { 0 });
+    let mut merged: Vec<(f32, f32)> = Vec::with_capacity(na + nb);
+    let value = |v: Option<&[f32]>, k: usize| v.map_or(0.0, |v| v[k]);
+    for i in 0..r {
+        merged.clear();
+        merged.extend((i * na..(i + 1) * na).map(|k| (a[k], value(values.map(|v| v.0), k))));
+        merged.extend((i * nb..(i + 1) * nb).map(|k| (b[k], value(values.map(|v| v.1), k))));
+        merged.sort_by(|x, y| x.0.total_cmp(&y.0));
+        let t: Vec<f32> = merged.iter().map(|m| m.0).collect();
+        for (k, (lo, hi)) in intervals(&t, rays.near[i], rays.far[i]).enumerate() {
+            out.t.push(t[k]);
+            out.lo.push(lo);
+            out.delta.push(hi - lo);
+        }
+        if values.is_some() {
+            merged_values.extend(merged.iter().map(|m| m.1));
+        }
+    }
+    (out, merged_values)
+}
+
+/// The field's density at every sample of every ray (`[R * S]`), without gradients.
+fn densities(still: &AvatarField, pose: &PoseTensors, origins: &Tensor<2>, directions: &Tensor<2>, t: &[f32], r: usize) -> Vec<f32> {
+    let s = t.len() / r.max(1);
+    let t = Tensor::<2>::from_data(TensorData::new(t.to_vec(), [r, s]), &origins.device());
+    let points = sample_points(origins, directions, &t);
+    still.density(still.sdf(points, pose)).into_data().convert::<f32>().try_to_vec::<f32>().unwrap_or_else(|_| vec![0.0; r * s])
+}
+
+/// Compositing weights `T alpha` of every ray's samples from their densities, on the CPU (the
+/// same sums as `compositing_weights`).
+fn host_weights(samples: &Samples, density: &[f32], r: usize) -> Vec<f32> {
     let s = samples.t.len() / r.max(1);
-    let t = Tensor::<2>::from_data(TensorData::new(samples.t.clone(), [r, s]), &plain);
-    let delta = Tensor::<2>::from_data(TensorData::new(samples.delta.clone(), [r, s]), &plain);
-    let points = sample_points(&origins.clone().without_autodiff(), &directions.clone().without_autodiff(), &t);
-    let still = field.valid();
-    let density = still.density(still.sdf(points, pose)).reshape([r, s]);
-    compositing_weights(density, delta).into_data().convert::<f32>().try_to_vec::<f32>().unwrap_or_else(|_| vec![0.0; r * s])
+    let mut out = Vec::with_capacity(r * s);
+    for i in 0..r {
+        let mut transmittance = 1.0f32;
+        for k in i * s..(i + 1) * s {
+            let alpha = 1.0 - (-density[k] * samples.delta[k]).exp();
+            out.push(transmittance * alpha);
+            transmittance *= 1.0 - alpha;
+        }
+    }
+    out
 }
 
 /// Per-sample compositing weights `T alpha` from densities and interval lengths `[R, S]`.
@@ -246,6 +278,7 @@ pub fn render(
     normals: Option<GradientMethod>,
     device: &Device,
 ) -> Deferred {
+    let start = std::time::Instant::now();
     let r = rays.len();
     let origins: Tensor<2> = Tensor::from_data(TensorData::new(rays.origins.clone(), [r, 3]), device);
     let directions: Tensor<2> = Tensor::from_data(TensorData::new(rays.directions.clone(), [r, 3]), device);
@@ -254,16 +287,25 @@ pub fn render(
     let samples = if sf == 0 {
         coarse
     } else {
-        // Without gradients: the coarse pass, then, if asked, probes where it found density,
-        // so the fine samples are drawn from a finer picture of where the surface is.
-        let mut located = coarse.clone();
-        let mut weights = probe_weights(field, pose, &origins, &directions, &located, r);
-        if sp > 0 {
-            located = refine(rays, &located, &weights, sp, &jitter[r * sc..r * (sc + sp)], &coarse);
-            weights = probe_weights(field, pose, &origins, &directions, &located, r);
-        }
-        refine(rays, &located, &weights, sf, &jitter[r * (sc + sp)..r * (sc + sp + sf)], &coarse)
+        // Without gradients: the coarse pass, then, if asked, probes where it found density
+        // (only the probes are evaluated: the coarse densities are kept), so the fine samples
+        // are drawn from a finer picture of where the surface is.
+        let still = field.valid();
+        let (o, d) = (origins.clone().without_autodiff(), directions.clone().without_autodiff());
+        let coarse_density = densities(&still, pose, &o, &d, &coarse.t, r);
+        let (located, density) = if sp > 0 {
+            let weights = host_weights(&coarse, &coarse_density, r);
+            let probes = draw(rays, &coarse, &weights, sp, &jitter[r * sc..r * (sc + sp)]);
+            let probe_density = densities(&still, pose, &o, &d, &probes, r);
+            merge(rays, &coarse.t, sc, &probes, sp, Some((&coarse_density, &probe_density)))
+        } else {
+            (coarse.clone(), coarse_density)
+        };
+        let weights = host_weights(&located, &density, r);
+        let fine = draw(rays, &located, &weights, sf, &jitter[r * (sc + sp)..r * (sc + sp + sf)]);
+        merge(rays, &coarse.t, sc, &fine, sf, None).0
     };
+    let located = start.elapsed().as_secs_f64();
     let s = sampling.total();
     let t = Tensor::<2>::from_data(TensorData::new(samples.t, [r, s]), device);
     let delta = Tensor::<2>::from_data(TensorData::new(samples.delta, [r, s]), device);
@@ -275,11 +317,13 @@ pub fn render(
     let albedo = (weights.clone().unsqueeze_dim::<3>(2) * out.albedo.reshape([r, s, 3])).sum_dim(1).reshape([r, 3]);
     let depth = (weights * t).sum_dim(1).reshape([r]) / (accumulation.clone() + 1e-6);
     let surface = origins + directions * depth.clone().reshape([r, 1]);
+    let forward = start.elapsed().as_secs_f64();
     let normal = normals.map(|method| {
         let gradient = field.sdf_gradient(surface.clone(), pose, method);
         gradient.clone() / (gradient.clone() * gradient).sum_dim(1).sqrt().clamp_min(1e-6)
     });
-    Deferred { accumulation, albedo, depth, surface, normal, sample_points: points, sample_density: density }
+    let seconds = [located, forward - located, start.elapsed().as_secs_f64() - forward];
+    Deferred { accumulation, albedo, depth, surface, normal, sample_points: points, sample_density: density, seconds }
 }
 
 #[cfg(test)]
@@ -304,26 +348,51 @@ mod tests {
     }
 
     #[test]
-    fn refined_intervals_tile_the_bound_and_probes_sharpen_the_draws() {
+    fn merged_intervals_tile_the_bound_and_probes_sharpen_the_draws() {
         let rays = one_ray(1.0, 3.0);
         let coarse = stratified(&rays, 8, &[0.5; 8]);
-        // A surface in the fifth stratum, at t = 2.05.
-        let weights: Vec<f32> = coarse.lo.iter().zip(&coarse.delta).map(|(lo, d)| if (*lo..lo + d).contains(&2.05) { 1.0 } else { 0.0 }).collect();
-        let probed = refine(&rays, &coarse, &weights, 16, &[0.5; 16], &coarse);
+        // A surface in the fifth stratum, at t = 2.05: density 0 before it, 1e4 behind.
+        let body = |t: f32| if t < 2.05 { 0.0 } else { 1e4 };
+        let density: Vec<f32> = coarse.t.iter().map(|&t| body(t)).collect();
+        let weights = host_weights(&coarse, &density, 1);
+        assert!((weights.iter().sum::<f32>() - 1.0).abs() < 1e-5, "an opaque body takes all the weight");
+        let probes = draw(&rays, &coarse, &weights, 16, &[0.5; 16]);
+        let probe_density: Vec<f32> = probes.iter().map(|&t| body(t)).collect();
+        let (probed, merged_density) = merge(&rays, &coarse.t, 8, &probes, 16, Some((&density, &probe_density)));
         assert_eq!(probed.t.len(), 24);
         assert!(probed.t.windows(2).all(|w| w[0] <= w[1]));
+        for (t, d) in probed.t.iter().zip(&merged_density) {
+            assert_eq!(*d, body(*t), "densities travel with their samples");
+        }
         let covered: f32 = probed.delta.iter().sum();
         assert!((covered - 2.0).abs() < 1e-5, "intervals cover the bound: {covered}");
         for k in 1..probed.t.len() {
             assert!((probed.lo[k] - (probed.lo[k - 1] + probed.delta[k - 1])).abs() < 1e-6, "intervals are contiguous");
         }
-        // A probe round that puts all its weight on the sample nearest the surface narrows the
-        // fine draws to that sample's interval, much finer than a coarse stratum.
-        let nearest = (0..probed.t.len()).min_by(|&a, &b| (probed.t[a] - 2.05).abs().total_cmp(&(probed.t[b] - 2.05).abs())).unwrap_or(0);
-        let sharp: Vec<f32> = (0..probed.t.len()).map(|k| if k == nearest { 1.0 } else { 0.0 }).collect();
-        let fine = refine(&rays, &probed, &sharp, 16, &[0.5; 16], &coarse);
-        assert_eq!(fine.t.len(), 24, "the merged set holds the coarse samples and the draws only");
-        let near_surface = fine.t.iter().filter(|&&t| (t - 2.05).abs() < 0.02).count();
-        assert!(near_surface >= 15, "{near_surface} fine samples within 2 cm of the surface");
+        // The coarse pass locates the surface within a stratum (25 cm), the probes within their
+        // spacing: the fine draws from the probed weights crowd the surface.
+        let fine_coarse = draw(&rays, &coarse, &weights, 16, &[0.5; 16]);
+        let fine_probed = draw(&rays, &probed, &host_weights(&probed, &merged_density, 1), 16, &[0.5; 16]);
+        let near = |draws: &[f32]| draws.iter().filter(|&&t| (t - 2.05).abs() < 0.02).count();
+        assert!(near(&fine_probed) >= 12 && near(&fine_probed) > 3 * near(&fine_coarse), "{} vs {}", near(&fine_probed), near(&fine_coarse));
+        let (fine, _) = merge(&rays, &coarse.t, 8, &fine_probed, 16, None);
+        assert_eq!(fine.t.len(), 24, "the rendered set holds the coarse samples and the fine draws");
+    }
+
+    #[test]
+    fn host_weights_match_the_differentiable_compositing() {
+        let (r, n) = (3, 7);
+        let samples =
+            stratified(&RaySet { origins: vec![0.0; 3 * r], directions: vec![0.0; 3 * r], near: vec![0.5, 1.0, 0.0], far: vec![2.0, 1.5, 4.0] }, n, &[0.3; 21]);
+        let density: Vec<f32> = (0..r * n).map(|k| [0.0, 3.0, 40.0, 0.5, 900.0, 0.0, 12.0][k % n] * (1.0 + k as f32 * 0.1)).collect();
+        let device = Device::flex();
+        let tensor = compositing_weights(
+            Tensor::from_data(TensorData::new(density.clone(), [r, n]), &device),
+            Tensor::from_data(TensorData::new(samples.delta.clone(), [r, n]), &device),
+        );
+        let expected = tensor.into_data().convert::<f32>().try_to_vec::<f32>().unwrap();
+        for (a, b) in host_weights(&samples, &density, r).iter().zip(&expected) {
+            assert!((a - b).abs() < 1e-6, "{a} vs {b}");
+        }
     }
 }

@@ -6,7 +6,7 @@
 use crate::field::{AvatarField, FieldConfig, GradientMethod, PoseTensors};
 use crate::gaussians::{GaussianParams, GaussianSet};
 use crate::light::Light;
-use crate::render::{ray_bounds, render, RaySet};
+use crate::render::{ray_bounds, render, Deferred, RaySet};
 use crate::scene::{Scene, Split};
 use crate::schedule::Schedule;
 use crate::shading::{LightKind, LightModel};
@@ -108,6 +108,51 @@ pub struct StepStats {
     pub total: f64,
     pub terms: BTreeMap<String, f64>,
     pub seconds: f64,
+    /// Wall seconds per part of the step, in order (`PHASES`; the sun search only when it ran).
+    /// burn's CPU backends run eagerly, so each part's tensor work is done within its span.
+    #[serde(skip)]
+    pub phases: Vec<(&'static str, f64)>,
+}
+
+/// The parts of a training step `StepStats::phases` times.
+pub const PHASES: [&str; 10] = [
+    "sun search",
+    "batch sampling (CPU)",
+    crate::render::RENDER_PARTS[0],
+    crate::render::RENDER_PARTS[1],
+    crate::render::RENDER_PARTS[2],
+    "shading + shadows",
+    "mask, grey, density and Gaussian losses",
+    "Eikonal + curvature (SDF gradients)",
+    "backward",
+    "optimiser step",
+];
+
+/// Splits a step's wall time into `PHASES`.
+struct PhaseClock {
+    last: Instant,
+    spans: Vec<(&'static str, f64)>,
+}
+
+impl PhaseClock {
+    fn start() -> Self {
+        Self { last: Instant::now(), spans: Vec::new() }
+    }
+
+    /// Ends the current part of the step as the render's three parts, timed by `render`.
+    fn mark_render(&mut self, deferred: &Deferred) {
+        for (k, seconds) in deferred.seconds.iter().enumerate() {
+            self.spans.push((PHASES[2 + k], *seconds));
+        }
+        self.last = Instant::now();
+    }
+
+    /// Ends the current part of the step as `PHASES[k]`.
+    fn mark(&mut self, k: usize) {
+        let now = Instant::now();
+        self.spans.push((PHASES[k], (now - self.last).as_secs_f64()));
+        self.last = now;
+    }
 }
 
 #[derive(Clone, Debug)]
@@ -513,12 +558,15 @@ impl Trainer {
     /// One iteration: forward, losses, backward, an Adam step per group.
     pub fn step(&mut self) -> Result<StepStats, FitError> {
         let start = Instant::now();
+        let mut clock = PhaseClock::start();
         let it = self.iteration;
         if it == self.schedule.light_from && self.fit_light && self.light_kind == LightKind::Directional && self.schedule.sun_search > 0 {
             self.search_sun()?;
+            clock.mark(0);
         }
         let set = self.model()?.gaussians.to_set();
         let (frame, rays, colours, masks, hits) = self.batch(&set);
+        clock.mark(1);
         let r = rays.len();
         // Only rays that meet a bound are rendered (at least one, so the graph is never empty);
         // the rest are appended as background.
@@ -538,6 +586,7 @@ impl Trainer {
         }
         let shading = self.fit_light && w("rgb") > 0.0;
         let deferred = render(&model.field, &pose, &rays.first(rendered), sampling, &jitter, shading.then_some(self.gradient), &device);
+        clock.mark_render(&deferred);
         let background = |t: Tensor<2>| if rendered < r { Tensor::cat(vec![t, Tensor::zeros([r - rendered, 3], &device)], 0) } else { t };
         let accumulation = if rendered < r {
             Tensor::cat(vec![deferred.accumulation.clone(), Tensor::zeros([r - rendered], &device)], 0)
@@ -556,6 +605,7 @@ impl Trainer {
             };
             terms.push(("rgb", w("rgb"), crate::losses::rgb(colour, target)));
         }
+        clock.mark(5);
         terms.push(("mask", w("mask"), crate::losses::mask(accumulation, mask.clone())));
         if w("grey") > 0.0 {
             terms.push(("grey", w("grey"), crate::losses::grey(albedo, mask)));
@@ -576,6 +626,7 @@ impl Trainer {
         if w("ambient") > 0.0 && self.fit_light {
             terms.push(("ambient", w("ambient"), crate::losses::ambient(model.light.ambient(), self.schedule.ambient_target)));
         }
+        clock.mark(6);
         if (w("eikonal") > 0.0 || w("curvature") > 0.0) && self.schedule.regulariser_points > 0 {
             let q = self.schedule.regulariser_points;
             let idx = self.random_indices(q, rendered * s);
@@ -596,13 +647,15 @@ impl Trainer {
         for (_, weight, value) in terms.iter().skip(1) {
             total = total + value.clone() * *weight;
         }
-        let mut stats = StepStats { total: scalar(&total), terms: terms.iter().map(|(n, _, v)| (n.to_string(), scalar(v))).collect(), seconds: 0.0 };
+        let mut stats = StepStats { total: scalar(&total), terms: terms.iter().map(|(n, _, v)| (n.to_string(), scalar(v))).collect(), ..StepStats::default() };
+        clock.mark(7);
         if !stats.total.is_finite() {
             let bad = stats.terms.iter().find(|(_, v)| !v.is_finite()).map(|(n, _)| format!("the {n} loss")).unwrap_or_else(|| "the total loss".into());
             self.model = Some(model);
             return Err(FitError::NonFinite { iteration: it, what: bad, checkpoint: String::new() });
         }
         let mut grads = total.backward();
+        clock.mark(8);
         let light_active = self.fit_light && it >= self.schedule.light_from;
         let Avatar { mut field, gaussians, light } = model;
         // A grid's feature tables have their own learning rate and optimizer.
@@ -631,6 +684,8 @@ impl Trainer {
             return Err(FitError::NonFinite { iteration: it, what: format!("the parameter {name} after the update"), checkpoint: String::new() });
         }
         self.iteration += 1;
+        clock.mark(9);
+        stats.phases = clock.spans;
         stats.seconds = start.elapsed().as_secs_f64();
         Ok(stats)
     }

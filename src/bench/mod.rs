@@ -1,11 +1,13 @@
 //! Benchmarks behind `umbra bench` and `cargo bench`: each prints ratios against a baseline
 //! measured in the same run and writes a Markdown table, a CSV and a PNG plot.
 
+mod breakdown;
 mod fit;
 mod gradients;
 mod shadows;
 mod steps;
 
+pub use breakdown::breakdown;
 pub use fit::{fit_curves, CurvePoint, FitBenchOptions};
 pub use gradients::gradients;
 pub use shadows::{body_cloud, shadows, sun_rays, Row, FLOPS_PER_PAIR};
