@@ -200,6 +200,10 @@ pub fn render_run(run: &Path, scene: Option<&Path>, backend: crate::train::Backe
 /// A fit rebuilt from its run folder (its schedule copy and last checkpoint), on the scene it
 /// was fitted on (from `fit.json`) or on `scene`.
 pub fn restore(run: &Path, scene: Option<&Path>, backend: crate::train::Backend) -> Result<Trainer, FitError> {
+    if !run.join(SCHEDULE_COPY).is_file() {
+        let what = if run.is_dir() { "is not an umbra run (it has no schedule.toml)" } else { "does not exist" };
+        return Err(io(run, format!("{what}: name the --out folder of an `umbra fit`")));
+    }
     let schedule = Schedule::load(&run.join(SCHEDULE_COPY))?;
     let scene_path = match scene {
         Some(path) => path.to_path_buf(),

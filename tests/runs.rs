@@ -170,6 +170,10 @@ fn a_run_refuses_another_scene_and_a_damaged_checkpoint() {
     let length = json["skeleton"]["bones"][1]["length"].as_f64().unwrap();
     json["skeleton"]["bones"][1]["length"] = serde_json::json!(length * 1.1);
     std::fs::write(longer.join("scene.json"), serde_json::to_string(&json).unwrap()).unwrap();
+    let stderr = fails(&cwd, &["render", dir.path().join("no-run").to_str().unwrap()]);
+    assert!(stderr.contains("does not exist") && stderr.contains("umbra fit"), "{stderr}");
+    let stderr = fails(&cwd, &["render", scene.to_str().unwrap()]);
+    assert!(stderr.contains("is not an umbra run"), "{stderr}");
     let stderr = fails(&cwd, &["render", run_arg, "--scene", longer.to_str().unwrap()]);
     assert!(stderr.contains("state.json") && stderr.contains("skeleton"), "{stderr}");
     // Another capture of the same skeleton: renders, but the fit does not resume on it.

@@ -231,12 +231,19 @@ fn broken_text(edit: impl FnOnce(String) -> String) -> umbra::scene::SceneError 
 
 #[test]
 fn nan_infinity_and_truncation_are_reported() {
+    // NaN, Infinity and 1e999 are not JSON, but exporters write them: named by their JSON path.
     let err = broken_text(|t| t.replace("\"length\": 0.5", "\"length\": NaN"));
-    assert!(err.to_string().contains("invalid JSON at line"), "{err}");
+    assert!(err.path.starts_with("skeleton.bones[") && err.path.ends_with("].length") && err.to_string().contains("NaN is not a finite number"), "{err}");
     let err = broken_text(|t| t.replace("\"fx\": 10.0", "\"fx\": Infinity"));
-    assert!(err.to_string().contains("invalid JSON"), "{err}");
-    let err = broken_text(|t| t.replace("\"fx\": 10.0", "\"fx\": 1e999"));
-    assert!(err.to_string().contains("invalid JSON"), "{err}");
+    assert!(err.path.ends_with(".fx") && err.to_string().contains("Infinity is not a finite number"), "{err}");
+    let err = broken_text(|t| t.replace("\"fx\": 10.0", "\"fx\": -1e999"));
+    assert!(err.path.ends_with(".fx") && err.to_string().contains("-1e999"), "{err}");
+    // Inside a string the same letters are text, not a number: a name may be "NaN".
+    let err = broken_text(|t| t.replace("\"fx\": 10.0", "\"fx\": \"NaN\""));
+    assert!(err.to_string().contains("expected a number, found the string \"NaN\""), "{err}");
+    // A syntax error is still reported by line and column.
+    let err = broken_text(|t| t.replacen("{", "{]", 2));
+    assert!(err.to_string().contains("invalid JSON at line"), "{err}");
     let err = broken_text(|t| t[..t.len() / 2].to_string());
     assert!(err.to_string().contains("EOF") || err.to_string().contains("invalid JSON"), "{err}");
     let dir = TempDir::new("none");

@@ -89,6 +89,9 @@ impl<'a> At<'a> {
     /// (`MAX_MAGNITUDE`): a value finite in f64 but not in f32 (1e39) would pass here and blow
     /// up in the fit, blamed on it. serde_json already refuses NaN and Infinity literals.
     pub fn f64(&self) -> Result<f64> {
+        if let Some(literal) = self.value.as_str().and_then(|s| s.strip_prefix("\u{0}non-finite:")) {
+            return Err(self.error(format!("{literal} is not a finite number (JSON has no NaN or infinity)")));
+        }
         let v = self.value.as_f64().ok_or_else(|| self.error(format!("expected a number, found {}", describe(self.value))))?;
         if !v.is_finite() {
             return Err(self.error("must be finite"));
@@ -200,11 +203,71 @@ fn describe(v: &Value) -> String {
     }
 }
 
-/// Parses JSON text; a syntax error (NaN, Infinity, truncation) names line and column.
+/// Parses JSON text; a syntax error (truncation, a stray bracket) names line and column. A
+/// bare `NaN`, `Infinity` or a number beyond f64 (`1e999`), which JSON cannot hold but
+/// exporters write, is instead reported by the JSON path of the value it stands for
+/// (`cameras[0].fx: NaN is not a finite number`): the text is parsed again with each such
+/// literal replaced by a marker string that `At::f64` recognises.
 pub fn parse(text: &str, file: &Path) -> Result<Value> {
-    serde_json::from_str(text).map_err(|e| SceneError {
-        file: file.to_path_buf(),
-        path: String::new(),
-        message: format!("invalid JSON at line {}, column {}: {e}", e.line(), e.column()),
+    serde_json::from_str(text).or_else(|e| {
+        let (marked, found) = mark_non_finite_literals(text);
+        match serde_json::from_str(&marked) {
+            Ok(value) if found => Ok(value),
+            _ => Err(SceneError {
+                file: file.to_path_buf(),
+                path: String::new(),
+                message: format!("invalid JSON at line {}, column {}: {e}", e.line(), e.column()),
+            }),
+        }
     })
+}
+
+/// The string a non-finite literal is replaced by before the second parse.
+const NON_FINITE_MARK: &str = "\\u0000non-finite:";
+
+/// `text` with every `NaN`, `Infinity`, `-Infinity` and overflowing number outside strings
+/// replaced by a JSON string holding `NON_FINITE_MARK` and the literal; whether any was found.
+fn mark_non_finite_literals(text: &str) -> (String, bool) {
+    let bytes = text.as_bytes();
+    let mut out = String::with_capacity(text.len());
+    let (mut i, mut found, mut in_string) = (0, false, false);
+    while i < bytes.len() {
+        let c = bytes[i];
+        if in_string {
+            if c == b'\\' && i + 1 < bytes.len() {
+                out.push_str(&text[i..i + 2]);
+                i += 2;
+                continue;
+            }
+            in_string = c != b'"';
+            out.push(c as char);
+            i += 1;
+            continue;
+        }
+        if c == b'"' {
+            in_string = true;
+            out.push('"');
+            i += 1;
+            continue;
+        }
+        // A token of letters, digits, signs and dots: a literal or a number.
+        let end = i + bytes[i..].iter().take_while(|b| b.is_ascii_alphanumeric() || matches!(b, b'+' | b'-' | b'.')).count();
+        if end > i {
+            let token = &text[i..end];
+            let non_finite = matches!(token, "NaN" | "-NaN" | "Infinity" | "-Infinity" | "+Infinity") || token.parse::<f64>().is_ok_and(|v| !v.is_finite());
+            if non_finite {
+                out.push_str(&format!("\"{NON_FINITE_MARK}{token}\""));
+                found = true;
+            } else {
+                out.push_str(token);
+            }
+            i = end;
+            continue;
+        }
+        // Everything else (punctuation, whitespace, other UTF-8) is copied as it is.
+        let next = text[i..].chars().next().map_or(1, char::len_utf8);
+        out.push_str(&text[i..i + next]);
+        i += next;
+    }
+    (out, found)
 }
