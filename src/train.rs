@@ -338,6 +338,16 @@ impl Trainer {
             )));
         }
         let light = &scene.lights[lights[0]];
+        // An environment map lights a body unevenly (a bright sky above, a dark ground below);
+        // fitted as uniform light its shading would be painted into the albedo, and the report
+        // would call the capture uniformly lit. Refused until it is fitted for what it is.
+        if let Light::Environment { .. } = light {
+            return Err(FitError::Input(format!(
+                "{}: the training images are lit by the environment map {:?}; umbra cannot fit an environment-lit capture yet (treated as uniform light, the map's shading would end up in the albedo): fit a capture lit by a sun, a point light or uniform light",
+                scene.root.join("scene.json").display(),
+                lights[0]
+            )));
+        }
         let light_kind = match light {
             Light::Directional { .. } => LightKind::Directional,
             Light::Point { .. } => LightKind::Point,

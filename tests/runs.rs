@@ -218,3 +218,21 @@ fn a_run_folder_in_use_is_refused_and_a_stale_lock_taken_over() {
     succeeds(&cwd, &["render", run_arg]);
     assert!(!run.join(".lock").exists());
 }
+
+#[test]
+fn an_environment_lit_capture_is_refused_saying_why_not_fitted_as_uniform() {
+    let dir = TempDir::new("environment");
+    let scene = common::tiny_synth(dir.path(), TrainingLight::Sun, 24, 2, vec![TestKind::Relight], 4);
+    let file = scene.join("scene.json");
+    let mut json: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&file).unwrap()).unwrap();
+    for image in json["images"].as_array_mut().unwrap() {
+        if image["split"] == "train" {
+            image["light"] = serde_json::json!("sky");
+        }
+    }
+    std::fs::write(&file, serde_json::to_string(&json).unwrap()).unwrap();
+    let run = dir.path().join("run");
+    let stderr = fails(&std::env::current_dir().unwrap(), &["fit", scene.to_str().unwrap(), "--out", run.to_str().unwrap(), "--iterations", "2"]);
+    assert!(stderr.contains("environment map \"sky\"") && stderr.contains("scene.json"), "{stderr}");
+    assert!(!run.exists(), "nothing written");
+}
