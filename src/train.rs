@@ -238,10 +238,11 @@ pub struct Trainer {
 /// The field the schedule asks for: the Fourier `mlp` field, or feature grids shaped by the
 /// body's `extent` (the diagonal of the posed skeleton's bounds, m) with the schedule's overrides.
 pub fn field_config(settings: &crate::schedule::FieldSettings, skeleton: &crate::skeleton::Skeleton, extent: f32) -> FieldConfig {
+    let min_beta = extent * crate::field::MIN_BETA_PER_EXTENT;
     match settings.kind {
-        crate::schedule::FieldKind::Mlp => FieldConfig::for_bones(skeleton.len()),
+        crate::schedule::FieldKind::Mlp => FieldConfig { min_beta, ..FieldConfig::for_bones(skeleton.len()) },
         crate::schedule::FieldKind::Grid => {
-            let mut config = FieldConfig::with_grid(skeleton.bones.iter().map(|b| b.length as f32).collect(), extent);
+            let mut config = FieldConfig { min_beta, ..FieldConfig::with_grid(skeleton.bones.iter().map(|b| b.length as f32).collect(), extent) };
             if let Some(grid) = config.grid.as_mut() {
                 grid.levels = settings.levels.unwrap_or(grid.levels);
                 grid.table_log2 = settings.table_log2.unwrap_or(grid.table_log2);

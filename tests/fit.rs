@@ -246,6 +246,12 @@ fn a_non_finite_parameter_or_loss_stops_the_fit_and_keeps_the_last_good_checkpoi
     let bpk = out.join("checkpoint/model.bpk");
     model.save_file(&bpk).unwrap();
     let before = std::fs::read(&bpk).unwrap();
+    // The poisoned model replaces the saved one on purpose: its state must not list the old
+    // checksum (a checkpoint from before checksums were recorded is loaded unchecked).
+    let state_path = out.join("checkpoint/state.json");
+    let mut state: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&state_path).unwrap()).unwrap();
+    state.as_object_mut().unwrap().remove("checksums");
+    std::fs::write(&state_path, state.to_string()).unwrap();
     std::fs::remove_file(out.join("fit.json")).unwrap();
     let err = umbra::fit::fit(&fit_options(&scene_path, out.clone(), &schedule_path, Some(8), 2, true), |_| {}).unwrap_err().to_string();
     assert!(err.contains("diverged at iteration 4") && err.contains("loss is not finite"), "{err}");
