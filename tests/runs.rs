@@ -30,6 +30,15 @@ fn fails(cwd: &Path, args: &[&str]) -> String {
     String::from_utf8_lossy(&out.stderr).into_owned()
 }
 
+/// A tiny scene and a two-iteration run of it (no evaluation), in a fresh folder.
+fn short_run(tag: &str) -> (TempDir, PathBuf, PathBuf) {
+    let dir = TempDir::new(tag);
+    let scene = tiny_scene(dir.path());
+    let run = dir.path().join("run");
+    succeeds(&std::env::current_dir().unwrap(), &["fit", scene.to_str().unwrap(), "--out", run.to_str().unwrap(), "--iterations", "2", "--no-eval"]);
+    (dir, scene, run)
+}
+
 /// Every file under `dir` with its bytes, to prove a refused command wrote nothing.
 fn snapshot(dir: &Path) -> Vec<(PathBuf, Vec<u8>)> {
     let mut out = Vec::new();
@@ -151,12 +160,9 @@ fn resume_refuses_another_schedule_or_iteration_count_unless_forced() {
 
 #[test]
 fn a_run_refuses_another_scene_and_a_damaged_checkpoint() {
-    let dir = TempDir::new("identity");
-    let scene = tiny_scene(dir.path());
+    let (dir, scene, run) = short_run("identity");
     let cwd = std::env::current_dir().unwrap();
-    let run = dir.path().join("run");
     let run_arg = run.to_str().unwrap();
-    succeeds(&cwd, &["fit", scene.to_str().unwrap(), "--out", run_arg, "--iterations", "2", "--no-eval"]);
     let before = snapshot(&run);
     // The same capture but one bone 10% longer: another skeleton, same bone count.
     let longer = dir.path().join("longer");
@@ -199,12 +205,9 @@ fn walk_files(dir: &Path) -> Vec<PathBuf> {
 
 #[test]
 fn a_run_folder_in_use_is_refused_and_a_stale_lock_taken_over() {
-    let dir = TempDir::new("lock");
-    let scene = tiny_scene(dir.path());
+    let (_dir, scene, run) = short_run("lock");
     let cwd = std::env::current_dir().unwrap();
-    let run = dir.path().join("run");
     let run_arg = run.to_str().unwrap();
-    succeeds(&cwd, &["fit", scene.to_str().unwrap(), "--out", run_arg, "--iterations", "2", "--no-eval"]);
     assert!(!run.join(".lock").exists(), "the lock is released when the fit ends");
     // A lock held by a running process (this test's): fit and render refuse, nothing written.
     std::fs::write(run.join(".lock"), format!("{} fit", std::process::id())).unwrap();
