@@ -13,7 +13,6 @@ use crate::schedule::Schedule;
 use crate::train::{io, Backend, FitError, FitOptions, TrainMessage};
 use std::path::{Path, PathBuf};
 
-#[derive(Clone, Debug)]
 pub struct AblateOptions {
     pub scene: PathBuf,
     pub schedules: Vec<PathBuf>,
@@ -114,9 +113,9 @@ enum RunState {
 }
 
 /// The state of the run in `folder` for `schedule_text`; an error when the folder holds a run
-/// of another schedule, iteration count or seed (unless `force`).
-fn run_state(folder: &Path, schedule_text: &str, options: &AblateOptions) -> Result<RunState, FitError> {
-    if options.force || crate::fit::existing_checkpoint(folder).is_none() {
+/// of another schedule, iteration count or seed (unless `force`, which starts afresh).
+fn run_state(folder: &Path, schedule_text: &str, options: &AblateOptions, force: bool) -> Result<RunState, FitError> {
+    if force || crate::fit::existing_checkpoint(folder).is_none() {
         return Ok(RunState::Fresh);
     }
     let copy = std::fs::read_to_string(folder.join(crate::fit::SCHEDULE_COPY)).unwrap_or_default();
@@ -162,7 +161,7 @@ pub fn ablate(options: &AblateOptions, mut on: impl FnMut(usize, &str, TrainMess
         if names.contains(&name) {
             return Err(FitError::Input(format!("{}: another schedule is also named {name:?}; runs are kept by file name", path.display())));
         }
-        run_state(&options.out.join(&name), &text, options)?;
+        run_state(&options.out.join(&name), &text, options, options.force)?;
         names.push(name);
         texts.push(text);
     }
@@ -170,7 +169,7 @@ pub fn ablate(options: &AblateOptions, mut on: impl FnMut(usize, &str, TrainMess
     let mut summary = AblationSummary { rows: Vec::new(), fitted: 0, elsewhere: Vec::new() };
     for (k, (path, name)) in options.schedules.iter().zip(&names).enumerate() {
         let folder = options.out.join(name);
-        let resume = match run_state(&folder, &texts[k], options)? {
+        let resume = match run_state(&folder, &texts[k], options, options.force)? {
             RunState::Finished(_) => continue,
             RunState::Interrupted => true,
             RunState::Fresh => false,
@@ -207,11 +206,10 @@ pub fn ablate(options: &AblateOptions, mut on: impl FnMut(usize, &str, TrainMess
 
 /// The rows of every run in `options.out` that has finished with its schedule.
 fn finished_rows(options: &AblateOptions, names: &[String], texts: &[String]) -> Vec<AblationRow> {
-    let reuse = AblateOptions { force: false, ..options.clone() };
     names
         .iter()
         .zip(texts)
-        .filter_map(|(name, text)| match run_state(&options.out.join(name), text, &reuse) {
+        .filter_map(|(name, text)| match run_state(&options.out.join(name), text, options, false) {
             Ok(RunState::Finished(report)) => Some(AblationRow::from_report(name.clone(), &report)),
             _ => None,
         })

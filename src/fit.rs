@@ -61,7 +61,7 @@ fn save_checkpoint(trainer: &Trainer, out: &Path, history: &[(usize, StepStats)]
     // a damaged file.
     let state = json!({
         "skeleton": trainer.scene.skeleton_identity(),
-        "training_data": trainer.scene.training_identity(),
+        "training_data": trainer.training_identity(),
         "checksums": checksums,
         "iteration": trainer.iteration,
         "iterations_total": trainer.schedule.iterations,
@@ -96,7 +96,8 @@ fn checkpoint_files(trainer: &Trainer) -> Vec<String> {
 /// Reads a checkpoint's `state.json` and checks it against `scene` (the skeleton, and the
 /// training data when `resuming`) and the checksums of the files it lists. Checkpoints written
 /// before these were recorded pass unchecked.
-fn verified_state(dir: &Path, scene: &Scene, resuming: bool) -> Result<serde_json::Value, FitError> {
+fn verified_state(dir: &Path, trainer: &Trainer, resuming: bool) -> Result<serde_json::Value, FitError> {
+    let scene = &trainer.scene;
     let state_path = dir.join("state.json");
     let text = std::fs::read_to_string(&state_path).map_err(|e| io(&state_path, format!("cannot read the checkpoint: {e}")))?;
     let state: serde_json::Value = serde_json::from_str(&text).map_err(|e| io(&state_path, e))?;
@@ -111,7 +112,7 @@ fn verified_state(dir: &Path, scene: &Scene, resuming: bool) -> Result<serde_jso
     }
     if resuming {
         if let Some(data) = state["training_data"].as_str() {
-            if data != scene.training_identity() {
+            if data != trainer.training_identity() {
                 return Err(io(
                     &state_path,
                     format!(
@@ -146,7 +147,7 @@ pub fn existing_checkpoint(out: &Path) -> Option<PathBuf> {
 fn load_checkpoint(trainer: &mut Trainer, out: &Path) -> Result<Vec<(usize, StepStats)>, FitError> {
     let dir = existing_checkpoint(out).ok_or_else(|| io(out, "holds no checkpoint to resume"))?;
     let state_path = dir.join("state.json");
-    let state = verified_state(&dir, &trainer.scene, true)?;
+    let state = verified_state(&dir, trainer, true)?;
     let iteration = state["iteration"].as_u64().ok_or_else(|| io(&state_path, "iteration: missing"))? as usize;
     let stream: u64 = state["stream"].as_str().and_then(|s| s.parse().ok()).ok_or_else(|| io(&state_path, "stream: missing"))?;
     load_model(trainer, &dir)?;
@@ -217,7 +218,7 @@ pub fn restore(run: &Path, scene: Option<&Path>, backend: crate::train::Backend)
     let scene = Scene::load(&scene_path)?;
     let mut trainer = Trainer::new(scene, schedule, backend, 0)?;
     let checkpoint = existing_checkpoint(run).ok_or_else(|| io(run, "holds no checkpoint"))?;
-    verified_state(&checkpoint, &trainer.scene, false)?;
+    verified_state(&checkpoint, &trainer, false)?;
     load_model(&mut trainer, &checkpoint)?;
     Ok(trainer)
 }

@@ -190,8 +190,10 @@ fn draw(rays: &RaySet, samples: &Samples, weights: &[f32], count: usize, jitter:
     let r = rays.len();
     let s = samples.t.len() / r.max(1);
     let mut out = Vec::with_capacity(r * count);
+    let mut bins = Vec::with_capacity(s);
     for i in 0..r {
-        let bins: Vec<(f32, f32)> = (i * s..(i + 1) * s).map(|k| (samples.lo[k], samples.lo[k] + samples.delta[k])).collect();
+        bins.clear();
+        bins.extend((i * s..(i + 1) * s).map(|k| (samples.lo[k], samples.lo[k] + samples.delta[k])));
         importance(&bins, &weights[i * s..(i + 1) * s], count, &jitter[i * count..(i + 1) * count], &mut out);
     }
     out
@@ -206,13 +208,15 @@ fn merge(rays: &RaySet, a: &[f32], na: usize, b: &[f32], nb: usize, values: Opti
     let mut out = Samples { t: Vec::with_capacity(n), lo: Vec::with_capacity(n), delta: Vec::with_capacity(n) };
     let mut merged_values = Vec::with_capacity(if values.is_some() { n } else { 0 });
     let mut merged: Vec<(f32, f32)> = Vec::with_capacity(na + nb);
+    let mut t: Vec<f32> = Vec::with_capacity(na + nb);
     let value = |v: Option<&[f32]>, k: usize| v.map_or(0.0, |v| v[k]);
     for i in 0..r {
         merged.clear();
         merged.extend((i * na..(i + 1) * na).map(|k| (a[k], value(values.map(|v| v.0), k))));
         merged.extend((i * nb..(i + 1) * nb).map(|k| (b[k], value(values.map(|v| v.1), k))));
         merged.sort_by(|x, y| x.0.total_cmp(&y.0));
-        let t: Vec<f32> = merged.iter().map(|m| m.0).collect();
+        t.clear();
+        t.extend(merged.iter().map(|m| m.0));
         for (k, (lo, hi)) in intervals(&t, rays.near[i], rays.far[i]).enumerate() {
             out.t.push(t[k]);
             out.lo.push(lo);

@@ -26,11 +26,8 @@ impl RunLock {
                     return Ok(Self { path });
                 }
                 Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => {
-                    let text = std::fs::read_to_string(&path).unwrap_or_default();
-                    let holder = text.split_whitespace().next().and_then(|p| p.parse::<u32>().ok());
-                    match holder {
-                        Some(pid) if !process_is_gone(pid) => {
-                            let what = text.split_whitespace().nth(1).unwrap_or("umbra");
+                    match holder(run) {
+                        Some((pid, what)) if !process_is_gone(pid) => {
                             return Err(io(
                                 run,
                                 format!(
@@ -58,13 +55,17 @@ impl Drop for RunLock {
     }
 }
 
+/// The process id and command a lock file names, if it is readable.
+fn holder(run: &Path) -> Option<(u32, String)> {
+    let text = std::fs::read_to_string(run.join(LOCK_FILE)).ok()?;
+    let mut words = text.split_whitespace();
+    let pid = words.next()?.parse().ok()?;
+    Some((pid, words.next().unwrap_or("umbra").to_string()))
+}
+
 /// Whether another live process holds `run`'s lock.
 pub fn held_elsewhere(run: &Path) -> bool {
-    let text = std::fs::read_to_string(run.join(LOCK_FILE)).unwrap_or_default();
-    match text.split_whitespace().next().and_then(|p| p.parse::<u32>().ok()) {
-        Some(pid) => pid != std::process::id() && !process_is_gone(pid),
-        None => false,
-    }
+    holder(run).is_some_and(|(pid, _)| pid != std::process::id() && !process_is_gone(pid))
 }
 
 /// Whether process `pid` has certainly exited. Known only where `/proc` lists processes

@@ -233,6 +233,9 @@ pub struct Trainer {
     pub sun_search: Option<crate::sun_search::SearchReport>,
     /// The cone (axis, half-angle in radians) the sun's direction stays in after the search.
     pub sun_cone: Option<(glam::DVec3, f64)>,
+    /// The training data's fingerprint (`Scene::training_identity`, every training pixel
+    /// hashed), computed once for all the checkpoints a fit writes.
+    training_identity: std::sync::OnceLock<String>,
 }
 
 /// The field the schedule asks for: the Fourier `mlp` field, or feature grids shaped by the
@@ -416,6 +419,7 @@ impl Trainer {
             render_missed_rays: false,
             sun_search: None,
             sun_cone: None,
+            training_identity: std::sync::OnceLock::new(),
             bone_centres,
         })
     }
@@ -429,6 +433,11 @@ impl Trainer {
     }
 
     /// The current model (it is only out of the trainer while a step runs).
+    /// `Scene::training_identity` of the trainer's scene, hashed on first use.
+    pub fn training_identity(&self) -> &str {
+        self.training_identity.get_or_init(|| self.scene.training_identity())
+    }
+
     pub fn model(&self) -> Result<&Avatar, FitError> {
         self.model.as_ref().ok_or_else(|| FitError::Input("the model was lost by an interrupted step".into()))
     }

@@ -110,11 +110,8 @@ fn a_users_folder_is_not_written_into_and_a_failing_resume_writes_nothing() {
 
 #[test]
 fn a_checkpoint_swap_interrupted_between_its_renames_still_resumes_and_renders() {
-    let dir = TempDir::new("swap");
-    let scene = tiny_scene(dir.path());
+    let (_dir, scene, run) = short_run("swap");
     let cwd = std::env::current_dir().unwrap();
-    let run = dir.path().join("run");
-    succeeds(&cwd, &["fit", scene.to_str().unwrap(), "--out", run.to_str().unwrap(), "--iterations", "2"]);
     // The state a kill between `checkpoint -> .checkpoint.old` and `.checkpoint.tmp ->
     // checkpoint` leaves: no checkpoint/, the previous one aside, the new one complete in tmp.
     std::fs::rename(run.join("checkpoint"), run.join(".checkpoint.old")).unwrap();
