@@ -6,7 +6,8 @@
 mod common;
 
 use glam::{DMat3, DQuat, DVec3};
-use umbra::shadow::{erf_difference, optical_depth, optical_depth_f32};
+use umbra::gaussians::PosedGaussian;
+use umbra::shadow::{erf_difference, optical_depth, optical_depth_f32, transmittance_f64, ShadowCaster, ShadowRay};
 use umbra::synth::trace::Stream;
 
 /// Gauss-Legendre nodes and weights on [-1, 1] by Newton iteration on P_n.
@@ -291,6 +292,90 @@ fn zero_length_and_degenerate_inputs_stay_finite() {
     // Whole line through an isotropic Gaussian: A s sqrt(2 pi).
     let full = optical_depth([0.0; 3], axes, [0.2; 3], 3.0, [0.0, 0.0, -5.0], [0.0, 0.0, 1.0], 0.0, f64::INFINITY);
     assert!((full / (3.0 * 0.2 * (2.0 * std::f64::consts::PI).sqrt()) - 1.0).abs() < 1e-14);
+}
+
+/// The f32 inputs of a case and the f64 closed form on exactly those inputs.
+fn f32_case(case: &Case) -> (PosedGaussian, ShadowRay, f64) {
+    let g = |v: DVec3| v.as_vec3().as_dvec3();
+    let posed = PosedGaussian {
+        mean: g(case.mean),
+        axes: DMat3::from_cols(g(case.axes.x_axis), g(case.axes.y_axis), g(case.axes.z_axis)),
+        scales: g(case.scales),
+        amplitude: case.amplitude as f32 as f64,
+    };
+    let ray = ShadowRay {
+        origin: case.origin.as_vec3().to_array(),
+        direction: case.direction.normalize().as_vec3().to_array(),
+        t0: case.t0 as f32,
+        t1: case.t1 as f32,
+    };
+    let reference = optical_depth(
+        posed.mean.to_array(),
+        posed.rotation_columns(),
+        posed.scales.to_array(),
+        posed.amplitude,
+        ray.origin.map(f64::from),
+        ray.direction.map(f64::from),
+        ray.t0 as f64,
+        ray.t1 as f64,
+    );
+    (posed, ray, reference)
+}
+
+/// The f32 tolerance the CPU paths are held to: relative 1e-4, or 1e-6 in transmittance.
+fn f32_error(got: f64, reference: f64) -> Option<f64> {
+    let relative = (got - reference).abs() / reference.max(1e-300);
+    let transmittance = ((-got).exp() - (-reference).exp()).abs();
+    (relative > 1e-4 && transmittance > 1e-6).then(|| relative.min(transmittance / 1e-2))
+}
+
+#[test]
+fn vector_kernel_agrees_with_f64_as_the_scalar_f32_path_does() {
+    // Each stress case as a one-Gaussian caster whose tolerance (1e-7) lets the f32 lanes add
+    // less than the test's transmittance bound: every pair either meets the bound in the lanes
+    // or is handed to the scalar integral, and the lanes must take most of them.
+    let (mut worst, mut lanes, mut integrated) = ((0.0f64, String::new()), 0usize, 0usize);
+    for (name, case) in cases(4000, 23) {
+        let (posed, ray, reference) = f32_case(&case);
+        let caster = ShadowCaster::new(std::slice::from_ref(&posed), 1e-7);
+        let collected = caster.collect(&ray, false);
+        assert_eq!(collected, caster.collect_baseline(&ray, false), "{name}: the AVX2 and baseline builds differ");
+        let got = collected.depth as f64;
+        assert!(got.is_finite() && got >= 0.0, "{name}: {got}");
+        integrated += collected.integrated;
+        lanes += collected.integrated - collected.scalar;
+        if let Some(error) = f32_error(got, reference) {
+            if error > worst.0 {
+                worst = (error, format!("{name}: lanes {got} f64 {reference} (scalar: {})", collected.scalar));
+            }
+        }
+    }
+    assert!(worst.1.is_empty(), "vector kernel outside tolerance: {}", worst.1);
+    assert_eq!(integrated, 4000);
+    assert!(lanes * 2 > integrated, "the lanes took only {lanes} of {integrated} stress pairs");
+}
+
+#[test]
+fn vector_kernel_takes_nearly_every_pair_of_a_body_and_stays_within_tolerance() {
+    // A body-sized cloud and sun rays from in and around it: the renderer's case. Culling and
+    // lanes each within half the caster's tolerance of the f64 transmittance; at the
+    // renderer's tolerance (1e-4) at most 1 pair in 1000 needs the scalar integral, at 1e-6
+    // (a per-pair budget of 5e-9) at most 1 in 50.
+    let gaussians = umbra::bench::shadows::body_cloud(96, 1);
+    let rays = umbra::bench::shadows::sun_rays(512, 3);
+    for (tolerance, scalar_share) in [(1e-4, 1e-3), (1e-6, 2e-2)] {
+        let caster = ShadowCaster::new(&gaussians, tolerance);
+        let (mut scalar, mut worst) = (0usize, 0.0f64);
+        for ray in &rays {
+            let c = caster.collect(ray, true);
+            assert_eq!(c, caster.collect_baseline(ray, true));
+            scalar += c.scalar;
+            let got = (-(c.depth as f64)).exp();
+            worst = worst.max((got - transmittance_f64(&gaussians, ray)).abs());
+        }
+        assert!(worst <= tolerance + 1e-6, "tolerance {tolerance:e}: worst transmittance error {worst:e}");
+        assert!(scalar as f64 <= scalar_share * (rays.len() * 96) as f64, "tolerance {tolerance:e}: {scalar} pairs went to the scalar integral");
+    }
 }
 
 #[test]

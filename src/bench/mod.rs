@@ -4,7 +4,7 @@
 mod breakdown;
 mod fit;
 mod gradients;
-mod shadows;
+pub mod shadows;
 mod steps;
 
 pub use breakdown::breakdown;

@@ -1,8 +1,11 @@
 //! Transmittance of a posed Gaussian set along many rays on the CPU (f32, threads over rays),
 //! for rendering and relighting. Gaussians that cannot change a ray's optical depth by more
-//! than a stated tolerance are skipped by a bounding-sphere test.
+//! than a stated tolerance are skipped by a bounding-sphere test, and the rest are integrated
+//! eight at a time by the vector kernel of `lanes` (the scalar integral takes the pairs that
+//! kernel cannot do to the same accuracy).
 
 use super::integral::{optical_depth_whitened, WhitenedGaussian};
+use super::lanes::{self, Block, Collected, LANES};
 use crate::gaussians::PosedGaussian;
 use rayon::prelude::*;
 
@@ -20,6 +23,8 @@ pub struct ShadowCaster {
     gaussians: Vec<WhitenedGaussian<f32>>,
     /// Squared radius beyond which a Gaussian adds less than `tolerance / n` optical depth.
     cull_radius_squared: Vec<f32>,
+    /// The same Gaussians, eight to a block, for the vector kernel.
+    blocks: Vec<Block>,
     tolerance: f64,
 }
 
@@ -35,15 +40,27 @@ fn cull_radius_squared(g: &PosedGaussian, budget: f64) -> f64 {
 }
 
 impl ShadowCaster {
-    /// `tolerance` bounds the total error culling may add to any ray's optical depth (and so to
-    /// its transmittance, since |exp(-x) - exp(-y)| <= |x - y| for x, y >= 0).
+    /// `tolerance` bounds the total error culling and the f32 vector kernel may add to any
+    /// ray's optical depth (and so to its transmittance, since |exp(-x) - exp(-y)| <= |x - y|
+    /// for x, y >= 0): each Gaussian gets half of `tolerance / n` for each.
+    /// The Gaussians are kept in Morton order of their means, so that the eight in a block sit
+    /// near each other and a ray that misses the block's bounding sphere skips all eight.
     pub fn new(gaussians: &[PosedGaussian], tolerance: f64) -> Self {
-        let budget = tolerance / gaussians.len().max(1) as f64;
-        Self {
-            gaussians: gaussians.iter().map(|g| WhitenedGaussian::new(g.mean.to_array(), g.rotation_columns(), g.scales.to_array(), g.amplitude)).collect(),
-            cull_radius_squared: gaussians.iter().map(|g| cull_radius_squared(g, budget) as f32).collect(),
-            tolerance,
-        }
+        let budget = tolerance / (2 * gaussians.len().max(1)) as f64;
+        let order = morton_order(gaussians);
+        let whitened: Vec<WhitenedGaussian<f32>> = order
+            .iter()
+            .map(|&i| &gaussians[i])
+            .map(|g| WhitenedGaussian::new(g.mean.to_array(), g.rotation_columns(), g.scales.to_array(), g.amplitude))
+            .collect();
+        let cull_radius_squared: Vec<f32> = order.iter().map(|&i| cull_radius_squared(&gaussians[i], budget) as f32).collect();
+        let blocks = whitened.chunks(LANES).zip(cull_radius_squared.chunks(LANES)).map(|(g, r)| Block::pack(g, r)).collect();
+        Self { gaussians: whitened, cull_radius_squared, blocks, tolerance }
+    }
+
+    /// The absolute error the vector kernel may add per Gaussian.
+    fn lane_budget(&self) -> f32 {
+        (self.tolerance / (2 * self.gaussians.len().max(1)) as f64) as f32
     }
 
     pub fn tolerance(&self) -> f64 {
@@ -58,9 +75,27 @@ impl ShadowCaster {
         self.gaussians.is_empty()
     }
 
-    /// Sum of every Gaussian's optical depth along the ray, culling when `cull` is set.
-    /// Returns the depth and the number of Gaussians actually integrated.
+    /// Sum of every Gaussian's optical depth along the ray, culling when `cull` is set, by the
+    /// vector kernel. Returns the depth and the number of Gaussians actually integrated.
     pub fn optical_depth(&self, ray: &ShadowRay, cull: bool) -> (f32, usize) {
+        let c = self.collect(ray, cull);
+        (c.depth, c.integrated)
+    }
+
+    /// The vector kernel's sum with its counts (how many pairs went to the scalar integral).
+    pub fn collect(&self, ray: &ShadowRay, cull: bool) -> Collected {
+        lanes::optical_depth(&self.blocks, &self.gaussians, ray, cull, self.lane_budget())
+    }
+
+    /// The same sum by the kernel built for the baseline instruction set (no AVX), to pin the
+    /// two builds to each other.
+    pub fn collect_baseline(&self, ray: &ShadowRay, cull: bool) -> Collected {
+        lanes::optical_depth_any(&self.blocks, &self.gaussians, ray, cull, self.lane_budget())
+    }
+
+    /// The same sum one Gaussian at a time by the scalar integral (f64 geometry, libm erfc):
+    /// the reference the vector kernel is measured against.
+    pub fn optical_depth_scalar(&self, ray: &ShadowRay, cull: bool) -> (f32, usize) {
         let mut total = 0.0f32;
         let mut integrated = 0;
         for (g, &radius2) in self.gaussians.iter().zip(&self.cull_radius_squared) {
@@ -81,11 +116,43 @@ impl ShadowCaster {
     pub fn transmittance_all(&self, rays: &[ShadowRay], cull: bool) -> Vec<f32> {
         rays.par_iter().with_min_len(64).map(|r| self.transmittance(r, cull)).collect()
     }
+
+    /// The Gaussians (whitened, f32) whose cull sphere the ray's segment passes through: the
+    /// set the closed form integrates with culling on, for a ray marcher to use the same one.
+    pub fn touching(&self, ray: &ShadowRay) -> Vec<&WhitenedGaussian<f32>> {
+        self.gaussians.iter().zip(&self.cull_radius_squared).filter(|(g, &r2)| segment_within(g.mean, ray, r2)).map(|(g, _)| g).collect()
+    }
+
+    /// Every Gaussian, whitened in f32.
+    pub fn whitened(&self) -> &[WhitenedGaussian<f32>] {
+        &self.gaussians
+    }
+
+    /// Transmittance along every ray by the scalar integral, in parallel.
+    pub fn transmittance_all_scalar(&self, rays: &[ShadowRay], cull: bool) -> Vec<f32> {
+        rays.par_iter().with_min_len(64).map(|r| (-self.optical_depth_scalar(r, cull).0).exp()).collect()
+    }
+}
+
+/// Indices of `gaussians` sorted along a Z-order curve through their means' bounding box
+/// (10 bits per axis).
+fn morton_order(gaussians: &[PosedGaussian]) -> Vec<usize> {
+    let (lo, hi) =
+        gaussians.iter().fold((glam::DVec3::splat(f64::INFINITY), glam::DVec3::splat(f64::NEG_INFINITY)), |(lo, hi), g| (lo.min(g.mean), hi.max(g.mean)));
+    let size = (hi - lo).max(glam::DVec3::splat(1e-12));
+    let spread = |v: u32| (0..10).fold(0u32, |code, bit| code | (((v >> bit) & 1) << (3 * bit)));
+    let code = |g: &PosedGaussian| {
+        let q = ((g.mean - lo) / size * 1023.0).clamp(glam::DVec3::ZERO, glam::DVec3::splat(1023.0));
+        spread(q.x as u32) | (spread(q.y as u32) << 1) | (spread(q.z as u32) << 2)
+    };
+    let mut order: Vec<usize> = (0..gaussians.len()).collect();
+    order.sort_by_key(|&i| (code(&gaussians[i]), i));
+    order
 }
 
 /// Whether the segment comes within `sqrt(radius2)` of `centre`.
 #[inline]
-fn segment_within(centre: [f32; 3], ray: &ShadowRay, radius2: f32) -> bool {
+pub(super) fn segment_within(centre: [f32; 3], ray: &ShadowRay, radius2: f32) -> bool {
     if radius2 < 0.0 {
         return false;
     }

@@ -43,6 +43,21 @@ impl<R: Real> WhitenedGaussian<R> {
     }
 }
 
+impl WhitenedGaussian<f32> {
+    /// The density at a world point, all in f32: what a ray marcher at the closed form's
+    /// precision evaluates (the shadow benchmark's comparison).
+    pub fn density(&self, x: [f32; 3]) -> f32 {
+        let r = [x[0] - self.mean[0], x[1] - self.mean[1], x[2] - self.mean[2]];
+        let q: f32 = (0..3)
+            .map(|k| {
+                let u = (self.axes[k][0] * r[0] + self.axes[k][1] * r[1] + self.axes[k][2] * r[2]) * self.inverse_scales[k];
+                u * u
+            })
+            .sum();
+        self.amplitude * (-0.5 * q).exp()
+    }
+}
+
 fn dot(a: [f64; 3], b: [f64; 3]) -> f64 {
     a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
 }
