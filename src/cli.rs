@@ -151,6 +151,10 @@ pub enum Command {
         iterations: Option<usize>,
         #[arg(long, default_value_t = 0)]
         seed: u64,
+        /// `fit`: then fit the grid again for as many iterations as fill the MLP's training
+        /// time, so the two fields are also compared at equal cost.
+        #[arg(long)]
+        equal_time: bool,
     },
 }
 
@@ -186,9 +190,9 @@ pub fn main() -> i32 {
             relight(&crate::relight::RelightOptions { run, scene, light, cameras: camera, frames: frame, samples, out, backend })
         }
         Command::Bench { which: BenchKind::Shadows, out, quick, .. } => crate::bench::shadows(&out, quick).map(|table| print!("{table}")),
-        Command::Bench { which: BenchKind::Fit, out, scene, kinds, schedule, evaluations, iterations, seed, .. } => {
+        Command::Bench { which: BenchKind::Fit, out, scene, kinds, schedule, evaluations, iterations, seed, equal_time, .. } => {
             let scene = scene.unwrap_or_else(|| PathBuf::from("datasets-synthetic/human-sun-128"));
-            let options = crate::bench::FitBenchOptions { scene, schedule, out, kinds, evaluations, iterations, seed };
+            let options = crate::bench::FitBenchOptions { scene, schedule, out, kinds, evaluations, iterations, seed, equal_time };
             crate::bench::fit_curves(&options, |line| eprintln!("{line}")).map(|table| print!("{table}")).map_err(|e| e.to_string())
         }
         Command::Bench { which: BenchKind::Steps, out, quick, scene, schedule, .. } => {

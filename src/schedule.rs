@@ -540,6 +540,11 @@ mod tests {
             let text = std::fs::read_to_string(&path).unwrap();
             let ablation = Schedule::parse(&text, Path::new("x.toml")).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
             assert_ne!(ablation, default, "{} is the default schedule", path.display());
+            // One respect: the settings that differ share one top-level key (a stale copy of
+            // an older default would differ in more).
+            let (a, d) = (serde_json::to_value(&ablation).unwrap(), serde_json::to_value(&default).unwrap());
+            let keys: Vec<&String> = a.as_object().unwrap().iter().filter(|(k, v)| d.get(k.as_str()) != Some(v)).map(|(k, _)| k).collect();
+            assert_eq!(keys.len(), 1, "{} differs from the default in {keys:?}", path.display());
             count += 1;
         }
         assert!(count >= 8, "{count} ablations in {}", folder.display());

@@ -236,3 +236,27 @@ fn an_environment_lit_capture_is_refused_saying_why_not_fitted_as_uniform() {
     assert!(stderr.contains("environment map \"sky\"") && stderr.contains("scene.json"), "{stderr}");
     assert!(!run.exists(), "nothing written");
 }
+
+#[test]
+fn bench_fit_scores_both_fields_and_refits_the_grid_for_the_mlps_time() {
+    let dir = TempDir::new("bench-fit");
+    let scene = tiny_scene(dir.path());
+    let out = dir.path().join("bench");
+    let root = std::env::current_dir().unwrap();
+    let args = ["bench", "fit", "--scene", scene.to_str().unwrap(), "--out", out.to_str().unwrap(), "--iterations", "4", "--evaluations", "2", "--equal-time"];
+    succeeds(&root, &args);
+    let csv = std::fs::read_to_string(out.join("fit-curves.csv")).unwrap();
+    let rows: Vec<Vec<&str>> = csv.lines().skip(1).map(|l| l.split(',').collect()).collect();
+    let runs: Vec<&str> = rows.iter().map(|r| r[0]).collect();
+    assert_eq!(&runs[..4], &["mlp", "mlp", "grid", "grid"], "{csv}");
+    // The third fit is the grid again, for at least as many iterations as the first grid fit
+    // (the MLP's step costs more), scored twice, its last point at its last iteration.
+    assert_eq!(rows.len(), 6, "{csv}");
+    let equal_time = &rows[4..];
+    assert!(equal_time.iter().all(|r| r[0].starts_with("grid at the MLP's time (")), "{csv}");
+    let last: usize = equal_time[1][1].parse().unwrap();
+    assert!(last >= 4 && equal_time[1][0].ends_with(&format!("({last} iterations)")), "{csv}");
+    for file in ["fit-curves.md", "fit-foreground-psnr.png", "fit-albedo-psnr.png"] {
+        assert!(out.join(file).is_file(), "{file}");
+    }
+}

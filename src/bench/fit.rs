@@ -23,11 +23,16 @@ pub struct FitBenchOptions {
     pub evaluations: usize,
     pub iterations: Option<usize>,
     pub seed: u64,
+    /// After the fits, fit the grid again for as many iterations as fill the MLP's training
+    /// time (its schedule's last segment longer): the two fields at equal cost.
+    pub equal_time: bool,
 }
 
 /// One scoring point of one fit.
 #[derive(Clone, Debug, serde::Serialize)]
 pub struct CurvePoint {
+    /// Which fit: the field kind, and for the equal-time grid fit its iteration count.
+    pub run: String,
     pub kind: FieldKind,
     pub iteration: usize,
     pub train_seconds: f64,
@@ -55,7 +60,7 @@ fn kind_name(kind: FieldKind) -> &'static str {
 }
 
 /// Scores the novel-pose test images (training light, training cameras, unseen frames).
-fn score(trainer: &Trainer, kind: FieldKind, iteration: usize, train_seconds: f64) -> Result<CurvePoint, FitError> {
+fn score(trainer: &Trainer, run: &str, kind: FieldKind, iteration: usize, train_seconds: f64) -> Result<CurvePoint, FitError> {
     let scene = &trainer.scene;
     let kinds = TestKinds::new(scene);
     let views: Vec<&crate::scene::View> = scene.views_in(Split::Test).filter(|v| kinds.of(v).group == "novel pose").collect();
@@ -72,6 +77,7 @@ fn score(trainer: &Trainer, kind: FieldKind, iteration: usize, train_seconds: f6
     };
     let light = trainer.model()?.light.report();
     Ok(CurvePoint {
+        run: run.to_string(),
         kind,
         iteration,
         train_seconds,
@@ -104,46 +110,72 @@ pub fn fit_curves(options: &FitBenchOptions, mut on: impl FnMut(String)) -> Resu
     }
     std::fs::create_dir_all(&options.out).map_err(|e| crate::train::io(&options.out, e))?;
     let mut points = Vec::new();
-    for (kind, mut trainer, iterations) in trainers {
-        trainer.schedule.iterations = iterations;
-        let marks: Vec<usize> = (1..=options.evaluations).map(|k| (k * iterations).div_ceil(options.evaluations)).collect();
-        let mut train_seconds = 0.0;
-        let started = Instant::now();
-        while trainer.iteration < iterations {
-            let step = Instant::now();
-            trainer.step()?;
-            train_seconds += step.elapsed().as_secs_f64();
-            if marks.contains(&trainer.iteration) {
-                let point = score(&trainer, kind, trainer.iteration, train_seconds)?;
-                on(format!(
-                    "{} iteration {}/{iterations}: {:.1} s of training (eta {:.0} s), novel pose foreground {:.2} dB, SSIM {:.4}, albedo {}, light {}",
-                    kind_name(kind),
-                    trainer.iteration,
-                    train_seconds,
-                    started.elapsed().as_secs_f64() / trainer.iteration as f64 * (iterations - trainer.iteration) as f64,
-                    point.novel_pose_foreground_psnr,
-                    point.novel_pose_ssim,
-                    point.albedo_psnr.map(|v| format!("{v:.2} dB")).unwrap_or("-".into()),
-                    point.light_error_degrees.map(|v| format!("{v:.2} deg")).unwrap_or("-".into()),
-                ));
-                points.push(point);
-                write_outputs(&options.out, &options.scene, &points)?;
-            }
-        }
+    let mut seconds = Vec::new();
+    for (kind, trainer, iterations) in trainers {
+        let t = run_curve(trainer, kind_name(kind), iterations, options, &mut points, &mut on)?;
+        seconds.push((kind, iterations, t));
+    }
+    let time_of = |kind| seconds.iter().find(|(k, _, _)| *k == kind).map(|&(_, n, t)| (n, t));
+    if let (true, Some((grid_iterations, grid_seconds)), Some((_, mlp_seconds))) = (options.equal_time, time_of(FieldKind::Grid), time_of(FieldKind::Mlp)) {
+        // The grid's iterations cost about the same all along, so its time scales with them.
+        let iterations = ((grid_iterations as f64 * mlp_seconds / grid_seconds.max(1e-9)).floor() as usize).max(grid_iterations);
+        let mut schedule = base.clone();
+        schedule.field.kind = FieldKind::Grid;
+        let trainer = Trainer::new(scene.clone(), schedule, Backend::Flex, options.seed)?;
+        let label = format!("grid at the MLP's time ({iterations} iterations)");
+        on(format!("{label}: {grid_iterations} grid iterations took {grid_seconds:.1} s, the MLP {mlp_seconds:.1} s"));
+        run_curve(trainer, &label, iterations, options, &mut points, &mut on)?;
     }
     write_outputs(&options.out, &options.scene, &points)
 }
 
+/// Trains one fit to `iterations`, scoring at evenly spaced marks; returns its training time.
+fn run_curve(
+    mut trainer: Trainer,
+    run: &str,
+    iterations: usize,
+    options: &FitBenchOptions,
+    points: &mut Vec<CurvePoint>,
+    on: &mut impl FnMut(String),
+) -> Result<f64, FitError> {
+    let kind = trainer.schedule.field.kind;
+    trainer.schedule.iterations = iterations;
+    let marks: Vec<usize> = (1..=options.evaluations).map(|k| (k * iterations).div_ceil(options.evaluations)).collect();
+    let mut train_seconds = 0.0;
+    let started = Instant::now();
+    while trainer.iteration < iterations {
+        let step = Instant::now();
+        trainer.step()?;
+        train_seconds += step.elapsed().as_secs_f64();
+        if marks.contains(&trainer.iteration) {
+            let point = score(&trainer, run, kind, trainer.iteration, train_seconds)?;
+            on(format!(
+                "{run} iteration {}/{iterations}: {:.1} s of training (eta {:.0} s), novel pose foreground {:.2} dB, SSIM {:.4}, albedo {}, light {}",
+                trainer.iteration,
+                train_seconds,
+                started.elapsed().as_secs_f64() / trainer.iteration as f64 * (iterations - trainer.iteration) as f64,
+                point.novel_pose_foreground_psnr,
+                point.novel_pose_ssim,
+                point.albedo_psnr.map(|v| format!("{v:.2} dB")).unwrap_or("-".into()),
+                point.light_error_degrees.map(|v| format!("{v:.2} deg")).unwrap_or("-".into()),
+            ));
+            points.push(point);
+            write_outputs(&options.out, &options.scene, points)?;
+        }
+    }
+    Ok(train_seconds)
+}
+
 fn write_outputs(out: &Path, scene: &Path, points: &[CurvePoint]) -> Result<String, FitError> {
     let f = |v: Option<f64>, digits: usize| v.map(|v| format!("{v:.digits$}")).unwrap_or_else(|| "-".into());
-    let mut csv = String::from("kind,iteration,train_seconds,novel_pose_psnr,novel_pose_foreground_psnr,novel_pose_ssim,albedo_psnr,albedo_foreground_psnr,light_error_degrees,peak_rss_mib\n");
+    let mut csv = String::from("run,iteration,train_seconds,novel_pose_psnr,novel_pose_foreground_psnr,novel_pose_ssim,albedo_psnr,albedo_foreground_psnr,light_error_degrees,peak_rss_mib\n");
     let mut md = format!(
-        "## Time against error: {}\n\nTraining wall time (scoring excluded), novel-pose test images (sRGB 8-bit; foreground = mask or any rendered pixel).\n\n| field | iteration | training time (s) | novel pose PSNR | foreground PSNR | SSIM | albedo PSNR | albedo foreground PSNR | light error (deg) | peak RSS (MiB) |\n|---|---|---|---|---|---|---|---|---|---|\n",
+        "## Time against error: {}\n\nTraining wall time (scoring excluded), novel-pose test images (sRGB 8-bit; foreground = mask or any rendered pixel).\n\n| fit | iteration | training time (s) | novel pose PSNR | foreground PSNR | SSIM | albedo PSNR | albedo foreground PSNR | light error (deg) | peak RSS (MiB) |\n|---|---|---|---|---|---|---|---|---|---|\n",
         scene.display()
     );
     for p in points {
         let cells = [
-            kind_name(p.kind).to_string(),
+            p.run.clone(),
             p.iteration.to_string(),
             format!("{:.1}", p.train_seconds),
             format!("{:.2}", p.novel_pose_psnr),
@@ -166,12 +198,18 @@ fn write_outputs(out: &Path, scene: &Path, points: &[CurvePoint]) -> Result<Stri
         ("fit-light-error.png", "light direction error (degrees)", |p| p.light_error_degrees),
     ];
     for (file, label, pick) in charts {
-        let series: Vec<Series> = [FieldKind::Mlp, FieldKind::Grid]
+        let mut runs: Vec<&str> = Vec::new();
+        for p in points {
+            if !runs.contains(&p.run.as_str()) {
+                runs.push(&p.run);
+            }
+        }
+        let series: Vec<Series> = runs
             .into_iter()
-            .filter_map(|kind| {
+            .filter_map(|run| {
                 let pts: Vec<(f64, f64)> =
-                    points.iter().filter(|p| p.kind == kind).filter_map(|p| pick(p).filter(|v| v.is_finite()).map(|v| (p.train_seconds, v))).collect();
-                (!pts.is_empty()).then(|| Series { name: format!("{} field", kind_name(kind)), points: pts, lines: true })
+                    points.iter().filter(|p| p.run == run).filter_map(|p| pick(p).filter(|v| v.is_finite()).map(|v| (p.train_seconds, v))).collect();
+                (!pts.is_empty()).then(|| Series { name: run.to_string(), points: pts, lines: true })
             })
             .collect();
         if series.is_empty() {
