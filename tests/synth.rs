@@ -177,6 +177,7 @@ fn sunlit_images_match_an_independent_evaluation() {
     };
     check_against_independent_formula(&sun, Kind::Human);
     check_against_independent_formula(&sun, Kind::Quadruped);
+    check_against_independent_formula(&sun, Kind::Dressed);
 }
 
 #[test]
@@ -208,7 +209,7 @@ fn uniform_light_without_occlusion_is_albedo_times_radiance() {
 
 #[test]
 fn shipped_scenes_reproduce_byte_for_byte_from_their_options() {
-    for name in ["human-sun", "dog-sun", "human-mono", "human-sun-128"] {
+    for name in ["human-sun", "dog-sun", "human-mono", "human-sun-128", "human-dressed"] {
         let shipped = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("datasets-synthetic").join(name);
         let text = std::fs::read_to_string(shipped.join("scene.json")).unwrap();
         let json: serde_json::Value = serde_json::from_str(&text).unwrap();

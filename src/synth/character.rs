@@ -1,7 +1,9 @@
 //! Procedural characters with exact ground truth: a skeleton with a rest pose and a motion
-//! cycle, and a surface that is the smooth union of tapered capsules around the posed bones,
-//! with an analytic signed distance, normal and a spatially varying albedo.
+//! cycle, and a surface that is the smooth union of tapered capsules around the posed bones
+//! (and, for the dressed human, of loose garments carried by bones: `clothing`), with an
+//! analytic signed distance, normal and a spatially varying albedo.
 
+use super::clothing::{self, Garment};
 use crate::skeleton::{Bone, Pose, Skeleton};
 use glam::{DMat3, DMat4, DQuat, DVec3};
 use std::f64::consts::PI;
@@ -11,6 +13,8 @@ use std::f64::consts::PI;
 pub enum Kind {
     Human,
     Quadruped,
+    /// The human in loose clothes: a bell skirt, a backpack and a bun 15-30 cm from any bone.
+    Dressed,
 }
 
 /// What the clothes look like.
@@ -66,6 +70,8 @@ pub struct Character {
     /// Smooth-union width (metres) of the log-sum-exp blend between bone capsules.
     blend: f64,
     pub pattern: Pattern,
+    /// Loose garments, blended into the surface like the capsules.
+    garments: Vec<Garment>,
 }
 
 fn bone(name: &'static str, parent: Option<usize>, head: [f64; 3], tail: [f64; 3], radii: (f64, f64), colour: [f64; 3], swing: Swing) -> BoneSpec {
@@ -140,12 +146,13 @@ fn rest_frame(head: DVec3, tail: DVec3) -> DMat4 {
 impl Character {
     pub fn new(kind: Kind) -> Self {
         let specs = match kind {
-            Kind::Human => human_specs(),
+            Kind::Human | Kind::Dressed => human_specs(),
             Kind::Quadruped => quadruped_specs(),
         };
+        let garments = if kind == Kind::Dressed { clothing::dressed_human() } else { Vec::new() };
         let skeleton = Skeleton { bones: specs.iter().map(|s| Bone { name: s.name.into(), parent: s.parent, length: (s.tail - s.head).length() }).collect() };
         let rest = specs.iter().map(|s| rest_frame(s.head, s.tail)).collect();
-        Self { kind, skeleton, specs, rest, blend: 0.025, pattern: Pattern::Plain }
+        Self { kind, skeleton, specs, rest, blend: 0.025, pattern: Pattern::Plain, garments }
     }
 
     pub fn with_pattern(self, pattern: Pattern) -> Self {
@@ -210,10 +217,15 @@ impl Character {
             parts[i] = (d, g);
             smallest = smallest.min(d);
         }
+        for (j, garment) in self.garments.iter().enumerate() {
+            let (d, g) = garment_distance(pose, garment, p);
+            parts[self.specs.len() + j] = (d, g);
+            smallest = smallest.min(d);
+        }
         // Log-sum-exp smooth minimum, shifted by the smallest distance for stability.
         let mut sum = 0.0;
         let mut gradient = DVec3::ZERO;
-        for &(d, g) in &parts[..self.specs.len()] {
+        for &(d, g) in &parts[..self.specs.len() + self.garments.len()] {
             let w = (-(d - smallest) / k).exp();
             sum += w;
             gradient += g * w;
@@ -237,9 +249,17 @@ impl Character {
             parts[i] = (d, self.bone_albedo(i, pose.to_local(i, p)));
             best = best.min(d);
         }
+        for (j, garment) in self.garments.iter().enumerate() {
+            let d = garment_distance(pose, garment, p).0;
+            let local = pose.to_local(garment.bone, p);
+            // The same gentle modulation as a plain bone's colour, so the albedo has texture.
+            let colour = DVec3::from_array(garment.colour) * (0.85 + 0.15 * (local.y * 31.0 + j as f64).sin() * (local.x * 23.0).cos());
+            parts[self.specs.len() + j] = (d, colour);
+            best = best.min(d);
+        }
         let mut sum = 0.0;
         let mut colour = DVec3::ZERO;
-        for &(d, c) in &parts[..self.specs.len()] {
+        for &(d, c) in &parts[..self.specs.len() + self.garments.len()] {
             let w = (-(d - best) / k).exp();
             sum += w;
             colour += c * w;
@@ -251,9 +271,19 @@ impl Character {
     pub fn bounding_sphere(&self, pose: &Pose) -> (DVec3, f64) {
         let (lo, hi) = pose.bounds(&self.skeleton);
         let centre = (lo + hi) * 0.5;
-        let radius_margin = self.specs.iter().map(|s| s.radius_head.max(s.radius_tail)).fold(0.0, f64::max);
+        let capsules = self.specs.iter().map(|s| s.radius_head.max(s.radius_tail));
+        let garments = self.garments.iter().map(|g| g.shape.reach(self.skeleton.bones[g.bone].length));
+        let radius_margin = capsules.chain(garments).fold(0.0, f64::max);
         (centre, (hi - lo).length() * 0.5 + radius_margin + 0.05)
     }
+}
+
+/// Distance to a garment in a pose, and its gradient in world space.
+fn garment_distance(pose: &Pose, garment: &Garment, p: DVec3) -> (f64, DVec3) {
+    let m = &pose.bone_to_world[garment.bone];
+    let rotation = DMat3::from_mat4(*m);
+    let (d, g) = garment.shape.sdf(rotation.transpose() * (p - m.w_axis.truncate()));
+    (d, rotation * g)
 }
 
 /// Distance to a capsule around bone `i` whose radius tapers from head to tail, and its gradient.
@@ -279,7 +309,7 @@ mod tests {
 
     #[test]
     fn rest_pose_matches_the_specification_and_is_rigid() {
-        for kind in [Kind::Human, Kind::Quadruped] {
+        for kind in [Kind::Human, Kind::Quadruped, Kind::Dressed] {
             let c = Character::new(kind);
             let pose = c.pose(0.0, 0.0, DVec3::ZERO);
             for m in &pose.bone_to_world {
@@ -299,9 +329,16 @@ mod tests {
 
     #[test]
     fn sdf_gradient_matches_finite_differences() {
-        let c = Character::new(Kind::Human);
-        let pose = c.pose(0.2, 0.0, DVec3::ZERO);
-        for p in [DVec3::new(0.1, 1.2, 0.1), DVec3::new(-0.2, 0.5, 0.05), DVec3::new(0.0, 1.7, 0.1)] {
+        for (kind, p) in [
+            (Kind::Human, DVec3::new(0.1, 1.2, 0.1)),
+            (Kind::Human, DVec3::new(-0.2, 0.5, 0.05)),
+            (Kind::Human, DVec3::new(0.0, 1.7, 0.1)),
+            (Kind::Dressed, DVec3::new(0.3, 0.6, 0.1)),
+            (Kind::Dressed, DVec3::new(0.05, 1.3, -0.35)),
+            (Kind::Dressed, DVec3::new(0.02, 1.72, -0.25)),
+        ] {
+            let c = Character::new(kind);
+            let pose = c.pose(0.2, 0.0, DVec3::ZERO);
             let (_, g) = c.sdf(&pose, p);
             let h = 1e-6;
             let fd = DVec3::new(

@@ -4,6 +4,7 @@
 //! relighting by a second sun, a point light and an environment map the generator synthesises.
 
 pub mod character;
+pub mod clothing;
 pub mod mesh;
 pub mod trace;
 
@@ -195,7 +196,7 @@ impl SynthOptions {
         let character = Character::new(self.character).with_pattern(self.pattern);
         let mut stream = Stream::new(self.seed, 0xCA3E_4A5, 0);
         let (target, extent) = match self.character {
-            Kind::Human => (DVec3::new(0.0, 0.9, 0.0), 1.05),
+            Kind::Human | Kind::Dressed => (DVec3::new(0.0, 0.9, 0.0), 1.05),
             Kind::Quadruped => (DVec3::new(0.0, 0.45, 0.0), 0.75),
         };
         let focal = 1.2 * self.size as f64;
