@@ -101,6 +101,27 @@ pub enum Command {
         #[arg(long, value_enum, default_value_t = crate::train::Backend::Flex)]
         backend: crate::train::Backend,
     },
+    /// Export the fitted surface in one of the scene's poses as an OBJ mesh (marching tetrahedra
+    /// on the fitted SDF at a cell of 1/160 of the body's size, vertex colours from the albedo,
+    /// normals from the SDF's gradient).
+    ExportMesh {
+        /// The run folder `umbra fit` wrote.
+        run: PathBuf,
+        /// The pose: a frame by position in the scene's frames (with --out).
+        #[arg(long, requires = "out", conflicts_with = "all_frames")]
+        frame: Option<usize>,
+        /// The OBJ file to write (with --frame).
+        #[arg(long, requires = "frame")]
+        out: Option<PathBuf>,
+        /// Write one OBJ per frame of the scene into this folder (frame_PPPP.obj).
+        #[arg(long)]
+        all_frames: Option<PathBuf>,
+        /// The scene whose poses to use (default: the run's).
+        #[arg(long)]
+        scene: Option<PathBuf>,
+        #[arg(long, value_enum, default_value_t = crate::train::Backend::Flex)]
+        backend: crate::train::Backend,
+    },
     /// Fit one scene with several schedules and compare the runs in one table: light error,
     /// PSNR of novel poses, views, relighting and albedo, time and final loss. Writes
     /// OUT/<schedule>/ per run and OUT/ablation.{csv,md,png}.
@@ -189,6 +210,7 @@ pub fn main() -> i32 {
         Command::Relight { run, light, camera, frame, samples, scene, out, backend } => {
             relight(&crate::relight::RelightOptions { run, scene, light, cameras: camera, frames: frame, samples, out, backend })
         }
+        Command::ExportMesh { run, frame, out, all_frames, scene, backend } => export_mesh(run, frame, out, all_frames, scene, backend),
         Command::Bench { which: BenchKind::Shadows, out, quick, .. } => crate::bench::shadows(&out, quick).map(|table| print!("{table}")),
         Command::Bench { which: BenchKind::Fit, out, scene, kinds, schedule, evaluations, iterations, seed, equal_time, .. } => {
             let scene = scene.unwrap_or_else(|| PathBuf::from("datasets-synthetic/human-sun-128"));
@@ -353,6 +375,46 @@ fn relight(options: &crate::relight::RelightOptions) -> Result<(), String> {
     .map_err(|e| e.to_string())?;
     bar.finish_and_clear();
     println!("wrote {} (one PNG per view, sheet.png)", out.display());
+    Ok(())
+}
+
+fn export_mesh(
+    run: PathBuf,
+    frame: Option<usize>,
+    out: Option<PathBuf>,
+    all_frames: Option<PathBuf>,
+    scene: Option<PathBuf>,
+    backend: crate::train::Backend,
+) -> Result<(), String> {
+    use crate::export::Targets;
+    use crate::train::TrainMessage;
+    let targets = match (frame, out, all_frames) {
+        (Some(frame), Some(out), None) => Targets::One { frame, out },
+        (None, None, Some(dir)) => Targets::All { dir },
+        _ => return Err("export-mesh needs either --frame F --out FILE.obj or --all-frames DIR".into()),
+    };
+    let bar = progress_bar(0, "meshing");
+    let options = crate::export::ExportOptions { run, scene, targets, backend };
+    let exported = crate::export::export_meshes(&options, |message| match message {
+        TrainMessage::Evaluating { images } => bar.set_length(images as u64),
+        TrainMessage::Rendered { done, name, .. } => {
+            bar.set_position(done as u64);
+            bar.set_message(name);
+        }
+        _ => {}
+    })
+    .map_err(|e| e.to_string())?;
+    bar.finish_and_clear();
+    for e in &exported {
+        println!(
+            "wrote {} (frame {}: {} vertices, {} triangles, {})",
+            e.path.display(),
+            e.frame,
+            e.vertices,
+            e.triangles,
+            if e.closed { "closed" } else { "not closed: the surface leaves the sampled box" }
+        );
+    }
     Ok(())
 }
 

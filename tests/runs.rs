@@ -260,3 +260,48 @@ fn bench_fit_scores_both_fields_and_refits_the_grid_for_the_mlps_time() {
         assert!(out.join(file).is_file(), "{file}");
     }
 }
+
+/// Whether a triangle mesh is closed and consistently oriented: every directed
+/// edge appears once and its reverse once.
+fn closed_and_oriented(indices: &[u32]) -> bool {
+    let mut edges = std::collections::HashMap::new();
+    for t in indices.chunks(3) {
+        for (a, b) in [(t[0], t[1]), (t[1], t[2]), (t[2], t[0])] {
+            *edges.entry((a, b)).or_insert(0) += 1;
+        }
+    }
+    edges.iter().all(|(&(a, b), &n)| n == 1 && edges.get(&(b, a)) == Some(&1))
+}
+
+#[test]
+fn export_mesh_writes_a_closed_coloured_mesh_that_tobj_loads_and_refuses_bad_frames() {
+    let (dir, _scene, run) = short_run("export-mesh");
+    let root = std::env::current_dir().unwrap();
+    let file = dir.path().join("frame0.obj");
+    succeeds(&root, &["export-mesh", run.to_str().unwrap(), "--frame", "0", "--out", file.to_str().unwrap()]);
+    let options = tobj::LoadOptions { single_index: true, triangulate: true, ..Default::default() };
+    let (models, _) = tobj::load_obj(&file, &options).unwrap();
+    assert_eq!(models.len(), 1);
+    let mesh = &models[0].mesh;
+    let vertices = mesh.positions.len() / 3;
+    assert!(vertices > 1000 && mesh.indices.len() > 1000, "{vertices} vertices");
+    assert_eq!(mesh.vertex_color.len(), mesh.positions.len(), "a colour per vertex");
+    assert!(mesh.vertex_color.iter().all(|c| (0.0..=1.0).contains(c)));
+    assert_eq!(mesh.normals.len(), mesh.positions.len(), "a normal per vertex");
+    for n in mesh.normals.chunks(3) {
+        assert!(((n[0] * n[0] + n[1] * n[1] + n[2] * n[2]).sqrt() - 1.0).abs() < 1e-3);
+    }
+    assert!(closed_and_oriented(&mesh.indices), "the exported surface is not closed");
+    // Every frame into a folder; a frame out of range and a missing target are refused, and
+    // write nothing.
+    let all = dir.path().join("all");
+    succeeds(&root, &["export-mesh", run.to_str().unwrap(), "--all-frames", all.to_str().unwrap()]);
+    let written = std::fs::read_dir(&all).unwrap().count();
+    assert!(written >= 2 && all.join("frame_0000.obj").is_file(), "{written} meshes");
+    let bad = dir.path().join("bad.obj");
+    let message = fails(&root, &["export-mesh", run.to_str().unwrap(), "--frame", "999", "--out", bad.to_str().unwrap()]);
+    assert!(message.contains("--frame 999: out of range"), "{message}");
+    assert!(!bad.exists());
+    let message = fails(&root, &["export-mesh", run.to_str().unwrap()]);
+    assert!(message.contains("--frame F --out FILE.obj or --all-frames DIR"), "{message}");
+}

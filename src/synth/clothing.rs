@@ -10,10 +10,22 @@ use glam::{DVec2, DVec3};
 pub enum Shape {
     /// A solid frustum about the bone's Y axis: radius `top_radius` at `top`, `bottom_radius`
     /// at `bottom` (below), linear in between.
-    Frustum { top: f64, bottom: f64, top_radius: f64, bottom_radius: f64 },
+    Frustum {
+        top: f64,
+        bottom: f64,
+        top_radius: f64,
+        bottom_radius: f64,
+    },
     /// A box with rounded edges: centre, half extents (to the rounded surface) and rounding.
-    RoundedBox { centre: DVec3, half: DVec3, rounding: f64 },
-    Sphere { centre: DVec3, radius: f64 },
+    RoundedBox {
+        centre: DVec3,
+        half: DVec3,
+        rounding: f64,
+    },
+    Sphere {
+        centre: DVec3,
+        radius: f64,
+    },
 }
 
 /// A garment: a shape carried rigidly by one bone, and its colour.
@@ -30,7 +42,12 @@ pub fn dressed_human() -> Vec<Garment> {
     vec![
         // Waist 1.02 m, hem 0.56 m above the ground, 0.36 m wide at the hem: the hem lies
         // 0.25-0.3 m from the thighs inside it.
-        Garment { name: "skirt", bone: 0, shape: Shape::Frustum { top: 0.10, bottom: -0.36, top_radius: 0.15, bottom_radius: 0.36 }, colour: [0.70, 0.22, 0.25] },
+        Garment {
+            name: "skirt",
+            bone: 0,
+            shape: Shape::Frustum { top: 0.10, bottom: -0.36, top_radius: 0.15, bottom_radius: 0.36 },
+            colour: [0.70, 0.22, 0.25],
+        },
         // On the back of the chest, its back face 0.26 m behind the spine.
         Garment {
             name: "backpack",
