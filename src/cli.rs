@@ -72,6 +72,23 @@ pub enum Command {
         #[arg(long, value_enum, default_value_t = crate::train::Backend::Flex)]
         backend: crate::train::Backend,
     },
+    /// Score a fit: its test images (or training images) rendered and scored (PSNR over the
+    /// whole image and the foreground, SSIM, per image and group), the light's error, and the
+    /// fitted surface against the ground-truth meshes the scene's frames carry (accuracy,
+    /// completeness, Chamfer distance, normal angle). Writes metrics.{json,md,csv} with the
+    /// renders.
+    Eval {
+        /// The run folder `umbra fit` wrote.
+        run: PathBuf,
+        /// The scene to score on (default: the one in RUN/fit.json).
+        #[arg(long)]
+        scene: Option<PathBuf>,
+        /// Which images: `test` (into RUN/renders) or `train` (into RUN/renders-train).
+        #[arg(long, value_enum, default_value_t = EvalSplit::Test)]
+        split: EvalSplit,
+        #[arg(long, value_enum, default_value_t = crate::train::Backend::Flex)]
+        backend: crate::train::Backend,
+    },
     /// Render a fitted avatar under a new light: a sun, a point light, uniform light or an HDR
     /// environment map, in any of the scene's cameras and poses. Writes one PNG per view and a
     /// contact sheet.
@@ -179,6 +196,12 @@ pub enum Command {
     },
 }
 
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum EvalSplit {
+    Test,
+    Train,
+}
+
 #[derive(Clone, Copy, Debug, clap::ValueEnum)]
 pub enum BenchKind {
     /// Gaussian shadow casting: throughput, culling, closed form vs ray marching.
@@ -204,6 +227,7 @@ pub fn main() -> i32 {
             fit(&crate::train::FitOptions { scene, out, schedule, iterations, seed, resume, force, force_schedule, backend, evaluate: !no_eval })
         }
         Command::Render { run, scene, backend } => render(&run, scene.as_deref(), backend),
+        Command::Eval { run, scene, split, backend } => eval(&run, scene.as_deref(), split, backend),
         Command::Ablate { scene, schedules, out, iterations, seed, force, backend } => {
             ablate(&crate::ablate::AblateOptions { scene, schedules, out, iterations, seed, force, backend })
         }
@@ -332,6 +356,48 @@ fn render(run: &Path, scene: Option<&Path>, backend: crate::train::Backend) -> R
     bar.finish_and_clear();
     print_evaluation(&evaluation);
     println!("wrote {}", run.join("renders").display());
+    Ok(())
+}
+
+fn eval(run: &Path, scene: Option<&Path>, split: EvalSplit, backend: crate::train::Backend) -> Result<(), String> {
+    use crate::train::TrainMessage;
+    let split = match split {
+        EvalSplit::Test => crate::scene::Split::Test,
+        EvalSplit::Train => crate::scene::Split::Train,
+    };
+    let bar = progress_bar(0, "scoring");
+    let (dir, evaluation) = crate::fit::eval_run(run, scene, split, backend, |message| match message {
+        TrainMessage::Evaluating { images } => bar.set_length(images as u64),
+        TrainMessage::Rendered { done, name, psnr, .. } => {
+            bar.set_position(done as u64);
+            bar.set_message(psnr.map(|p| format!("{name}: {p:.2} dB")).unwrap_or(name));
+        }
+        _ => {}
+    })
+    .map_err(|e| e.to_string())?;
+    bar.finish_and_clear();
+    for group in evaluation["groups"].as_array().into_iter().flatten() {
+        let f = |k: &str| group[k].as_f64().unwrap_or(f64::NAN);
+        println!("{}: PSNR {:.2} dB, foreground {:.2} dB, SSIM {:.4}", group["group"].as_str().unwrap_or("?"), f("psnr"), f("foreground_psnr"), f("ssim"));
+    }
+    if let Some(d) = evaluation["light_error"]["direction_degrees"].as_f64() {
+        println!("light direction error: {d:.2} degrees");
+    }
+    if let Some(m) = evaluation["light_error"]["position_metres"].as_f64() {
+        println!("light position error: {m:.3} m");
+    }
+    for frame in evaluation["geometry"].as_array().into_iter().flatten() {
+        let mm = |k: &str| frame[k].as_f64().unwrap_or(f64::NAN) * 1e3;
+        println!(
+            "geometry, frame {}: accuracy {:.2} mm, completeness {:.2} mm, Chamfer {:.2} mm, normal angle {:.2} degrees",
+            frame["frame"],
+            mm("accuracy"),
+            mm("completeness"),
+            mm("chamfer"),
+            frame["normal_angle"].as_f64().unwrap_or(f64::NAN)
+        );
+    }
+    println!("wrote {} (metrics.json, metrics.md, metrics.csv, compare.png)", dir.display());
     Ok(())
 }
 

@@ -1,14 +1,20 @@
 //! Rendering whole views of a fitted avatar, in its fitted light, in any light of the scene or
-//! as albedo; `metrics` scores them.
+//! as albedo (`metrics` scores them), and extracting its surface in a pose as a mesh: the
+//! fitted SDF sampled on a grid whose cell follows the body's size (the grid field's finest
+//! cell, 1/160 of the body's extent) over the posed bones' box widened by the grid's reach,
+//! its zero level set by marching tetrahedra (`isosurface`), each crossing bisected on the
+//! field itself.
 
+use crate::field::PoseTensors;
 use crate::gaussians::PosedGaussian;
 use crate::imageio::RgbImage;
+use crate::isosurface::{bisect, extract, Grid, Mesh};
 use crate::light::Light;
 use crate::relight::EnvironmentSampler;
 use crate::render::{ray_bounds, render, RaySet, Sampling};
 use crate::scene::Scene;
 use crate::shading::{shade_lambertian, Emitter, LightKind};
-use crate::train::Avatar;
+use crate::train::{Avatar, FitError};
 use burn::tensor::{Device, Tensor, TensorData};
 use glam::DVec3;
 
@@ -111,4 +117,85 @@ fn emitter(light: &Light, device: &Device) -> Option<(Emitter, Tensor<1>)> {
         Light::Point { position, intensity, ambient } => Some((Emitter::Point { position: t(*position), intensity: t(*intensity) }, t(*ambient))),
         Light::Uniform { .. } | Light::Environment { .. } => None,
     }
+}
+
+/// Mesh cells per body extent (the grid field's finest level: 11 mm for a human).
+const CELLS_PER_EXTENT: f64 = 160.0;
+/// How far beyond the posed bones' box the mesh's grid reaches, per body extent (the grid
+/// field's boxes reach as far, so no surface the field can hold is cut).
+const REACH_PER_EXTENT: f64 = 0.125;
+/// Bisection rounds per crossing: the cell / 2^10, about 10 micrometres for a human.
+const BISECTIONS: usize = 10;
+/// Points per field evaluation.
+const CHUNK: usize = 1 << 15;
+
+/// The body's extent (m): the largest diagonal of the posed bones' box over the scene's frames
+/// (what the field's lengths are derived from).
+pub fn body_extent(scene: &Scene) -> f64 {
+    scene.frames.iter().map(|f| f.pose.bounds(&scene.skeleton)).map(|(a, b)| (b - a).length()).fold(0.0, f64::max)
+}
+
+/// The fitted surface in one pose (`bones`: the posed bones' box; `extent`: the body's, from
+/// `body_extent`), with per-vertex albedo (times `scale`) and unit normals.
+#[allow(clippy::type_complexity)]
+pub fn surface_mesh(
+    model: &Avatar,
+    pose: &PoseTensors,
+    bones: (DVec3, DVec3),
+    extent: f64,
+    scale: DVec3,
+    device: &Device,
+) -> Result<(Mesh, Vec<DVec3>, Vec<DVec3>), FitError> {
+    let reach = DVec3::splat(extent * REACH_PER_EXTENT);
+    let grid = Grid::covering(bones.0 - reach, bones.1 + reach, extent / CELLS_PER_EXTENT);
+    let values: Vec<f64> = sdf(model, pose, &grid.points(), device)?.into_iter().map(f64::from).collect();
+    let mut failed = None;
+    let mesh = extract(&grid, &values, |crossings| {
+        bisect(crossings, BISECTIONS, |points| match sdf(model, pose, points, device) {
+            Ok(values) => values.into_iter().map(|v| v < 0.0).collect(),
+            Err(e) => {
+                failed = Some(e);
+                vec![false; points.len()]
+            }
+        })
+    });
+    if let Some(e) = failed {
+        return Err(e);
+    }
+    let mut colours = Vec::with_capacity(mesh.vertices.len());
+    let mut normals = Vec::with_capacity(mesh.vertices.len());
+    for chunk in mesh.vertices.chunks(CHUNK) {
+        let points = tensor(chunk, device);
+        let albedo = read(model.field.forward(points.clone(), pose).albedo, 3 * chunk.len())?;
+        let (_, gradient) = model.field.sdf_and_gradient(points, pose);
+        let gradient = read(gradient, 3 * chunk.len())?;
+        for (a, g) in albedo.chunks(3).zip(gradient.chunks(3)) {
+            colours.push(DVec3::new(a[0] as f64, a[1] as f64, a[2] as f64) * scale);
+            normals.push(DVec3::new(g[0] as f64, g[1] as f64, g[2] as f64).normalize_or(DVec3::Y));
+        }
+    }
+    Ok((mesh, colours, normals))
+}
+
+/// A tensor's values, which must number `expected`.
+fn read<const D: usize>(values: Tensor<D>, expected: usize) -> Result<Vec<f32>, FitError> {
+    let values = values.into_data().convert::<f32>().try_to_vec::<f32>().map_err(|e| FitError::Input(format!("reading the field's output: {e:?}")))?;
+    if values.len() != expected {
+        return Err(FitError::Input(format!("the field returned {} values for {expected}", values.len())));
+    }
+    Ok(values)
+}
+
+fn tensor(points: &[DVec3], device: &Device) -> Tensor<2> {
+    let flat: Vec<f32> = points.iter().flat_map(|p| [p.x as f32, p.y as f32, p.z as f32]).collect();
+    Tensor::from_data(TensorData::new(flat, [points.len(), 3]), device)
+}
+
+/// The fitted SDF at world points, in chunks.
+fn sdf(model: &Avatar, pose: &PoseTensors, points: &[DVec3], device: &Device) -> Result<Vec<f32>, FitError> {
+    let mut out = Vec::with_capacity(points.len());
+    for chunk in points.chunks(CHUNK) {
+        out.extend(read(model.field.sdf(tensor(chunk, device), pose), chunk.len())?);
+    }
+    Ok(out)
 }

@@ -198,6 +198,23 @@ pub fn render_run(run: &Path, scene: Option<&Path>, backend: crate::train::Backe
     evaluate(&trainer, run, &mut on)
 }
 
+/// `umbra eval`: the evaluation of `split` (`evaluate_split`) into `RUN/renders` for the test
+/// images or `RUN/renders-train` for the training ones (how well the fit explains what it saw,
+/// against how well it generalises).
+pub fn eval_run(
+    run: &Path,
+    scene: Option<&Path>,
+    split: Split,
+    backend: crate::train::Backend,
+    mut on: impl FnMut(TrainMessage),
+) -> Result<(PathBuf, serde_json::Value), FitError> {
+    let trainer = restore(run, scene, backend)?;
+    let _lock = RunLock::acquire(run, "eval")?;
+    let dir = run.join(if split == Split::Test { "renders" } else { "renders-train" });
+    let evaluation = evaluate_split(&trainer, &dir, split, &mut on)?;
+    Ok((dir, evaluation))
+}
+
 /// A fit rebuilt from its run folder (its schedule copy and last checkpoint), on the scene it
 /// was fitted on (from `fit.json`) or on `scene`.
 pub fn restore(run: &Path, scene: Option<&Path>, backend: crate::train::Backend) -> Result<Trainer, FitError> {
@@ -484,17 +501,33 @@ pub const COMPARE_GAIN: f32 = 4.0;
 /// Samples of the sky per view when relighting by an environment or uniform light.
 pub const SKY_SAMPLES: usize = 256;
 
-/// Renders every test image of the scene (in the fitted light, or relit by the light the
-/// image names) and its albedo when the scene has one, scores them (PSNR, sRGB 8-bit, whole
-/// image, foreground and SSIM, `metrics`) and writes `renders/*.png`, `renders/metrics.csv`,
-/// `renders/metrics.md` and `renders/compare.png` (a row per test image: the truth, the render
-/// and their difference times `COMPARE_GAIN`, then the same for its albedo).
+/// The evaluation `fit` ends with and `render` and `eval` run: `evaluate_split` of the test
+/// images into `RUN/renders`.
 pub fn evaluate(trainer: &Trainer, out: &Path, on: &mut impl FnMut(TrainMessage)) -> Result<serde_json::Value, FitError> {
+    evaluate_split(trainer, &out.join("renders"), Split::Test, on)
+}
+
+/// Renders every image of `split` (in the fitted light, or relit by the light the image
+/// names) and its albedo when the scene has one, scores them (PSNR, sRGB 8-bit, whole image,
+/// foreground and SSIM, `metrics`), scores the fitted surface against every ground-truth mesh
+/// the scene's frames carry (`geometry`: accuracy, completeness, Chamfer distance, normal
+/// angle), and writes into `dir`: the PNGs, `metrics.csv`, `metrics.md`, `metrics.json` (all of
+/// it with the light's error) and `compare.png` (a row per image: the truth, the render and
+/// their difference times `COMPARE_GAIN`, then the same for its albedo).
+pub fn evaluate_split(trainer: &Trainer, dir: &Path, split: Split, on: &mut impl FnMut(TrainMessage)) -> Result<serde_json::Value, FitError> {
     let scene = &trainer.scene;
     let kinds = TestKinds::new(scene);
-    let tests: Vec<&crate::scene::View> = scene.views_in(Split::Test).collect();
+    let tests: Vec<&crate::scene::View> = scene.views_in(split).collect();
+    if tests.is_empty() {
+        let name = match split {
+            Split::Train => "training",
+            Split::Val => "validation",
+            Split::Test => "test",
+        };
+        return Err(FitError::Input(format!("{}: no {name} images to evaluate", scene.root.join("scene.json").display())));
+    }
     on(TrainMessage::Evaluating { images: tests.len() });
-    let dir = out.join("renders");
+    let dir = dir.to_path_buf();
     std::fs::create_dir_all(&dir).map_err(|e| io(&dir, e))?;
     // Inference on the plain backend: no autodiff graph is recorded (or held) for the renders.
     let model = trainer.model()?.valid();
@@ -529,7 +562,6 @@ pub fn evaluate(trainer: &Trainer, out: &Path, on: &mut impl FnMut(TrainMessage)
     let group = |g: &str| groups.iter().find(|m| m.group == g);
     let field = |g: &str, pick: fn(&ImageScores) -> f64| group(g).map(|m| json!(pick(&m.scores))).unwrap_or(json!(null));
     write_text(&dir.join("metrics.csv"), &metrics_csv(&rows))?;
-    write_text(&dir.join("metrics.md"), &metrics_markdown(&rows, &groups))?;
     let mut evaluation = serde_json::Map::new();
     for (key, g) in [("novel_pose", "novel pose"), ("novel_view", "novel view"), ("relit", "relit"), ("albedo", "albedo")] {
         evaluation.insert(format!("{key}_psnr"), field(g, |s| s.psnr));
@@ -539,7 +571,49 @@ pub fn evaluate(trainer: &Trainer, out: &Path, on: &mut impl FnMut(TrainMessage)
     evaluation.insert("groups".into(), json!(groups));
     evaluation.insert("albedo_scale".into(), json!(albedo_scale.to_array()));
     evaluation.insert("images".into(), json!(rows));
-    Ok(serde_json::Value::Object(evaluation))
+    let geometry = geometry_scores(trainer, &model, albedo_scale, &device)?;
+    let light = light_error(trainer, &model.light.report());
+    let mut markdown = metrics_markdown(&rows, &groups);
+    if let Some(frames) = geometry.as_array().filter(|f| !f.is_empty()) {
+        markdown += "\n## Geometry against the scene's meshes\n\n| frame | accuracy (mm) | completeness (mm) | Chamfer (mm) | normal angle (deg) |\n|---|---|---|---|---|\n";
+        for f in frames {
+            let mm = |key: &str| f[key].as_f64().map(|v| format!("{:.2}", v * 1e3)).unwrap_or_else(|| "-".into());
+            markdown += &format!(
+                "| {} | {} | {} | {} | {:.2} |\n",
+                f["frame"],
+                mm("accuracy"),
+                mm("completeness"),
+                mm("chamfer"),
+                f["normal_angle"].as_f64().unwrap_or(f64::NAN)
+            );
+        }
+    }
+    write_text(&dir.join("metrics.md"), &markdown)?;
+    evaluation.insert("geometry".into(), geometry);
+    evaluation.insert("light_error".into(), light);
+    let evaluation = serde_json::Value::Object(evaluation);
+    write_text(&dir.join("metrics.json"), &serde_json::to_string_pretty(&evaluation).unwrap_or_default())?;
+    Ok(evaluation)
+}
+
+/// Samples per surface for the geometry error.
+const GEOMETRY_SAMPLES: usize = 20_000;
+
+/// The fitted surface (`eval::surface_mesh`) against every ground-truth mesh of the scene's
+/// frames, one entry per frame with a mesh (metres, degrees).
+fn geometry_scores(trainer: &Trainer, model: &Avatar, albedo_scale: glam::DVec3, device: &burn::tensor::Device) -> Result<serde_json::Value, FitError> {
+    let scene = &trainer.scene;
+    let extent = crate::eval::body_extent(scene);
+    let mut out = Vec::new();
+    for (position, frame) in scene.frames.iter().enumerate() {
+        let Some(path) = &frame.mesh else { continue };
+        let truth = crate::geometry::load_obj(path).map_err(FitError::Input)?;
+        let pose = crate::field::PoseTensors::new(&frame.pose, &scene.skeleton, device);
+        let (fitted, _, _) = crate::eval::surface_mesh(model, &pose, frame.pose.bounds(&scene.skeleton), extent, albedo_scale, device)?;
+        let scores = crate::geometry::compare(&fitted, &truth, GEOMETRY_SAMPLES, position as u64);
+        out.push(json!({"frame": position, "index": frame.index, "mesh": path, "accuracy": scores.map(|s| s.accuracy), "completeness": scores.map(|s| s.completeness), "chamfer": scores.map(|s| s.chamfer), "normal_angle": scores.map(|s| s.normal_angle)}));
+    }
+    Ok(json!(out))
 }
 
 /// How a test image differs from the training images, and its evaluation group.

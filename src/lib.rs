@@ -9,6 +9,7 @@ pub mod export;
 pub mod field;
 pub mod fit;
 pub mod gaussians;
+pub mod geometry;
 pub mod imageio;
 pub mod isosurface;
 pub mod light;

@@ -305,3 +305,32 @@ fn export_mesh_writes_a_closed_coloured_mesh_that_tobj_loads_and_refuses_bad_fra
     let message = fails(&root, &["export-mesh", run.to_str().unwrap()]);
     assert!(message.contains("--frame F --out FILE.obj or --all-frames DIR"), "{message}");
 }
+
+#[test]
+fn eval_scores_test_and_training_images_and_the_surface_against_the_scenes_meshes() {
+    // The independent example scene carries a ground-truth mesh per frame.
+    let dir = TempDir::new("eval");
+    let run = dir.path().join("run");
+    let root = std::env::current_dir().unwrap();
+    let scene = common::example_scene();
+    succeeds(&root, &["fit", scene.to_str().unwrap(), "--out", run.to_str().unwrap(), "--iterations", "2", "--no-eval"]);
+    succeeds(&root, &["eval", run.to_str().unwrap()]);
+    let metrics: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(run.join("renders/metrics.json")).unwrap()).unwrap();
+    let frames = metrics["geometry"].as_array().unwrap();
+    assert_eq!(frames.len(), umbra::scene::Scene::load(&scene).unwrap().frames.len(), "a geometry entry per frame with a mesh");
+    for f in frames {
+        let (accuracy, completeness, chamfer) = (f["accuracy"].as_f64().unwrap(), f["completeness"].as_f64().unwrap(), f["chamfer"].as_f64().unwrap());
+        // Two iterations leave the prior's capsules: centimetres off, not metres, not zero.
+        assert!(accuracy > 1e-4 && accuracy < 0.2 && completeness > 1e-4 && completeness < 0.2, "{f}");
+        assert!((chamfer - 0.5 * (accuracy + completeness)).abs() < 1e-12);
+        assert!((0.0..=180.0).contains(&f["normal_angle"].as_f64().unwrap()));
+    }
+    assert!(metrics["light_error"]["direction_degrees"].is_number() || metrics["light_error"].is_null());
+    assert!(std::fs::read_to_string(run.join("renders/metrics.md")).unwrap().contains("## Geometry against the scene's meshes"));
+    // The training images, into their own folder, as one group.
+    succeeds(&root, &["eval", run.to_str().unwrap(), "--split", "train"]);
+    let train: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(run.join("renders-train/metrics.json")).unwrap()).unwrap();
+    let groups: Vec<&str> = train["groups"].as_array().unwrap().iter().filter_map(|g| g["group"].as_str()).collect();
+    assert!(groups.contains(&"training pose and view"), "{groups:?}");
+    assert_eq!(train["images"].as_array().unwrap().len(), 9);
+}

@@ -33,21 +33,17 @@ mod tests {
 
     #[test]
     fn mesh_vertices_lie_on_the_surface_and_the_surface_is_closed() {
-        let c = Character::new(Kind::Quadruped);
-        let pose = c.pose(0.1, 0.0, DVec3::ZERO);
-        let cell = 0.015;
-        let (vertices, triangles) = extract(&c, &pose, cell);
-        assert!(triangles.len() > 500);
-        for v in &vertices {
-            assert!(c.sdf(&pose, *v).0.abs() < 1e-6, "vertex off the surface: {}", c.sdf(&pose, *v).0);
-        }
-        // Closed: every edge is shared by exactly two triangles.
-        let mut edges: HashMap<(usize, usize), usize> = HashMap::new();
-        for t in &triangles {
-            for (a, b) in [(t[0], t[1]), (t[1], t[2]), (t[2], t[0])] {
-                *edges.entry((a.min(b), a.max(b))).or_default() += 1;
+        for kind in [Kind::Quadruped, Kind::Dressed] {
+            let c = Character::new(kind);
+            let pose = c.pose(0.1, 0.0, DVec3::ZERO);
+            let cell = 0.015;
+            let (vertices, triangles) = extract(&c, &pose, cell);
+            assert!(triangles.len() > 500);
+            for v in &vertices {
+                assert!(c.sdf(&pose, *v).0.abs() < 1e-6, "vertex off the surface: {}", c.sdf(&pose, *v).0);
             }
+            // Closed: every edge is shared by exactly two triangles, in opposite directions.
+            assert!(Mesh { vertices, triangles }.is_closed_manifold(), "open or non-manifold edges");
         }
-        assert!(edges.values().all(|&n| n == 2), "open or non-manifold edges");
     }
 }
