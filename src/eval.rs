@@ -5,12 +5,12 @@
 //! its zero level set by marching tetrahedra (`isosurface`), each crossing bisected on the
 //! field itself.
 
+use crate::environment::MisEstimator;
 use crate::field::PoseTensors;
 use crate::gaussians::PosedGaussian;
 use crate::imageio::RgbImage;
 use crate::isosurface::{bisect, extract, Grid, Mesh};
 use crate::light::Light;
-use crate::relight::EnvironmentSampler;
 use crate::render::{ray_bounds, render, RaySet, Sampling};
 use crate::scene::Scene;
 use crate::shading::{shade_lambertian, Emitter, LightKind};
@@ -40,6 +40,7 @@ pub const VIEW_SAMPLING: Sampling = Sampling { coarse: 48, probe: 0, fine: 32 };
 
 /// Renders the scene's `camera` in `frame`, sampled as `samples` says, under `lighting`.
 pub fn render_view(model: &Avatar, scene: &Scene, camera: usize, frame: usize, samples: Sampling, device: &Device, lighting: &Lighting) -> RgbImage {
+    let camera_index = camera;
     let camera = &scene.cameras[camera];
     let pose = &scene.frames[frame].pose;
     let pose_tensors = crate::field::PoseTensors::new(pose, &scene.skeleton, device);
@@ -52,10 +53,11 @@ pub fn render_view(model: &Avatar, scene: &Scene, camera: usize, frame: usize, s
         Lighting::Albedo { .. } => false,
         Lighting::Known { .. } => true,
     };
-    // The sky's directions are drawn once per view, shared by all its pixels.
+    // Sky light per pixel: MIS of the map and the cosine lobe, each pixel its own stream.
+    let view_seed = (frame as u64) << 16 | camera_index as u64;
     let sampler = match lighting {
-        Lighting::Known { light: Light::Environment { map, scale, .. }, samples, .. } => Some(EnvironmentSampler::new(map, *scale, *samples, frame as u64)),
-        Lighting::Known { light: Light::Uniform { radiance }, samples, .. } => Some(EnvironmentSampler::uniform(*radiance, *samples, frame as u64)),
+        Lighting::Known { light: Light::Environment { map, scale, .. }, samples, .. } => Some(MisEstimator::new(map, *scale, *samples, view_seed)),
+        Lighting::Known { light: Light::Uniform { radiance }, samples, .. } => Some(MisEstimator::uniform(*radiance, *samples, view_seed)),
         _ => None,
     };
     let sky_casters: Vec<PosedGaussian> = model.light.shadow_casters_posed(&posed);
@@ -90,7 +92,8 @@ pub fn render_view(model: &Avatar, scene: &Scene, camera: usize, frame: usize, s
                     let points = vectors(values(deferred.surface.clone()));
                     let normals = vectors(values(normal.clone()));
                     let reflectance = vectors(values(scaled(albedo_scale)));
-                    let radiance = sampler.shade(&points, &normals, &sky_casters);
+                    let ids: Vec<u64> = hit.iter().map(|&p| p as u64).collect();
+                    let radiance = sampler.shade(&points, &normals, &ids, &sky_casters);
                     reflectance.iter().zip(radiance).flat_map(|(a, l)| (*a * l).as_vec3().to_array()).collect()
                 }
                 (None, None) => values(deferred.albedo.clone()),

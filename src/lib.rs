@@ -4,6 +4,7 @@
 pub mod ablate;
 pub mod bench;
 pub mod cli;
+pub mod environment;
 pub mod eval;
 pub mod export;
 pub mod field;

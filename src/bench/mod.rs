@@ -2,12 +2,14 @@
 //! measured in the same run and writes a Markdown table, a CSV and a PNG plot.
 
 mod breakdown;
+mod environment;
 mod fit;
 mod gradients;
 pub mod shadows;
 mod steps;
 
 pub use breakdown::breakdown;
+pub use environment::environment;
 pub use fit::{fit_curves, CurvePoint, FitBenchOptions};
 pub use gradients::gradients;
 pub use shadows::{body_cloud, shadows, sun_rays, Row, FLOPS_PER_PAIR};
