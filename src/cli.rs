@@ -346,18 +346,22 @@ fn fit(options: &crate::train::FitOptions) -> Result<(), String> {
     Ok(())
 }
 
-fn render(run: &Path, scene: Option<&Path>, backend: crate::train::Backend) -> Result<(), String> {
+/// Follows a command that renders or writes images one by one on `bar`.
+fn image_progress(bar: &crate::progress::Progress) -> impl FnMut(crate::train::TrainMessage) + '_ {
     use crate::train::TrainMessage;
-    let bar = progress_bar(0, "rendering");
-    let evaluation = crate::fit::render_run(run, scene, backend, |message| match message {
+    move |message| match message {
         TrainMessage::Evaluating { images } => bar.set_length(images as u64),
         TrainMessage::Rendered { done, name, psnr, .. } => {
             bar.set_position(done as u64);
             bar.set_message(psnr.map(|p| format!("{name}: {p:.2} dB")).unwrap_or(name));
         }
         _ => {}
-    })
-    .map_err(|e| e.to_string())?;
+    }
+}
+
+fn render(run: &Path, scene: Option<&Path>, backend: crate::train::Backend) -> Result<(), String> {
+    let bar = progress_bar(0, "rendering");
+    let evaluation = crate::fit::render_run(run, scene, backend, image_progress(&bar)).map_err(|e| e.to_string())?;
     bar.finish_and_clear();
     print_evaluation(&evaluation);
     println!("wrote {}", run.join("renders").display());
@@ -365,21 +369,12 @@ fn render(run: &Path, scene: Option<&Path>, backend: crate::train::Backend) -> R
 }
 
 fn eval(run: &Path, scene: Option<&Path>, split: EvalSplit, backend: crate::train::Backend) -> Result<(), String> {
-    use crate::train::TrainMessage;
     let split = match split {
         EvalSplit::Test => crate::scene::Split::Test,
         EvalSplit::Train => crate::scene::Split::Train,
     };
     let bar = progress_bar(0, "scoring");
-    let (dir, evaluation) = crate::fit::eval_run(run, scene, split, backend, |message| match message {
-        TrainMessage::Evaluating { images } => bar.set_length(images as u64),
-        TrainMessage::Rendered { done, name, psnr, .. } => {
-            bar.set_position(done as u64);
-            bar.set_message(psnr.map(|p| format!("{name}: {p:.2} dB")).unwrap_or(name));
-        }
-        _ => {}
-    })
-    .map_err(|e| e.to_string())?;
+    let (dir, evaluation) = crate::fit::eval_run(run, scene, split, backend, image_progress(&bar)).map_err(|e| e.to_string())?;
     bar.finish_and_clear();
     for group in evaluation["groups"].as_array().into_iter().flatten() {
         let f = |k: &str| group[k].as_f64().unwrap_or(f64::NAN);
@@ -433,17 +428,8 @@ fn ablate(options: &crate::ablate::AblateOptions) -> Result<(), String> {
 }
 
 fn relight(options: &crate::relight::RelightOptions) -> Result<(), String> {
-    use crate::train::TrainMessage;
     let bar = progress_bar(0, "relighting");
-    let out = crate::relight::relight_run(options, |message| match message {
-        TrainMessage::Evaluating { images } => bar.set_length(images as u64),
-        TrainMessage::Rendered { done, name, .. } => {
-            bar.set_position(done as u64);
-            bar.set_message(name);
-        }
-        _ => {}
-    })
-    .map_err(|e| e.to_string())?;
+    let out = crate::relight::relight_run(options, image_progress(&bar)).map_err(|e| e.to_string())?;
     bar.finish_and_clear();
     println!("wrote {} (one PNG per view, sheet.png)", out.display());
     Ok(())
@@ -458,7 +444,6 @@ fn export_mesh(
     backend: crate::train::Backend,
 ) -> Result<(), String> {
     use crate::export::Targets;
-    use crate::train::TrainMessage;
     let targets = match (frame, out, all_frames) {
         (Some(frame), Some(out), None) => Targets::One { frame, out },
         (None, None, Some(dir)) => Targets::All { dir },
@@ -466,15 +451,7 @@ fn export_mesh(
     };
     let bar = progress_bar(0, "meshing");
     let options = crate::export::ExportOptions { run, scene, targets, backend };
-    let exported = crate::export::export_meshes(&options, |message| match message {
-        TrainMessage::Evaluating { images } => bar.set_length(images as u64),
-        TrainMessage::Rendered { done, name, .. } => {
-            bar.set_position(done as u64);
-            bar.set_message(name);
-        }
-        _ => {}
-    })
-    .map_err(|e| e.to_string())?;
+    let exported = crate::export::export_meshes(&options, image_progress(&bar)).map_err(|e| e.to_string())?;
     bar.finish_and_clear();
     for e in &exported {
         println!(

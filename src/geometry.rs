@@ -53,6 +53,11 @@ struct Sample {
     triangle: usize,
 }
 
+fn triangle_area(mesh: &Mesh, t: &[usize; 3]) -> f64 {
+    let [a, b, c] = t.map(|i| mesh.vertices[i]);
+    0.5 * (b - a).cross(c - a).length()
+}
+
 fn triangle_normal(mesh: &Mesh, t: usize) -> DVec3 {
     let [a, b, c] = mesh.triangles[t].map(|i| mesh.vertices[i]);
     (b - a).cross(c - a).normalize_or_zero()
@@ -60,14 +65,7 @@ fn triangle_normal(mesh: &Mesh, t: usize) -> DVec3 {
 
 /// `n` points spread over the mesh by area (each triangle's share drawn by its area).
 fn sample(mesh: &Mesh, n: usize, seed: u64) -> Vec<Sample> {
-    let areas: Vec<f64> = mesh
-        .triangles
-        .iter()
-        .map(|t| {
-            let [a, b, c] = t.map(|i| mesh.vertices[i]);
-            0.5 * (b - a).cross(c - a).length()
-        })
-        .collect();
+    let areas: Vec<f64> = mesh.triangles.iter().map(|t| triangle_area(mesh, t)).collect();
     let mut cumulative = Vec::with_capacity(areas.len());
     let mut total = 0.0;
     for a in &areas {
@@ -184,15 +182,7 @@ impl<'a> Index<'a> {
 
 /// Scores `fitted` against `truth` with `n` samples on each; `None` when either has no area.
 pub fn compare(fitted: &Mesh, truth: &Mesh, n: usize, seed: u64) -> Option<GeometryScores> {
-    let area = |m: &Mesh| -> f64 {
-        m.triangles
-            .iter()
-            .map(|t| {
-                let [a, b, c] = t.map(|i| m.vertices[i]);
-                0.5 * (b - a).cross(c - a).length()
-            })
-            .sum()
-    };
+    let area = |m: &Mesh| -> f64 { m.triangles.iter().map(|t| triangle_area(m, t)).sum() };
     if n == 0 || !(area(fitted) > 0.0) || !(area(truth) > 0.0) {
         return None;
     }
