@@ -29,6 +29,9 @@ pub struct FieldSettings {
     pub levels: Option<usize>,
     pub table_log2: Option<u32>,
     pub top_bones: Option<usize>,
+    /// How far (per body extent) each bone's grid box reaches beyond its segment (none: the
+    /// grid's default, 1/8).
+    pub reach_per_extent: Option<f64>,
     /// Coarse-to-fine: only the coarser half of a grid's levels until `fine_levels_from`, the
     /// rest faded in one after another until `fine_levels_until` (none: all levels throughout).
     pub fine_levels: Option<(usize, usize)>,
@@ -119,6 +122,10 @@ pub struct Schedule {
     /// Sun directions scored over the sphere when a sun starts to be fitted (`sun_search`); 0
     /// leaves the start to the initial direction and gradient descent alone.
     pub sun_search: usize,
+    /// Foreground training rays (mask on) that miss every Gaussian's bound are sampled over
+    /// the body's box (the posed bones' box widened by the grid's reach) instead of skipped, so
+    /// the field can grow where the masks say the body is and the Gaussians follow it there.
+    pub sample_masked_misses: bool,
     pub learning_rates: BTreeMap<String, f64>,
     pub weights: BTreeMap<String, Ramp>,
     pub field: FieldSettings,
@@ -170,7 +177,7 @@ fn parse_field(file: &Path, table: &toml::Table) -> Result<FieldSettings, Schedu
         Some(toml::Value::Table(t)) => t.clone(),
         Some(other) => return Err(err(file, "field", format!("expected a table, found {}", other.type_str()))),
     };
-    let known = ["kind", "levels", "table_log2", "top_bones", "fine_levels_from", "fine_levels_until"];
+    let known = ["kind", "levels", "table_log2", "top_bones", "reach_per_extent", "fine_levels_from", "fine_levels_until"];
     for key in field.keys() {
         if !known.contains(&key.as_str()) {
             return Err(err(file, &format!("field.{key}"), format!("unknown key (known: {})", known.join(", "))));
@@ -195,6 +202,10 @@ fn parse_field(file: &Path, table: &toml::Table) -> Result<FieldSettings, Schedu
         levels: bounded("levels", 1.0, 16.0)?.map(|v| v as usize),
         table_log2: bounded("table_log2", 8.0, 22.0)?.map(|v| v as u32),
         top_bones: bounded("top_bones", 1.0, 8.0)?.map(|v| v as usize),
+        reach_per_extent: match number(file, &field, "reach_per_extent", "field")? {
+            Some(v) if !(v > 0.0 && v <= 1.0) => return Err(err(file, "field.reach_per_extent", format!("must be within (0, 1], found {v}"))),
+            other => other,
+        },
         fine_levels: match (bounded("fine_levels_from", 0.0, 1e9)?, bounded("fine_levels_until", 0.0, 1e9)?) {
             (None, None) => None,
             (Some(from), Some(until)) if until >= from => Some((from as usize, until as usize)),
@@ -203,7 +214,9 @@ fn parse_field(file: &Path, table: &toml::Table) -> Result<FieldSettings, Schedu
         },
     };
     if kind == FieldKind::Mlp {
-        if let Some(key) = ["levels", "table_log2", "top_bones", "fine_levels_from", "fine_levels_until"].into_iter().find(|k| field.contains_key(*k)) {
+        if let Some(key) =
+            ["levels", "table_log2", "top_bones", "reach_per_extent", "fine_levels_from", "fine_levels_until"].into_iter().find(|k| field.contains_key(*k))
+        {
             return Err(err(file, &format!("field.{key}"), "applies to kind = \"grid\" only"));
         }
     }
@@ -251,6 +264,7 @@ impl Schedule {
             "field_lr_decay",
             "field_lr_decay_from",
             "sun_search",
+            "sample_masked_misses",
             "learning_rates",
             "losses",
             "field",
@@ -356,6 +370,11 @@ impl Schedule {
             field_lr_decay: fraction(file, &table, "field_lr_decay")?,
             field_lr_decay_from: count(file, &table, "field_lr_decay_from", 0, 0)?,
             sun_search: count(file, &table, "sun_search", 0, 0)?,
+            sample_masked_misses: match table.get("sample_masked_misses") {
+                None => false,
+                Some(toml::Value::Boolean(b)) => *b,
+                Some(other) => return Err(err(file, "sample_masked_misses", format!("expected true or false, found {other}"))),
+            },
             learning_rates,
             weights,
             field,
@@ -483,6 +502,12 @@ mod tests {
         assert_eq!(error_of("density_points = 0\n[losses]\nmask = 1.0\ndensity = 0.5").key, "density_points");
         assert_eq!(error_of("regulariser_points = 0\n[losses]\nmask = 1.0\ncurvature = 0.1").key, "regulariser_points");
         assert!(Schedule::parse("regulariser_points = 0\n[losses]\nmask = 1.0", Path::new("s.toml")).is_ok(), "no weight, no points needed");
+        assert_eq!(error_of("[field]\nkind = \"grid\"\nreach_per_extent = 0\n[losses]\nmask = 1.0").key, "field.reach_per_extent");
+        assert_eq!(error_of("[field]\nreach_per_extent = 0.2\n[losses]\nmask = 1.0").key, "field.reach_per_extent");
+        assert_eq!(error_of("sample_masked_misses = 1\n[losses]\nmask = 1.0").key, "sample_masked_misses");
+        let loose = Schedule::parse("sample_masked_misses = true\n[field]\nkind = \"grid\"\nreach_per_extent = 0.2\n[losses]\nmask = 1.0", Path::new("s.toml"))
+            .unwrap();
+        assert!(loose.sample_masked_misses && loose.field.reach_per_extent == Some(0.2));
         let e = error_of("iterations = [");
         assert!(e.to_string().starts_with("s.toml: (syntax)"), "{e}");
     }

@@ -6,7 +6,7 @@
 use crate::field::{AvatarField, FieldConfig, GradientMethod, PoseTensors};
 use crate::gaussians::{GaussianParams, GaussianSet};
 use crate::light::Light;
-use crate::render::{ray_bounds, render, Deferred, RaySet};
+use crate::render::{box_bounds, ray_bounds, render, Deferred, RaySet};
 use crate::scene::{Scene, Split};
 use crate::schedule::Schedule;
 use crate::shading::{LightKind, LightModel};
@@ -228,6 +228,8 @@ pub struct Trainer {
     /// Render rays that miss every Gaussian bound too (as before they were skipped): only
     /// for the benchmark that measures what skipping them saves.
     pub render_missed_rays: bool,
+    /// How far (m) the body's box reaches beyond the posed bones (the grid's reach).
+    body_reach: f64,
     bone_centres: Tensor<2>,
     /// What the sun search found, once it has run (`sun_search`).
     pub sun_search: Option<crate::sun_search::SearchReport>,
@@ -250,6 +252,9 @@ pub fn field_config(settings: &crate::schedule::FieldSettings, skeleton: &crate:
                 grid.levels = settings.levels.unwrap_or(grid.levels);
                 grid.table_log2 = settings.table_log2.unwrap_or(grid.table_log2);
                 grid.top_bones = settings.top_bones.unwrap_or(grid.top_bones);
+                if let Some(reach) = settings.reach_per_extent {
+                    grid.reach = extent * reach as f32;
+                }
             }
             config
         }
@@ -417,6 +422,7 @@ impl Trainer {
             stream: Stream::new(seed, 0x7AA1, 0),
             gradient: crate::field::GRADIENT,
             render_missed_rays: false,
+            body_reach: field_config.grid.as_ref().map_or(extent * crate::field::grid::REACH_PER_EXTENT as f64, |g| g.reach as f64),
             sun_search: None,
             sun_cone: None,
             training_identity: std::sync::OnceLock::new(),
@@ -464,8 +470,15 @@ impl Trainer {
             };
             let pixel = if pool.is_empty() { self.stream.below(pixels) } else { pool[self.stream.below(pool.len())] };
             let ray = camera.pixel_ray(pixel % camera.width, pixel / camera.width);
-            let bounds = ray_bounds(ray.origin, ray.direction, &posed);
             let mask = view.mask.as_ref().map(|m| m.foreground[pixel] as u8 as f32).unwrap_or(0.0);
+            let bounds = match ray_bounds(ray.origin, ray.direction, &posed) {
+                None if mask > 0.5 && self.schedule.sample_masked_misses => {
+                    let (lo, hi) = pose.bounds(&self.scene.skeleton);
+                    let reach = glam::DVec3::splat(self.body_reach);
+                    box_bounds(ray.origin, ray.direction, lo - reach, hi + reach)
+                }
+                bounds => bounds,
+            };
             drawn.push((ray, bounds, view.colour.pixels[pixel], mask));
         }
         // A stable partition: hits first, in the order drawn.

@@ -43,7 +43,7 @@ pub struct GridConfig {
 /// view of it; a reach of 1/8 (22 cm) holds clothing well off the bones.
 const COARSEST_PER_EXTENT: f32 = 10.0;
 const FINEST_PER_EXTENT: f32 = 160.0;
-const REACH_PER_EXTENT: f32 = 0.125;
+pub const REACH_PER_EXTENT: f32 = 0.125;
 
 impl GridConfig {
     /// The default grid for a skeleton with these bone lengths whose posed bounds have a
