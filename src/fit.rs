@@ -552,9 +552,16 @@ pub fn evaluate_split(trainer: &Trainer, dir: &Path, split: Split, on: &mut impl
             }
         }
         compare.push(row);
+        // Relit images and albedos again after one per-channel least-squares scale: what is
+        // left when the absolute scale the fit cannot know is forgiven.
+        let relit_scaled = relit.then(|| crate::metrics::score_scaled(&scored.image, &view.colour, view.mask.as_ref()).0);
+        let albedo_scaled = match (&scored.albedo, &view.albedo) {
+            (Some((albedo, _)), Some(truth)) => Some(crate::metrics::score_scaled(albedo, truth, view.mask.as_ref()).0),
+            _ => None,
+        };
         let (scores, albedo) = (scored.scores, scored.albedo.map(|a| a.1));
         on(TrainMessage::Rendered { done: done + 1, total: tests.len(), name: name.clone(), psnr: Some(scores.psnr) });
-        rows.push(ImageScore { image: name, light: view.light.clone(), group, scores, albedo, novel_pose, novel_view, relit });
+        rows.push(ImageScore { image: name, light: view.light.clone(), group, scores, albedo, relit_scaled, albedo_scaled, novel_pose, novel_view, relit });
     }
     let cells: Vec<Vec<&RgbImage>> = compare.iter().map(|row| row.iter().collect()).collect();
     save_png(&dir.join("compare.png"), &RgbImage::tiled(&cells))?;
@@ -563,7 +570,14 @@ pub fn evaluate_split(trainer: &Trainer, dir: &Path, split: Split, on: &mut impl
     let field = |g: &str, pick: fn(&ImageScores) -> f64| group(g).map(|m| json!(pick(&m.scores))).unwrap_or(json!(null));
     write_text(&dir.join("metrics.csv"), &metrics_csv(&rows))?;
     let mut evaluation = serde_json::Map::new();
-    for (key, g) in [("novel_pose", "novel pose"), ("novel_view", "novel view"), ("relit", "relit"), ("albedo", "albedo")] {
+    for (key, g) in [
+        ("novel_pose", "novel pose"),
+        ("novel_view", "novel view"),
+        ("relit", "relit"),
+        ("albedo", "albedo"),
+        ("relit_scaled", "relit, per-channel scaled"),
+        ("albedo_scaled", "albedo, per-channel scaled"),
+    ] {
         evaluation.insert(format!("{key}_psnr"), field(g, |s| s.psnr));
         evaluation.insert(format!("{key}_foreground_psnr"), field(g, |s| s.foreground_psnr));
         evaluation.insert(format!("{key}_ssim"), field(g, |s| s.ssim));
@@ -701,6 +715,10 @@ struct ImageScore {
     #[serde(flatten)]
     scores: ImageScores,
     albedo: Option<ImageScores>,
+    /// A relit image's scores after its per-channel least-squares scale.
+    relit_scaled: Option<ImageScores>,
+    /// The albedo's scores after its per-channel least-squares scale.
+    albedo_scaled: Option<ImageScores>,
     novel_pose: bool,
     novel_view: bool,
     relit: bool,
@@ -733,9 +751,15 @@ fn group_means(rows: &[ImageScore]) -> Vec<GroupScores> {
             out.push(mean(group, scores));
         }
     }
-    let albedo: Vec<ImageScores> = rows.iter().filter_map(|r| r.albedo).collect();
-    if !albedo.is_empty() {
-        out.push(mean("albedo", albedo));
+    for (group, pick) in [
+        ("albedo", (|r: &ImageScore| r.albedo) as fn(&ImageScore) -> Option<ImageScores>),
+        ("relit, per-channel scaled", |r: &ImageScore| r.relit_scaled),
+        ("albedo, per-channel scaled", |r: &ImageScore| r.albedo_scaled),
+    ] {
+        let scores: Vec<ImageScores> = rows.iter().filter_map(pick).collect();
+        if !scores.is_empty() {
+            out.push(mean(group, scores));
+        }
     }
     out
 }

@@ -20,6 +20,33 @@ pub fn score(rendered: &RgbImage, truth: &RgbImage, mask: Option<&Mask>) -> Imag
     ImageScores { psnr: psnr_srgb8(rendered, truth), foreground_psnr: psnr_srgb8_where(rendered, truth, &foreground), ssim: ssim_srgb8(rendered, truth) }
 }
 
+/// The per-channel factor that best maps `rendered` onto `truth` over the foreground, in the
+/// least-squares sense on linear values: what a relit image or an albedo is off by when the
+/// fit cannot know the light's or the albedo's absolute scale.
+pub fn least_squares_scale(rendered: &RgbImage, truth: &RgbImage, mask: Option<&Mask>) -> [f64; 3] {
+    let foreground = foreground(rendered, truth, mask);
+    let (mut cross, mut square) = ([0.0f64; 3], [0.0f64; 3]);
+    for ((r, t), &f) in rendered.pixels.iter().zip(&truth.pixels).zip(&foreground) {
+        if f {
+            for c in 0..3 {
+                cross[c] += r[c] as f64 * t[c] as f64;
+                square[c] += r[c] as f64 * r[c] as f64;
+            }
+        }
+    }
+    [0, 1, 2].map(|c| if square[c] > 0.0 { cross[c] / square[c] } else { 1.0 })
+}
+
+/// The scores of `rendered` after its per-channel least-squares scale, and that scale.
+pub fn score_scaled(rendered: &RgbImage, truth: &RgbImage, mask: Option<&Mask>) -> (ImageScores, [f64; 3]) {
+    let scale = least_squares_scale(rendered, truth, mask);
+    let mut scaled = rendered.clone();
+    for p in &mut scaled.pixels {
+        *p = [0, 1, 2].map(|c| (p[c] as f64 * scale[c]) as f32);
+    }
+    (score(&scaled, truth, mask), scale)
+}
+
 fn srgb8(image: &RgbImage) -> Vec<[f64; 3]> {
     image.pixels.iter().map(|p| [0, 1, 2].map(|c| linear_to_srgb8(p[c]) as f64)).collect()
 }
@@ -126,6 +153,24 @@ pub fn ssim_srgb8(a: &RgbImage, b: &RgbImage) -> f64 {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_per_channel_scale_is_undone_and_reported() {
+        let mut truth = RgbImage::new(16, 16);
+        for (k, p) in truth.pixels.iter_mut().enumerate() {
+            if (k % 16) > 3 && (k / 16) > 3 {
+                *p = [0.1 + (k % 7) as f32 * 0.05, 0.2, 0.05 + (k % 5) as f32 * 0.04];
+            }
+        }
+        let mut rendered = truth.clone();
+        for p in &mut rendered.pixels {
+            *p = [p[0] * 2.0, p[1] * 0.5, p[2]];
+        }
+        let (scores, scale) = score_scaled(&rendered, &truth, None);
+        assert!((scale[0] - 0.5).abs() < 1e-6 && (scale[1] - 2.0).abs() < 1e-6 && (scale[2] - 1.0).abs() < 1e-6, "{scale:?}");
+        assert!(scores.psnr.is_infinite() || scores.psnr > 60.0, "{scores:?}");
+        assert!(score(&rendered, &truth, None).psnr < 30.0, "the unscaled render is off");
+    }
     use crate::imageio::srgb_to_linear;
 
     /// An image from 8-bit sRGB values.
