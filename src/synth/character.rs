@@ -72,6 +72,9 @@ pub struct Character {
     pub pattern: Pattern,
     /// Loose garments, blended into the surface like the capsules.
     garments: Vec<Garment>,
+    /// How much larger than the specification the character is built (lengths, motion and
+    /// clothing patterns scale with it; angles do not).
+    pub scale: f64,
 }
 
 fn bone(name: &'static str, parent: Option<usize>, head: [f64; 3], tail: [f64; 3], radii: (f64, f64), colour: [f64; 3], swing: Swing) -> BoneSpec {
@@ -152,7 +155,27 @@ impl Character {
         let garments = if kind == Kind::Dressed { clothing::dressed_human() } else { Vec::new() };
         let skeleton = Skeleton { bones: specs.iter().map(|s| Bone { name: s.name.into(), parent: s.parent, length: (s.tail - s.head).length() }).collect() };
         let rest = specs.iter().map(|s| rest_frame(s.head, s.tail)).collect();
-        Self { kind, skeleton, specs, rest, blend: 0.025, pattern: Pattern::Plain, garments }
+        Self { kind, skeleton, specs, rest, blend: 0.025, pattern: Pattern::Plain, garments, scale: 1.0 }
+    }
+
+    /// The same character `scale` times larger (a child at 0.6, a giant at 3): every length of
+    /// the body, its garments, its motion's bob and its clothing patterns; the same angles.
+    pub fn scaled(self, scale: f64) -> Self {
+        let specs: Vec<BoneSpec> = self
+            .specs
+            .iter()
+            .map(|b| BoneSpec {
+                head: b.head * scale,
+                tail: b.tail * scale,
+                radius_head: b.radius_head * scale,
+                radius_tail: b.radius_tail * scale,
+                ..b.clone()
+            })
+            .collect();
+        let skeleton = Skeleton { bones: specs.iter().map(|s| Bone { name: s.name.into(), parent: s.parent, length: (s.tail - s.head).length() }).collect() };
+        let rest = specs.iter().map(|s| rest_frame(s.head, s.tail)).collect();
+        let garments = self.garments.iter().map(|g| Garment { shape: g.shape.scaled(scale), ..*g }).collect();
+        Self { skeleton, specs, rest, blend: self.blend * scale, garments, scale: self.scale * scale, ..self }
     }
 
     pub fn with_pattern(self, pattern: Pattern) -> Self {
@@ -162,6 +185,8 @@ impl Character {
     /// The albedo of bone `i`'s clothing at bone-local point `local`, before blending.
     fn bone_albedo(&self, i: usize, local: DVec3) -> DVec3 {
         let spec = &self.specs[i];
+        // Patterns are laid out on the unscaled body, so they scale with it.
+        let local = local / self.scale;
         let base = DVec3::from_array(spec.colour);
         let cell = |v: f64, size: f64| (v / size).floor() as i64;
         match (self.pattern, spec.name) {
@@ -188,7 +213,7 @@ impl Character {
     /// about +Y and moved by `offset`.
     pub fn pose(&self, phase: f64, heading: f64, offset: DVec3) -> Pose {
         let angle = 2.0 * PI * phase;
-        let bob = 0.015 * (2.0 * angle).cos();
+        let bob = 0.015 * self.scale * (2.0 * angle).cos();
         let root = DMat4::from_rotation_translation(DQuat::from_rotation_y(heading), offset + DVec3::new(0.0, bob, 0.0));
         let mut world: Vec<DMat4> = Vec::with_capacity(self.specs.len());
         for (i, spec) in self.specs.iter().enumerate() {
@@ -251,7 +276,7 @@ impl Character {
         }
         for (j, garment) in self.garments.iter().enumerate() {
             let d = garment_distance(pose, garment, p).0;
-            let local = pose.to_local(garment.bone, p);
+            let local = pose.to_local(garment.bone, p) / self.scale;
             // The same gentle modulation as a plain bone's colour, so the albedo has texture.
             let colour = DVec3::from_array(garment.colour) * (0.85 + 0.15 * (local.y * 31.0 + j as f64).sin() * (local.x * 23.0).cos());
             parts[self.specs.len() + j] = (d, colour);

@@ -74,6 +74,17 @@ impl Shape {
         }
     }
 
+    /// The same shape `scale` times larger about its bone's head.
+    pub fn scaled(&self, scale: f64) -> Self {
+        match *self {
+            Shape::Frustum { top, bottom, top_radius, bottom_radius } => {
+                Shape::Frustum { top: top * scale, bottom: bottom * scale, top_radius: top_radius * scale, bottom_radius: bottom_radius * scale }
+            }
+            Shape::RoundedBox { centre, half, rounding } => Shape::RoundedBox { centre: centre * scale, half: half * scale, rounding: rounding * scale },
+            Shape::Sphere { centre, radius } => Shape::Sphere { centre: centre * scale, radius: radius * scale },
+        }
+    }
+
     /// How far (m) the shape reaches from a bone segment of `length` along +Y from the origin.
     pub fn reach(&self, length: f64) -> f64 {
         let (lo, hi) = match *self {

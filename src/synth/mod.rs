@@ -75,6 +75,12 @@ pub struct SynthOptions {
     /// Seed of camera placement and Monte Carlo sampling.
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
+    /// Scale of the character, its motion, the cameras' distance and the lamps' positions (a
+    /// lamp's intensity with its distance squared, so the body is lit the same): 0.3 for a
+    /// cat-sized human, 3 for a giant.
+    #[arg(long, default_value_t = 1.0)]
+    #[serde(default = "unit_scale", skip_serializing_if = "is_unit_scale")]
+    pub scale: f64,
     /// Also write a ground-truth OBJ mesh per frame (marching tetrahedra of the exact SDF).
     #[arg(long)]
     #[serde(default)]
@@ -87,6 +93,14 @@ pub struct SynthOptions {
 
 fn default_mesh_cell() -> f64 {
     0.02
+}
+
+fn unit_scale() -> f64 {
+    1.0
+}
+
+fn is_unit_scale(scale: &f64) -> bool {
+    *scale == 1.0
 }
 
 impl Default for SynthOptions {
@@ -102,6 +116,7 @@ impl Default for SynthOptions {
             samples: 256,
             pattern: Pattern::Plain,
             seed: 0,
+            scale: 1.0,
             meshes: false,
             mesh_cell: 0.02,
         }
@@ -187,17 +202,27 @@ impl SynthOptions {
         if !(self.mesh_cell >= 0.002 && self.mesh_cell <= 0.5) {
             return bad("--mesh-cell must be within 0.002..=0.5 metres");
         }
+        if !(self.scale >= 0.05 && self.scale <= 20.0) {
+            return bad("--scale must be within 0.05..=20");
+        }
         Ok(())
     }
 
     /// Lays out cameras, frames, lights and views.
     pub fn plan(&self) -> Result<Plan, SynthError> {
         self.check()?;
-        let character = Character::new(self.character).with_pattern(self.pattern);
+        let character = Character::new(self.character).with_pattern(self.pattern).scaled(self.scale);
         let mut stream = Stream::new(self.seed, 0xCA3E_4A5, 0);
         let (target, extent) = match self.character {
             Kind::Human | Kind::Dressed => (DVec3::new(0.0, 0.9, 0.0), 1.05),
             Kind::Quadruped => (DVec3::new(0.0, 0.45, 0.0), 0.75),
+        };
+        let (target, extent) = (target * self.scale, extent * self.scale);
+        // A lamp scaled with the body, its intensity with the square of its distance.
+        let lamp = |position: [f64; 3], intensity: [f64; 3], ambient: [f64; 3]| Light::Point {
+            position: DVec3::from_array(position) * self.scale,
+            intensity: DVec3::from_array(intensity) * (self.scale * self.scale),
+            ambient: DVec3::from_array(ambient),
         };
         let focal = 1.2 * self.size as f64;
         let distance = focal * extent / (0.45 * self.size as f64);
@@ -236,19 +261,14 @@ impl SynthOptions {
         let (train_name, train_light) = match self.light {
             TrainingLight::Sun => ("sun", sun([0.45, 0.8, 0.4], [0.85, 0.82, 0.78], [0.2, 0.21, 0.24])),
             TrainingLight::Uniform => ("studio", Light::Uniform { radiance: DVec3::new(0.9, 0.9, 0.88) }),
-            TrainingLight::Point => {
-                ("lamp", Light::Point { position: DVec3::new(1.1, 2.3, 1.4), intensity: DVec3::new(4.6, 4.4, 4.1), ambient: DVec3::new(0.15, 0.15, 0.17) })
-            }
+            TrainingLight::Point => ("lamp", lamp([1.1, 2.3, 1.4], [4.6, 4.4, 4.1], [0.15, 0.15, 0.17])),
         };
         let mut lights = vec![(train_name.to_string(), train_light)];
         let relight = self.test.contains(&TestKind::Relight);
         if relight {
             lights.push(("sun2".into(), sun([-0.6, 0.55, -0.35], [0.9, 0.75, 0.6], [0.15, 0.17, 0.25])));
             if self.light != TrainingLight::Point {
-                lights.push((
-                    "lamp".into(),
-                    Light::Point { position: DVec3::new(-1.3, 2.0, 1.2), intensity: DVec3::new(4.2, 4.2, 4.6), ambient: DVec3::new(0.1, 0.1, 0.12) },
-                ));
+                lights.push(("lamp".into(), lamp([-1.3, 2.0, 1.2], [4.2, 4.2, 4.6], [0.1, 0.1, 0.12])));
             }
             lights.push(("sky".into(), Light::Environment { path: PathBuf::from("lights/sky.exr"), scale: 1.0, map: synthetic_sky(64, 32) }));
         }
