@@ -126,7 +126,7 @@ fn the_sun_search_seeds_the_light_and_its_cone_holds_it() {
 }
 
 #[test]
-fn resume_continues_where_the_fit_stopped_with_either_field() {
+fn resume_continues_where_the_fit_stopped_bit_for_bit_with_either_field() {
     for kind in ["mlp", "grid"] {
         let (dir, scene_path, schedule_path) = quick_setup(&format!("resume-{kind}"), TrainingLight::Sun, 40);
         // Hierarchical sampling too, so the coarse pass and its draws are part of what resumes;
@@ -151,9 +151,13 @@ fn resume_continues_where_the_fit_stopped_with_either_field() {
         let (ta, tb) = (column(&a), column(&b));
         assert_eq!(ta.len(), 40);
         assert_eq!(tb.len(), 40);
+        // Bit for bit: every loss to the digits written, and the final Gaussians (serde_json
+        // writes each f64 so that it reads back exactly).
         for i in 0..40 {
-            assert!((ta[i] - tb[i]).abs() <= 1e-4 * ta[i].abs().max(1e-3), "{kind}, iteration {i}: {} vs {}", ta[i], tb[i]);
+            assert!(ta[i] == tb[i], "{kind}, iteration {i}: {} vs {}", ta[i], tb[i]);
         }
+        let gaussians = |run: &str| std::fs::read(dir.path().join(run).join("gaussians.json")).unwrap();
+        assert!(gaussians("straight") == gaussians("resumed"), "{kind}: the resumed fit's Gaussians differ");
         assert_eq!(straight["light"]["direction"], resumed["light"]["direction"], "{kind}");
         // The run renders from its checkpoint and schedule copy, whatever the field.
         let evaluation = umbra::fit::render_run(&dir.path().join("resumed"), None, Backend::Flex, |_| {}).unwrap();
