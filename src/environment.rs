@@ -15,6 +15,7 @@ use crate::shadow::{ShadowCaster, ShadowRay};
 use crate::synth::trace::Stream;
 use glam::DVec3;
 use rayon::prelude::*;
+use std::borrow::Cow;
 use std::f64::consts::PI;
 
 fn luminance(p: [f32; 3]) -> f64 {
@@ -39,7 +40,7 @@ pub struct SkyDistribution {
 impl SkyDistribution {
     /// `None` when the map has no light at all (every texel black).
     pub fn new(map: &EnvironmentMap) -> Option<Self> {
-        Self::above(map, 0.0)
+        Self::build(map, false)
     }
 
     /// MIS compensation (Karlik et al. 2019): texels by their luminance above the map's mean,
@@ -47,18 +48,17 @@ impl SkyDistribution {
     /// MIS combines with it, covers the rest. `None` for a map with nothing above its mean
     /// (uniform light): the cosine lobe alone is then the better technique.
     pub fn compensated(map: &EnvironmentMap) -> Option<Self> {
-        let (w, h) = (map.image.width, map.image.height);
-        let total: f64 = (0..w * h).map(|k| luminance(map.image.pixels[k]) * map.texel_solid_angle(k / w)).sum();
-        Self::above(map, total / (4.0 * PI))
+        Self::build(map, true)
     }
 
-    fn above(map: &EnvironmentMap, floor: f64) -> Option<Self> {
+    fn build(map: &EnvironmentMap, compensate: bool) -> Option<Self> {
         let (w, h) = (map.image.width, map.image.height);
         let solid_angle: Vec<f64> = (0..h).map(|y| map.texel_solid_angle(y)).collect();
+        let light: f64 = (0..w * h).map(|k| luminance(map.image.pixels[k]) * solid_angle[k / w]).sum();
+        let floor = if compensate { light / (4.0 * PI) } else { 0.0 };
         // The floor is relative, so rounding cannot leave a uniform map a speck of mass.
         let mass: Vec<f64> = (0..w * h).map(|k| (luminance(map.image.pixels[k]) - floor * (1.0 + 1e-9)).max(0.0) * solid_angle[k / w]).collect();
         let total: f64 = mass.iter().sum();
-        let light: f64 = (0..w * h).map(|k| luminance(map.image.pixels[k]) * solid_angle[k / w]).sum();
         if !(total > 0.0) || !total.is_finite() {
             return None;
         }
@@ -100,9 +100,10 @@ pub fn cosine_sample(normal: DVec3, u: [f64; 2]) -> DVec3 {
     (tangent * (r * phi.cos()) + bitangent * (r * phi.sin()) + normal * (1.0 - u[0]).max(0.0).sqrt()).normalize()
 }
 
-/// The per-pixel estimator of an environment (or uniform) light.
-pub struct MisEstimator {
-    map: EnvironmentMap,
+/// The per-pixel estimator of an environment (or uniform) light. It borrows the scene's map
+/// (a full-resolution sky is tens of megabytes: not copied per view).
+pub struct MisEstimator<'a> {
+    map: Cow<'a, EnvironmentMap>,
     scale: f64,
     /// The map's compensated distribution; `None`: cosine sampling alone.
     distribution: Option<SkyDistribution>,
@@ -112,17 +113,22 @@ pub struct MisEstimator {
     seed: u64,
 }
 
-impl MisEstimator {
+impl<'a> MisEstimator<'a> {
     /// `samples` directions per point, split between the map and the cosine lobe.
-    pub fn new(map: &EnvironmentMap, scale: f64, samples: usize, seed: u64) -> Self {
-        let lit = map.image.pixels.iter().any(|p| luminance(*p) > 0.0);
-        Self { map: map.clone(), scale, distribution: SkyDistribution::compensated(map), lit, samples: samples.max(1), seed }
+    pub fn new(map: &'a EnvironmentMap, scale: f64, samples: usize, seed: u64) -> Self {
+        Self::over(Cow::Borrowed(map), scale, samples, seed)
     }
 
     /// Uniform radiance from every direction: a one-texel map.
     pub fn uniform(radiance: DVec3, samples: usize, seed: u64) -> Self {
         let image = RgbImage { width: 1, height: 1, pixels: vec![radiance.as_vec3().to_array()] };
-        Self::new(&EnvironmentMap { image }, 1.0, samples, seed)
+        Self::over(Cow::Owned(EnvironmentMap { image }), 1.0, samples, seed)
+    }
+
+    fn over(map: Cow<'a, EnvironmentMap>, scale: f64, samples: usize, seed: u64) -> Self {
+        let lit = map.image.pixels.iter().any(|p| luminance(*p) > 0.0);
+        let distribution = SkyDistribution::compensated(&map);
+        Self { map, scale, distribution, lit, samples: samples.max(1), seed }
     }
 
     /// Outgoing radiance over albedo at each point (Lambertian, `1/pi` BRDF):

@@ -192,10 +192,8 @@ fn load_model(trainer: &mut Trainer, dir: &Path) -> Result<(), FitError> {
 
 /// Renders and scores the test images of a finished (or checkpointed) fit in `run`, with the
 /// scene it was fitted on or `scene`; writes `run/renders/` and returns the evaluation.
-pub fn render_run(run: &Path, scene: Option<&Path>, backend: crate::train::Backend, mut on: impl FnMut(TrainMessage)) -> Result<serde_json::Value, FitError> {
-    let trainer = restore(run, scene, backend)?;
-    let _lock = RunLock::acquire(run, "render")?;
-    evaluate(&trainer, run, &mut on)
+pub fn render_run(run: &Path, scene: Option<&Path>, backend: crate::train::Backend, on: impl FnMut(TrainMessage)) -> Result<serde_json::Value, FitError> {
+    restore_and_evaluate(run, scene, Split::Test, backend, "render", on).map(|(_, evaluation)| evaluation)
 }
 
 /// `umbra eval`: the evaluation of `split` (`evaluate_split`) into `RUN/renders` for the test
@@ -206,10 +204,22 @@ pub fn eval_run(
     scene: Option<&Path>,
     split: Split,
     backend: crate::train::Backend,
+    on: impl FnMut(TrainMessage),
+) -> Result<(PathBuf, serde_json::Value), FitError> {
+    restore_and_evaluate(run, scene, split, backend, "eval", on)
+}
+
+/// The run rebuilt and, under its lock (taken as `command`), evaluated into its folder.
+fn restore_and_evaluate(
+    run: &Path,
+    scene: Option<&Path>,
+    split: Split,
+    backend: crate::train::Backend,
+    command: &str,
     mut on: impl FnMut(TrainMessage),
 ) -> Result<(PathBuf, serde_json::Value), FitError> {
     let trainer = restore(run, scene, backend)?;
-    let _lock = RunLock::acquire(run, "eval")?;
+    let _lock = RunLock::acquire(run, command)?;
     let dir = run.join(if split == Split::Test { "renders" } else { "renders-train" });
     let evaluation = evaluate_split(&trainer, &dir, split, &mut on)?;
     Ok((dir, evaluation))

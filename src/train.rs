@@ -457,6 +457,12 @@ impl Trainer {
         let pose = &self.scene.frames[data.position].pose;
         let posed = set.pose(pose);
         let mut drawn = Vec::with_capacity(self.schedule.rays_per_batch);
+        // The body's box, for foreground rays that miss every bound (when asked): once a batch.
+        let body_box = self.schedule.sample_masked_misses.then(|| {
+            let (lo, hi) = pose.bounds(&self.scene.skeleton);
+            let reach = glam::DVec3::splat(self.body_reach);
+            (lo - reach, hi + reach)
+        });
         for k in 0..self.schedule.rays_per_batch {
             let v = data.views[self.stream.below(data.views.len())];
             let view = &self.scene.views[v];
@@ -471,13 +477,9 @@ impl Trainer {
             let pixel = if pool.is_empty() { self.stream.below(pixels) } else { pool[self.stream.below(pool.len())] };
             let ray = camera.pixel_ray(pixel % camera.width, pixel / camera.width);
             let mask = view.mask.as_ref().map(|m| m.foreground[pixel] as u8 as f32).unwrap_or(0.0);
-            let bounds = match ray_bounds(ray.origin, ray.direction, &posed) {
-                None if mask > 0.5 && self.schedule.sample_masked_misses => {
-                    let (lo, hi) = pose.bounds(&self.scene.skeleton);
-                    let reach = glam::DVec3::splat(self.body_reach);
-                    box_bounds(ray.origin, ray.direction, lo - reach, hi + reach)
-                }
-                bounds => bounds,
+            let bounds = match (ray_bounds(ray.origin, ray.direction, &posed), body_box) {
+                (None, Some((lo, hi))) if mask > 0.5 => box_bounds(ray.origin, ray.direction, lo, hi),
+                (bounds, _) => bounds,
             };
             drawn.push((ray, bounds, view.colour.pixels[pixel], mask));
         }
