@@ -111,6 +111,8 @@ pub struct MisEstimator<'a> {
     lit: bool,
     samples: usize,
     seed: u64,
+    /// Where visibility rays start off the surface (m).
+    shadow_start: f32,
 }
 
 impl<'a> MisEstimator<'a> {
@@ -128,7 +130,13 @@ impl<'a> MisEstimator<'a> {
     fn over(map: Cow<'a, EnvironmentMap>, scale: f64, samples: usize, seed: u64) -> Self {
         let lit = map.image.pixels.iter().any(|p| luminance(*p) > 0.0);
         let distribution = SkyDistribution::compensated(&map);
-        Self { map, scale, distribution, lit, samples: samples.max(1), seed }
+        Self { map, scale, distribution, lit, samples: samples.max(1), seed, shadow_start: SHADOW_START }
+    }
+
+    /// Visibility rays start `start` (m) off the surface instead of the reference human's
+    /// `SHADOW_START` (a fitted body's own, `LightModel::shadow_start`).
+    pub fn with_shadow_start(self, start: f32) -> Self {
+        Self { shadow_start: start, ..self }
     }
 
     /// Outgoing radiance over albedo at each point (Lambertian, `1/pi` BRDF):
@@ -152,9 +160,9 @@ impl<'a> MisEstimator<'a> {
             None => 0,
         };
         let cosine_count = self.samples - light_count;
-        let origin = (x + n * SHADOW_START as f64).as_vec3().to_array();
+        let origin = (x + n * self.shadow_start as f64).as_vec3().to_array();
         let visible = |d: DVec3| {
-            let ray = ShadowRay { origin, direction: d.as_vec3().to_array(), t0: SHADOW_START, t1: f32::INFINITY };
+            let ray = ShadowRay { origin, direction: d.as_vec3().to_array(), t0: self.shadow_start, t1: f32::INFINITY };
             caster.transmittance(&ray, true) as f64
         };
         let (nl, nc) = (light_count as f64, cosine_count as f64);

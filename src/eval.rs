@@ -56,8 +56,12 @@ pub fn render_view(model: &Avatar, scene: &Scene, camera: usize, frame: usize, s
     // Sky light per pixel: MIS of the map and the cosine lobe, each pixel its own stream.
     let view_seed = (frame as u64) << 16 | camera_index as u64;
     let sampler = match lighting {
-        Lighting::Known { light: Light::Environment { map, scale, .. }, samples, .. } => Some(MisEstimator::new(map, *scale, *samples, view_seed)),
-        Lighting::Known { light: Light::Uniform { radiance }, samples, .. } => Some(MisEstimator::uniform(*radiance, *samples, view_seed)),
+        Lighting::Known { light: Light::Environment { map, scale, .. }, samples, .. } => {
+            Some(MisEstimator::new(map, *scale, *samples, view_seed).with_shadow_start(model.light.shadow_start))
+        }
+        Lighting::Known { light: Light::Uniform { radiance }, samples, .. } => {
+            Some(MisEstimator::uniform(*radiance, *samples, view_seed).with_shadow_start(model.light.shadow_start))
+        }
         _ => None,
     };
     let sky_casters: Vec<PosedGaussian> = model.light.shadow_casters_posed(&posed);
@@ -68,7 +72,7 @@ pub fn render_view(model: &Avatar, scene: &Scene, camera: usize, frame: usize, s
         let mut hit = Vec::new();
         for &p in chunk {
             let ray = camera.pixel_ray(p % camera.width, p / camera.width);
-            if let Some(bounds) = ray_bounds(ray.origin, ray.direction, &posed) {
+            if let Some(bounds) = ray_bounds(ray.origin, ray.direction, &posed, crate::render::MIN_BOUND_RADIUS * model.light.unit as f64) {
                 rays.push(ray.origin, ray.direction, Some(bounds));
                 hit.push(p);
             }
@@ -85,9 +89,15 @@ pub fn render_view(model: &Avatar, scene: &Scene, camera: usize, frame: usize, s
             (Lighting::Fitted, Some(normal)) => values(model.light.shade(deferred.albedo.clone(), deferred.surface.clone(), normal.clone(), &gaussians)),
             (Lighting::Albedo { albedo_scale }, _) => values(scaled(albedo_scale)),
             (Lighting::Known { light, albedo_scale, .. }, Some(normal)) => match (emitter(light, device), &sampler) {
-                (Some((emitter, ambient)), _) => {
-                    values(shade_lambertian(scaled(albedo_scale), deferred.surface.clone(), normal.clone(), &casters, ambient, &emitter))
-                }
+                (Some((emitter, ambient)), _) => values(shade_lambertian(
+                    scaled(albedo_scale),
+                    deferred.surface.clone(),
+                    normal.clone(),
+                    &casters,
+                    ambient,
+                    &emitter,
+                    model.light.shadow_start,
+                )),
                 (None, Some(sampler)) => {
                     let points = vectors(values(deferred.surface.clone()));
                     let normals = vectors(values(normal.clone()));
@@ -132,14 +142,8 @@ const BISECTIONS: usize = 10;
 /// Points per field evaluation.
 const CHUNK: usize = 1 << 15;
 
-/// The body's extent (m): the largest diagonal of the posed bones' box over the scene's frames
-/// (what the field's lengths are derived from).
-pub fn body_extent(scene: &Scene) -> f64 {
-    scene.frames.iter().map(|f| f.pose.bounds(&scene.skeleton)).map(|(a, b)| (b - a).length()).fold(0.0, f64::max)
-}
-
 /// The fitted surface in one pose (`bones`: the posed bones' box; `extent`: the body's, from
-/// `body_extent`), with per-vertex albedo (times `scale`) and unit normals.
+/// `Scene::body_extent`), with per-vertex albedo (times `scale`) and unit normals.
 #[allow(clippy::type_complexity)]
 pub fn surface_mesh(
     model: &Avatar,

@@ -2,7 +2,7 @@
 //! scene's poses as an OBJ mesh with vertex colours (the fitted albedo, scaled to reflectance
 //! as the renders are) and normals (the SDF's exact gradient).
 
-use crate::eval::{body_extent, surface_mesh};
+use crate::eval::surface_mesh;
 use crate::field::PoseTensors;
 use crate::train::{io, FitError, TrainMessage};
 use burn::module::Module;
@@ -54,7 +54,7 @@ pub fn export_meshes(options: &ExportOptions, mut on: impl FnMut(TrainMessage)) 
     let model = trainer.model()?.valid();
     let device = trainer.device.clone().without_autodiff();
     let scale = crate::fit::albedo_scale(scene, &model);
-    let extent = body_extent(scene);
+    let extent = scene.body_extent();
     on(TrainMessage::Evaluating { images: targets.len() });
     let mut done = Vec::new();
     for (k, (frame, path)) in targets.iter().enumerate() {

@@ -253,7 +253,7 @@ pub fn restore(run: &Path, scene: Option<&Path>, backend: crate::train::Backend)
 /// The factor from the fitted albedo to reflectance (`relight::albedo_scale`) for a model
 /// fitted on `scene`.
 pub fn albedo_scale(scene: &Scene, model: &Avatar) -> glam::DVec3 {
-    let fitted_intensity = (model.light.kind == LightKind::Point).then(|| model.light.log_intensity.val().exp().into_scalar::<f32>() as f64);
+    let fitted_intensity = (model.light.kind == LightKind::Point).then(|| model.light.intensity().into_scalar::<f32>() as f64);
     scene.training_lights().first().map(|name| crate::relight::albedo_scale(&scene.lights[*name], fitted_intensity)).unwrap_or(glam::DVec3::ONE)
 }
 
@@ -461,7 +461,10 @@ pub fn fit(options: &FitOptions, mut on: impl FnMut(TrainMessage)) -> Result<ser
     // The sun search's start, with its own error against the scene's sun when it has one.
     let sun_search = trainer.sun_search.as_ref().map(|r| {
         let mut value = serde_json::to_value(r).unwrap_or(json!(null));
-        let start = json!({"direction": r.best.direction});
+        let start = match r.best.position {
+            Some(position) => json!({"position": position}),
+            None => json!({"direction": r.best.direction}),
+        };
         value["error_against_scene"] = light_error(&trainer, &start);
         value
     });
@@ -472,7 +475,11 @@ pub fn fit(options: &FitOptions, mut on: impl FnMut(TrainMessage)) -> Result<ser
     let capture = json!({
         "training_cameras": training_cameras.len(),
         "monocular": training_cameras.len() == 1,
-        "light_start": if trainer.sun_search.is_some() { "sun search over the sphere, then gradient descent within a cone around its best" } else { "the schedule's initial light, then gradient descent" },
+        "light_start": match &trainer.sun_search {
+            Some(r) if r.best.position.is_some() => "point light search over directions and distances around the body, then gradient descent",
+            Some(_) => "sun search over the sphere, then gradient descent within a cone around its best",
+            None => "the schedule's initial light, then gradient descent",
+        },
     });
     let report = json!({
         // Absolute, so the run renders from any working folder.
@@ -627,7 +634,7 @@ const GEOMETRY_SAMPLES: usize = 20_000;
 /// frames, one entry per frame with a mesh (metres, degrees).
 fn geometry_scores(trainer: &Trainer, model: &Avatar, albedo_scale: glam::DVec3, device: &burn::tensor::Device) -> Result<serde_json::Value, FitError> {
     let scene = &trainer.scene;
-    let extent = crate::eval::body_extent(scene);
+    let extent = scene.body_extent();
     let mut out = Vec::new();
     for (position, frame) in scene.frames.iter().enumerate() {
         let Some(path) = &frame.mesh else { continue };

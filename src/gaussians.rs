@@ -177,8 +177,10 @@ mod tests {
     }
 }
 
-/// Learnable Gaussians (burn module): bone-local means `[G, 3]`, quaternions `[G, 4]`
-/// (x, y, z, w), log scales `[G, 3]` and log amplitudes `[G]`; each belongs to a fixed bone.
+/// Learnable Gaussians (burn module): bone-local means `[G, 3]` in body units, quaternions
+/// `[G, 4]` (x, y, z, w), log scales `[G, 3]` and log amplitudes `[G]`; each belongs to a fixed
+/// bone. Means in body units (metres over `unit`, `skeleton::body_length(1, extent)`) make an
+/// optimizer's step the same fraction of any body.
 #[derive(burn::module::Module, Debug)]
 pub struct GaussianParams {
     pub means: burn::module::Param<burn::tensor::Tensor<2>>,
@@ -187,6 +189,9 @@ pub struct GaussianParams {
     pub log_amplitudes: burn::module::Param<burn::tensor::Tensor<1>>,
     #[module(skip)]
     pub bones: Vec<usize>,
+    /// Metres per body unit.
+    #[module(skip)]
+    pub unit: f32,
 }
 
 mod learnable {
@@ -201,16 +206,23 @@ mod learnable {
     }
 
     impl GaussianParams {
-        pub fn from_set(set: &GaussianSet, device: &Device) -> Self {
+        /// Learnable copies of `set` on a body whose unit is `unit` metres.
+        pub fn from_set(set: &GaussianSet, unit: f32, device: &Device) -> Self {
             let n = set.len();
             let flat = |f: &dyn Fn(&Gaussian) -> Vec<f32>| set.gaussians.iter().flat_map(f).collect::<Vec<f32>>();
             Self {
-                means: Param::from_tensor(Tensor::from_data(TensorData::new(flat(&|g| g.mean.map(|v| v as f32).to_vec()), [n, 3]), device)),
+                means: Param::from_tensor(Tensor::from_data(TensorData::new(flat(&|g| g.mean.map(|v| v as f32 / unit).to_vec()), [n, 3]), device)),
                 rotations: Param::from_tensor(Tensor::from_data(TensorData::new(flat(&|g| g.rotation.map(|v| v as f32).to_vec()), [n, 4]), device)),
                 log_scales: Param::from_tensor(Tensor::from_data(TensorData::new(flat(&|g| g.scales.map(|v| (v as f32).ln()).to_vec()), [n, 3]), device)),
                 log_amplitudes: Param::from_tensor(Tensor::from_data(TensorData::new(flat(&|g| vec![(g.amplitude as f32).ln()]), [n]), device)),
                 bones: set.gaussians.iter().map(|g| g.bone).collect(),
+                unit,
             }
+        }
+
+        /// Bone-local means in metres.
+        pub fn means_metres(&self) -> Tensor<2> {
+            self.means.val() * self.unit
         }
 
         pub fn len(&self) -> usize {
@@ -262,7 +274,7 @@ mod learnable {
             let n = self.len();
             let bone_rotation = pose.rotations.clone().select(0, index.clone());
             let bone_translation = pose.translations.clone().select(0, index);
-            let means = bone_rotation.clone().matmul(self.means.val().reshape([n, 3, 1])).reshape([n, 3]) + bone_translation;
+            let means = bone_rotation.clone().matmul(self.means_metres().reshape([n, 3, 1])).reshape([n, 3]) + bone_translation;
             let rotations = bone_rotation.matmul(self.rotation_matrices());
             GaussianTensors::from_world(means, rotations, self.scales(), self.amplitudes())
         }
@@ -281,7 +293,7 @@ mod learnable {
 
         /// The current values as a plain set (for JSON, culling bounds and the CPU shadow path).
         pub fn to_set(&self) -> GaussianSet {
-            let means = values(self.means.val());
+            let means = values(self.means_metres());
             let rotations = values(self.rotations.val());
             let scales = values(self.scales());
             let amplitudes = values(self.amplitudes());

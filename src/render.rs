@@ -16,19 +16,21 @@ use burn::tensor::{Device, Tensor, TensorData};
 use glam::DVec3;
 
 /// Radius of a Gaussian's bounding sphere in units of its largest scale, and the least radius
-/// (m): outside it the body cannot be, so no samples are spent there.
+/// (m, on the reference human; `ray_bounds` takes a body's own): outside it the body cannot
+/// be, so no samples are spent there.
 pub const BOUND_SIGMAS: f64 = 3.0;
 pub const MIN_BOUND_RADIUS: f64 = 0.08;
 
 /// Step (m) of the central differences that give surface normals.
 pub const NORMAL_STEP: f32 = 0.004;
 
-/// The `[near, far]` interval where a ray meets any Gaussian's bounding sphere; `None` misses.
-pub fn ray_bounds(origin: DVec3, direction: DVec3, gaussians: &[PosedGaussian]) -> Option<(f64, f64)> {
+/// The `[near, far]` interval where a ray meets any Gaussian's bounding sphere (at least
+/// `min_radius` m); `None` misses.
+pub fn ray_bounds(origin: DVec3, direction: DVec3, gaussians: &[PosedGaussian], min_radius: f64) -> Option<(f64, f64)> {
     let mut near = f64::INFINITY;
     let mut far = f64::NEG_INFINITY;
     for g in gaussians {
-        let radius = (g.scales.max_element() * BOUND_SIGMAS).max(MIN_BOUND_RADIUS);
+        let radius = (g.scales.max_element() * BOUND_SIGMAS).max(min_radius);
         let oc = origin - g.mean;
         let b = oc.dot(direction);
         let disc = b * b - (oc.length_squared() - radius * radius);

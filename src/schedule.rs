@@ -109,6 +109,8 @@ pub struct Schedule {
     /// fitted (uniformly lit) runs that many fewer.
     pub light_stage_iterations: usize,
     pub ambient_target: f64,
+    /// The curvature term's perturbation (m on the reference human of `skeleton::HUMAN_EXTENT`;
+    /// a fit scales it with its body).
     pub curvature_epsilon: f64,
     /// The light's learning rate falls exponentially to this fraction between `light_from` and
     /// the end, so the direction settles instead of jittering with the batch noise (the field

@@ -20,10 +20,13 @@ pub enum LightKind {
 
 #[derive(burn::module::Module, Debug)]
 pub struct LightModel {
-    /// Unnormalised direction toward a sun, or a point light's position.
+    /// Unnormalised direction toward a sun, or a point light's position in body units
+    /// (`position` gives metres).
     pub vector: Param<Tensor<1>>,
     pub ambient_raw: Param<Tensor<1>>,
-    /// Log of a point light's intensity.
+    /// Log of a point light's irradiance at `anchor` (its intensity over the squared distance
+    /// to it): moving the light then changes how the light falls across the body, not how
+    /// bright the body is, so position and strength are learned apart.
     pub log_intensity: Param<Tensor<1>>,
     /// The factor on the Gaussians' optical depth (their density is fitted to tanh-squashed
     /// field density, so a body is optically thinner than a hard shadow needs), through a
@@ -31,10 +34,22 @@ pub struct LightModel {
     pub density_scale_raw: Param<Tensor<1>>,
     #[module(skip)]
     pub kind: LightKind,
+    /// The body's centre, where a point light's `log_intensity` is measured.
+    #[module(skip)]
+    pub anchor: [f32; 3],
+    /// Where shadow rays start off the surface (m): `SHADOW_START` on the body's scale.
+    #[module(skip)]
+    pub shadow_start: f32,
+    /// The body's length unit (`skeleton::body_length(1, extent)`): the Gaussians' amplitudes
+    /// are optical density per unit, so the same body at another size casts the same shadows.
+    #[module(skip)]
+    pub unit: f32,
 }
 
-/// Distance (m) the shadow ray starts off the surface, along the normal and along the ray, so a
-/// surface is not shadowed by the Gaussians that model its own skin. Measured on human-sun
+/// Distance (m, on the reference human: a fit uses `skeleton::body_length` of it, kept in
+/// `LightModel::shadow_start`) the shadow ray starts off the surface, along the normal and
+/// along the ray, so a surface is not shadowed by the Gaussians that model its own skin.
+/// Measured on human-sun
 /// (default schedule, central-difference normals): 0.03 m -> sun 4.0 deg off, 28.2 dB;
 /// 0.05 -> 2.3 deg, 27.3 dB; 0.065 -> 1.9 deg, 27.3 dB; 0.08 -> 1.6 deg, 27.0 dB. With exact
 /// (tangent) normals, seeds 0/1/2: 0.065 -> 1.98/2.21/- deg; 0.075 -> 1.51/1.66/1.56 deg at
@@ -50,7 +65,7 @@ pub enum Emitter {
 
 /// The image formation of the scene format, for training and relighting alike:
 /// `albedo x (ambient + E max(0, n.l) T)`, T the transmittance of `casters` along the shadow
-/// ray that starts `SHADOW_START` off the surface; a point light's E falls off as 1 / r^2 and
+/// ray that starts `start` (m) off the surface; a point light's E falls off as 1 / r^2 and
 /// its shadow ray ends at the light.
 pub fn shade_lambertian(
     albedo: Tensor<2>,
@@ -59,6 +74,7 @@ pub fn shade_lambertian(
     casters: &GaussianTensors,
     ambient: Tensor<1>,
     emitter: &Emitter,
+    start: f32,
 ) -> Tensor<2> {
     let [r, _] = points.dims();
     let device = points.device();
@@ -72,7 +88,7 @@ pub fn shade_lambertian(
         }
     };
     let cosine = (normals.clone() * direction.clone()).sum_dim(1).clamp_min(0.0);
-    let segments = RaySegments { origins: points + normals * SHADOW_START, directions: direction, t0: Tensor::full([r], SHADOW_START, &device), t1 };
+    let segments = RaySegments { origins: points + normals * start, directions: direction, t0: Tensor::full([r], start, &device), t1 };
     let visibility = transmittance(casters, &segments).reshape([r, 1]);
     albedo * (ambient.reshape([1, 3]) + irradiance * cosine * visibility)
 }
@@ -82,15 +98,38 @@ fn inverse_softplus(v: f32) -> f32 {
 }
 
 impl LightModel {
-    pub fn new(kind: LightKind, initial: [f32; 3], ambient: f32, device: &Device) -> Self {
+    /// A light of `kind` starting at `initial` (a direction, or a position in metres) for a
+    /// body centred at `anchor` whose extent is `extent` (m).
+    pub fn new(kind: LightKind, initial: [f32; 3], anchor: [f32; 3], extent: f64, ambient: f32, device: &Device) -> Self {
         let t = |v: Vec<f32>| Param::from_tensor(Tensor::from_data(TensorData::new(v.clone(), [v.len()]), device));
+        let unit = crate::skeleton::body_length(1.0, extent) as f32;
+        let vector = match kind {
+            LightKind::Point => initial.map(|c| c / unit),
+            _ => initial,
+        };
         Self {
-            vector: t(initial.to_vec()),
+            vector: t(vector.to_vec()),
             ambient_raw: t(vec![inverse_softplus(ambient); 3]),
-            log_intensity: t(vec![(9.0f32).ln()]),
+            log_intensity: t(vec![0.0]),
             density_scale_raw: t(vec![-2.2]),
             kind,
+            anchor,
+            shadow_start: crate::skeleton::body_length(SHADOW_START as f64, extent) as f32,
+            unit,
         }
+    }
+
+    /// A point light's position (m).
+    pub fn position(&self) -> Tensor<1> {
+        self.vector.val() * self.unit
+    }
+
+    /// A point light's radiant intensity: the irradiance at the anchor times the squared
+    /// distance to it.
+    pub fn intensity(&self) -> Tensor<1> {
+        let device = self.vector.val().device();
+        let offset = self.position() - Tensor::from_data(TensorData::new(self.anchor.to_vec(), [3]), &device);
+        self.log_intensity.val().exp() * (offset.clone() * offset).sum()
     }
 
     pub fn density_scale(&self) -> Tensor<1> {
@@ -113,20 +152,22 @@ impl LightModel {
         let emitter = match self.kind {
             LightKind::Uniform => return albedo,
             LightKind::Directional => Emitter::Sun { direction: self.direction(), irradiance: Tensor::ones([3], &device) },
-            LightKind::Point => Emitter::Point { position: self.vector.val(), intensity: self.log_intensity.val().exp().repeat_dim(0, 3) },
+            LightKind::Point => Emitter::Point { position: self.position(), intensity: self.intensity().repeat_dim(0, 3) },
         };
-        shade_lambertian(albedo, points, normals, &self.shadow_casters(gaussians), self.ambient(), &emitter)
+        shade_lambertian(albedo, points, normals, &self.shadow_casters(gaussians), self.ambient(), &emitter, self.shadow_start)
     }
 
-    /// The Gaussians as shadow casters: their optical depth times the fitted density scale.
+    /// The Gaussians as shadow casters: their optical depth times the fitted density scale,
+    /// per metre.
     pub fn shadow_casters(&self, gaussians: &GaussianTensors) -> GaussianTensors {
-        GaussianTensors { amplitudes: gaussians.amplitudes.clone() * self.density_scale(), ..gaussians.clone() }
+        GaussianTensors { amplitudes: gaussians.amplitudes.clone() * self.density_scale() / self.unit, ..gaussians.clone() }
     }
 
     /// The same for posed Gaussians on the CPU (rendering's sky visibility, the sun search).
     pub fn shadow_casters_posed(&self, posed: &[crate::gaussians::PosedGaussian]) -> Vec<crate::gaussians::PosedGaussian> {
         let scale = self.density_scale().into_data().convert::<f64>().try_to_vec::<f64>().ok().and_then(|v| v.first().copied()).unwrap_or(1.0);
-        posed.iter().map(|g| crate::gaussians::PosedGaussian { amplitude: g.amplitude * scale, ..*g }).collect()
+        let per_metre = scale / self.unit as f64;
+        posed.iter().map(|g| crate::gaussians::PosedGaussian { amplitude: g.amplitude * per_metre, ..*g }).collect()
     }
 
     /// The light as plain numbers for fit.json: direction or position, ambient, intensity.
@@ -138,7 +179,7 @@ impl LightModel {
                 serde_json::json!({"type": "directional", "direction": v(self.direction()), "irradiance": [1.0, 1.0, 1.0], "ambient": ambient, "shadow_density_scale": v(self.density_scale())})
             }
             LightKind::Point => {
-                serde_json::json!({"type": "point", "position": v(self.vector.val()), "intensity": v(self.log_intensity.val().exp()).repeat(3), "ambient": ambient, "shadow_density_scale": v(self.density_scale())})
+                serde_json::json!({"type": "point", "position": v(self.position()), "intensity": v(self.intensity()).repeat(3), "ambient": ambient, "shadow_density_scale": v(self.density_scale())})
             }
             LightKind::Uniform => serde_json::json!({"type": "uniform", "radiance": [1.0, 1.0, 1.0]}),
         }

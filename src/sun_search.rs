@@ -1,4 +1,5 @@
-//! A global search for the sun's direction, run once when the light starts to be fitted.
+//! A global search for the light, run once when it starts to be fitted: a sun's direction or
+//! a point light's position.
 //!
 //! Gradient descent on the direction alone finds the nearest minimum of the photometric loss,
 //! and with one camera that is often a wrong one: the sun slides behind the character along the
@@ -11,6 +12,12 @@
 //! least squares per channel (both non-negative): a direction is good when its shading pattern
 //! and cast shadows explain the images, whatever the light's strength. The winner seeds the
 //! gradient descent, which refines it.
+//!
+//! A point light is searched the same way over positions: the sphere's directions from the
+//! body's centre times a geometric ladder of distances in units of the body's extent, its
+//! shading `max(0, n.l) T / r^2` with the shadow ray ending at the light. The near lamps that
+//! 1 / r^2 makes hard to find by descent (the falloff across the body is what places them) are
+//! on the ladder's lower rungs.
 
 use crate::shadow::{ShadowCaster, ShadowRay};
 use glam::DVec3;
@@ -28,12 +35,26 @@ pub struct SurfaceSample {
     pub colour: [f32; 3],
 }
 
-/// A scored candidate direction (toward the sun).
+/// A scored candidate: a direction toward a sun, or a point light's position (its direction
+/// then the one from the body's centre).
 #[derive(Clone, Copy, Debug, serde::Serialize, serde::Deserialize)]
 pub struct Candidate {
     pub direction: [f64; 3],
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub position: Option<[f64; 3]>,
     /// Mean squared residual per sample and channel.
     pub residual: f64,
+    /// The light's strength the least squares gave (mean over channels): a sun's irradiance or
+    /// a point light's intensity, relative to the albedo as it stands.
+    #[serde(default)]
+    pub strength: f64,
+}
+
+/// Where a candidate light is, as the shading of a sample needs it.
+#[derive(Clone, Copy, Debug)]
+pub enum Toward {
+    Sun(DVec3),
+    Point(DVec3),
 }
 
 /// The search's outcome: the best direction and how many were scored.
@@ -76,8 +97,8 @@ pub fn cap(centre: DVec3, angle: f64, n: usize) -> Vec<DVec3> {
 }
 
 /// Least squares of `y = a x + k x s` with `a, k >= 0` over `(x, s, y)` triples; returns the
-/// squared residual.
-fn residual(triples: impl Iterator<Item = (f64, f64, f64)>) -> f64 {
+/// squared residual and `k`.
+fn residual(triples: impl Iterator<Item = (f64, f64, f64)>) -> (f64, f64) {
     let (mut xx, mut xxs, mut xsxs, mut xy, mut xsy, mut yy) = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0);
     for (x, s, y) in triples {
         let z = x * s;
@@ -95,54 +116,117 @@ fn residual(triples: impl Iterator<Item = (f64, f64, f64)>) -> f64 {
         let a = (xy * xsxs - xsy * xxs) / det;
         let k = (xsy * xx - xy * xxs) / det;
         if a >= 0.0 && k >= 0.0 {
-            return sse(a, k);
+            return (sse(a, k), k);
         }
     }
     // On the boundary: ambient only, or sun only.
     let a = if xx > 0.0 { (xy / xx).max(0.0) } else { 0.0 };
     let k = if xsxs > 0.0 { (xsy / xsxs).max(0.0) } else { 0.0 };
-    sse(a, 0.0).min(sse(0.0, k))
+    if sse(a, 0.0) <= sse(0.0, k) {
+        (sse(a, 0.0), 0.0)
+    } else {
+        (sse(0.0, k), k)
+    }
 }
 
-/// The residual of `direction` on `samples`, shadowed by `casters[frame]`; `start` is the
-/// shadow ray's offset off the surface (as in training).
-pub fn score(samples: &[SurfaceSample], casters: &[ShadowCaster], direction: DVec3, start: f32) -> f64 {
-    let l = direction.normalize().as_vec3().to_array();
+/// The residual of a candidate light on `samples`, shadowed by `casters[frame]`, and the
+/// light's least-squares strength; `start` is the shadow ray's offset off the surface (as in
+/// training).
+pub fn score(samples: &[SurfaceSample], casters: &[ShadowCaster], light: Toward, start: f32) -> (f64, f64) {
     let shading: Vec<f64> = samples
         .par_iter()
         .with_min_len(64)
         .map(|s| {
+            let point = DVec3::from_array(s.point.map(|c| c as f64));
+            let (l, t1, falloff) = match light {
+                Toward::Sun(d) => (d.normalize(), f32::INFINITY, 1.0),
+                Toward::Point(p) => {
+                    let r = (p - point).length().max(1e-6);
+                    ((p - point) / r, r as f32, 1.0 / (r * r))
+                }
+            };
+            let l = l.as_vec3().to_array();
             let cosine = s.normal[0] * l[0] + s.normal[1] * l[1] + s.normal[2] * l[2];
-            if cosine <= 0.0 {
+            if cosine <= 0.0 || t1 <= start {
                 return 0.0;
             }
             let origin = [0, 1, 2].map(|a| s.point[a] + s.normal[a] * start);
-            let ray = ShadowRay { origin, direction: l, t0: start, t1: f32::INFINITY };
+            let ray = ShadowRay { origin, direction: l, t0: start, t1 };
             let visibility = casters.get(s.frame).map(|c| c.transmittance(&ray, true)).unwrap_or(1.0);
-            (cosine * visibility) as f64
+            (cosine * visibility) as f64 * falloff
         })
         .collect();
-    let total: f64 = (0..3).map(|c| residual(samples.iter().zip(&shading).map(|(s, &k)| (s.albedo[c] as f64, k, s.colour[c] as f64)))).sum();
-    total / (3 * samples.len().max(1)) as f64
+    let (mut total, mut strength) = (0.0, 0.0);
+    for c in 0..3 {
+        let (sse, k) = residual(samples.iter().zip(&shading).map(|(s, &k)| (s.albedo[c] as f64, k, s.colour[c] as f64)));
+        total += sse;
+        strength += k / 3.0;
+    }
+    (total / (3 * samples.len().max(1)) as f64, strength)
+}
+
+/// Scores candidates; a non-finite score (a NaN sample) ranks last and stays representable
+/// in JSON.
+fn scored(samples: &[SurfaceSample], casters: &[ShadowCaster], start: f32, lights: Vec<(DVec3, Option<DVec3>)>) -> Vec<Candidate> {
+    lights
+        .into_iter()
+        .map(|(direction, position)| {
+            let toward = position.map_or(Toward::Sun(direction), Toward::Point);
+            let (residual, strength) = score(samples, casters, toward, start);
+            let residual = Some(residual).filter(|r| r.is_finite()).unwrap_or(f64::MAX);
+            Candidate { direction: direction.to_array(), position: position.map(|p| p.to_array()), residual, strength }
+        })
+        .collect()
+}
+
+fn best_of(candidates: &[Candidate]) -> Option<Candidate> {
+    candidates.iter().copied().min_by(|a, b| a.residual.total_cmp(&b.residual))
 }
 
 /// Scores `coarse` directions over the sphere, then `fine` in a cap around the best (of the
 /// coarse set's spacing), and returns the best of all.
 pub fn search(samples: &[SurfaceSample], casters: &[ShadowCaster], coarse: usize, fine: usize, start: f32) -> SearchReport {
-    let scored = |directions: Vec<DVec3>| -> Vec<Candidate> {
-        // A non-finite score (a NaN sample) ranks last and stays representable in JSON.
-        directions
-            .into_iter()
-            .map(|d| Candidate { direction: d.to_array(), residual: Some(score(samples, casters, d, start)).filter(|r| r.is_finite()).unwrap_or(f64::MAX) })
-            .collect()
-    };
-    let best_of = |candidates: &[Candidate]| candidates.iter().copied().min_by(|a, b| a.residual.total_cmp(&b.residual));
-    let first = scored(sphere(coarse.max(1)));
-    let fallback = Candidate { direction: [0.0, 1.0, 0.0], residual: f64::MAX };
+    let suns = |directions: Vec<DVec3>| directions.into_iter().map(|d| (d, None)).collect();
+    let first = scored(samples, casters, start, suns(sphere(coarse.max(1))));
+    let fallback = Candidate { direction: [0.0, 1.0, 0.0], position: None, residual: f64::MAX, strength: 0.0 };
     let coarse_best = best_of(&first).unwrap_or(fallback);
     // The coarse set's spacing: each direction covers 4 pi / n steradians.
     let spacing = (4.0 / coarse.max(1) as f64).sqrt();
-    let second = scored(cap(DVec3::from_array(coarse_best.direction), spacing, fine));
+    let second = scored(samples, casters, start, suns(cap(DVec3::from_array(coarse_best.direction), spacing, fine)));
+    let best = best_of(&second).filter(|b| b.residual < coarse_best.residual).unwrap_or(coarse_best);
+    SearchReport { best, coarse_best, candidates: first.len() + second.len(), samples: samples.len() }
+}
+
+/// Rungs of the point light's distance ladder, and their ratio: from a third of the body's
+/// extent from its centre (a lamp within arm's reach) to about 8 extents, where a point light
+/// is nearly a sun.
+const RUNGS: usize = 10;
+const RUNG_RATIO: f64 = std::f64::consts::SQRT_2;
+const NEAREST_RUNG: f64 = 0.35;
+
+/// A point light's position: `directions` over the sphere from `centre` times the distance
+/// ladder (in units of `extent`, the body's size), then a cap of `fine` directions around
+/// the best times five finer rungs around its distance.
+pub fn search_point(
+    samples: &[SurfaceSample],
+    casters: &[ShadowCaster],
+    centre: DVec3,
+    extent: f64,
+    directions: usize,
+    fine: usize,
+    start: f32,
+) -> SearchReport {
+    let at = |dirs: Vec<DVec3>, distances: &[f64]| -> Vec<(DVec3, Option<DVec3>)> {
+        dirs.iter().flat_map(|&d| distances.iter().map(move |&r| (d, Some(centre + d * r)))).collect()
+    };
+    let ladder: Vec<f64> = (0..RUNGS).map(|k| extent * NEAREST_RUNG * RUNG_RATIO.powi(k as i32)).collect();
+    let first = scored(samples, casters, start, at(sphere(directions.max(1)), &ladder));
+    let fallback = Candidate { direction: [0.0, 1.0, 0.0], position: Some((centre + DVec3::Y * extent).to_array()), residual: f64::MAX, strength: 0.0 };
+    let coarse_best = best_of(&first).unwrap_or(fallback);
+    let distance = coarse_best.position.map_or(extent, |p| (DVec3::from_array(p) - centre).length());
+    let finer: Vec<f64> = (-2..=2).map(|j| distance * RUNG_RATIO.powf(j as f64 / 4.0)).collect();
+    let spacing = (4.0 / directions.max(1) as f64).sqrt();
+    let second = scored(samples, casters, start, at(cap(DVec3::from_array(coarse_best.direction), spacing, fine), &finer));
     let best = best_of(&second).filter(|b| b.residual < coarse_best.residual).unwrap_or(coarse_best);
     SearchReport { best, coarse_best, candidates: first.len() + second.len(), samples: samples.len() }
 }
@@ -173,12 +257,28 @@ mod tests {
         let ys: Vec<f64> = xs.iter().zip(&ss).map(|(x, s)| x * (0.2 + 0.9 * s)).collect();
         let energy: f64 = ys.iter().map(|y| y * y).sum();
         let triples = |ys: &[f64]| xs.iter().zip(&ss).zip(ys).map(|((&x, &s), &y)| (x, s, y)).collect::<Vec<_>>();
-        assert!(residual(triples(&ys).into_iter()) < 1e-12 * energy);
+        let (sse, k) = residual(triples(&ys).into_iter());
+        assert!(sse < 1e-12 * energy && (k - 0.9).abs() < 1e-9, "{sse} {k}");
         // A sun that darkens (negative k) is not allowed: the residual is that of a >= 0, k = 0.
         let ys_neg: Vec<f64> = xs.iter().zip(&ss).map(|(x, s)| x * (0.9 - 0.5 * s)).collect();
         let best_ambient = xs.iter().zip(&ys_neg).map(|(x, y)| x * y).sum::<f64>() / xs.iter().map(|x| x * x).sum::<f64>();
         let expected: f64 = xs.iter().zip(&ys_neg).map(|(x, y)| (y - best_ambient * x).powi(2)).sum();
-        assert!((residual(triples(&ys_neg).into_iter()) - expected).abs() < 1e-12);
+        assert!((residual(triples(&ys_neg).into_iter()).0 - expected).abs() < 1e-12);
+    }
+
+    /// Samples of the half of a unit sphere a camera on +z sees (the case that misleads
+    /// gradient descent), two albedos, shaded by `shade(normal)`.
+    fn visible_half(shade: impl Fn(DVec3) -> f64) -> Vec<SurfaceSample> {
+        sphere(800)
+            .into_iter()
+            .filter(|n| n.z > 0.05)
+            .enumerate()
+            .map(|(k, n)| {
+                let albedo = if k % 3 == 0 { [0.8, 0.3, 0.2] } else { [0.4, 0.6, 0.7] };
+                let s = shade(n) as f32;
+                SurfaceSample { frame: 0, point: n.as_vec3().to_array(), normal: n.as_vec3().to_array(), albedo, colour: albedo.map(|a| a * s) }
+            })
+            .collect()
     }
 
     /// A sphere of samples lit by a known sun, no casters, seen from one side: the search finds
@@ -187,20 +287,27 @@ mod tests {
     fn the_search_finds_the_sun_of_a_lit_sphere() {
         for sun in [DVec3::new(0.45, 0.8, 0.4), DVec3::new(-0.7, -0.2, 0.68), DVec3::new(0.0, 0.1, -1.0)] {
             let sun = sun.normalize();
-            // Only the hemisphere a camera on +z sees: the case that misleads gradient descent.
-            let samples: Vec<SurfaceSample> = sphere(800)
-                .into_iter()
-                .filter(|n| n.z > 0.05)
-                .enumerate()
-                .map(|(k, n)| {
-                    let albedo = if k % 3 == 0 { [0.8, 0.3, 0.2] } else { [0.4, 0.6, 0.7] };
-                    let shade = 0.25 + n.dot(sun).max(0.0);
-                    SurfaceSample { frame: 0, point: n.as_vec3().to_array(), normal: n.as_vec3().to_array(), albedo, colour: albedo.map(|a| a * shade as f32) }
-                })
-                .collect();
+            let samples = visible_half(|n| 0.25 + n.dot(sun).max(0.0));
             let report = search(&samples, &[], 256, 64, 0.01);
             let error = DVec3::from_array(report.best.direction).angle_between(sun).to_degrees();
             assert!(error < 5.0, "sun {sun:?}: found {:?}, {error:.1} degrees off", report.best.direction);
+        }
+    }
+
+    /// The same for a point light 0.8-2 radii off the surface of a unit sphere: its position
+    /// within a tenth of its distance from the centre.
+    #[test]
+    fn the_search_finds_a_near_point_light() {
+        for lamp in [DVec3::new(0.8, 1.2, 0.9), DVec3::new(-1.5, 0.4, 0.5), DVec3::new(0.2, 2.5, -1.0)] {
+            let samples = visible_half(|n| {
+                let to = lamp - n;
+                0.2 + 2.0 * n.dot(to.normalize()).max(0.0) / to.length_squared()
+            });
+            let report = search_point(&samples, &[], DVec3::ZERO, 2.0, 128, 32, 0.01);
+            let found = DVec3::from_array(report.best.position.unwrap());
+            let error = (found - lamp).length();
+            assert!(error < 0.1 * lamp.length(), "lamp {lamp:?}: found {found:?}, {error:.3} off");
+            assert!((report.best.strength - 2.0).abs() < 0.5, "strength {}", report.best.strength);
         }
     }
 }

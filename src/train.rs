@@ -187,6 +187,10 @@ struct ViewData {
     boundary: Vec<usize>,
 }
 
+/// How far above the body's centre a point light starts, in body extents (2.5 m for a walking
+/// human, as before the start was derived from the body).
+const LAMP_START_PER_EXTENT: f64 = 1.3;
+
 /// Half-width (pixels) of the band around a silhouette that a third of each batch samples:
 /// there the surface's position is decided, and uniform sampling hits it rarely (a few
 /// percent of a view's pixels).
@@ -230,6 +234,10 @@ pub struct Trainer {
     pub render_missed_rays: bool,
     /// How far (m) the body's box reaches beyond the posed bones (the grid's reach).
     body_reach: f64,
+    /// The centre of the skeleton's bounds over the capture and the body's extent (m): where
+    /// and at what distances a point light is searched.
+    body_centre: glam::DVec3,
+    body_extent: f64,
     bone_centres: Tensor<2>,
     /// What the sun search found, once it has run (`sun_search`).
     pub sun_search: Option<crate::sun_search::SearchReport>,
@@ -243,11 +251,23 @@ pub struct Trainer {
 /// The field the schedule asks for: the Fourier `mlp` field, or feature grids shaped by the
 /// body's `extent` (the diagonal of the posed skeleton's bounds, m) with the schedule's overrides.
 pub fn field_config(settings: &crate::schedule::FieldSettings, skeleton: &crate::skeleton::Skeleton, extent: f32) -> FieldConfig {
-    let min_beta = extent * crate::field::MIN_BETA_PER_EXTENT;
+    // The field's lengths (tuned in metres on the reference human) follow the body's size.
+    let scaled = |config: FieldConfig| {
+        let unit = crate::skeleton::body_length(1.0, extent as f64) as f32;
+        FieldConfig {
+            min_beta: extent * crate::field::MIN_BETA_PER_EXTENT,
+            skinning_width: config.skinning_width * unit,
+            prior_radius: config.prior_radius * unit,
+            initial_beta: config.initial_beta * unit,
+            residual_scale: config.residual_scale * unit,
+            frequencies: config.frequencies.iter().map(|f| f / unit).collect(),
+            ..config
+        }
+    };
     match settings.kind {
-        crate::schedule::FieldKind::Mlp => FieldConfig { min_beta, ..FieldConfig::for_bones(skeleton.len()) },
+        crate::schedule::FieldKind::Mlp => scaled(FieldConfig::for_bones(skeleton.len())),
         crate::schedule::FieldKind::Grid => {
-            let mut config = FieldConfig { min_beta, ..FieldConfig::with_grid(skeleton.bones.iter().map(|b| b.length as f32).collect(), extent) };
+            let mut config = scaled(FieldConfig::with_grid(skeleton.bones.iter().map(|b| b.length as f32).collect(), extent));
             if let Some(grid) = config.grid.as_mut() {
                 grid.levels = settings.levels.unwrap_or(grid.levels);
                 grid.table_log2 = settings.table_log2.unwrap_or(grid.table_log2);
@@ -380,25 +400,26 @@ impl Trainer {
                 boundary: v.mask.as_ref().map(|m| boundary_pixels(m, BOUNDARY_BAND)).unwrap_or_default(),
             })
             .collect();
-        let set = GaussianSet::along_bones(&scene.skeleton, 4, 0.05, 10.0);
+        let extent = scene.body_extent();
+        let unit = crate::skeleton::body_length(1.0, extent);
+        // Four Gaussians per bone, 5 cm wide on the reference human.
+        let set = GaussianSet::along_bones(&scene.skeleton, 4, 0.05 * unit, 10.0);
         let (lo, hi) = scene
             .frames
             .iter()
             .map(|f| f.pose.bounds(&scene.skeleton))
             .fold((glam::DVec3::splat(f64::INFINITY), glam::DVec3::splat(f64::NEG_INFINITY)), |a, b| (a.0.min(b.0), a.1.max(b.1)));
         let centre = (lo + hi) * 0.5;
+        // A point light starts above the body (the light search moves it before it is used).
         let initial = match light_kind {
-            LightKind::Point => (centre + glam::DVec3::new(0.0, 2.5, 0.0)).as_vec3().to_array(),
+            LightKind::Point => (centre + glam::DVec3::Y * (LAMP_START_PER_EXTENT * extent)).as_vec3().to_array(),
             _ => [0.0, 1.0, 0.0],
         };
-        // The body's size: the largest diagonal of one frame's skeleton bounds (a character
-        // that walks across the scene is no bigger for it).
-        let extent = scene.frames.iter().map(|f| f.pose.bounds(&scene.skeleton)).map(|(a, b)| (b - a).length()).fold(0.0, f64::max);
         let field_config = field_config(&schedule.field, &scene.skeleton, extent as f32);
         let model = Avatar {
             field: field_config.init(&device, seed),
-            gaussians: GaussianParams::from_set(&set, &device),
-            light: LightModel::new(light_kind, initial, 0.3, &device),
+            gaussians: GaussianParams::from_set(&set, unit as f32, &device),
+            light: LightModel::new(light_kind, initial, centre.as_vec3().to_array(), extent, 0.3, &device),
         };
         let centres: Vec<f32> = set.gaussians.iter().flat_map(|g| [0.0, scene.skeleton.bones[g.bone].length as f32 / 2.0, 0.0]).collect();
         let bone_centres = Tensor::from_data(TensorData::new(centres, [set.len(), 3]), &device);
@@ -422,6 +443,8 @@ impl Trainer {
             stream: Stream::new(seed, 0x7AA1, 0),
             gradient: crate::field::GRADIENT,
             render_missed_rays: false,
+            body_centre: centre,
+            body_extent: extent,
             body_reach: field_config.grid.as_ref().map_or(extent * crate::field::grid::REACH_PER_EXTENT as f64, |g| g.reach as f64),
             sun_search: None,
             sun_cone: None,
@@ -477,7 +500,7 @@ impl Trainer {
             let pixel = if pool.is_empty() { self.stream.below(pixels) } else { pool[self.stream.below(pool.len())] };
             let ray = camera.pixel_ray(pixel % camera.width, pixel / camera.width);
             let mask = view.mask.as_ref().map(|m| m.foreground[pixel] as u8 as f32).unwrap_or(0.0);
-            let bounds = match (ray_bounds(ray.origin, ray.direction, &posed), body_box) {
+            let bounds = match (ray_bounds(ray.origin, ray.direction, &posed, self.min_bound_radius()), body_box) {
                 (None, Some((lo, hi))) if mask > 0.5 => box_bounds(ray.origin, ray.direction, lo, hi),
                 (bounds, _) => bounds,
             };
@@ -497,6 +520,16 @@ impl Trainer {
         (frame, rays, colours, masks, hits)
     }
 
+    /// The body's length unit: `skeleton::body_length(1, extent)`.
+    fn body_unit(&self) -> f64 {
+        crate::skeleton::body_length(1.0, self.body_extent)
+    }
+
+    /// The least radius of a Gaussian's bound on this body.
+    fn min_bound_radius(&self) -> f64 {
+        crate::render::MIN_BOUND_RADIUS * self.body_unit()
+    }
+
     fn random_indices(&mut self, count: usize, below: usize) -> Tensor<1, Int> {
         let idx: Vec<i64> = (0..count).map(|_| self.stream.below(below) as i64).collect();
         Tensor::from_data(TensorData::new(idx, [count]), &self.device)
@@ -507,9 +540,10 @@ impl Trainer {
     /// Foreground rays per search frame.
     const SEARCH_RAYS: usize = 256;
 
-    /// Scores sun directions over the sphere on surface samples of several frames (with the
-    /// Gaussians' cast shadows) and starts the light from the best (`sun_search`).
-    fn search_sun(&mut self) -> Result<(), FitError> {
+    /// Scores sun directions over the sphere (or point light positions around the body) on
+    /// surface samples of several frames (with the Gaussians' cast shadows) and starts the
+    /// light from the best (`sun_search`).
+    fn search_light(&mut self) -> Result<(), FitError> {
         let model = self.model()?.valid();
         let device = self.device.clone().without_autodiff();
         let set = model.gaussians.to_set();
@@ -533,7 +567,7 @@ impl Trainer {
                 let view = &self.scene.views[v];
                 let camera = &self.scene.cameras[view.camera];
                 let ray = camera.pixel_ray(pixel % camera.width, pixel / camera.width);
-                if let Some(bounds) = ray_bounds(ray.origin, ray.direction, &posed) {
+                if let Some(bounds) = ray_bounds(ray.origin, ray.direction, &posed, self.min_bound_radius()) {
                     rays.push(ray.origin, ray.direction, Some(bounds));
                     colours.push(view.colour.pixels[pixel]);
                 }
@@ -574,18 +608,36 @@ impl Trainer {
         if samples.is_empty() {
             return Ok(());
         }
-        let report = crate::sun_search::search(&samples, &casters, self.schedule.sun_search, 64, crate::shading::SHADOW_START);
+        let start = model.light.shadow_start;
+        let report = match self.light_kind {
+            LightKind::Point => {
+                let directions = (self.schedule.sun_search / 2).max(1);
+                crate::sun_search::search_point(&samples, &casters, self.body_centre, self.body_extent, directions, 32, start)
+            }
+            _ => crate::sun_search::search(&samples, &casters, self.schedule.sun_search, 64, start),
+        };
         let mut model = self.model.take().ok_or_else(|| FitError::Input("the model was lost by an interrupted step".into()))?;
-        let d = report.best.direction.map(|c| c as f32);
         let device = self.device.clone();
+        let vector = match report.best.position {
+            Some(position) => position.map(|c| (c / self.body_unit()) as f32),
+            None => report.best.direction.map(|c| c as f32),
+        };
         // The same parameter (its id keys the optimizer's state), a new value.
-        model.light.vector = model.light.vector.map(|_| Tensor::from_data(TensorData::new(d.to_vec(), [3]), &device).require_grad());
+        model.light.vector = model.light.vector.map(|_| Tensor::from_data(TensorData::new(vector.to_vec(), [3]), &device).require_grad());
+        if report.best.position.is_some() && report.best.strength.is_finite() && report.best.strength > 0.0 {
+            // The search's intensity, as the irradiance at the body's centre.
+            let distance = report.best.position.map_or(1.0, |p| (glam::DVec3::from_array(p) - self.body_centre).length().max(1e-6));
+            let log = (report.best.strength / (distance * distance)).ln() as f32;
+            model.light.log_intensity = model.light.log_intensity.map(|_| Tensor::from_data(TensorData::new(vec![log], [1]), &device).require_grad());
+        }
         self.model = Some(model);
-        // Gradient descent refines the direction within SUN_CONE_SPACINGS lattice spacings of
-        // the search's best and no farther: with one camera it otherwise slides back to the
-        // minimum the search escaped.
-        let spacing = (4.0 / self.schedule.sun_search as f64).sqrt();
-        self.sun_cone = Some((glam::DVec3::from_array(report.best.direction), spacing * SUN_CONE_SPACINGS));
+        if self.light_kind == LightKind::Directional {
+            // Gradient descent refines the direction within SUN_CONE_SPACINGS lattice spacings
+            // of the search's best and no farther: with one camera it otherwise slides back to
+            // the minimum the search escaped.
+            let spacing = (4.0 / self.schedule.sun_search as f64).sqrt();
+            self.sun_cone = Some((glam::DVec3::from_array(report.best.direction), spacing * SUN_CONE_SPACINGS));
+        }
         self.sun_search = Some(report);
         Ok(())
     }
@@ -595,8 +647,8 @@ impl Trainer {
         let start = Instant::now();
         let mut clock = PhaseClock::start();
         let it = self.iteration;
-        if it == self.schedule.light_from && self.fit_light && self.light_kind == LightKind::Directional && self.schedule.sun_search > 0 {
-            self.search_sun()?;
+        if it == self.schedule.light_from && self.fit_light && self.light_kind != LightKind::Uniform && self.schedule.sun_search > 0 {
+            self.search_light()?;
             clock.mark(0);
         }
         let set = self.model()?.gaussians.to_set();
@@ -648,15 +700,16 @@ impl Trainer {
         if w("density") > 0.0 && self.schedule.density_points > 0 {
             let idx = self.random_indices(self.schedule.density_points, rendered * s);
             let points = deferred.sample_points.clone().detach().select(0, idx.clone());
-            let field_density = deferred.sample_density.clone().detach().select(0, idx);
+            // The Gaussians' amplitudes are optical density per body unit.
+            let field_density = deferred.sample_density.clone().detach().select(0, idx) * model.light.unit;
             let mixture = GaussianParams::mixture_density(&posed, points);
             terms.push(("density", w("density"), crate::losses::density(mixture, field_density)));
         }
         if w("sigma") > 0.0 {
-            terms.push(("sigma", w("sigma"), crate::losses::sigma(model.gaussians.scales())));
+            terms.push(("sigma", w("sigma"), crate::losses::sigma(model.gaussians.scales() / model.light.unit)));
         }
         if w("mean") > 0.0 {
-            terms.push(("mean", w("mean"), crate::losses::mean(model.gaussians.means.val(), self.bone_centres.clone())));
+            terms.push(("mean", w("mean"), crate::losses::mean(model.gaussians.means.val(), self.bone_centres.clone() / model.light.unit)));
         }
         if w("ambient") > 0.0 && self.fit_light {
             terms.push(("ambient", w("ambient"), crate::losses::ambient(model.light.ambient(), self.schedule.ambient_target)));
@@ -671,7 +724,8 @@ impl Trainer {
                 terms.push(("eikonal", w("eikonal"), crate::losses::eikonal(gradient.clone())));
             }
             if w("curvature") > 0.0 {
-                let noise: Vec<f32> = (0..q * 3).map(|_| ((self.stream.uniform() - 0.5) * 2.0 * self.schedule.curvature_epsilon) as f32).collect();
+                let noise: Vec<f32> =
+                    (0..q * 3).map(|_| ((self.stream.uniform() - 0.5) * 2.0 * self.schedule.curvature_epsilon * self.body_unit()) as f32).collect();
                 let perturbed = points + Tensor::<2>::from_data(TensorData::new(noise, [q, 3]), &device);
                 let g2 = model.field.sdf_gradient(perturbed, &pose, self.gradient);
                 let unit = |g: Tensor<2>| g.clone() / (g.clone() * g).sum_dim(1).sqrt().clamp_min(1e-6);

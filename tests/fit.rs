@@ -396,3 +396,65 @@ fn ablate_compares_schedules_in_one_table_and_checks_them_all_first() {
     assert!(err.contains("light.toml") && err.contains("uniformly lit"), "{err}");
     assert!(!dir.path().join("refused").exists(), "nothing written");
 }
+
+/// Every length of a fit follows the body: the same capture at a third and at three times
+/// the size (`synth --scale`: the same images up to the tracer's epsilons) takes the same
+/// steps, every loss term equal to a small tolerance, with the default schedule's terms all
+/// on (field, Gaussians, light and their regularisers).
+#[test]
+fn a_fit_of_the_same_capture_at_another_size_takes_the_same_steps() {
+    let dir = TempDir::new("scale");
+    let scene_at = |scale: f64| {
+        let options = umbra::synth::SynthOptions {
+            size: 32,
+            cameras: 4,
+            frames: 2,
+            test_frames: 1,
+            test: vec![TestKind::Poses],
+            samples: 4,
+            seed: 5,
+            scale,
+            ..umbra::synth::SynthOptions::default()
+        };
+        let out = dir.path().join(format!("scale-{scale}"));
+        umbra::synth::generate(&options, &out, false, |_, _| {}).unwrap();
+        umbra::scene::Scene::load(&out).unwrap()
+    };
+    let text = r#"
+iterations = 6
+rays_per_batch = 256
+samples_per_ray = 16
+fine_samples_per_ray = 8
+probe_samples_per_ray = 8
+density_points = 64
+regulariser_points = 32
+light_from = 0
+[field]
+kind = "grid"
+[losses]
+mask = 1.0
+rgb = 1.0
+grey = 0.1
+density = 0.5
+sigma = 0.25
+mean = 0.5
+ambient = 0.2
+eikonal = 0.1
+curvature = 0.05
+"#;
+    let schedule = Schedule::parse(text, Path::new("scale.toml")).unwrap();
+    let steps = |scene| {
+        let mut trainer = Trainer::new(scene, schedule.clone(), Backend::Flex, 2).unwrap();
+        (0..6).map(|_| trainer.step().unwrap().terms).collect::<Vec<_>>()
+    };
+    let one = steps(scene_at(1.0));
+    for scale in [1.0 / 3.0, 3.0] {
+        let other = steps(scene_at(scale));
+        for (k, (a, b)) in one.iter().zip(&other).enumerate() {
+            for (term, x) in a {
+                let y = b[term];
+                assert!((x - y).abs() <= 0.03 * x.abs().max(1e-3), "scale {scale}, step {k}, {term}: {x} at scale 1, {y}");
+            }
+        }
+    }
+}

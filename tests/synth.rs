@@ -209,7 +209,7 @@ fn uniform_light_without_occlusion_is_albedo_times_radiance() {
 
 #[test]
 fn shipped_scenes_reproduce_byte_for_byte_from_their_options() {
-    for name in ["human-sun", "dog-sun", "human-mono", "human-sun-128", "human-dressed"] {
+    for name in ["human-sun", "dog-sun", "human-mono", "human-sun-128", "human-dressed", "human-lamp"] {
         let shipped = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("datasets-synthetic").join(name);
         let text = std::fs::read_to_string(shipped.join("scene.json")).unwrap();
         let json: serde_json::Value = serde_json::from_str(&text).unwrap();
@@ -283,4 +283,24 @@ fn a_scaled_capture_is_the_same_images_of_a_larger_world() {
         }
         assert!(differing * 100 <= total, "{kind:?}: {differing} of {total} pixels differ");
     }
+}
+
+#[test]
+fn a_near_lamp_sits_at_its_distance_and_lights_the_body_as_brightly() {
+    let base = SynthOptions { test: vec![TestKind::Poses], meshes: false, ..tiny(Kind::Human, TrainingLight::Point) };
+    let near = SynthOptions { lamp_distance: Some(1.0), ..base.clone() };
+    let (far, near) = (base.plan().unwrap(), near.plan().unwrap());
+    let centre = DVec3::new(0.0, 0.9, 0.0);
+    match (&far.lights[0].1, &near.lights[0].1) {
+        (Light::Point { position: pf, intensity: i_far, .. }, Light::Point { position: pn, intensity: i_near, .. }) => {
+            assert!(((*pn - centre).length() - 1.0).abs() < 1e-12, "{pn:?}");
+            assert!((*pn - centre).normalize().dot((*pf - centre).normalize()) > 1.0 - 1e-12, "same direction");
+            let ratio = (*pn - centre).length() / (*pf - centre).length();
+            assert!((*i_near - *i_far * (ratio * ratio)).length() < 1e-12);
+        }
+        _ => panic!("the training light is a lamp"),
+    }
+    // Only a point-lit capture has a lamp to place, and not inside the body.
+    assert!(SynthOptions { lamp_distance: Some(1.0), ..tiny(Kind::Human, TrainingLight::Sun) }.plan().is_err());
+    assert!(SynthOptions { lamp_distance: Some(0.1), ..base }.plan().is_err());
 }

@@ -81,6 +81,9 @@ pub struct FieldConfig {
     /// Radius (m) of the capsule prior the MLP's SDF is a residual of.
     pub prior_radius: f32,
     pub initial_beta: f32,
+    /// Metres of SDF per unit of the decoder's output (the residual on the capsule prior).
+    #[serde(default = "default_residual_scale")]
+    pub residual_scale: f32,
     /// The least beta (m), so density stays finite and the sampler can resolve the surface.
     #[serde(default = "default_min_beta")]
     pub min_beta: f32,
@@ -100,6 +103,7 @@ impl FieldConfig {
             skinning_width: 0.05,
             prior_radius: 0.06,
             initial_beta: 0.03,
+            residual_scale: 0.1,
             min_beta: MIN_BETA,
             grid: None,
         }
@@ -233,6 +237,10 @@ pub struct FieldOutput {
 /// The least beta of a field not sized to a body (`FieldConfig::for_bones`).
 pub const MIN_BETA: f32 = 2e-3;
 
+fn default_residual_scale() -> f32 {
+    0.1
+}
+
 fn default_min_beta() -> f32 {
     MIN_BETA
 }
@@ -271,7 +279,7 @@ impl AvatarField {
             x = relu(layer.forward(x));
         }
         let out = self.output.forward(x);
-        let sdf = prior + out.clone().narrow(1, 0, 1).reshape([n]) * 0.1;
+        let sdf = prior + out.clone().narrow(1, 0, 1).reshape([n]) * self.config.residual_scale;
         let albedo = sigmoid(out.narrow(1, 1, 3) + 0.5);
         FieldOutput { sdf, albedo }
     }
@@ -318,8 +326,9 @@ impl AvatarField {
         }
         let out = self.output.forward(x).narrow(1, 0, 1).reshape([n]);
         let d_out = dx.matmul(self.output.weight.val().narrow(1, 0, 1)).reshape([3, n]);
-        let sdf = prior + out * 0.1;
-        let gradient = (prior_tangents + d_out * 0.1).transpose();
+        let residual = self.config.residual_scale;
+        let sdf = prior + out * residual;
+        let gradient = (prior_tangents + d_out * residual).transpose();
         (sdf, gradient)
     }
 

@@ -106,6 +106,13 @@ impl Scene {
         names
     }
 
+    /// The body's extent (m): the largest diagonal of the posed bones' box over the frames (a
+    /// character that walks across the scene is no bigger for it). The fit's and the
+    /// renderer's lengths are fractions of it (`skeleton::body_length`).
+    pub fn body_extent(&self) -> f64 {
+        self.frames.iter().map(|f| f.pose.bounds(&self.skeleton)).map(|(a, b)| (b - a).length()).fold(0.0, f64::max)
+    }
+
     pub fn display_name(&self) -> String {
         self.name.clone().unwrap_or_else(|| self.root.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default())
     }

@@ -81,6 +81,12 @@ pub struct SynthOptions {
     #[arg(long, default_value_t = 1.0)]
     #[serde(default = "unit_scale", skip_serializing_if = "is_unit_scale")]
     pub scale: f64,
+    /// With `--light point`: put the training lamp this far (metres, before `--scale`) from the
+    /// body's centre, in the direction of its usual place 2.3 m away, its intensity with the
+    /// square of the distance so the body is lit as brightly (a near lamp: 1).
+    #[arg(long)]
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub lamp_distance: Option<f64>,
     /// Also write a ground-truth OBJ mesh per frame (marching tetrahedra of the exact SDF).
     #[arg(long)]
     #[serde(default)]
@@ -117,6 +123,7 @@ impl Default for SynthOptions {
             pattern: Pattern::Plain,
             seed: 0,
             scale: 1.0,
+            lamp_distance: None,
             meshes: false,
             mesh_cell: 0.02,
         }
@@ -205,6 +212,14 @@ impl SynthOptions {
         if !(self.scale >= 0.05 && self.scale <= 20.0) {
             return bad("--scale must be within 0.05..=20");
         }
+        if let Some(d) = self.lamp_distance {
+            if self.light != TrainingLight::Point {
+                return bad("--lamp-distance needs --light point");
+            }
+            if !(d >= 0.5 && d <= 20.0) {
+                return bad("--lamp-distance must be within 0.5..=20 metres (nearer, the lamp would sit inside the body)");
+            }
+        }
         Ok(())
     }
 
@@ -261,7 +276,19 @@ impl SynthOptions {
         let (train_name, train_light) = match self.light {
             TrainingLight::Sun => ("sun", sun([0.45, 0.8, 0.4], [0.85, 0.82, 0.78], [0.2, 0.21, 0.24])),
             TrainingLight::Uniform => ("studio", Light::Uniform { radiance: DVec3::new(0.9, 0.9, 0.88) }),
-            TrainingLight::Point => ("lamp", lamp([1.1, 2.3, 1.4], [4.6, 4.4, 4.1], [0.15, 0.15, 0.17])),
+            TrainingLight::Point => {
+                let (position, intensity) = (DVec3::new(1.1, 2.3, 1.4), DVec3::new(4.6, 4.4, 4.1));
+                let centre = target / self.scale;
+                let (position, intensity) = match self.lamp_distance {
+                    None => (position, intensity),
+                    Some(d) => {
+                        let away = position - centre;
+                        let ratio = d / away.length();
+                        (centre + away * ratio, intensity * (ratio * ratio))
+                    }
+                };
+                ("lamp", lamp(position.to_array(), intensity.to_array(), [0.15, 0.15, 0.17]))
+            }
         };
         let mut lights = vec![(train_name.to_string(), train_light)];
         let relight = self.test.contains(&TestKind::Relight);
