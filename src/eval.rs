@@ -26,8 +26,8 @@ fn values<const D: usize>(t: Tensor<D>) -> Vec<f32> {
 
 /// The light a view is rendered in.
 pub enum Lighting<'a> {
-    /// The fitted light (the albedo, for a uniformly lit fit).
-    Fitted,
+    /// Fitted training light `k` (the albedo, for a uniformly lit fit).
+    Fitted(usize),
     /// Shadow-free reflectance: the fitted albedo times `albedo_scale`.
     Albedo { albedo_scale: DVec3 },
     /// A light of the scene the avatar was not fitted in, with the scale that turns the fitted
@@ -47,9 +47,13 @@ pub fn render_view(model: &Avatar, scene: &Scene, camera: usize, frame: usize, s
     let set = model.gaussians.to_set();
     let posed = set.pose(pose);
     let gaussians = model.gaussians.posed(&pose_tensors);
-    let casters = model.light.shadow_casters(&gaussians);
+    let fitted = match lighting {
+        Lighting::Fitted(k) => model.light_at(*k),
+        _ => &model.light,
+    };
+    let casters = fitted.shadow_casters(&gaussians);
     let needs_normals = match lighting {
-        Lighting::Fitted => model.light.kind != LightKind::Uniform,
+        Lighting::Fitted(_) => model.light.kind != LightKind::Uniform,
         Lighting::Albedo { .. } => false,
         Lighting::Known { .. } => true,
     };
@@ -86,7 +90,7 @@ pub fn render_view(model: &Avatar, scene: &Scene, camera: usize, frame: usize, s
         let scaled =
             |scale: &DVec3| deferred.albedo.clone() * Tensor::<1>::from_data(TensorData::new(scale.as_vec3().to_array().to_vec(), [3]), device).reshape([1, 3]);
         let colour = match (lighting, &deferred.normal) {
-            (Lighting::Fitted, Some(normal)) => values(model.light.shade(deferred.albedo.clone(), deferred.surface.clone(), normal.clone(), &gaussians)),
+            (Lighting::Fitted(_), Some(normal)) => values(fitted.shade(deferred.albedo.clone(), deferred.surface.clone(), normal.clone(), &gaussians)),
             (Lighting::Albedo { albedo_scale }, _) => values(scaled(albedo_scale)),
             (Lighting::Known { light, albedo_scale, .. }, Some(normal)) => match (emitter(light, device), &sampler) {
                 (Some((emitter, ambient)), _) => values(shade_lambertian(

@@ -66,8 +66,11 @@ fn save_checkpoint(trainer: &Trainer, out: &Path, history: &[(usize, StepStats)]
         "iteration": trainer.iteration,
         "iterations_total": trainer.schedule.iterations,
         "stream": trainer.stream.state().to_string(),
-        "sun_search": trainer.sun_search,
-        "sun_cone": trainer.sun_cone.map(|(axis, angle)| json!({"axis": axis.to_array(), "angle_radians": angle})),
+        // The first light's search and cone under their one-light keys, the others' after.
+        "sun_search": trainer.searches.first().cloned().flatten(),
+        "sun_cone": cone_json(trainer.cones.first().copied().flatten()),
+        "light_searches": trainer.searches.iter().skip(1).collect::<Vec<_>>(),
+        "light_cones": trainer.cones.iter().skip(1).map(|c| cone_json(*c)).collect::<Vec<_>>(),
     });
     write_text(&temp.join("state.json"), &state.to_string())?;
     write_text(&temp.join("losses.csv"), &losses_csv(history))?;
@@ -163,23 +166,51 @@ fn load_checkpoint(trainer: &mut Trainer, out: &Path) -> Result<Vec<(usize, Step
     trainer.optimizers = optimizers;
     trainer.iteration = iteration;
     trainer.stream = Stream::from_state(stream);
-    trainer.sun_search = serde_json::from_value(state["sun_search"].clone()).map_err(|e| io(&state_path, format!("sun_search: {e}")))?;
-    trainer.sun_cone = match &state["sun_cone"] {
-        serde_json::Value::Null => None,
-        cone => {
-            let axis: [f64; 3] = serde_json::from_value(cone["axis"].clone()).map_err(|e| io(&state_path, format!("sun_cone.axis: {e}")))?;
-            let angle = cone["angle_radians"]
-                .as_f64()
-                .filter(|a| a.is_finite() && *a >= 0.0)
-                .ok_or_else(|| io(&state_path, "sun_cone.angle_radians: missing or not a finite angle"))?;
-            if !axis.iter().all(|c| c.is_finite()) || glam::DVec3::from_array(axis).length() < 1e-9 {
-                return Err(io(&state_path, "sun_cone.axis: not a finite non-zero vector"));
-            }
-            Some((glam::DVec3::from_array(axis), angle))
-        }
-    };
+    let lights = trainer.cones.len();
+    let mut searches = vec![serde_json::from_value(state["sun_search"].clone()).map_err(|e| io(&state_path, format!("sun_search: {e}")))?];
+    let mut cones = vec![parse_cone(&state["sun_cone"], &state_path, "sun_cone")?];
+    // Checkpoints from before several lights could be fitted have neither list.
+    let others = |key: &str| state[key].as_array().cloned().unwrap_or_default();
+    for (k, value) in others("light_searches").iter().enumerate() {
+        searches.push(serde_json::from_value(value.clone()).map_err(|e| io(&state_path, format!("light_searches[{k}]: {e}")))?);
+    }
+    for (k, value) in others("light_cones").iter().enumerate() {
+        cones.push(parse_cone(value, &state_path, &format!("light_cones[{k}]"))?);
+    }
+    if searches.len() != lights || cones.len() != lights {
+        return Err(io(
+            &state_path,
+            format!(
+                "light_searches, light_cones: the checkpoint holds {} training lights' searches and {} cones, the scene has {lights} training lights",
+                searches.len(),
+                cones.len()
+            ),
+        ));
+    }
+    trainer.searches = searches;
+    trainer.cones = cones;
     let csv = std::fs::read_to_string(dir.join("losses.csv")).map_err(|e| io(&dir.join("losses.csv"), e))?;
     Ok(parse_losses_csv(&csv))
+}
+
+fn cone_json(cone: Option<(glam::DVec3, f64)>) -> serde_json::Value {
+    cone.map_or(json!(null), |(axis, angle)| json!({"axis": axis.to_array(), "angle_radians": angle}))
+}
+
+/// A sun's cone from a checkpoint's `state.json` (`key` names it in errors); null: none.
+fn parse_cone(cone: &serde_json::Value, state_path: &Path, key: &str) -> Result<Option<(glam::DVec3, f64)>, FitError> {
+    if cone.is_null() {
+        return Ok(None);
+    }
+    let axis: [f64; 3] = serde_json::from_value(cone["axis"].clone()).map_err(|e| io(state_path, format!("{key}.axis: {e}")))?;
+    let angle = cone["angle_radians"]
+        .as_f64()
+        .filter(|a| a.is_finite() && *a >= 0.0)
+        .ok_or_else(|| io(state_path, format!("{key}.angle_radians: missing or not a finite angle")))?;
+    if !axis.iter().all(|c| c.is_finite()) || glam::DVec3::from_array(axis).length() < 1e-9 {
+        return Err(io(state_path, format!("{key}.axis: not a finite non-zero vector")));
+    }
+    Ok(Some((glam::DVec3::from_array(axis), angle)))
 }
 
 /// Replaces the trainer's model by the one saved in checkpoint folder `dir`.
@@ -458,24 +489,36 @@ pub fn fit(options: &FitOptions, mut on: impl FnMut(TrainMessage)) -> Result<ser
     };
     stages.push(light_stage);
     let last = history.last().map(|(_, s)| s.clone()).unwrap_or_default();
-    // The sun search's start, with its own error against the scene's sun when it has one.
-    let sun_search = trainer.sun_search.as_ref().map(|r| {
-        let mut value = serde_json::to_value(r).unwrap_or(json!(null));
-        let start = match r.best.position {
-            Some(position) => json!({"position": position}),
-            None => json!({"direction": r.best.direction}),
-        };
-        value["error_against_scene"] = light_error(&trainer, &start);
-        value
-    });
-    let light_error = light_error(&trainer, &light);
+    // Each light search's start, with its own error against the scene's light when it has one.
+    let searches: Vec<serde_json::Value> = trainer
+        .searches
+        .iter()
+        .enumerate()
+        .map(|(k, search)| match search {
+            None => json!(null),
+            Some(r) => {
+                let mut value = serde_json::to_value(r).unwrap_or(json!(null));
+                let start = match r.best.position {
+                    Some(position) => json!({"position": position}),
+                    None => json!({"direction": r.best.direction}),
+                };
+                value["error_against_scene"] = light_error(&trainer, k, &start);
+                value
+            }
+        })
+        .collect();
+    let names = trainer.scene.training_lights();
+    let by_name = |values: Vec<serde_json::Value>| -> serde_json::Map<String, serde_json::Value> { names.iter().map(|n| n.to_string()).zip(values).collect() };
+    let reports: Vec<serde_json::Value> = (0..model.light_count()).map(|k| model.light_at(k).report()).collect();
+    let errors: Vec<serde_json::Value> = reports.iter().enumerate().map(|(k, r)| light_error(&trainer, k, r)).collect();
+    let light_error = errors.first().cloned().unwrap_or(json!(null));
     // One schedule serves every capture: with one camera the sun search is what keeps the
     // light from sliding behind the body (fit.json says which case this was).
     let training_cameras: std::collections::BTreeSet<usize> = trainer.scene.views_in(crate::scene::Split::Train).map(|v| v.camera).collect();
     let capture = json!({
         "training_cameras": training_cameras.len(),
         "monocular": training_cameras.len() == 1,
-        "light_start": match &trainer.sun_search {
+        "light_start": match trainer.searches.first().and_then(|s| s.as_ref()) {
             Some(r) if r.best.position.is_some() => "point light search over directions and distances around the body, then gradient descent",
             Some(_) => "sun search over the sphere, then gradient descent within a cone around its best",
             None => "the schedule's initial light, then gradient descent",
@@ -484,7 +527,9 @@ pub fn fit(options: &FitOptions, mut on: impl FnMut(TrainMessage)) -> Result<ser
     let report = json!({
         // Absolute, so the run renders from any working folder.
         "scene": std::fs::canonicalize(&options.scene).unwrap_or_else(|_| options.scene.clone()).display().to_string(),
+        // The first training light under the one-light keys; every light by name after.
         "light": light,
+        "lights": by_name(reports),
         "stages": stages,
         "iterations": schedule.iterations,
         "seed": options.seed,
@@ -496,7 +541,9 @@ pub fn fit(options: &FitOptions, mut on: impl FnMut(TrainMessage)) -> Result<ser
         "wall_seconds": wall.elapsed().as_secs_f64(),
         "evaluation": evaluation,
         "light_error_against_scene": light_error,
-        "sun_search": sun_search,
+        "light_errors_against_scene": by_name(errors),
+        "sun_search": searches.first().cloned().unwrap_or(json!(null)),
+        "light_searches": by_name(searches),
         "capture": capture,
         "field": field_report(&trainer),
     });
@@ -555,7 +602,7 @@ pub fn evaluate_split(trainer: &Trainer, dir: &Path, split: Split, on: &mut impl
     for (done, view) in tests.iter().enumerate() {
         let TestKind { novel_pose, novel_view, relit, group } = kinds.of(view);
         let lighting = match relit {
-            false => Lighting::Fitted,
+            false => Lighting::Fitted(kinds.training_light(view)),
             true => Lighting::Known { light: &scene.lights[&view.light], albedo_scale, samples: SKY_SAMPLES },
         };
         let scored = score_view(&model, scene, view, &lighting, albedo_scale, &device);
@@ -603,7 +650,7 @@ pub fn evaluate_split(trainer: &Trainer, dir: &Path, split: Split, on: &mut impl
     evaluation.insert("albedo_scale".into(), json!(albedo_scale.to_array()));
     evaluation.insert("images".into(), json!(rows));
     let geometry = geometry_scores(trainer, &model, albedo_scale, &device)?;
-    let light = light_error(trainer, &model.light.report());
+    let light = light_error(trainer, 0, &model.light.report());
     let mut markdown = metrics_markdown(&rows, &groups);
     if let Some(frames) = geometry.as_array().filter(|f| !f.is_empty()) {
         markdown += "\n## Geometry against the scene's meshes\n\n| frame | accuracy (mm) | completeness (mm) | Chamfer (mm) | normal angle (deg) |\n|---|---|---|---|---|\n";
@@ -669,6 +716,11 @@ impl TestKinds {
             cameras: scene.views_in(Split::Train).map(|v| v.camera).collect(),
             lights: scene.training_lights().into_iter().map(String::from).collect(),
         }
+    }
+
+    /// The index of a view's light among the training lights (0 for any other light).
+    pub fn training_light(&self, view: &crate::scene::View) -> usize {
+        self.lights.iter().position(|l| *l == view.light).unwrap_or(0)
     }
 
     pub fn of(&self, view: &crate::scene::View) -> TestKind {
@@ -809,12 +861,12 @@ fn metrics_markdown(rows: &[ImageScore], groups: &[GroupScores]) -> String {
     md
 }
 
-/// How far the recovered light is from the one the scene states for its training images
+/// How far the recovered training light `k` is from the one the scene states for it
 /// (synthetic and evaluation scenes state it): degrees for a sun, metres for a point light.
-pub fn light_error(trainer: &Trainer, light: &serde_json::Value) -> serde_json::Value {
+pub fn light_error(trainer: &Trainer, k: usize, light: &serde_json::Value) -> serde_json::Value {
     let lights = trainer.scene.training_lights();
     let vector = |v: &serde_json::Value| -> Option<glam::DVec3> { Some(glam::DVec3::new(v[0].as_f64()?, v[1].as_f64()?, v[2].as_f64()?)) };
-    match (lights.first().map(|n| &trainer.scene.lights[*n]), trainer.fit_light) {
+    match (lights.get(k).map(|n| &trainer.scene.lights[*n]), trainer.fit_light) {
         (Some(crate::light::Light::Directional { direction, .. }), true) => match vector(&light["direction"]) {
             Some(d) => json!({"direction_degrees": d.normalize().dot(*direction).clamp(-1.0, 1.0).acos().to_degrees()}),
             None => json!(null),

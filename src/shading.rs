@@ -26,7 +26,8 @@ pub struct LightModel {
     pub ambient_raw: Param<Tensor<1>>,
     /// Log of a point light's irradiance at `anchor` (its intensity over the squared distance
     /// to it): moving the light then changes how the light falls across the body, not how
-    /// bright the body is, so position and strength are learned apart.
+    /// bright the body is, so position and strength are learned apart. For a sun with
+    /// `strength_learned`, the log of its irradiance.
     pub log_intensity: Param<Tensor<1>>,
     /// The factor on the Gaussians' optical depth (their density is fitted to tanh-squashed
     /// field density, so a body is optically thinner than a hard shadow needs), through a
@@ -37,6 +38,10 @@ pub struct LightModel {
     /// The body's centre, where a point light's `log_intensity` is measured.
     #[module(skip)]
     pub anchor: [f32; 3],
+    /// Whether a sun's irradiance is learned (`log_intensity`) rather than 1: every sun of a
+    /// capture lit by several but the first, whose 1 is the scale the albedo is measured in.
+    #[module(skip)]
+    pub strength_learned: bool,
     /// Where shadow rays start off the surface (m): `SHADOW_START` on the body's scale.
     #[module(skip)]
     pub shadow_start: f32,
@@ -114,8 +119,23 @@ impl LightModel {
             density_scale_raw: t(vec![-2.2]),
             kind,
             anchor,
+            strength_learned: false,
             shadow_start: crate::skeleton::body_length(SHADOW_START as f64, extent) as f32,
             unit,
+        }
+    }
+
+    /// The same light with a learned irradiance (a sun; a point light's is always learned).
+    pub fn with_learned_strength(self) -> Self {
+        Self { strength_learned: true, ..self }
+    }
+
+    /// A sun's irradiance `[3]`: 1, or the learned one.
+    pub fn irradiance(&self) -> Tensor<1> {
+        let device = self.vector.val().device();
+        match self.strength_learned {
+            true => self.log_intensity.val().exp().repeat_dim(0, 3),
+            false => Tensor::ones([3], &device),
         }
     }
 
@@ -148,10 +168,9 @@ impl LightModel {
     /// Shaded colour `[R, 3]` of surface points `[R, 3]` with normals `[R, 3]` and albedo `[R, 3]`.
     /// `gaussians` should be detached when the Gaussians must learn only from their own fit.
     pub fn shade(&self, albedo: Tensor<2>, points: Tensor<2>, normals: Tensor<2>, gaussians: &GaussianTensors) -> Tensor<2> {
-        let device = points.device();
         let emitter = match self.kind {
             LightKind::Uniform => return albedo,
-            LightKind::Directional => Emitter::Sun { direction: self.direction(), irradiance: Tensor::ones([3], &device) },
+            LightKind::Directional => Emitter::Sun { direction: self.direction(), irradiance: self.irradiance() },
             LightKind::Point => Emitter::Point { position: self.position(), intensity: self.intensity().repeat_dim(0, 3) },
         };
         shade_lambertian(albedo, points, normals, &self.shadow_casters(gaussians), self.ambient(), &emitter, self.shadow_start)
@@ -176,7 +195,7 @@ impl LightModel {
         let ambient = v(self.ambient());
         match self.kind {
             LightKind::Directional => {
-                serde_json::json!({"type": "directional", "direction": v(self.direction()), "irradiance": [1.0, 1.0, 1.0], "ambient": ambient, "shadow_density_scale": v(self.density_scale())})
+                serde_json::json!({"type": "directional", "direction": v(self.direction()), "irradiance": v(self.irradiance()), "ambient": ambient, "shadow_density_scale": v(self.density_scale())})
             }
             LightKind::Point => {
                 serde_json::json!({"type": "point", "position": v(self.position()), "intensity": v(self.intensity()).repeat(3), "ambient": ambient, "shadow_density_scale": v(self.density_scale())})

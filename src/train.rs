@@ -43,7 +43,35 @@ impl Backend {
 pub struct Avatar {
     pub field: AvatarField,
     pub gaussians: GaussianParams,
+    /// The first training light (in the order of `Scene::training_lights`).
     pub light: LightModel,
+    /// The other training lights of a capture lit by several (none for one light, so a
+    /// one-light checkpoint holds exactly what it did before there could be more).
+    pub other_lights: Vec<LightModel>,
+}
+
+impl Avatar {
+    /// Training light `k` (0: `light`).
+    pub fn light_at(&self, k: usize) -> &LightModel {
+        if k == 0 {
+            &self.light
+        } else {
+            self.other_lights.get(k - 1).unwrap_or(&self.light)
+        }
+    }
+
+    fn light_at_mut(&mut self, k: usize) -> &mut LightModel {
+        if k == 0 || k > self.other_lights.len() {
+            &mut self.light
+        } else {
+            &mut self.other_lights[k - 1]
+        }
+    }
+
+    /// How many training lights the avatar was fitted under.
+    pub fn light_count(&self) -> usize {
+        1 + self.other_lights.len()
+    }
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -239,10 +267,14 @@ pub struct Trainer {
     body_centre: glam::DVec3,
     body_extent: f64,
     bone_centres: Tensor<2>,
-    /// What the sun search found, once it has run (`sun_search`).
-    pub sun_search: Option<crate::sun_search::SearchReport>,
-    /// The cone (axis, half-angle in radians) the sun's direction stays in after the search.
-    pub sun_cone: Option<(glam::DVec3, f64)>,
+    /// What the light search found for each training light, once it has run (`sun_search`).
+    pub searches: Vec<Option<crate::sun_search::SearchReport>>,
+    /// Per training light, the cone (axis, half-angle in radians) a sun's direction stays in
+    /// after the search.
+    pub cones: Vec<Option<(glam::DVec3, f64)>>,
+    /// The training light of each of the scene's views (its index in `Scene::training_lights`;
+    /// `None` for a view not in training).
+    view_light: Vec<Option<usize>>,
     /// The training data's fingerprint (`Scene::training_identity`, every training pixel
     /// hashed), computed once for all the checkpoints a fit writes.
     training_identity: std::sync::OnceLock<String>,
@@ -359,29 +391,39 @@ impl Trainer {
             return Err(FitError::Input(format!("{}: no training images (split \"train\")", scene.root.join("scene.json").display())));
         }
         let lights = scene.training_lights();
-        if lights.len() > 1 {
-            return Err(FitError::Input(format!(
-                "{}: training images use {} lights ({lights:?}); umbra fits one training light",
-                scene.root.join("scene.json").display(),
-                lights.len()
-            )));
-        }
-        let light = &scene.lights[lights[0]];
-        // An environment map lights a body unevenly (a bright sky above, a dark ground below);
-        // fitted as uniform light its shading would be painted into the albedo, and the report
-        // would call the capture uniformly lit. Refused until it is fitted for what it is.
-        if let Light::Environment { .. } = light {
-            return Err(FitError::Input(format!(
-                "{}: the training images are lit by the environment map {:?}; umbra cannot fit an environment-lit capture yet (treated as uniform light, the map's shading would end up in the albedo): fit a capture lit by a sun, a point light or uniform light",
-                scene.root.join("scene.json").display(),
-                lights[0]
-            )));
-        }
-        let light_kind = match light {
+        let kind_of = |light: &Light| match light {
             Light::Directional { .. } => LightKind::Directional,
             Light::Point { .. } => LightKind::Point,
             Light::Uniform { .. } | Light::Environment { .. } => LightKind::Uniform,
         };
+        for name in &lights {
+            // An environment map lights a body unevenly (a bright sky above, a dark ground
+            // below); fitted as uniform light its shading would be painted into the albedo, and
+            // the report would call the capture uniformly lit. Refused until it is fitted for
+            // what it is.
+            if let Light::Environment { .. } = &scene.lights[*name] {
+                return Err(FitError::Input(format!(
+                    "{}: lights.{name}: the training images are lit by the environment map {name:?}; umbra cannot fit an environment-lit capture yet (treated as uniform light, the map's shading would end up in the albedo): fit a capture lit by suns, point lights or uniform light",
+                    scene.root.join("scene.json").display(),
+                )));
+            }
+            // Several lights are fitted jointly when they are of one kind: several suns, or
+            // several point lights (a light stage), each image under its own.
+            let first = kind_of(&scene.lights[lights[0]]);
+            if kind_of(&scene.lights[*name]) != first || (lights.len() > 1 && first == LightKind::Uniform) {
+                return Err(FitError::Input(format!(
+                    "{}: training images use the lights {lights:?} of different kinds ({} and {}); umbra fits several training lights only when all are suns or all are point lights",
+                    scene.root.join("scene.json").display(),
+                    scene.lights[lights[0]].type_name(),
+                    scene.lights[*name].type_name(),
+                )));
+            }
+        }
+        let light = &scene.lights[lights[0]];
+        let light_kind = kind_of(light);
+        let view_light: Vec<Option<usize>> =
+            scene.views.iter().map(|v| if v.split == Split::Train { lights.iter().position(|n| *n == v.light) } else { None }).collect();
+        let light_count = lights.len();
         let fit_light = schedule.check_against(light.casts_shadows())?;
         let light_kind = if fit_light { light_kind } else { LightKind::Uniform };
         let mut frames: Vec<FrameData> = Vec::new();
@@ -420,6 +462,12 @@ impl Trainer {
             field: field_config.init(&device, seed),
             gaussians: GaussianParams::from_set(&set, unit as f32, &device),
             light: LightModel::new(light_kind, initial, centre.as_vec3().to_array(), extent, 0.3, &device),
+            // The first light fixes the scale the albedo cannot be told apart from (a sun's
+            // irradiance 1, the ambient's target): the others' strengths are learned relative
+            // to it.
+            other_lights: (1..light_count)
+                .map(|_| LightModel::new(light_kind, initial, centre.as_vec3().to_array(), extent, 0.3, &device).with_learned_strength())
+                .collect(),
         };
         let centres: Vec<f32> = set.gaussians.iter().flat_map(|g| [0.0, scene.skeleton.bones[g.bone].length as f32 / 2.0, 0.0]).collect();
         let bone_centres = Tensor::from_data(TensorData::new(centres, [set.len(), 3]), &device);
@@ -446,8 +494,9 @@ impl Trainer {
             body_centre: centre,
             body_extent: extent,
             body_reach: field_config.grid.as_ref().map_or(extent * crate::field::grid::REACH_PER_EXTENT as f64, |g| g.reach as f64),
-            sun_search: None,
-            sun_cone: None,
+            searches: vec![None; light_count],
+            cones: vec![None; light_count],
+            view_light,
             training_identity: std::sync::OnceLock::new(),
             bone_centres,
         })
@@ -471,12 +520,22 @@ impl Trainer {
         self.model.as_ref().ok_or_else(|| FitError::Input("the model was lost by an interrupted step".into()))
     }
 
-    /// Samples a batch of rays from one random training frame. Rays that meet a Gaussian's
-    /// bound come first (the returned count): only they enter the field; the others are
-    /// background, whose colour and accumulation are known to be zero.
-    fn batch(&mut self, set: &GaussianSet) -> (usize, RaySet, Vec<f32>, Vec<f32>, usize) {
+    /// Samples a batch of rays from one random training frame, all from its views under one
+    /// training light (returned with the frame). Rays that meet a Gaussian's bound come first
+    /// (the returned count): only they enter the field; the others are background, whose
+    /// colour and accumulation are known to be zero.
+    fn batch(&mut self, set: &GaussianSet) -> (usize, usize, RaySet, Vec<f32>, Vec<f32>, usize) {
         let frame = self.stream.below(self.frames.len());
         let data = &self.frames[frame];
+        // With several lights, the light of a random view of the frame (so each light is drawn
+        // as often as it lights training images), and only its views.
+        let (light, same_light): (usize, Vec<usize>) = if self.cones.len() > 1 {
+            let first = data.views[self.stream.below(data.views.len())];
+            let light = self.view_light[first].unwrap_or(0);
+            (light, data.views.iter().copied().filter(|&v| self.view_light[v] == Some(light)).collect())
+        } else {
+            (0, data.views.clone())
+        };
         let pose = &self.scene.frames[data.position].pose;
         let posed = set.pose(pose);
         let mut drawn = Vec::with_capacity(self.schedule.rays_per_batch);
@@ -487,7 +546,7 @@ impl Trainer {
             (lo - reach, hi + reach)
         });
         for k in 0..self.schedule.rays_per_batch {
-            let v = data.views[self.stream.below(data.views.len())];
+            let v = same_light[self.stream.below(same_light.len())];
             let view = &self.scene.views[v];
             let camera = &self.scene.cameras[view.camera];
             let pixels = camera.width * camera.height;
@@ -517,7 +576,7 @@ impl Trainer {
             colours.extend(colour);
             masks.push(mask);
         }
-        (frame, rays, colours, masks, hits)
+        (frame, light, rays, colours, masks, hits)
     }
 
     /// The body's length unit: `skeleton::body_length(1, extent)`.
@@ -540,10 +599,18 @@ impl Trainer {
     /// Foreground rays per search frame.
     const SEARCH_RAYS: usize = 256;
 
+    /// Searches every training light (`search_one`).
+    fn search_lights(&mut self) -> Result<(), FitError> {
+        for k in 0..self.cones.len() {
+            self.search_one(k)?;
+        }
+        Ok(())
+    }
+
     /// Scores sun directions over the sphere (or point light positions around the body) on
-    /// surface samples of several frames (with the Gaussians' cast shadows) and starts the
-    /// light from the best (`sun_search`).
-    fn search_light(&mut self) -> Result<(), FitError> {
+    /// surface samples of several frames under training light `k` (with the Gaussians' cast
+    /// shadows) and starts that light from the best (`sun_search`).
+    fn search_one(&mut self, light: usize) -> Result<(), FitError> {
         let model = self.model()?.valid();
         let device = self.device.clone().without_autodiff();
         let set = model.gaussians.to_set();
@@ -554,11 +621,15 @@ impl Trainer {
             let data = &self.frames[k * self.frames.len() / count];
             let pose = &self.scene.frames[data.position].pose;
             // Bounds and shadows from the Gaussians as the light casts them (density scaled).
-            let posed = model.light.shadow_casters_posed(&set.pose(pose));
+            let posed = model.light_at(light).shadow_casters_posed(&set.pose(pose));
+            let views: Vec<usize> = data.views.iter().copied().filter(|&v| self.view_light[v] == Some(light)).collect();
+            if views.is_empty() {
+                continue;
+            }
             let mut rays = RaySet::default();
             let mut colours = Vec::new();
             for _ in 0..Self::SEARCH_RAYS {
-                let v = data.views[self.stream.below(data.views.len())];
+                let v = views[self.stream.below(views.len())];
                 let pool = &self.views[v].foreground;
                 if pool.is_empty() {
                     continue;
@@ -608,7 +679,7 @@ impl Trainer {
         if samples.is_empty() {
             return Ok(());
         }
-        let start = model.light.shadow_start;
+        let start = model.light_at(light).shadow_start;
         let report = match self.light_kind {
             LightKind::Point => {
                 let directions = (self.schedule.sun_search / 2).max(1);
@@ -622,13 +693,21 @@ impl Trainer {
             Some(position) => position.map(|c| (c / self.body_unit()) as f32),
             None => report.best.direction.map(|c| c as f32),
         };
+        // The search's strength as the light's: a point light's as its irradiance at the
+        // body's centre; a sun's (after the first, whose irradiance is the scale) relative to
+        // the first sun's.
+        let log_strength = match (report.best.position, self.searches.first().and_then(|s| s.as_ref())) {
+            (Some(p), _) => Some(report.best.strength / (glam::DVec3::from_array(p) - self.body_centre).length().max(1e-6).powi(2)),
+            (None, Some(first)) if light > 0 => Some(report.best.strength / first.best.strength),
+            _ => None,
+        }
+        .filter(|s| s.is_finite() && *s > 0.0)
+        .map(|s| s.ln() as f32);
+        let target = model.light_at_mut(light);
         // The same parameter (its id keys the optimizer's state), a new value.
-        model.light.vector = model.light.vector.map(|_| Tensor::from_data(TensorData::new(vector.to_vec(), [3]), &device).require_grad());
-        if report.best.position.is_some() && report.best.strength.is_finite() && report.best.strength > 0.0 {
-            // The search's intensity, as the irradiance at the body's centre.
-            let distance = report.best.position.map_or(1.0, |p| (glam::DVec3::from_array(p) - self.body_centre).length().max(1e-6));
-            let log = (report.best.strength / (distance * distance)).ln() as f32;
-            model.light.log_intensity = model.light.log_intensity.map(|_| Tensor::from_data(TensorData::new(vec![log], [1]), &device).require_grad());
+        target.vector = target.vector.clone().map(|_| Tensor::from_data(TensorData::new(vector.to_vec(), [3]), &device).require_grad());
+        if let Some(log) = log_strength {
+            target.log_intensity = target.log_intensity.clone().map(|_| Tensor::from_data(TensorData::new(vec![log], [1]), &device).require_grad());
         }
         self.model = Some(model);
         if self.light_kind == LightKind::Directional {
@@ -636,9 +715,9 @@ impl Trainer {
             // of the search's best and no farther: with one camera it otherwise slides back to
             // the minimum the search escaped.
             let spacing = (4.0 / self.schedule.sun_search as f64).sqrt();
-            self.sun_cone = Some((glam::DVec3::from_array(report.best.direction), spacing * SUN_CONE_SPACINGS));
+            self.cones[light] = Some((glam::DVec3::from_array(report.best.direction), spacing * SUN_CONE_SPACINGS));
         }
-        self.sun_search = Some(report);
+        self.searches[light] = Some(report);
         Ok(())
     }
 
@@ -648,11 +727,11 @@ impl Trainer {
         let mut clock = PhaseClock::start();
         let it = self.iteration;
         if it == self.schedule.light_from && self.fit_light && self.light_kind != LightKind::Uniform && self.schedule.sun_search > 0 {
-            self.search_light()?;
+            self.search_lights()?;
             clock.mark(0);
         }
         let set = self.model()?.gaussians.to_set();
-        let (frame, rays, colours, masks, hits) = self.batch(&set);
+        let (frame, light_index, rays, colours, masks, hits) = self.batch(&set);
         clock.mark(1);
         let r = rays.len();
         // Only rays that meet a bound are rendered (at least one, so the graph is never empty);
@@ -687,7 +766,9 @@ impl Trainer {
         let mut terms: Vec<(&str, f64, Tensor<1>)> = Vec::new();
         if w("rgb") > 0.0 {
             let colour = match &deferred.normal {
-                Some(normal) => background(model.light.shade(deferred.albedo.clone(), deferred.surface.clone(), normal.clone(), &detached(&posed))),
+                Some(normal) => {
+                    background(model.light_at(light_index).shade(deferred.albedo.clone(), deferred.surface.clone(), normal.clone(), &detached(&posed)))
+                }
                 None => albedo.clone(),
             };
             terms.push(("rgb", w("rgb"), crate::losses::rgb(colour, target)));
@@ -712,7 +793,15 @@ impl Trainer {
             terms.push(("mean", w("mean"), crate::losses::mean(model.gaussians.means.val(), self.bone_centres.clone() / model.light.unit)));
         }
         if w("ambient") > 0.0 && self.fit_light {
-            terms.push(("ambient", w("ambient"), crate::losses::ambient(model.light.ambient(), self.schedule.ambient_target)));
+            // The ambient target is a fraction of the light's irradiance: for the first light
+            // (irradiance 1, or a point light whose strength is free) its ambient itself; for
+            // another sun, whose irradiance is learned, its ambient over that irradiance.
+            let batch_light = model.light_at(light_index);
+            let ambient = match (light_index, batch_light.kind) {
+                (k, LightKind::Directional) if k > 0 => batch_light.ambient() / batch_light.irradiance(),
+                _ => model.light.ambient(),
+            };
+            terms.push(("ambient", w("ambient"), crate::losses::ambient(ambient, self.schedule.ambient_target)));
         }
         clock.mark(6);
         if (w("eikonal") > 0.0 || w("curvature") > 0.0) && self.schedule.regulariser_points > 0 {
@@ -746,7 +835,9 @@ impl Trainer {
         let mut grads = total.backward();
         clock.mark(8);
         let light_active = self.fit_light && it >= self.schedule.light_from;
-        let Avatar { mut field, gaussians, light } = model;
+        let Avatar { mut field, gaussians, light, mut other_lights } = model;
+        // Only the batch's light was in the graph: it alone takes a step.
+        let mut light = if light_index == 0 { light } else { std::mem::replace(&mut other_lights[light_index - 1], light) };
         // A grid's feature tables have their own learning rate and optimizer.
         let grid = field.grid.take();
         let g_grid = grid.as_ref().map(|g| GradientsParams::from_module(&mut grads, g));
@@ -761,12 +852,15 @@ impl Trainer {
             (grid, _) => grid,
         };
         let gaussians = self.optimizers[1].1.step(lr_gaussians, gaussians, g_gaussians);
-        let light = if light_active { self.optimizers[2].1.step(lr_light, light, g_light) } else { light };
-        let light = match self.sun_cone {
+        light = if light_active { self.optimizers[2].1.step(lr_light, light, g_light) } else { light };
+        light = match self.cones[light_index] {
             Some((axis, angle)) if light_active => keep_in_cone(light, axis, angle, &self.device),
             _ => light,
         };
-        let model = Avatar { field, gaussians, light };
+        if light_index > 0 {
+            light = std::mem::replace(&mut other_lights[light_index - 1], light);
+        }
+        let model = Avatar { field, gaussians, light, other_lights };
         let poisoned = first_non_finite(&model);
         self.model = Some(model);
         if let Some(name) = poisoned {

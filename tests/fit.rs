@@ -109,9 +109,9 @@ fn the_sun_search_seeds_the_light_and_its_cone_holds_it() {
     for _ in 0..40 {
         trainer.step().unwrap();
     }
-    assert!(trainer.sun_search.is_none(), "the search waits for light_from");
+    assert!(trainer.searches[0].is_none(), "the search waits for light_from");
     trainer.step().unwrap();
-    let report = trainer.sun_search.clone().expect("the search ran at light_from");
+    let report = trainer.searches[0].clone().expect("the search ran at light_from");
     assert!(report.samples > 50 && report.candidates == 64 + 64, "{report:?}");
     let start = glam::DVec3::from_array(report.best.direction);
     let cone = (4.0f64 / 64.0).sqrt().to_degrees() * umbra::train::SUN_CONE_SPACINGS;
@@ -397,6 +397,11 @@ fn ablate_compares_schedules_in_one_table_and_checks_them_all_first() {
     assert!(!dir.path().join("refused").exists(), "nothing written");
 }
 
+/// A 32-pixel synthetic walker seen by `cameras` cameras in `frames` frames, one test frame.
+fn small_capture(cameras: usize, frames: usize) -> umbra::synth::SynthOptions {
+    umbra::synth::SynthOptions { size: 32, cameras, frames, test_frames: 1, test: vec![TestKind::Poses], samples: 4, seed: 5, ..Default::default() }
+}
+
 /// Every length of a fit follows the body: the same capture at a third and at three times
 /// the size (`synth --scale`: the same images up to the tracer's epsilons) takes the same
 /// steps, every loss term equal to a small tolerance, with the default schedule's terms all
@@ -405,17 +410,7 @@ fn ablate_compares_schedules_in_one_table_and_checks_them_all_first() {
 fn a_fit_of_the_same_capture_at_another_size_takes_the_same_steps() {
     let dir = TempDir::new("scale");
     let scene_at = |scale: f64| {
-        let options = umbra::synth::SynthOptions {
-            size: 32,
-            cameras: 4,
-            frames: 2,
-            test_frames: 1,
-            test: vec![TestKind::Poses],
-            samples: 4,
-            seed: 5,
-            scale,
-            ..umbra::synth::SynthOptions::default()
-        };
+        let options = umbra::synth::SynthOptions { scale, ..small_capture(4, 2) };
         let out = dir.path().join(format!("scale-{scale}"));
         umbra::synth::generate(&options, &out, false, |_, _| {}).unwrap();
         umbra::scene::Scene::load(&out).unwrap()
@@ -457,4 +452,67 @@ curvature = 0.05
             }
         }
     }
+}
+
+/// A light-stage-like capture (three suns, each image under one) is fitted jointly: every sun
+/// is searched and turns toward its truth, the first keeps irradiance 1 and the others learn
+/// theirs, a checkpoint resumes with every light's search and cone, and fit.json names each
+/// light's error. A capture mixing a sun and a point light is refused, naming both.
+#[test]
+fn several_training_suns_are_fitted_jointly_and_mixed_kinds_are_refused() {
+    let dir = TempDir::new("suns");
+    let options = umbra::synth::SynthOptions { suns: 3, ..small_capture(3, 3) };
+    let scene_path = dir.path().join("suns");
+    umbra::synth::generate(&options, &scene_path, false, |_, _| {}).unwrap();
+    let text = QUICK.replace("light_from = 0", "light_from = 10\nsun_search = 64").replace("checkpoint_every = 20", "checkpoint_every = 15");
+    let schedule_path = dir.path().join("suns.toml");
+    std::fs::write(&schedule_path, &text).unwrap();
+    let scene = umbra::scene::Scene::load(&scene_path).unwrap();
+    let truths: Vec<glam::DVec3> = scene
+        .training_lights()
+        .iter()
+        .map(|n| match &scene.lights[*n] {
+            umbra::light::Light::Directional { direction, .. } => *direction,
+            other => panic!("{other:?}"),
+        })
+        .collect();
+    assert_eq!(truths.len(), 3);
+    let schedule = Schedule::parse(&text, Path::new("suns.toml")).unwrap();
+    let mut trainer = Trainer::new(scene, schedule, Backend::Flex, 1).unwrap();
+    assert_eq!(trainer.model().unwrap().light_count(), 3);
+    for _ in 0..11 {
+        trainer.step().unwrap();
+    }
+    let model = trainer.model().unwrap();
+    for (k, truth) in truths.iter().enumerate() {
+        let search = trainer.searches[k].as_ref().unwrap_or_else(|| panic!("light {k} was searched"));
+        let found = glam::DVec3::from_array(search.best.direction);
+        assert!(found.angle_between(*truth).to_degrees() < 40.0, "light {k}: search {found:?} against {truth:?}");
+        assert!(trainer.cones[k].is_some(), "light {k} has its cone");
+        let irradiance = &model.light_at(k).report()["irradiance"];
+        let learned = model.light_at(k).strength_learned;
+        assert_eq!(learned, k > 0, "light {k}: {irradiance}");
+        if k == 0 {
+            assert_eq!(irradiance[0].as_f64(), Some(1.0));
+        }
+    }
+
+    // A fit of the same capture writes every light and resumes with every light's state.
+    let out = dir.path().join("run");
+    let report = umbra::fit::fit(&fit_options(&scene_path, out.clone(), &schedule_path, Some(20), 1, false), |_| {}).unwrap();
+    assert_eq!(report["lights"].as_object().map(|m| m.len()), Some(3), "{}", report["lights"]);
+    assert_eq!(report["light_errors_against_scene"].as_object().map(|m| m.len()), Some(3));
+    let state: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(out.join("checkpoint/state.json")).unwrap()).unwrap();
+    assert_eq!(state["light_cones"].as_array().map(|c| c.len()), Some(2), "{state}");
+    umbra::fit::fit(&fit_options(&scene_path, out.clone(), &schedule_path, Some(30), 1, true), |_| {}).unwrap();
+
+    // One image under a point light among the suns: refused, naming the kinds.
+    let mut json: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(scene_path.join("scene.json")).unwrap()).unwrap();
+    json["lights"]["lamp"] = serde_json::json!({"type": "point", "position": [1.0, 2.0, 1.0], "intensity": [4.0, 4.0, 4.0]});
+    let first_train = json["images"].as_array().unwrap().iter().position(|i| i["split"] == "train").unwrap();
+    json["images"][first_train]["light"] = serde_json::json!("lamp");
+    std::fs::write(scene_path.join("scene.json"), serde_json::to_string(&json).unwrap()).unwrap();
+    let scene = umbra::scene::Scene::load(&scene_path).unwrap();
+    let err = Trainer::new(scene, Schedule::parse(&text, Path::new("suns.toml")).unwrap(), Backend::Flex, 1).err().unwrap().to_string();
+    assert!(err.contains("point") && err.contains("directional") && err.contains("scene.json"), "{err}");
 }

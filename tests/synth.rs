@@ -209,7 +209,7 @@ fn uniform_light_without_occlusion_is_albedo_times_radiance() {
 
 #[test]
 fn shipped_scenes_reproduce_byte_for_byte_from_their_options() {
-    for name in ["human-sun", "dog-sun", "human-mono", "human-sun-128", "human-dressed", "human-lamp"] {
+    for name in ["human-sun", "dog-sun", "human-mono", "human-sun-128", "human-dressed", "human-lamp", "human-suns"] {
         let shipped = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("datasets-synthetic").join(name);
         let text = std::fs::read_to_string(shipped.join("scene.json")).unwrap();
         let json: serde_json::Value = serde_json::from_str(&text).unwrap();
@@ -303,4 +303,21 @@ fn a_near_lamp_sits_at_its_distance_and_lights_the_body_as_brightly() {
     // Only a point-lit capture has a lamp to place, and not inside the body.
     assert!(SynthOptions { lamp_distance: Some(1.0), ..tiny(Kind::Human, TrainingLight::Sun) }.plan().is_err());
     assert!(SynthOptions { lamp_distance: Some(0.1), ..base }.plan().is_err());
+}
+
+#[test]
+fn a_light_stage_capture_lights_each_image_by_one_of_its_suns() {
+    let options = SynthOptions { suns: 3, test: vec![TestKind::Poses, TestKind::Relight], meshes: false, ..tiny(Kind::Human, TrainingLight::Sun) };
+    let plan = options.plan().unwrap();
+    let names: Vec<&str> = plan.lights.iter().map(|(n, _)| n.as_str()).collect();
+    assert_eq!(&names[..3], &["sun", "sun-b", "sun-c"], "{names:?}");
+    assert!(plan.lights[..3].iter().all(|(_, l)| matches!(l, Light::Directional { .. })));
+    for view in plan.views.iter().filter(|v| v.split == Split::Train) {
+        assert_eq!(view.light, names[(view.camera + view.frame) % 3], "{}", view.name);
+    }
+    // The relighting lights stay test-only.
+    assert!(plan.views.iter().any(|v| v.split == Split::Test && v.light == "sun2"));
+    assert!(plan.views.iter().filter(|v| v.split == Split::Train).all(|v| v.light.starts_with("sun") && v.light != "sun2"));
+    assert!(SynthOptions { suns: 5, ..options.clone() }.plan().is_err());
+    assert!(SynthOptions { suns: 2, light: TrainingLight::Point, ..options }.plan().is_err());
 }

@@ -62,7 +62,7 @@ fn render_parts(scene: &Scene, schedule: &Schedule, repeats: usize) -> Result<Ve
     let scale = glam::DVec3::ONE;
     let cases: [(&str, Lighting); 3] = [
         ("field only (albedo, no normals)", Lighting::Albedo { albedo_scale: scale }),
-        ("field + normals + sun shading with Gaussian shadows", Lighting::Fitted),
+        ("field + normals + sun shading with Gaussian shadows", Lighting::Fitted(0)),
         (
             "field + normals + sky: 256 sampled directions with Gaussian visibility",
             Lighting::Known { light: &sky, albedo_scale: scale, samples: crate::fit::SKY_SAMPLES },

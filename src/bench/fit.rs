@@ -70,7 +70,7 @@ fn score(trainer: &Trainer, run: &str, kind: FieldKind, iteration: usize, train_
     let model = trainer.model()?.valid();
     let device = trainer.device.clone().without_autodiff();
     let scale = albedo_scale(scene, &model);
-    let scored: Vec<_> = views.iter().map(|v| score_view(&model, scene, v, &Lighting::Fitted, scale, &device)).collect();
+    let scored: Vec<_> = views.iter().map(|v| score_view(&model, scene, v, &Lighting::Fitted(0), scale, &device)).collect();
     let mean = |f: &dyn Fn(&crate::fit::ScoredView) -> Option<f64>| {
         let values: Vec<f64> = scored.iter().filter_map(f).collect();
         (!values.is_empty()).then(|| values.iter().sum::<f64>() / values.len() as f64)
@@ -86,7 +86,7 @@ fn score(trainer: &Trainer, run: &str, kind: FieldKind, iteration: usize, train_
         novel_pose_ssim: mean(&|s| Some(s.scores.ssim)).unwrap_or(f64::NAN),
         albedo_psnr: mean(&|s| s.albedo.as_ref().map(|a| a.1.psnr)),
         albedo_foreground_psnr: mean(&|s| s.albedo.as_ref().map(|a| a.1.foreground_psnr)),
-        light_error_degrees: light_error(trainer, &light)["direction_degrees"].as_f64(),
+        light_error_degrees: light_error(trainer, 0, &light)["direction_degrees"].as_f64(),
         peak_rss_mib: peak_rss_mib(),
     })
 }

@@ -87,6 +87,11 @@ pub struct SynthOptions {
     #[arg(long)]
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub lamp_distance: Option<f64>,
+    /// With `--light sun`: this many training suns (1-4) of different directions and colours,
+    /// a light-stage-like capture: camera c in frame f is lit by sun (c + f) mod N.
+    #[arg(long, default_value_t = 1)]
+    #[serde(default = "one_sun", skip_serializing_if = "is_one_sun")]
+    pub suns: usize,
     /// Also write a ground-truth OBJ mesh per frame (marching tetrahedra of the exact SDF).
     #[arg(long)]
     #[serde(default)]
@@ -99,6 +104,14 @@ pub struct SynthOptions {
 
 fn default_mesh_cell() -> f64 {
     0.02
+}
+
+fn one_sun() -> usize {
+    1
+}
+
+fn is_one_sun(suns: &usize) -> bool {
+    *suns == 1
 }
 
 fn unit_scale() -> f64 {
@@ -124,6 +137,7 @@ impl Default for SynthOptions {
             seed: 0,
             scale: 1.0,
             lamp_distance: None,
+            suns: 1,
             meshes: false,
             mesh_cell: 0.02,
         }
@@ -161,6 +175,15 @@ pub struct Plan {
     pub lights: Vec<(String, Light)>,
     pub views: Vec<PlannedView>,
 }
+
+/// The training suns after the first of a capture lit by several (`--suns`): name, direction,
+/// irradiance and ambient, spread over the sky and in colour.
+#[allow(clippy::type_complexity)]
+const EXTRA_SUNS: [(&str, [f64; 3], [f64; 3], [f64; 3]); 3] = [
+    ("sun-b", [-0.7, 0.6, 0.3], [0.7, 0.75, 0.9], [0.12, 0.12, 0.14]),
+    ("sun-c", [0.1, 0.7, -0.7], [1.0, 0.9, 0.75], [0.15, 0.14, 0.12]),
+    ("sun-d", [0.8, 0.35, -0.3], [0.8, 0.8, 0.8], [0.1, 0.1, 0.1]),
+];
 
 fn sun(direction: [f64; 3], irradiance: [f64; 3], ambient: [f64; 3]) -> Light {
     Light::Directional { direction: DVec3::from_array(direction).normalize(), irradiance: DVec3::from_array(irradiance), ambient: DVec3::from_array(ambient) }
@@ -211,6 +234,12 @@ impl SynthOptions {
         }
         if !(self.scale >= 0.05 && self.scale <= 20.0) {
             return bad("--scale must be within 0.05..=20");
+        }
+        if self.suns == 0 || self.suns > EXTRA_SUNS.len() + 1 {
+            return bad(&format!("--suns must be within 1..={}", EXTRA_SUNS.len() + 1));
+        }
+        if self.suns > 1 && self.light != TrainingLight::Sun {
+            return bad("--suns needs --light sun");
         }
         if let Some(d) = self.lamp_distance {
             if self.light != TrainingLight::Point {
@@ -291,6 +320,11 @@ impl SynthOptions {
             }
         };
         let mut lights = vec![(train_name.to_string(), train_light)];
+        for (name, direction, irradiance, ambient) in EXTRA_SUNS.iter().take(self.suns - 1) {
+            lights.push((name.to_string(), sun(*direction, *irradiance, *ambient)));
+        }
+        let training_lights: Vec<String> = lights.iter().map(|(n, _)| n.clone()).collect();
+        let lit_by = |camera: usize, frame: usize| training_lights[(camera + frame) % training_lights.len()].clone();
         let relight = self.test.contains(&TestKind::Relight);
         if relight {
             lights.push(("sun2".into(), sun([-0.6, 0.55, -0.35], [0.9, 0.75, 0.6], [0.15, 0.17, 0.25])));
@@ -306,14 +340,14 @@ impl SynthOptions {
         };
         for frame in 0..self.frames {
             for camera in 0..self.cameras {
-                add(camera, frame, train_name, Split::Train);
+                add(camera, frame, &lit_by(camera, frame), Split::Train);
             }
         }
         let test_frames: Vec<usize> = (first_test_frame..frames.len()).collect();
         if self.test.contains(&TestKind::Poses) {
             for (j, &frame) in test_frames.iter().enumerate() {
                 for camera in [j % self.cameras, (j + self.cameras / 2) % self.cameras] {
-                    add(camera, frame, train_name, Split::Test);
+                    add(camera, frame, &lit_by(camera, frame), Split::Test);
                     if self.cameras == 1 {
                         break;
                     }
@@ -323,14 +357,14 @@ impl SynthOptions {
         if novel_view {
             let heldout = self.cameras;
             for k in [0, self.frames / 2] {
-                add(heldout, k, train_name, Split::Test);
+                add(heldout, k, &lit_by(heldout, k), Split::Test);
                 if self.frames == 1 {
                     break;
                 }
             }
         }
         if relight {
-            let light_names: Vec<String> = lights.iter().skip(1).map(|(n, _)| n.clone()).collect();
+            let light_names: Vec<String> = lights.iter().skip(self.suns).map(|(n, _)| n.clone()).collect();
             for (j, name) in light_names.iter().enumerate() {
                 let frame = test_frames.get(j % test_frames.len().max(1)).copied().unwrap_or(0);
                 add(j % self.cameras, frame, name, Split::Test);
