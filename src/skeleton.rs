@@ -5,10 +5,11 @@ use glam::{DMat3, DMat4, DVec3};
 use serde::{Deserialize, Serialize};
 
 /// The extent (m) of the body the fit's lengths were first tuned on: the walking human of the
-/// shipped scenes (the largest diagonal of its posed skeleton's box in one frame). Every length
-/// the fit and the renderer use is a fraction of a body's own extent, written in code as its
-/// value on that human so the tuned figures stay readable.
-pub const HUMAN_EXTENT: f64 = 2.048;
+/// shipped scenes (`Scene::body_extent` of `human-sun`, to the last digit, so a fit of it
+/// computes exactly what it did when the lengths were metres). Every length the fit and the
+/// renderer use is a fraction of a body's own extent, written in code as its value on that
+/// human so the tuned figures stay readable.
+pub const HUMAN_EXTENT: f64 = 2.0478165120721195;
 
 /// A length of `metres_on_human` on the reference human, for a body of extent `extent` (m).
 pub fn body_length(metres_on_human: f64, extent: f64) -> f64 {
