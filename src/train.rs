@@ -793,19 +793,16 @@ impl Trainer {
             terms.push(("mean", w("mean"), crate::losses::mean(model.gaussians.means.val(), self.bone_centres.clone() / model.light.unit)));
         }
         if w("ambient") > 0.0 && self.fit_light {
-            // The ambient target is a fraction of each light's irradiance, every step for every
-            // light: for the first (irradiance 1, or a point light whose strength is free) its
-            // ambient itself; for another sun, whose irradiance is learned, its ambient over it.
-            let ratios: Vec<Tensor<1>> = (0..model.light_count())
-                .map(|k| {
-                    let light = model.light_at(k);
-                    match (k, light.kind) {
-                        (k, LightKind::Directional) if k > 0 => light.ambient() / light.irradiance(),
-                        _ => light.ambient(),
-                    }
-                })
-                .collect();
-            terms.push(("ambient", w("ambient"), crate::losses::ambient(Tensor::cat(ratios, 0), self.schedule.ambient_target)));
+            // The ambient target is a fraction of the batch light's irradiance: for the first
+            // light (irradiance 1, or a point light whose strength is free) its ambient itself;
+            // for another sun, whose irradiance is learned, its ambient over that irradiance.
+            // (The same prior on every light at every step did no better on human-suns.)
+            let batch_light = model.light_at(light_index);
+            let ambient = match (light_index, batch_light.kind) {
+                (k, LightKind::Directional) if k > 0 => batch_light.ambient() / batch_light.irradiance(),
+                _ => model.light.ambient(),
+            };
+            terms.push(("ambient", w("ambient"), crate::losses::ambient(ambient, self.schedule.ambient_target)));
         }
         clock.mark(6);
         if (w("eikonal") > 0.0 || w("curvature") > 0.0) && self.schedule.regulariser_points > 0 {
