@@ -1,8 +1,10 @@
 //! Deferred shading and the learnable light model: `albedo x (ambient + E max(0, n.l) T)`,
 //! with T the transmittance of the posed Gaussians along the shadow ray. A sun is a learnable
-//! unit direction with fixed irradiance 1 (its scale is not separable from the albedo's); a
-//! point light is a learnable position and intensity; ambient is learnable RGB. The light
-//! knows nothing of the network.
+//! unit direction with fixed irradiance 1 (its scale is not separable from the albedo's; a
+//! capture's further suns learn theirs relative to it); a point light is a learnable position
+//! (in body units) and its irradiance at the body's centre; ambient is learnable RGB. Lengths
+//! (the shadow ray's start, the Gaussians' density) are on the body's scale. The light knows
+//! nothing of the network.
 
 use crate::shadow::tensor::{transmittance, GaussianTensors, RaySegments};
 use burn::module::Param;

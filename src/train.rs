@@ -1,7 +1,8 @@
 //! The fit: one explicit loop of `step(batch, state) -> stats` (forward, weighted losses from the
 //! schedule, backward, one Adam step per parameter group), atomic checkpoints with exact resume,
 //! and typed messages that the CLI turns into a progress bar. It skips what a scene does not
-//! need: a uniformly lit capture gets no light, no shadow rays and no light-fitting stage.
+//! need: a uniformly lit capture gets no light, no shadow rays and no light-fitting stage. A
+//! capture under several lights of one kind fits them jointly, each batch under one of them.
 
 use crate::field::{AvatarField, FieldConfig, GradientMethod, PoseTensors};
 use crate::gaussians::{GaussianParams, GaussianSet};
