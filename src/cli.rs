@@ -194,6 +194,10 @@ pub enum Command {
         /// time, so the two fields are also compared at equal cost.
         #[arg(long)]
         equal_time: bool,
+        /// `scenes`: the scenes to fit (default: every `datasets-synthetic/*` scene, then
+        /// `../shared/examples/quadruped-tiny`).
+        #[arg(long, value_delimiter = ',')]
+        scenes: Vec<PathBuf>,
     },
 }
 
@@ -219,6 +223,9 @@ pub enum BenchKind {
     /// Sky light: per-pixel MIS against the previous shared sampler and the research code's
     /// estimator, error against a 4096-sample reference at 16, 64 and 256 samples.
     Environment,
+    /// Every shipped scene fitted once: light error, foreground PSNR, SSIM and wall time in one
+    /// table (`scenes.md`, `scenes.csv`; each fit in `OUT/NAME`).
+    Scenes,
 }
 
 /// Runs the CLI and returns the process exit code.
@@ -253,6 +260,10 @@ pub fn main() -> i32 {
         Command::Bench { which: BenchKind::Breakdown, out, quick, scene, schedule, .. } => {
             let scene = scene.unwrap_or_else(|| PathBuf::from("datasets-synthetic/human-sun-128"));
             crate::bench::breakdown(&scene, &schedule, &out, quick).map(|table| print!("{table}")).map_err(|e| e.to_string())
+        }
+        Command::Bench { which: BenchKind::Scenes, out, scenes, schedule, iterations, seed, .. } => {
+            let options = crate::bench::ScenesBenchOptions { scenes, schedule, iterations, seed, out };
+            crate::bench::scenes(&options, |line| eprintln!("{line}")).map(|table| print!("{table}")).map_err(|e| e.to_string())
         }
         Command::Bench { which: BenchKind::Gradients, out, quick, scene, .. } => {
             let scene = scene.or_else(|| Some(PathBuf::from(crate::bench::DEFAULT_SCENE)).filter(|p| p.join("scene.json").exists()));

@@ -261,6 +261,33 @@ fn bench_fit_scores_both_fields_and_refits_the_grid_for_the_mlps_time() {
     }
 }
 
+/// `bench scenes` fits each named scene into `OUT/NAME` and writes one row per scene, with a
+/// sun's error in degrees and a lamp's in centimetres; a missing scene fails naming it.
+#[test]
+fn bench_scenes_fits_every_scene_into_one_table() {
+    let dir = TempDir::new("bench-scenes");
+    let sun = common::tiny_synth(&dir.path().join("sunlit"), TrainingLight::Sun, 24, 2, vec![TestKind::Poses], 3);
+    let lamp = common::tiny_synth(&dir.path().join("lamplit"), TrainingLight::Point, 24, 2, vec![TestKind::Poses], 3);
+    let out = dir.path().join("bench");
+    let root = std::env::current_dir().unwrap();
+    let scenes = format!("{},{}", sun.display(), lamp.display());
+    succeeds(&root, &["bench", "scenes", "--scenes", &scenes, "--out", out.to_str().unwrap(), "--iterations", "4"]);
+    let csv = std::fs::read_to_string(out.join("scenes.csv")).unwrap();
+    let rows: Vec<Vec<&str>> = csv.lines().skip(1).map(|l| l.split(',').collect()).collect();
+    assert_eq!(rows.len(), 2, "{csv}");
+    assert_eq!((rows[0][3], rows[1][3]), ("degrees", "m"), "{csv}");
+    assert!(rows.iter().all(|r| r[1].parse::<f64>().unwrap() > 0.0 && r[4].parse::<f64>().unwrap().is_finite()), "{csv}");
+    let md = std::fs::read_to_string(out.join("scenes.md")).unwrap();
+    assert!(md.contains(" cm |") && md.contains(" degrees |"), "{md}");
+    // Both fits are where the table says: both scenes' folders are named `scene`, so the second
+    // run gets its own.
+    assert!(out.join("scene/fit.json").is_file() && out.join("scene-2/fit.json").is_file());
+    assert_eq!((rows[0][0], rows[1][0]), ("scene", "scene-2"), "{csv}");
+    let missing =
+        umbra(&root, &["bench", "scenes", "--scenes", dir.path().join("nowhere").to_str().unwrap(), "--out", out.to_str().unwrap(), "--iterations", "4"]);
+    assert!(!missing.status.success() && String::from_utf8_lossy(&missing.stderr).contains("nowhere"));
+}
+
 /// Whether a triangle mesh is closed and consistently oriented: every directed
 /// edge appears once and its reverse once.
 fn closed_and_oriented(indices: &[u32]) -> bool {

@@ -5,6 +5,7 @@ mod breakdown;
 mod environment;
 mod fit;
 mod gradients;
+mod scenes;
 pub mod shadows;
 mod steps;
 
@@ -12,6 +13,7 @@ pub use breakdown::breakdown;
 pub use environment::environment;
 pub use fit::{fit_curves, CurvePoint, FitBenchOptions};
 pub use gradients::gradients;
+pub use scenes::{scenes, shipped_scenes, ScenesBenchOptions};
 pub use shadows::{body_cloud, shadows, sun_rays, Row, FLOPS_PER_PAIR};
 pub use steps::steps;
 
