@@ -411,7 +411,13 @@ impl Trainer {
             // Several lights are fitted jointly when they are of one kind: several suns, or
             // several point lights (a light stage), each image under its own.
             let first = kind_of(&scene.lights[lights[0]]);
-            if kind_of(&scene.lights[*name]) != first || (lights.len() > 1 && first == LightKind::Uniform) {
+            if lights.len() > 1 && first == LightKind::Uniform && kind_of(&scene.lights[*name]) == first {
+                return Err(FitError::Input(format!(
+                    "{}: training images use the uniform lights {lights:?}; umbra fits one uniform light (uniform lights differ only in strength, which the albedo absorbs): give them one light",
+                    scene.root.join("scene.json").display(),
+                )));
+            }
+            if kind_of(&scene.lights[*name]) != first {
                 return Err(FitError::Input(format!(
                     "{}: training images use the lights {lights:?} of different kinds ({} and {}); umbra fits several training lights only when all are suns or all are point lights",
                     scene.root.join("scene.json").display(),
