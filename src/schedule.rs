@@ -29,6 +29,13 @@ pub struct FieldSettings {
     pub levels: Option<usize>,
     pub table_log2: Option<u32>,
     pub top_bones: Option<usize>,
+    /// Features per table entry (none: the grid's default, 2).
+    pub features: Option<usize>,
+    /// The finest level's cells per body extent (none: the grid's default, 160).
+    pub finest_per_extent: Option<usize>,
+    /// Hidden layers of the albedo's own decoder (0: it shares the SDF's; none: the field's
+    /// default).
+    pub albedo_layers: Option<usize>,
     /// How far (per body extent) each bone's grid box reaches beyond its segment (none: the
     /// grid's default, 1/8).
     pub reach_per_extent: Option<f64>,
@@ -179,7 +186,7 @@ fn parse_field(file: &Path, table: &toml::Table) -> Result<FieldSettings, Schedu
         Some(toml::Value::Table(t)) => t.clone(),
         Some(other) => return Err(err(file, "field", format!("expected a table, found {}", other.type_str()))),
     };
-    let known = ["kind", "levels", "table_log2", "top_bones", "reach_per_extent", "fine_levels_from", "fine_levels_until"];
+    let known = ["kind", "levels", "table_log2", "top_bones", "features", "finest_per_extent", "albedo_layers", "reach_per_extent", "fine_levels_from", "fine_levels_until"];
     for key in field.keys() {
         if !known.contains(&key.as_str()) {
             return Err(err(file, &format!("field.{key}"), format!("unknown key (known: {})", known.join(", "))));
@@ -204,6 +211,9 @@ fn parse_field(file: &Path, table: &toml::Table) -> Result<FieldSettings, Schedu
         levels: bounded("levels", 1.0, 16.0)?.map(|v| v as usize),
         table_log2: bounded("table_log2", 8.0, 22.0)?.map(|v| v as u32),
         top_bones: bounded("top_bones", 1.0, 8.0)?.map(|v| v as usize),
+        features: bounded("features", 1.0, 8.0)?.map(|v| v as usize),
+        finest_per_extent: bounded("finest_per_extent", 10.0, 4096.0)?.map(|v| v as usize),
+        albedo_layers: bounded("albedo_layers", 0.0, 4.0)?.map(|v| v as usize),
         reach_per_extent: match number(file, &field, "reach_per_extent", "field")? {
             Some(v) if !(v > 0.0 && v <= 1.0) => return Err(err(file, "field.reach_per_extent", format!("must be within (0, 1], found {v}"))),
             other => other,
@@ -217,7 +227,7 @@ fn parse_field(file: &Path, table: &toml::Table) -> Result<FieldSettings, Schedu
     };
     if kind == FieldKind::Mlp {
         if let Some(key) =
-            ["levels", "table_log2", "top_bones", "reach_per_extent", "fine_levels_from", "fine_levels_until"].into_iter().find(|k| field.contains_key(*k))
+            ["levels", "table_log2", "top_bones", "features", "finest_per_extent", "reach_per_extent", "fine_levels_from", "fine_levels_until"].into_iter().find(|k| field.contains_key(*k))
         {
             return Err(err(file, &format!("field.{key}"), "applies to kind = \"grid\" only"));
         }
@@ -507,6 +517,14 @@ mod tests {
         assert_eq!(error_of("[field]\nkind = \"grid\"\nreach_per_extent = 0\n[losses]\nmask = 1.0").key, "field.reach_per_extent");
         assert_eq!(error_of("[field]\nreach_per_extent = 0.2\n[losses]\nmask = 1.0").key, "field.reach_per_extent");
         assert_eq!(error_of("sample_masked_misses = 1\n[losses]\nmask = 1.0").key, "sample_masked_misses");
+        assert_eq!(error_of("[field]\nkind = \"grid\"\nfeatures = 0\n[losses]\nmask = 1.0").key, "field.features");
+        assert_eq!(error_of("[field]\nkind = \"grid\"\nfinest_per_extent = 2.5\n[losses]\nmask = 1.0").key, "field.finest_per_extent");
+        assert_eq!(error_of("[field]\nfinest_per_extent = 320\n[losses]\nmask = 1.0").key, "field.finest_per_extent");
+        assert_eq!(error_of("[field]\nalbedo_layers = 9\n[losses]\nmask = 1.0").key, "field.albedo_layers");
+        let shaped = Schedule::parse("[field]\nkind = \"grid\"\nfeatures = 4\nfinest_per_extent = 320\nalbedo_layers = 0\n[losses]\nmask = 1.0", Path::new("s.toml")).unwrap();
+        assert_eq!((shaped.field.features, shaped.field.finest_per_extent, shaped.field.albedo_layers), (Some(4), Some(320), Some(0)));
+        let mlp = Schedule::parse("[field]\nkind = \"mlp\"\nalbedo_layers = 1\n[losses]\nmask = 1.0", Path::new("s.toml")).unwrap();
+        assert_eq!(mlp.field.albedo_layers, Some(1), "either field may decode the albedo on its own");
         let loose = Schedule::parse("sample_masked_misses = true\n[field]\nkind = \"grid\"\nreach_per_extent = 0.2\n[losses]\nmask = 1.0", Path::new("s.toml"))
             .unwrap();
         assert!(loose.sample_masked_misses && loose.field.reach_per_extent == Some(0.2));

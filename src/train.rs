@@ -297,7 +297,7 @@ pub fn field_config(settings: &crate::schedule::FieldSettings, skeleton: &crate:
             ..config
         }
     };
-    match settings.kind {
+    let config = match settings.kind {
         crate::schedule::FieldKind::Mlp => scaled(FieldConfig::for_bones(skeleton.len())),
         crate::schedule::FieldKind::Grid => {
             let mut config = scaled(FieldConfig::with_grid(skeleton.bones.iter().map(|b| b.length as f32).collect(), extent));
@@ -305,13 +305,18 @@ pub fn field_config(settings: &crate::schedule::FieldSettings, skeleton: &crate:
                 grid.levels = settings.levels.unwrap_or(grid.levels);
                 grid.table_log2 = settings.table_log2.unwrap_or(grid.table_log2);
                 grid.top_bones = settings.top_bones.unwrap_or(grid.top_bones);
+                grid.features = settings.features.unwrap_or(grid.features);
+                if let Some(cells) = settings.finest_per_extent {
+                    grid.finest_cell = extent / cells as f32;
+                }
                 if let Some(reach) = settings.reach_per_extent {
                     grid.reach = extent * reach as f32;
                 }
             }
             config
         }
-    }
+    };
+    FieldConfig { albedo_layers: settings.albedo_layers.unwrap_or(config.albedo_layers), ..config }
 }
 
 /// How far (in the search lattice's spacings, 7.2 degrees at 256 directions) gradient descent

@@ -388,3 +388,35 @@ fn fused_interpolation_matches_the_composite_and_its_gradient() {
         assert!((fd - analytic).abs() < 1e-3 * analytic.abs().max(1.0), "finite difference {fd} vs gradient {analytic}");
     }
 }
+
+/// With its own decoder the albedo cannot move the surface: changing the albedo decoder's
+/// weights changes the albedo and leaves the SDF bit for bit; with a shared decoder (the
+/// checkpoints of earlier fits) the albedo is the decoder's last three outputs.
+#[test]
+fn an_albedo_decoder_of_its_own_leaves_the_sdf_alone() {
+    let s = setup();
+    let device = Device::flex();
+    let separate = FieldConfig { albedo_layers: 2, ..s.config.clone() };
+    let mut field = busy_field(&separate, &device, false);
+    assert_eq!(field.output.weight.val().dims()[1], 1, "the SDF's decoder has one output");
+    let pose = PoseTensors::new(&s.pose, &s.character.skeleton, &device);
+    let pts = points(&s, 64, 5);
+    let tensor = || Tensor::<2>::from_data(TensorData::new(flat(&pts), [pts.len(), 3]), &device);
+    let before = field.forward(tensor(), &pose);
+    let (sdf_before, albedo_before) = (values(before.sdf), values(before.albedo));
+    let head = field.albedo_output.take().unwrap();
+    let [i, o] = head.weight.val().dims();
+    let mut stream = Stream::new(3, 4, 0);
+    let w: Vec<f32> = (0..i * o).map(|_| (stream.uniform() * 2.0 - 1.0) as f32).collect();
+    field.albedo_output = Some(burn::nn::Linear { weight: Param::from_tensor(Tensor::from_data(TensorData::new(w, [i, o]), &device)), ..head });
+    let after = field.forward(tensor(), &pose);
+    assert_eq!(values(after.sdf), sdf_before);
+    let moved = values(after.albedo).iter().zip(&albedo_before).filter(|(a, b)| (*a - *b).abs() > 1e-3).count();
+    assert!(moved > albedo_before.len() / 2, "the albedo follows its decoder ({moved} of {} values moved)", albedo_before.len());
+    assert_eq!(values(field.sdf(tensor(), &pose)), sdf_before, "sdf() skips the albedo's decoder and agrees");
+
+    let shared = FieldConfig { albedo_layers: 0, ..s.config.clone() };
+    let field = busy_field(&shared, &device, false);
+    assert!(field.albedo_output.is_none() && field.albedo_hidden.is_empty());
+    assert_eq!(field.output.weight.val().dims()[1], 4, "a shared decoder gives SDF and albedo");
+}

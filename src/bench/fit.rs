@@ -166,6 +166,54 @@ fn run_curve(
     Ok(train_seconds)
 }
 
+/// The grid against the MLP as issue 9 asks, from the curves: when (training time, linear
+/// between scoring points) the grid first reaches the MLP's final foreground PSNR, as a
+/// fraction of the MLP's time; and where the last grid point within the MLP's time ends
+/// (the equal-time fit's if there is one) against the MLP's end. `None` without both fields.
+pub fn grid_against_mlp(points: &[CurvePoint]) -> Option<String> {
+    let last = |run: &dyn Fn(&str) -> bool, limit: f64| {
+        points.iter().filter(|p| run(&p.run) && p.train_seconds <= limit).max_by(|a, b| a.train_seconds.total_cmp(&b.train_seconds))
+    };
+    let mlp = last(&|r| r == "mlp", f64::INFINITY)?;
+    let grid: Vec<&CurvePoint> = points.iter().filter(|p| p.run == "grid").collect();
+    let first = grid.first()?;
+    let target = mlp.novel_pose_foreground_psnr;
+    let mut reached = None;
+    let mut previous = (0.0, f64::NEG_INFINITY);
+    for p in &grid {
+        let (t, v) = (p.train_seconds, p.novel_pose_foreground_psnr);
+        if v >= target {
+            let along = if previous.1.is_finite() && v > previous.1 { (target - previous.1) / (v - previous.1) } else { 1.0 };
+            reached = Some(previous.0 + (t - previous.0) * along.clamp(0.0, 1.0));
+            break;
+        }
+        previous = (t, v);
+    }
+    let mut out = format!(
+        "The MLP ends at {:.2} dB foreground PSNR{} after {:.1} s of training. ",
+        target,
+        mlp.albedo_psnr.map(|a| format!(" (albedo {a:.2} dB)")).unwrap_or_default(),
+        mlp.train_seconds
+    );
+    out += &match reached {
+        Some(t) => format!("The grid reaches it after {t:.1} s, {:.2}x the MLP's time. ", t / mlp.train_seconds.max(1e-9)),
+        None => "The grid never reaches it. ".to_string(),
+    };
+    let equal = last(&|r| r.starts_with("grid at"), mlp.train_seconds * 1.02).or_else(|| last(&|r| r == "grid", mlp.train_seconds * 1.02)).unwrap_or(first);
+    out += &format!(
+        "Within the MLP's time ({}, iteration {}, {:.1} s) the grid ends {:+.2} dB foreground PSNR{} against the MLP.",
+        equal.run,
+        equal.iteration,
+        equal.train_seconds,
+        equal.novel_pose_foreground_psnr - target,
+        match (equal.albedo_psnr, mlp.albedo_psnr) {
+            (Some(g), Some(m)) => format!(" and {:+.2} dB albedo PSNR", g - m),
+            _ => String::new(),
+        }
+    );
+    Some(out)
+}
+
 fn write_outputs(out: &Path, scene: &Path, points: &[CurvePoint]) -> Result<String, FitError> {
     let f = |v: Option<f64>, digits: usize| v.map(|v| format!("{v:.digits$}")).unwrap_or_else(|| "-".into());
     let mut csv = String::from("run,iteration,train_seconds,novel_pose_psnr,novel_pose_foreground_psnr,novel_pose_ssim,albedo_psnr,albedo_foreground_psnr,light_error_degrees,peak_rss_mib\n");
@@ -190,6 +238,9 @@ fn write_outputs(out: &Path, scene: &Path, points: &[CurvePoint]) -> Result<Stri
         md += &format!("| {} |\n", cells.join(" | "));
     }
     let write = |name: &str, text: &str| crate::imageio::write_atomic(&out.join(name), text.as_bytes()).map_err(|e| crate::train::io(&out.join(name), e));
+    if let Some(summary) = grid_against_mlp(points) {
+        md += &format!("\n{summary}\n");
+    }
     write("fit-curves.csv", &csv)?;
     write("fit-curves.md", &md)?;
     let charts: [(&str, &str, fn(&CurvePoint) -> Option<f64>); 3] = [
@@ -226,4 +277,45 @@ fn write_outputs(out: &Path, scene: &Path, points: &[CurvePoint]) -> Result<Stri
         chart.render(800, 500).save_png(&out.join(file)).map_err(|e| crate::train::io(&out.join(file), e))?;
     }
     Ok(md)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn point(run: &str, kind: FieldKind, iteration: usize, seconds: f64, foreground: f64, albedo: f64) -> CurvePoint {
+        CurvePoint {
+            run: run.into(),
+            kind,
+            iteration,
+            train_seconds: seconds,
+            novel_pose_psnr: foreground + 10.0,
+            novel_pose_foreground_psnr: foreground,
+            novel_pose_ssim: 0.9,
+            albedo_psnr: Some(albedo),
+            albedo_foreground_psnr: None,
+            light_error_degrees: None,
+            peak_rss_mib: None,
+        }
+    }
+
+    #[test]
+    fn the_summary_interpolates_where_the_grid_passes_the_mlp_and_compares_at_equal_time() {
+        let mut points = vec![
+            point("mlp", FieldKind::Mlp, 100, 100.0, 20.0, 27.0),
+            point("mlp", FieldKind::Mlp, 200, 200.0, 22.0, 28.0),
+            point("grid", FieldKind::Grid, 100, 30.0, 18.0, 26.0),
+            point("grid", FieldKind::Grid, 200, 60.0, 24.0, 30.0),
+        ];
+        let text = grid_against_mlp(&points).unwrap();
+        // 22 dB lies two thirds of the way from (30 s, 18 dB) to (60 s, 24 dB): 50 s.
+        assert!(text.contains("after 50.0 s, 0.25x the MLP's time"), "{text}");
+        assert!(text.contains("(grid, iteration 200, 60.0 s) the grid ends +2.00 dB foreground PSNR and +2.00 dB albedo"), "{text}");
+        points.push(point("grid at the MLP's time (600 iterations)", FieldKind::Grid, 600, 195.0, 26.0, 31.0));
+        points.push(point("grid at the MLP's time (600 iterations)", FieldKind::Grid, 300, 97.0, 25.0, 30.5));
+        let text = grid_against_mlp(&points).unwrap();
+        assert!(text.contains("iteration 600, 195.0 s) the grid ends +4.00 dB foreground PSNR and +3.00 dB albedo"), "{text}");
+        points.retain(|p| p.run != "grid");
+        assert!(grid_against_mlp(&points).is_none(), "no grid curve, no summary");
+    }
 }

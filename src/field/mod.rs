@@ -1,8 +1,9 @@
 //! The template-free neural field (burn, backend chosen by the `Device`): a point is encoded
 //! relative to the posed bones, with soft skinning weights from its distance to the bone
 //! segments, and an MLP decodes the encoding into a residual signed distance (on a capsule
-//! prior) and an albedo in [0, 1]. VolSDF turns the SDF into density with a Laplace CDF of
-//! learnable scale beta. The field knows nothing of lights.
+//! prior) and an albedo in [0, 1] (the `grid` field with a second MLP for the albedo, so the
+//! surface's regularisers do not smooth the albedo). VolSDF turns the SDF into density with a
+//! Laplace CDF of learnable scale beta. The field knows nothing of lights.
 //!
 //! Two encodings, chosen by the schedule's `[field] kind`: `mlp` expresses the point in every
 //! bone's frame with a few Fourier frequencies (capacity is the MLP's width); `grid` looks it up
@@ -90,6 +91,10 @@ pub struct FieldConfig {
     /// The grid encoding; `None` for the Fourier (`mlp`) one.
     #[serde(default)]
     pub grid: Option<GridConfig>,
+    /// Hidden layers of a separate albedo decoder on the same features (0: the albedo is three
+    /// more outputs of the SDF's decoder).
+    #[serde(default)]
+    pub albedo_layers: usize,
 }
 
 impl FieldConfig {
@@ -106,14 +111,19 @@ impl FieldConfig {
             residual_scale: 0.1,
             min_beta: MIN_BETA,
             grid: None,
+            albedo_layers: 0,
         }
     }
 
     /// The `grid` field: feature grids shaped by the body (`GridConfig::for_body`) into a
-    /// 2 x 64 decoder.
+    /// 2 x 64 decoder for the SDF and another for the albedo. With one decoder for both, the
+    /// Eikonal and curvature losses, which want the fine levels' features smooth, also smooth
+    /// the albedo, and its checkers and stripes feed bumps into the surface; apart, the SDF's
+    /// decoder can ignore features only the albedo needs. human-sun-128, seeds 0 / 1, foreground
+    /// novel pose 23.32 / 24.02 -> 24.66 / 24.68 dB, albedo 29.61 / 30.16 -> 31.09 / 30.90 dB.
     pub fn with_grid(bone_lengths: Vec<f32>, extent: f32) -> Self {
         let bones = bone_lengths.len();
-        Self { layers: 2, grid: Some(GridConfig::for_body(bone_lengths, extent)), ..Self::for_bones(bones) }
+        Self { layers: 2, grid: Some(GridConfig::for_body(bone_lengths, extent)), albedo_layers: 2, ..Self::for_bones(bones) }
     }
 
     fn skinning(&self) -> Skinning {
@@ -153,11 +163,21 @@ impl FieldConfig {
             width = self.hidden;
         }
         // A near-zero residual at the start: the initial surface is the capsule prior.
-        let output = linear(width, 4, 0.01);
+        let separate = self.albedo_layers > 0;
+        let output = linear(width, if separate { 1 } else { 4 }, 0.01);
+        let mut albedo_hidden = Vec::new();
+        let mut width = self.input_width();
+        for _ in 0..self.albedo_layers {
+            albedo_hidden.push(linear(width, self.hidden, 1.0));
+            width = self.hidden;
+        }
+        let albedo_output = separate.then(|| linear(width, 3, 0.01));
         AvatarField {
             grid: self.grid.as_ref().map(|g| g.init(device, seed)),
             hidden,
             output,
+            albedo_hidden,
+            albedo_output,
             beta_raw: Param::from_tensor(Tensor::from_data(TensorData::new(vec![self.initial_beta.ln() / BETA_RATE], [1]), device)),
             config: self.clone(),
         }
@@ -170,6 +190,9 @@ pub struct AvatarField {
     pub grid: Option<FeatureGrid>,
     pub hidden: Vec<Linear>,
     pub output: Linear,
+    /// The albedo's own decoder, when the config has one (`albedo_layers`).
+    pub albedo_hidden: Vec<Linear>,
+    pub albedo_output: Option<Linear>,
     /// `ln(beta - min_beta) / BETA_RATE`.
     pub beta_raw: Param<Tensor<1>>,
     #[module(skip)]
@@ -274,19 +297,39 @@ impl AvatarField {
     pub fn forward(&self, points: Tensor<2>, pose: &PoseTensors) -> FieldOutput {
         let [n, _] = points.dims();
         let (features, prior, _) = self.features(points, pose, false);
+        let (sdf, shared) = self.decode_sdf(features.clone(), prior);
+        let logits = match (&self.albedo_output, shared) {
+            (Some(head), _) => {
+                let mut y = features;
+                for layer in &self.albedo_hidden {
+                    y = relu(layer.forward(y));
+                }
+                head.forward(y)
+            }
+            (None, Some(out)) => out.narrow(1, 1, 3),
+            // A shared decoder always returns its outputs; zeros only keep this panic-free.
+            (None, None) => Tensor::zeros([n, 3], &sdf.device()),
+        };
+        FieldOutput { sdf, albedo: sigmoid(logits + 0.5) }
+    }
+
+    /// The SDF from the decoder's input and the prior, and the decoder's whole output when it
+    /// also holds the albedo.
+    fn decode_sdf(&self, features: Tensor<2>, prior: Tensor<1>) -> (Tensor<1>, Option<Tensor<2>>) {
+        let [n, _] = features.dims();
         let mut x = features;
         for layer in &self.hidden {
             x = relu(layer.forward(x));
         }
         let out = self.output.forward(x);
         let sdf = prior + out.clone().narrow(1, 0, 1).reshape([n]) * self.config.residual_scale;
-        let albedo = sigmoid(out.narrow(1, 1, 3) + 0.5);
-        FieldOutput { sdf, albedo }
+        (sdf, self.albedo_output.is_none().then_some(out))
     }
 
-    /// SDF only.
+    /// SDF only (without the albedo's decoder, when it has its own).
     pub fn sdf(&self, points: Tensor<2>, pose: &PoseTensors) -> Tensor<1> {
-        self.forward(points, pose).sdf
+        let (features, prior, _) = self.features(points, pose, false);
+        self.decode_sdf(features, prior).0
     }
 
     pub fn beta(&self) -> Tensor<1> {
