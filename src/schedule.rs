@@ -186,7 +186,18 @@ fn parse_field(file: &Path, table: &toml::Table) -> Result<FieldSettings, Schedu
         Some(toml::Value::Table(t)) => t.clone(),
         Some(other) => return Err(err(file, "field", format!("expected a table, found {}", other.type_str()))),
     };
-    let known = ["kind", "levels", "table_log2", "top_bones", "features", "finest_per_extent", "albedo_layers", "reach_per_extent", "fine_levels_from", "fine_levels_until"];
+    let known = [
+        "kind",
+        "levels",
+        "table_log2",
+        "top_bones",
+        "features",
+        "finest_per_extent",
+        "albedo_layers",
+        "reach_per_extent",
+        "fine_levels_from",
+        "fine_levels_until",
+    ];
     for key in field.keys() {
         if !known.contains(&key.as_str()) {
             return Err(err(file, &format!("field.{key}"), format!("unknown key (known: {})", known.join(", "))));
@@ -226,8 +237,9 @@ fn parse_field(file: &Path, table: &toml::Table) -> Result<FieldSettings, Schedu
         },
     };
     if kind == FieldKind::Mlp {
-        if let Some(key) =
-            ["levels", "table_log2", "top_bones", "features", "finest_per_extent", "reach_per_extent", "fine_levels_from", "fine_levels_until"].into_iter().find(|k| field.contains_key(*k))
+        if let Some(key) = ["levels", "table_log2", "top_bones", "features", "finest_per_extent", "reach_per_extent", "fine_levels_from", "fine_levels_until"]
+            .into_iter()
+            .find(|k| field.contains_key(*k))
         {
             return Err(err(file, &format!("field.{key}"), "applies to kind = \"grid\" only"));
         }
@@ -521,7 +533,9 @@ mod tests {
         assert_eq!(error_of("[field]\nkind = \"grid\"\nfinest_per_extent = 2.5\n[losses]\nmask = 1.0").key, "field.finest_per_extent");
         assert_eq!(error_of("[field]\nfinest_per_extent = 320\n[losses]\nmask = 1.0").key, "field.finest_per_extent");
         assert_eq!(error_of("[field]\nalbedo_layers = 9\n[losses]\nmask = 1.0").key, "field.albedo_layers");
-        let shaped = Schedule::parse("[field]\nkind = \"grid\"\nfeatures = 4\nfinest_per_extent = 320\nalbedo_layers = 0\n[losses]\nmask = 1.0", Path::new("s.toml")).unwrap();
+        let shaped =
+            Schedule::parse("[field]\nkind = \"grid\"\nfeatures = 4\nfinest_per_extent = 320\nalbedo_layers = 0\n[losses]\nmask = 1.0", Path::new("s.toml"))
+                .unwrap();
         assert_eq!((shaped.field.features, shaped.field.finest_per_extent, shaped.field.albedo_layers), (Some(4), Some(320), Some(0)));
         let mlp = Schedule::parse("[field]\nkind = \"mlp\"\nalbedo_layers = 1\n[losses]\nmask = 1.0", Path::new("s.toml")).unwrap();
         assert_eq!(mlp.field.albedo_layers, Some(1), "either field may decode the albedo on its own");

@@ -55,7 +55,17 @@ pub fn steps(scene_path: &Path, schedule_path: &Path, out: &Path, quick: bool) -
         reach_per_extent: None,
         fine_levels: None,
     };
-    let mlp = FieldSettings { kind: FieldKind::Mlp, levels: None, table_log2: None, top_bones: None, features: None, finest_per_extent: None, albedo_layers: None, reach_per_extent: None, fine_levels: None };
+    let mlp = FieldSettings {
+        kind: FieldKind::Mlp,
+        levels: None,
+        table_log2: None,
+        top_bones: None,
+        features: None,
+        finest_per_extent: None,
+        albedo_layers: None,
+        reach_per_extent: None,
+        fine_levels: None,
+    };
     let variants = [
         Variant { name: "mlp, every ray rendered (before)", field: mlp.clone(), render_missed_rays: true, composite_lookup: false },
         Variant { name: "mlp, missed rays skipped", field: mlp, render_missed_rays: false, composite_lookup: false },
