@@ -71,6 +71,7 @@ fn save_checkpoint(trainer: &Trainer, out: &Path, history: &[(usize, StepStats)]
         "sun_cone": cone_json(trainer.cones.first().copied().flatten()),
         "light_searches": trainer.searches.iter().skip(1).collect::<Vec<_>>(),
         "light_cones": trainer.cones.iter().skip(1).map(|c| cone_json(*c)).collect::<Vec<_>>(),
+        "albedo_layers": trainer.model()?.field.config.albedo_layers,
     });
     write_text(&temp.join("state.json"), &state.to_string())?;
     write_text(&temp.join("losses.csv"), &losses_csv(history))?;
@@ -143,6 +144,24 @@ fn verified_state(dir: &Path, trainer: &Trainer, resuming: bool) -> Result<serde
 
 /// The run's last complete checkpoint folder: `checkpoint/`, or the one an interrupted swap
 /// left aside.
+/// The depth of the albedo's own decoder a run's checkpoint was saved with, so that a run is
+/// rebuilt as it was fitted whatever the current default: `state.json` records it; a
+/// checkpoint without it predates the choice and shares the SDF's decoder (0). `None` without
+/// a readable checkpoint (its loading reports that).
+fn recorded_albedo_layers(run: &Path) -> Result<Option<usize>, FitError> {
+    let Some(state_path) = existing_checkpoint(run).map(|c| c.join("state.json")) else { return Ok(None) };
+    let Ok(text) = std::fs::read_to_string(&state_path) else { return Ok(None) };
+    let Ok(state) = serde_json::from_str::<serde_json::Value>(&text) else { return Ok(None) };
+    match state.get("albedo_layers") {
+        None => Ok(Some(0)),
+        Some(value) => value
+            .as_u64()
+            .filter(|&n| n <= 4)
+            .map(|n| Some(n as usize))
+            .ok_or_else(|| io(&state_path, format!("albedo_layers: expected a whole number up to 4, found {value}"))),
+    }
+}
+
 pub fn existing_checkpoint(out: &Path) -> Option<PathBuf> {
     [CHECKPOINT, OLD_CHECKPOINT].iter().map(|name| out.join(name)).find(|dir| dir.join("state.json").is_file())
 }
@@ -263,7 +282,10 @@ pub fn restore(run: &Path, scene: Option<&Path>, backend: crate::train::Backend)
         let what = if run.is_dir() { "is not an umbra run (it has no schedule.toml)" } else { "does not exist" };
         return Err(io(run, format!("{what}: name the --out folder of an `umbra fit`")));
     }
-    let schedule = Schedule::load(&run.join(SCHEDULE_COPY))?;
+    let mut schedule = Schedule::load(&run.join(SCHEDULE_COPY))?;
+    if let Some(layers) = recorded_albedo_layers(run)? {
+        schedule.field.albedo_layers = Some(layers);
+    }
     let scene_path = match scene {
         Some(path) => path.to_path_buf(),
         None => {
@@ -417,8 +439,15 @@ pub fn fit(options: &FitOptions, mut on: impl FnMut(TrainMessage)) -> Result<ser
     if !options.resume && !options.force && holds_foreign_files(out) {
         return Err(io(out, "exists, is not empty and is not an umbra run (no checkpoint, fit.json or schedule.toml): pass --force to write into it anyway, or choose another --out"));
     }
+    // A resumed run keeps the decoder it was fitted with (the schedule text is compared below).
+    let mut built = schedule.clone();
+    if options.resume {
+        if let Some(layers) = recorded_albedo_layers(out)? {
+            built.field.albedo_layers = Some(layers);
+        }
+    }
     // Everything is validated before the run folder is touched: a refused fit writes nothing.
-    let mut trainer = Trainer::new(scene, schedule.clone(), options.backend, options.seed)?;
+    let mut trainer = Trainer::new(scene, built, options.backend, options.seed)?;
     // Without a light to fit the light-only iterations are not run (unless --iterations says).
     let saved = if options.iterations.is_some() { 0 } else { schedule.iterations - schedule.iterations_for(trainer.fit_light) };
     schedule.iterations -= saved;

@@ -516,3 +516,37 @@ fn several_training_suns_are_fitted_jointly_and_mixed_kinds_are_refused() {
     let err = Trainer::new(scene, Schedule::parse(&text, Path::new("suns.toml")).unwrap(), Backend::Flex, 1).err().unwrap().to_string();
     assert!(err.contains("point") && err.contains("directional") && err.contains("scene.json"), "{err}");
 }
+
+/// A run fitted before the albedo had a decoder of its own (its `state.json` does not say, its
+/// schedule does not either, its model has one decoder with four outputs) still renders and
+/// resumes, rebuilt as it was fitted rather than with today's default.
+#[test]
+fn a_run_from_before_the_albedo_decoder_renders_and_resumes_as_it_was_fitted() {
+    let (dir, scene_path, schedule_path) = quick_setup("old-decoder", TrainingLight::Sun, 10);
+    let text = std::fs::read_to_string(&schedule_path).unwrap();
+    let old = dir.path().join("old.toml");
+    std::fs::write(&old, format!("{text}\n[field]\nkind = \"grid\"\nalbedo_layers = 0\n")).unwrap();
+    let today = dir.path().join("today.toml");
+    std::fs::write(&today, format!("{text}\n[field]\nkind = \"grid\"\n")).unwrap();
+    let run = dir.path().join("run");
+    umbra::fit::fit(&fit_options(&scene_path, run.clone(), &old, Some(10), 2, false), |_| {}).unwrap();
+    // What such a run looked like: no record of the decoder anywhere.
+    let state_path = run.join("checkpoint/state.json");
+    let mut state: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&state_path).unwrap()).unwrap();
+    assert_eq!(state["albedo_layers"], 0, "a checkpoint records its albedo decoder");
+    state.as_object_mut().unwrap().remove("albedo_layers");
+    std::fs::write(&state_path, state.to_string()).unwrap();
+    std::fs::copy(&today, run.join("schedule.toml")).unwrap();
+    let evaluation = umbra::fit::render_run(&run, None, Backend::Flex, |_| {}).unwrap();
+    assert!(evaluation["novel_pose_psnr"].as_f64().is_some_and(|p| p.is_finite()), "{evaluation}");
+    let resumed = umbra::fit::fit(&fit_options(&scene_path, run.clone(), &today, Some(14), 2, true), |_| {}).unwrap();
+    assert_eq!(resumed["iterations"], 14, "{resumed}");
+    let state: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&state_path).unwrap()).unwrap();
+    assert_eq!(state["albedo_layers"], 0, "the resumed run kept its shared decoder");
+    // A run of today's default records its own decoder and restores with it.
+    let fresh = dir.path().join("fresh");
+    umbra::fit::fit(&fit_options(&scene_path, fresh.clone(), &today, Some(4), 2, false), |_| {}).unwrap();
+    let state: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(fresh.join("checkpoint/state.json")).unwrap()).unwrap();
+    assert_eq!(state["albedo_layers"], 2);
+    assert!(umbra::fit::render_run(&fresh, None, Backend::Flex, |_| {}).is_ok());
+}
