@@ -142,8 +142,6 @@ fn verified_state(dir: &Path, trainer: &Trainer, resuming: bool) -> Result<serde
     Ok(state)
 }
 
-/// The run's last complete checkpoint folder: `checkpoint/`, or the one an interrupted swap
-/// left aside.
 /// The depth of the albedo's own decoder a run's checkpoint was saved with, so that a run is
 /// rebuilt as it was fitted whatever the current default: `state.json` records it; a
 /// checkpoint without it predates the choice and shares the SDF's decoder (0). `None` without
@@ -162,6 +160,8 @@ fn recorded_albedo_layers(run: &Path) -> Result<Option<usize>, FitError> {
     }
 }
 
+/// The run's last complete checkpoint folder: `checkpoint/`, or the one an interrupted swap
+/// left aside.
 pub fn existing_checkpoint(out: &Path) -> Option<PathBuf> {
     [CHECKPOINT, OLD_CHECKPOINT].iter().map(|name| out.join(name)).find(|dir| dir.join("state.json").is_file())
 }

@@ -44,6 +44,23 @@ pub struct FieldSettings {
     pub fine_levels: Option<(usize, usize)>,
 }
 
+impl FieldSettings {
+    /// A field of `kind` with every override left at the field's default.
+    pub fn of(kind: FieldKind) -> Self {
+        Self {
+            kind,
+            levels: None,
+            table_log2: None,
+            top_bones: None,
+            features: None,
+            finest_per_extent: None,
+            albedo_layers: None,
+            reach_per_extent: None,
+            fine_levels: None,
+        }
+    }
+}
+
 #[derive(Clone, Copy, Debug, PartialEq, serde::Serialize)]
 pub struct Ramp {
     pub from: f64,

@@ -44,28 +44,8 @@ fn step_ms(scene: &Scene, schedule: &Schedule, variant: &Variant, iteration: usi
 pub fn steps(scene_path: &Path, schedule_path: &Path, out: &Path, quick: bool) -> Result<String, FitError> {
     let scene = Scene::load(scene_path)?;
     let schedule = Schedule::load(schedule_path)?;
-    let grid = |top_bones: Option<usize>| FieldSettings {
-        kind: FieldKind::Grid,
-        levels: None,
-        table_log2: None,
-        top_bones,
-        features: None,
-        finest_per_extent: None,
-        albedo_layers: None,
-        reach_per_extent: None,
-        fine_levels: None,
-    };
-    let mlp = FieldSettings {
-        kind: FieldKind::Mlp,
-        levels: None,
-        table_log2: None,
-        top_bones: None,
-        features: None,
-        finest_per_extent: None,
-        albedo_layers: None,
-        reach_per_extent: None,
-        fine_levels: None,
-    };
+    let grid = |top_bones: Option<usize>| FieldSettings { top_bones, ..FieldSettings::of(FieldKind::Grid) };
+    let mlp = FieldSettings::of(FieldKind::Mlp);
     let variants = [
         Variant { name: "mlp, every ray rendered (before)", field: mlp.clone(), render_missed_rays: true, composite_lookup: false },
         Variant { name: "mlp, missed rays skipped", field: mlp, render_missed_rays: false, composite_lookup: false },

@@ -295,27 +295,24 @@ impl AvatarField {
 
     /// SDF (metres) and albedo of world points in a pose.
     pub fn forward(&self, points: Tensor<2>, pose: &PoseTensors) -> FieldOutput {
-        let [n, _] = points.dims();
         let (features, prior, _) = self.features(points, pose, false);
-        let (sdf, shared) = self.decode_sdf(features.clone(), prior);
-        let logits = match (&self.albedo_output, shared) {
-            (Some(head), _) => {
+        let (sdf, out) = self.decode_sdf(features.clone(), prior);
+        let logits = match &self.albedo_output {
+            Some(head) => {
                 let mut y = features;
                 for layer in &self.albedo_hidden {
                     y = relu(layer.forward(y));
                 }
                 head.forward(y)
             }
-            (None, Some(out)) => out.narrow(1, 1, 3),
-            // A shared decoder always returns its outputs; zeros only keep this panic-free.
-            (None, None) => Tensor::zeros([n, 3], &sdf.device()),
+            None => out.narrow(1, 1, 3),
         };
         FieldOutput { sdf, albedo: sigmoid(logits + 0.5) }
     }
 
-    /// The SDF from the decoder's input and the prior, and the decoder's whole output when it
-    /// also holds the albedo.
-    fn decode_sdf(&self, features: Tensor<2>, prior: Tensor<1>) -> (Tensor<1>, Option<Tensor<2>>) {
+    /// The SDF from the decoder's input and the prior, and the decoder's whole output (with a
+    /// shared decoder, the albedo's logits follow the SDF's).
+    fn decode_sdf(&self, features: Tensor<2>, prior: Tensor<1>) -> (Tensor<1>, Tensor<2>) {
         let [n, _] = features.dims();
         let mut x = features;
         for layer in &self.hidden {
@@ -323,7 +320,7 @@ impl AvatarField {
         }
         let out = self.output.forward(x);
         let sdf = prior + out.clone().narrow(1, 0, 1).reshape([n]) * self.config.residual_scale;
-        (sdf, self.albedo_output.is_none().then_some(out))
+        (sdf, out)
     }
 
     /// SDF only (without the albedo's decoder, when it has its own).
