@@ -12,7 +12,7 @@ use crate::imageio::RgbImage;
 use crate::isosurface::{bisect, extract, Grid, Mesh};
 use crate::light::Light;
 use crate::render::{ray_bounds, render, RaySet, Sampling};
-use crate::scene::Scene;
+use crate::scene::{Footprint, Scene};
 use crate::shading::{shade_lambertian, Emitter, LightKind};
 use crate::train::{Avatar, FitError};
 use burn::tensor::{Device, Tensor, TensorData};
@@ -37,6 +37,10 @@ pub enum Lighting<'a> {
 
 /// How whole views are sampled for evaluation and relighting: twice a training step's.
 pub const VIEW_SAMPLING: Sampling = Sampling { coarse: 48, probe: 0, fine: 32 };
+
+/// Rays per pixel of a view of a capture whose pixels average their area, where the pixel may
+/// hold an edge: the centres of 4 x 4 strata.
+pub const VIEW_PIXEL_RAYS: usize = 16;
 
 /// Renders the scene's `camera` in `frame`, sampled as `samples` says, under `lighting`.
 pub fn render_view(model: &Avatar, scene: &Scene, camera: usize, frame: usize, samples: Sampling, device: &Device, lighting: &Lighting) -> RgbImage {
@@ -69,53 +73,97 @@ pub fn render_view(model: &Avatar, scene: &Scene, camera: usize, frame: usize, s
         _ => None,
     };
     let sky_casters: Vec<PosedGaussian> = model.light.shadow_casters_posed(&posed);
-    let mut image = RgbImage::new(camera.width, camera.height);
-    let pixels: Vec<usize> = (0..camera.width * camera.height).collect();
-    for chunk in pixels.chunks(1024) {
-        let mut rays = RaySet::default();
-        let mut hit = Vec::new();
-        for &p in chunk {
-            let ray = camera.pixel_ray(p % camera.width, p / camera.width);
-            if let Some(bounds) = ray_bounds(ray.origin, ray.direction, &posed, crate::render::MIN_BOUND_RADIUS * model.light.unit as f64) {
-                rays.push(ray.origin, ray.direction, Some(bounds));
-                hit.push(p);
+    // The colour and coverage of rays through continuous pixel positions, each with its own
+    // stream id for the sky's samples.
+    let trace = |targets: &[([f64; 2], u64)]| -> Vec<([f32; 3], f32)> {
+        let mut out = vec![([0.0f32; 3], 0.0f32); targets.len()];
+        for (first, chunk) in targets.chunks(1024).enumerate().map(|(k, c)| (k * 1024, c)) {
+            let mut rays = RaySet::default();
+            let mut hit = Vec::new();
+            for (k, &(at, _)) in chunk.iter().enumerate() {
+                let ray = camera.ray_through(glam::DVec2::new(at[0], at[1]));
+                if let Some(bounds) = ray_bounds(ray.origin, ray.direction, &posed, crate::render::MIN_BOUND_RADIUS * model.light.unit as f64) {
+                    rays.push(ray.origin, ray.direction, Some(bounds));
+                    hit.push(first + k);
+                }
+            }
+            if rays.is_empty() {
+                continue;
+            }
+            let r = rays.len();
+            let jitter = vec![0.5; r * samples.draws()];
+            let deferred = render(&model.field, &pose_tensors, &rays, samples, &jitter, needs_normals.then_some(crate::field::GRADIENT), device);
+            let scaled =
+                |scale: &DVec3| deferred.albedo.clone() * Tensor::<1>::from_data(TensorData::new(scale.as_vec3().to_array().to_vec(), [3]), device).reshape([1, 3]);
+            let colour = match (lighting, &deferred.normal) {
+                (Lighting::Fitted(_), Some(normal)) => values(fitted.shade(deferred.albedo.clone(), deferred.surface.clone(), normal.clone(), &gaussians)),
+                (Lighting::Albedo { albedo_scale }, _) => values(scaled(albedo_scale)),
+                (Lighting::Known { light, albedo_scale, .. }, Some(normal)) => match (emitter(light, device), &sampler) {
+                    (Some((emitter, ambient)), _) => values(shade_lambertian(
+                        scaled(albedo_scale),
+                        deferred.surface.clone(),
+                        normal.clone(),
+                        &casters,
+                        ambient,
+                        &emitter,
+                        model.light.shadow_start,
+                    )),
+                    (None, Some(sampler)) => {
+                        let points = vectors(values(deferred.surface.clone()));
+                        let normals = vectors(values(normal.clone()));
+                        let reflectance = vectors(values(scaled(albedo_scale)));
+                        let ids: Vec<u64> = hit.iter().map(|&k| targets[k].1).collect();
+                        let radiance = sampler.shade(&points, &normals, &ids, &sky_casters);
+                        reflectance.iter().zip(radiance).flat_map(|(a, l)| (*a * l).as_vec3().to_array()).collect()
+                    }
+                    (None, None) => values(deferred.albedo.clone()),
+                },
+                _ => values(deferred.albedo.clone()),
+            };
+            let coverage = values(deferred.accumulation.clone());
+            for (j, &k) in hit.iter().enumerate() {
+                out[k] = ([colour[j * 3], colour[j * 3 + 1], colour[j * 3 + 2]], coverage[j]);
             }
         }
-        if rays.is_empty() {
-            continue;
+        out
+    };
+    let (w, h) = (camera.width, camera.height);
+    let centre = |p: usize| [(p % w) as f64 + 0.5, (p / w) as f64 + 0.5];
+    let mut pixels = trace(&(0..w * h).map(|p| (centre(p), p as u64)).collect::<Vec<_>>());
+    // A capture whose pixels average their area: every pixel that may hold an edge (its 3 x 3
+    // neighbourhood's centres differ by more than an 8-bit step, or in coverage) is the mean
+    // of the centres of its 4 x 4 strata instead; elsewhere the centre is that mean already.
+    if scene.footprint().footprint == Footprint::Area {
+        let offsets = crate::scene::footprint::subpixel_offsets(VIEW_PIXEL_RAYS, None);
+        let step = 1.0 / 255.0;
+        let encoded: Vec<[f32; 3]> = pixels.iter().map(|(c, _)| c.map(|v| crate::imageio::linear_to_srgb(v.max(0.0)))).collect();
+        let refine: Vec<usize> = (0..w * h)
+            .filter(|&p| {
+                let (x, y) = ((p % w) as isize, (p / w) as isize);
+                let neighbours = (-1..=1).flat_map(|dy| (-1..=1).map(move |dx| (x + dx, y + dy)));
+                neighbours.filter(|&(i, j)| i >= 0 && j >= 0 && (i as usize) < w && (j as usize) < h).any(|(i, j)| {
+                    let q = j as usize * w + i as usize;
+                    (pixels[p].1 - pixels[q].1).abs() > step || (0..3).any(|c| (encoded[p][c] - encoded[q][c]).abs() > step)
+                })
+            })
+            .collect();
+        let targets: Vec<([f64; 2], u64)> = refine
+            .iter()
+            .flat_map(|&p| offsets.iter().enumerate().map(move |(s, o)| ([(p % w) as f64 + o[0], (p / w) as f64 + o[1]], ((w * h + p * VIEW_PIXEL_RAYS + s) as u64))))
+            .collect();
+        let traced = trace(&targets);
+        for (&p, rays) in refine.iter().zip(traced.chunks(VIEW_PIXEL_RAYS)) {
+            let share = 1.0 / VIEW_PIXEL_RAYS as f32;
+            let colour = rays.iter().fold([0.0f32; 3], |a, (c, _)| [a[0] + c[0] * share, a[1] + c[1] * share, a[2] + c[2] * share]);
+            pixels[p] = (colour, rays.iter().map(|(_, a)| a * share).sum());
         }
-        let r = rays.len();
-        let jitter = vec![0.5; r * samples.draws()];
-        let deferred = render(&model.field, &pose_tensors, &rays, samples, &jitter, needs_normals.then_some(crate::field::GRADIENT), device);
-        let scaled =
-            |scale: &DVec3| deferred.albedo.clone() * Tensor::<1>::from_data(TensorData::new(scale.as_vec3().to_array().to_vec(), [3]), device).reshape([1, 3]);
-        let colour = match (lighting, &deferred.normal) {
-            (Lighting::Fitted(_), Some(normal)) => values(fitted.shade(deferred.albedo.clone(), deferred.surface.clone(), normal.clone(), &gaussians)),
-            (Lighting::Albedo { albedo_scale }, _) => values(scaled(albedo_scale)),
-            (Lighting::Known { light, albedo_scale, .. }, Some(normal)) => match (emitter(light, device), &sampler) {
-                (Some((emitter, ambient)), _) => values(shade_lambertian(
-                    scaled(albedo_scale),
-                    deferred.surface.clone(),
-                    normal.clone(),
-                    &casters,
-                    ambient,
-                    &emitter,
-                    model.light.shadow_start,
-                )),
-                (None, Some(sampler)) => {
-                    let points = vectors(values(deferred.surface.clone()));
-                    let normals = vectors(values(normal.clone()));
-                    let reflectance = vectors(values(scaled(albedo_scale)));
-                    let ids: Vec<u64> = hit.iter().map(|&p| p as u64).collect();
-                    let radiance = sampler.shade(&points, &normals, &ids, &sky_casters);
-                    reflectance.iter().zip(radiance).flat_map(|(a, l)| (*a * l).as_vec3().to_array()).collect()
-                }
-                (None, None) => values(deferred.albedo.clone()),
-            },
-            _ => values(deferred.albedo.clone()),
-        };
-        for (k, &p) in hit.iter().enumerate() {
-            image.pixels[p] = [colour[k * 3], colour[k * 3 + 1], colour[k * 3 + 2]];
+    }
+    // A pixel the body covers by half or less is background, black, as the scene format's
+    // images and masks have it.
+    let mut image = RgbImage::new(w, h);
+    for (p, (colour, coverage)) in pixels.into_iter().enumerate() {
+        if coverage > 0.5 {
+            image.pixels[p] = colour;
         }
     }
     image

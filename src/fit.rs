@@ -545,6 +545,11 @@ pub fn fit(options: &FitOptions, mut on: impl FnMut(TrainMessage)) -> Result<ser
     // light from sliding behind the body (fit.json says which case this was).
     let training_cameras: std::collections::BTreeSet<usize> = trainer.scene.views_in(crate::scene::Split::Train).map(|v| v.camera).collect();
     let capture = json!({
+        "pixel_footprint": {
+            "modelled": trainer.footprint,
+            "rays_per_training_pixel": trainer.pixel_rays,
+            "read_off_the_images": trainer.footprint_estimate,
+        },
         "training_cameras": training_cameras.len(),
         "monocular": training_cameras.len() == 1,
         "light_start": match trainer.searches.first().and_then(|s| s.as_ref()) {

@@ -14,6 +14,27 @@ pub fn mask(accumulation: Tensor<1>, mask: Tensor<1>) -> Tensor<1> {
     (accumulation - mask).abs().mean().reshape([1])
 }
 
+/// The mask loss of pixels that average their area (`scene::footprint`): away from the
+/// silhouette (`edge` 0) `|coverage - mask|`; along it (`edge` 1) a pixel may be partly covered
+/// whatever its mask, which says only that coverage is above one half (mask 1) or at most one
+/// half (mask 0), so only the wrong side of one half costs.
+pub fn mask_area(coverage: Tensor<1>, mask: Tensor<1>, edge: Tensor<1>) -> Tensor<1> {
+    let inside = (coverage.clone() - mask.clone()).abs() * (edge.clone().neg() + 1.0);
+    let side = mask * 2.0 - 1.0;
+    let wrong_side = ((coverage.neg() + 0.5) * side).clamp_min(0.0) * edge;
+    (inside + wrong_side).mean().reshape([1])
+}
+
+/// The RGB loss of pixels that average their area: `rgb`'s L1, except for background pixels
+/// along the silhouette, whose black says nothing of the colour (a pixel at most half covered
+/// is black in the format's images, though its area holds some of the body).
+pub fn rgb_area(colour: Tensor<2>, target: Tensor<2>, mask: Tensor<1>, edge: Tensor<1>) -> Tensor<1> {
+    let [p, _] = colour.dims();
+    let unknown = (mask.neg() + 1.0) * edge;
+    let weight = (unknown.neg() + 1.0).reshape([p, 1]);
+    ((colour - target).abs() * weight).mean().reshape([1])
+}
+
 /// `|albedo - 0.75|` on foreground rays (mean over foreground rays and channels).
 pub fn grey(albedo: Tensor<2>, foreground: Tensor<1>) -> Tensor<1> {
     let [r, _] = albedo.dims();
@@ -79,6 +100,23 @@ mod tests {
 
     fn value(t: Tensor<1>) -> f32 {
         t.into_data().try_to_vec::<f32>().unwrap()[0]
+    }
+
+    #[test]
+    fn area_losses_cost_only_the_wrong_side_of_half_covered_along_the_silhouette() {
+        // Coverage, mask, edge: an inner pixel off by 0.2; an edge pixel of mask 1 at 0.7 (right
+        // side, free) and at 0.3 (0.2 short); an edge pixel of mask 0 at 0.4 (free) and at 0.9
+        // (0.4 over); an outer pixel at 0.1.
+        let coverage = t1(&[0.8, 0.7, 0.3, 0.4, 0.9, 0.1]);
+        let mask = t1(&[1.0, 1.0, 1.0, 0.0, 0.0, 0.0]);
+        let edge = t1(&[0.0, 1.0, 1.0, 1.0, 1.0, 0.0]);
+        let expected = (0.2 + 0.0 + 0.2 + 0.0 + 0.4 + 0.1) / 6.0;
+        assert!((value(mask_area(coverage, mask.clone(), edge.clone())) - expected).abs() < 1e-6);
+        // RGB: the background pixels along the silhouette (3 and 4) do not count.
+        let colour = t2(&[0.5; 18], 3);
+        let target = t2(&[0.0; 18], 3);
+        let expected = 0.5 * 12.0 / 18.0;
+        assert!((value(rgb_area(colour, target, mask, edge)) - expected).abs() < 1e-6);
     }
 
     fn close(a: f32, b: f64) {

@@ -152,6 +152,13 @@ pub struct Schedule {
     /// the body's box (the posed bones' box widened by the grid's reach) instead of skipped, so
     /// the field can grow where the masks say the body is and the Gaussians follow it there.
     pub sample_masked_misses: bool,
+    /// The captures' pixel footprint (`scene::footprint`): `None` reads it off the training
+    /// images, else as given.
+    pub footprint: Option<crate::scene::Footprint>,
+    /// Rays per training pixel of a capture whose pixels average their area (1, 4, 9 or 16:
+    /// stratified, jittered); their colours and coverage are averaged before the losses, and a
+    /// batch holds `rays_per_batch / pixel_rays` pixels. Centre-sampled captures take one.
+    pub pixel_rays: usize,
     pub learning_rates: BTreeMap<String, f64>,
     pub weights: BTreeMap<String, Ramp>,
     pub field: FieldSettings,
@@ -306,6 +313,8 @@ impl Schedule {
             "field_lr_decay_from",
             "sun_search",
             "sample_masked_misses",
+            "footprint",
+            "pixel_rays",
             "learning_rates",
             "losses",
             "field",
@@ -416,10 +425,24 @@ impl Schedule {
                 Some(toml::Value::Boolean(b)) => *b,
                 Some(other) => return Err(err(file, "sample_masked_misses", format!("expected true or false, found {other}"))),
             },
+            footprint: match table.get("footprint") {
+                None => None,
+                Some(toml::Value::String(s)) if s == "auto" => None,
+                Some(toml::Value::String(s)) if s == "area" => Some(crate::scene::Footprint::Area),
+                Some(toml::Value::String(s)) if s == "centre" => Some(crate::scene::Footprint::Centre),
+                Some(other) => return Err(err(file, "footprint", format!("expected \"auto\", \"area\" or \"centre\", found {other}"))),
+            },
+            pixel_rays: match count(file, &table, "pixel_rays", 1, 1)? {
+                n @ (1 | 4 | 9 | 16) => n,
+                n => return Err(err(file, "pixel_rays", format!("must be a square number of rays per pixel (1, 4, 9 or 16), found {n}"))),
+            },
             learning_rates,
             weights,
             field,
         };
+        if schedule.pixel_rays > schedule.rays_per_batch {
+            return Err(err(file, "pixel_rays", format!("{} rays per pixel do not fit in rays_per_batch = {}", schedule.pixel_rays, schedule.rays_per_batch)));
+        }
         // A weighted loss with no points to evaluate it on would be dropped silently.
         for (points, key, terms) in
             [(schedule.density_points, "density_points", &["density"][..]), (schedule.regulariser_points, "regulariser_points", &["eikonal", "curvature"][..])]
@@ -534,6 +557,9 @@ mod tests {
         assert_eq!(error_of("[learning_rates]\nfield = 0\n[losses]\nmask = 1.0").key, "learning_rates.field");
         assert_eq!(error_of("[learning_rates]\nbrain = 1e-3\n[losses]\nmask = 1.0").key, "learning_rates.brain");
         assert_eq!(error_of("light = \"sometimes\"\n[losses]\nmask = 1.0").key, "light");
+        assert_eq!(error_of("footprint = \"blurry\"\n[losses]\nmask = 1.0").key, "footprint");
+        assert_eq!(error_of("pixel_rays = 3\n[losses]\nmask = 1.0").key, "pixel_rays");
+        assert_eq!(error_of("rays_per_batch = 8\npixel_rays = 16\n[losses]\nmask = 1.0").key, "pixel_rays");
         assert_eq!(error_of("[losses]\nmask = \"lots\"").key, "losses.mask");
         assert_eq!(error_of("[field]\nkind = \"voxels\"\n[losses]\nmask = 1.0").key, "field.kind");
         assert_eq!(error_of("[field]\nkind = \"grid\"\nlevels = 0\n[losses]\nmask = 1.0").key, "field.levels");

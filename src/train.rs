@@ -214,6 +214,9 @@ struct ViewData {
     foreground: Vec<usize>,
     /// Pixels within `BOUNDARY_BAND` pixels of the silhouette's edge, on either side.
     boundary: Vec<usize>,
+    /// Per pixel, whether it touches a pixel of the other kind (8-neighbours): where a pixel
+    /// averaging its area may be partly covered whatever its mask says.
+    silhouette: Vec<bool>,
 }
 
 /// How far above the body's centre a point light starts, in body extents (2.5 m for a walking
@@ -279,6 +282,30 @@ pub struct Trainer {
     /// The training data's fingerprint (`Scene::training_identity`, every training pixel
     /// hashed), computed once for all the checkpoints a fit writes.
     training_identity: std::sync::OnceLock<String>,
+    /// What the training images say of their pixel footprint (`scene::footprint`), and the
+    /// footprint the fit models (the schedule's, else that).
+    pub footprint_estimate: crate::scene::FootprintEstimate,
+    pub footprint: crate::scene::Footprint,
+    /// Rays per training pixel: the schedule's `pixel_rays` for an area footprint, else one.
+    pub pixel_rays: usize,
+}
+
+/// A training batch: pixels of one frame's views under one training light.
+struct Batch {
+    frame: usize,
+    light: usize,
+    /// Rays that meet a Gaussian's bound first (`hits` of them, only they enter the field),
+    /// then the others, which are background: colour and accumulation zero.
+    rays: RaySet,
+    hits: usize,
+    /// Per pixel, its colour (linear RGB) and mask.
+    colours: Vec<f32>,
+    masks: Vec<f32>,
+    /// Per pixel, 1 where it touches the other side of the silhouette (`ViewData::silhouette`).
+    silhouette: Vec<f32>,
+    /// With several rays per pixel, where each pixel's rays are in `rays`, pixel after pixel;
+    /// none when each pixel is one ray, in `rays`' order.
+    gather: Option<Vec<i64>>,
 }
 
 /// The field the schedule asks for: the Fourier `mlp` field, or feature grids shaped by the
@@ -452,6 +479,15 @@ impl Trainer {
             .map(|v| ViewData {
                 foreground: v.mask.as_ref().map(|m| (0..m.foreground.len()).filter(|&k| m.foreground[k]).collect()).unwrap_or_default(),
                 boundary: v.mask.as_ref().map(|m| boundary_pixels(m, BOUNDARY_BAND)).unwrap_or_default(),
+                silhouette: v
+                    .mask
+                    .as_ref()
+                    .map(|m| {
+                        let mut flags = vec![false; m.foreground.len()];
+                        boundary_pixels(m, 1).into_iter().for_each(|p| flags[p] = true);
+                        flags
+                    })
+                    .unwrap_or_default(),
             })
             .collect();
         let extent = scene.body_extent();
@@ -489,6 +525,9 @@ impl Trainer {
             .iter()
             .map(|&g| (g.to_string(), if g == "features" { AdamConfig::new().with_epsilon(1e-15).init() } else { AdamConfig::new().init() }))
             .collect();
+        let footprint_estimate = scene.footprint();
+        let footprint = schedule.footprint.unwrap_or(footprint_estimate.footprint);
+        let pixel_rays = if footprint == crate::scene::Footprint::Area { schedule.pixel_rays } else { 1 };
         Ok(Self {
             scene,
             schedule,
@@ -511,6 +550,9 @@ impl Trainer {
             view_light,
             training_identity: std::sync::OnceLock::new(),
             bone_centres,
+            footprint_estimate,
+            footprint,
+            pixel_rays,
         })
     }
 
@@ -532,11 +574,10 @@ impl Trainer {
         self.model.as_ref().ok_or_else(|| FitError::Input("the model was lost by an interrupted step".into()))
     }
 
-    /// Samples a batch of rays from one random training frame, all from its views under one
-    /// training light (returned with the frame). Rays that meet a Gaussian's bound come first
-    /// (the returned count): only they enter the field; the others are background, whose
-    /// colour and accumulation are known to be zero.
-    fn batch(&mut self, set: &GaussianSet) -> (usize, usize, RaySet, Vec<f32>, Vec<f32>, usize) {
+    /// Samples a batch of pixels from one random training frame, all from its views under one
+    /// training light, each pixel as `pixel_rays` rays (one through its centre, or stratified
+    /// over its area).
+    fn batch(&mut self, set: &GaussianSet) -> Batch {
         let frame = self.stream.below(self.frames.len());
         let data = &self.frames[frame];
         // With several lights, the light of a random view of the frame (so each light is drawn
@@ -550,14 +591,19 @@ impl Trainer {
         };
         let pose = &self.scene.frames[data.position].pose;
         let posed = set.pose(pose);
-        let mut drawn = Vec::with_capacity(self.schedule.rays_per_batch);
+        let per_pixel = self.pixel_rays;
+        let pixel_count = (self.schedule.rays_per_batch / per_pixel).max(1);
+        let mut drawn = Vec::with_capacity(pixel_count * per_pixel);
+        let mut colours = Vec::with_capacity(pixel_count * 3);
+        let mut masks = Vec::with_capacity(pixel_count);
+        let mut silhouette = Vec::with_capacity(pixel_count);
         // The body's box, for foreground rays that miss every bound (when asked): once a batch.
         let body_box = self.schedule.sample_masked_misses.then(|| {
             let (lo, hi) = pose.bounds(&self.scene.skeleton);
             let reach = glam::DVec3::splat(self.body_reach);
             (lo - reach, hi + reach)
         });
-        for k in 0..self.schedule.rays_per_batch {
+        for k in 0..pixel_count {
             let v = same_light[self.stream.below(same_light.len())];
             let view = &self.scene.views[v];
             let camera = &self.scene.cameras[view.camera];
@@ -569,26 +615,54 @@ impl Trainer {
                 _ => &Vec::new(),
             };
             let pixel = if pool.is_empty() { self.stream.below(pixels) } else { pool[self.stream.below(pool.len())] };
-            let ray = camera.pixel_ray(pixel % camera.width, pixel / camera.width);
             let mask = view.mask.as_ref().map(|m| m.foreground[pixel] as u8 as f32).unwrap_or(0.0);
-            let bounds = match (ray_bounds(ray.origin, ray.direction, &posed, self.min_bound_radius()), body_box) {
-                (None, Some((lo, hi))) if mask > 0.5 => box_bounds(ray.origin, ray.direction, lo, hi),
-                (bounds, _) => bounds,
+            let (x, y) = ((pixel % camera.width) as f64, (pixel / camera.width) as f64);
+            let rays: Vec<crate::scene::Ray> = if per_pixel == 1 {
+                vec![camera.pixel_ray(pixel % camera.width, pixel / camera.width)]
+            } else {
+                let jitter: Vec<f64> = (0..2 * per_pixel).map(|_| self.stream.uniform()).collect();
+                crate::scene::footprint::subpixel_offsets(per_pixel, Some(&jitter))
+                    .into_iter()
+                    .map(|[u, v]| camera.ray_through(glam::DVec2::new(x + u, y + v)))
+                    .collect()
             };
-            drawn.push((ray, bounds, view.colour.pixels[pixel], mask));
+            for ray in rays {
+                let bounds = match (ray_bounds(ray.origin, ray.direction, &posed, self.min_bound_radius()), body_box) {
+                    (None, Some((lo, hi))) if mask > 0.5 => box_bounds(ray.origin, ray.direction, lo, hi),
+                    (bounds, _) => bounds,
+                };
+                drawn.push((ray, bounds, view.colour.pixels[pixel], mask));
+            }
+            silhouette.push(self.views[v].silhouette.get(pixel).copied().unwrap_or(false) as u8 as f32);
         }
         // A stable partition: hits first, in the order drawn.
         let hits = drawn.iter().filter(|d| d.1.is_some()).count();
-        drawn.sort_by_key(|d| d.1.is_none());
+        let mut order: Vec<usize> = (0..drawn.len()).collect();
+        order.sort_by_key(|&d| drawn[d].1.is_none());
         let mut rays = RaySet::default();
-        let mut colours = Vec::with_capacity(drawn.len() * 3);
-        let mut masks = Vec::with_capacity(drawn.len());
-        for (ray, bounds, colour, mask) in drawn {
-            rays.push(ray.origin, ray.direction, bounds);
-            colours.extend(colour);
-            masks.push(mask);
+        for &d in &order {
+            let (ray, bounds, _, _) = &drawn[d];
+            rays.push(ray.origin, ray.direction, *bounds);
         }
-        (frame, light, rays, colours, masks, hits)
+        let gather = if per_pixel == 1 {
+            // One ray per pixel: the targets follow the rays' order.
+            for &d in &order {
+                colours.extend(drawn[d].2);
+                masks.push(drawn[d].3);
+            }
+            None
+        } else {
+            for pixel in drawn.chunks(per_pixel) {
+                colours.extend(pixel[0].2);
+                masks.push(pixel[0].3);
+            }
+            let mut position = vec![0i64; drawn.len()];
+            for (slot, &d) in order.iter().enumerate() {
+                position[d] = slot as i64;
+            }
+            Some(position)
+        };
+        Batch { frame, light, rays, hits, colours, masks, silhouette, gather }
     }
 
     /// The body's length unit: `skeleton::body_length(1, extent)`.
@@ -743,7 +817,7 @@ impl Trainer {
             clock.mark(0);
         }
         let set = self.model()?.gaussians.to_set();
-        let (frame, light_index, rays, colours, masks, hits) = self.batch(&set);
+        let Batch { frame, light: light_index, rays, hits, colours, masks, silhouette, gather } = self.batch(&set);
         clock.mark(1);
         let r = rays.len();
         // Only rays that meet a bound are rendered (at least one, so the graph is never empty);
@@ -771,22 +845,48 @@ impl Trainer {
         } else {
             deferred.accumulation.clone()
         };
-        let albedo = background(deferred.albedo.clone());
-        let target: Tensor<2> = Tensor::from_data(TensorData::new(colours, [r, 3]), &device);
-        let mask: Tensor<1> = Tensor::from_data(TensorData::new(masks, [r]), &device);
+        // Several rays per pixel: each pixel's rays averaged, in the targets' order.
+        let pixels = masks.len();
+        let per_pixel = r / pixels.max(1);
+        let gather = gather.map(|g| Tensor::<1, Int>::from_data(TensorData::new(g, [r]), &device));
+        let average = |t: Tensor<2>| match &gather {
+            Some(g) => t.select(0, g.clone()).reshape([pixels, per_pixel, 3]).mean_dim(1).reshape([pixels, 3]),
+            None => t,
+        };
+        let accumulation = match &gather {
+            Some(g) => accumulation.select(0, g.clone()).reshape([pixels, per_pixel]).mean_dim(1).reshape([pixels]),
+            None => accumulation,
+        };
+        let albedo = average(background(deferred.albedo.clone()));
+        let target: Tensor<2> = Tensor::from_data(TensorData::new(colours, [pixels, 3]), &device);
+        // Pixels averaging their area: along the silhouette what the mask and a black
+        // background say is only which side of half covered a pixel is (`losses::mask_area`).
+        let silhouette = gather.as_ref().map(|_| Tensor::<1>::from_data(TensorData::new(silhouette, [pixels]), &device));
+        let mask: Tensor<1> = Tensor::from_data(TensorData::new(masks, [pixels]), &device);
         let posed = model.gaussians.posed(&pose);
         let mut terms: Vec<(&str, f64, Tensor<1>)> = Vec::new();
         if w("rgb") > 0.0 {
             let colour = match &deferred.normal {
-                Some(normal) => {
-                    background(model.light_at(light_index).shade(deferred.albedo.clone(), deferred.surface.clone(), normal.clone(), &detached(&posed)))
-                }
+                Some(normal) => average(background(model.light_at(light_index).shade(
+                    deferred.albedo.clone(),
+                    deferred.surface.clone(),
+                    normal.clone(),
+                    &detached(&posed),
+                ))),
                 None => albedo.clone(),
             };
-            terms.push(("rgb", w("rgb"), crate::losses::rgb(colour, target)));
+            let rgb = match &silhouette {
+                Some(edge) => crate::losses::rgb_area(colour, target, mask.clone(), edge.clone()),
+                None => crate::losses::rgb(colour, target),
+            };
+            terms.push(("rgb", w("rgb"), rgb));
         }
         clock.mark(5);
-        terms.push(("mask", w("mask"), crate::losses::mask(accumulation, mask.clone())));
+        let mask_loss = match &silhouette {
+            Some(edge) => crate::losses::mask_area(accumulation, mask.clone(), edge.clone()),
+            None => crate::losses::mask(accumulation, mask.clone()),
+        };
+        terms.push(("mask", w("mask"), mask_loss));
         if w("grey") > 0.0 {
             terms.push(("grey", w("grey"), crate::losses::grey(albedo, mask)));
         }

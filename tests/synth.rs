@@ -125,7 +125,7 @@ fn check_against_independent_formula(light: &Light, kind: Kind) {
     let target = if kind == Kind::Human { DVec3::new(0.0, 0.9, 0.0) } else { DVec3::new(0.0, 0.45, 0.0) };
     const SIZE: usize = 48;
     let camera = umbra::scene::Camera::look_at("c", target + DVec3::new(2.0, 0.6, 2.2), target, DVec3::Y, SIZE, SIZE, 100.0);
-    let rendered = render_view(&character, &pose, &camera, light, 4, 0, 0);
+    let rendered = render_view(&character, &pose, &camera, light, 4, 1, 0, 0);
     let (mut compared, mut ambiguous, mut worst) = (0, 0, 0.0f64);
     for j in 1..SIZE - 1 {
         for i in 1..SIZE - 1 {
@@ -193,7 +193,7 @@ fn uniform_light_without_occlusion_is_albedo_times_radiance() {
     let pose = character.pose(0.0, 0.0, DVec3::ZERO);
     let camera = umbra::scene::Camera::look_at("c", DVec3::new(0.0, 1.6, 3.0), DVec3::new(0.0, 1.6, 0.0), DVec3::Y, 16, 16, 60.0);
     let light = Light::Uniform { radiance: DVec3::new(0.9, 0.9, 0.9) };
-    let r = render_view(&character, &pose, &camera, &light, 64, 1, 0);
+    let r = render_view(&character, &pose, &camera, &light, 64, 1, 1, 0);
     let mut n = 0;
     for k in 0..256 {
         if r.mask.foreground[k] {
@@ -209,7 +209,7 @@ fn uniform_light_without_occlusion_is_albedo_times_radiance() {
 
 #[test]
 fn shipped_scenes_reproduce_byte_for_byte_from_their_options() {
-    for name in ["human-sun", "dog-sun", "human-mono", "human-sun-128", "human-dressed", "human-lamp", "human-suns"] {
+    for name in ["human-sun", "dog-sun", "human-mono", "human-sun-128", "human-sun-128-aa", "human-dressed", "human-lamp", "human-suns"] {
         let shipped = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("datasets-synthetic").join(name);
         let text = std::fs::read_to_string(shipped.join("scene.json")).unwrap();
         let json: serde_json::Value = serde_json::from_str(&text).unwrap();
@@ -271,8 +271,8 @@ fn a_scaled_capture_is_the_same_images_of_a_larger_world() {
         let mut total = 0;
         for (k, view) in one.views.iter().enumerate() {
             let (f1, f3) = (&one.frames[view.frame].2, &three.frames[view.frame].2);
-            let r1 = render_view(&one.character, f1, &one.cameras[view.camera], l1, 4, 3, k as u64);
-            let r3 = render_view(&three.character, f3, &three.cameras[view.camera], l3, 4, 3, k as u64);
+            let r1 = render_view(&one.character, f1, &one.cameras[view.camera], l1, 4, 1, 3, k as u64);
+            let r3 = render_view(&three.character, f3, &three.cameras[view.camera], l3, 4, 1, 3, k as u64);
             for (p, q) in r1.colour.pixels.iter().zip(&r3.colour.pixels) {
                 total += 1;
                 if (0..3).any(|c| (p[c] - q[c]).abs() > 1e-3) {
@@ -320,4 +320,59 @@ fn a_light_stage_capture_lights_each_image_by_one_of_its_suns() {
     assert!(plan.views.iter().filter(|v| v.split == Split::Train).all(|v| v.light.starts_with("sun") && v.light != "sun2"));
     assert!(SynthOptions { suns: 5, ..options.clone() }.plan().is_err());
     assert!(SynthOptions { suns: 2, light: TrainingLight::Point, ..options }.plan().is_err());
+}
+
+/// `--pixel-samples 4` averages 4 x 4 stratified rays per pixel: the same images as one ray
+/// where a pixel lies wholly on or off the body, partly covered pixels between, the mask
+/// where more than half is covered; and the scene's footprint is read off its training images
+/// (area for the anti-aliased capture, centre for the other, and for the shared example from
+/// an independent renderer, area).
+#[test]
+fn anti_aliased_captures_average_each_pixel_and_are_recognised() {
+    let dir = TempDir::new("aa");
+    let options = |pixel_samples: usize| SynthOptions {
+        size: 48,
+        cameras: 3,
+        frames: 3,
+        test: vec![TestKind::Poses],
+        pixel_samples,
+        ..tiny(Kind::Human, TrainingLight::Sun)
+    };
+    umbra::synth::generate(&options(1), &dir.path().join("centre"), false, |_, _| {}).unwrap();
+    umbra::synth::generate(&options(4), &dir.path().join("area"), false, |_, _| {}).unwrap();
+    let centre = Scene::load(&dir.path().join("centre")).unwrap();
+    let area = Scene::load(&dir.path().join("area")).unwrap();
+    // Inside the silhouette a pixel's mean stays near its centre (the shading varies a little
+    // across it); along it, where the pixel is partly covered, it moves much more.
+    let (mut inside, mut edge) = ((0.0, 0usize), (0.0, 0usize));
+    for (a, b) in centre.views.iter().zip(&area.views) {
+        let (ma, mb) = (a.mask.as_ref().unwrap(), b.mask.as_ref().unwrap());
+        let w = mb.width;
+        for p in 0..ma.foreground.len() {
+            let (ca, cb) = (a.colour.pixels[p], b.colour.pixels[p]);
+            if !mb.foreground[p] {
+                assert_eq!(cb, [0.0; 3], "pixels outside the mask are black");
+                continue;
+            }
+            if !ma.foreground[p] {
+                continue;
+            }
+            let (x, y) = (p % w, p / w);
+            let interior =
+                x > 0 && y > 0 && x + 1 < w && y + 1 < mb.height && [p - 1, p + 1, p - w, p + w].iter().all(|&q| mb.foreground[q] && ma.foreground[q]);
+            let difference = (0..3).map(|c| (ca[c] - cb[c]).abs() as f64).sum::<f64>();
+            let tally = if interior { &mut inside } else { &mut edge };
+            tally.0 += difference;
+            tally.1 += 1;
+        }
+        let differing = ma.foreground.iter().zip(&mb.foreground).filter(|(x, y)| x != y).count();
+        assert!(differing * 10 < ma.foreground.iter().filter(|&&f| f).count(), "masks agree but at the silhouette: {differing}");
+    }
+    let (inside, edge) = (inside.0 / inside.1.max(1) as f64, edge.0 / edge.1.max(1) as f64);
+    assert!(edge > 2.0 * inside, "mean difference inside {inside}, along the silhouette {edge}");
+    let (ec, ea) = (centre.footprint(), area.footprint());
+    assert_eq!(ec.footprint, umbra::scene::Footprint::Centre, "{ec:?}");
+    assert_eq!(ea.footprint, umbra::scene::Footprint::Area, "{ea:?}");
+    let example = Scene::load(&std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/examples/quadruped-tiny")).unwrap();
+    assert_eq!(example.footprint().footprint, umbra::scene::Footprint::Area, "{:?}", example.footprint());
 }

@@ -3,10 +3,12 @@
 //! reported with the file and the JSON path of the offending value.
 
 mod camera;
+pub mod footprint;
 pub mod identity;
 pub mod json;
 
 pub use camera::{Camera, Ray};
+pub use footprint::{Footprint, FootprintEstimate};
 pub use json::SceneError;
 
 use crate::imageio::{self, ImageError, Mask, RgbImage};
@@ -111,6 +113,12 @@ impl Scene {
     /// renderer's lengths are fractions of it (`skeleton::body_length`).
     pub fn body_extent(&self) -> f64 {
         self.frames.iter().map(|f| f.pose.bounds(&self.skeleton)).map(|(a, b)| (b - a).length()).fold(0.0, f64::max)
+    }
+
+    /// Whether the training images sample pixels at their centres or over their area
+    /// (`footprint::estimate`).
+    pub fn footprint(&self) -> FootprintEstimate {
+        footprint::estimate(self)
     }
 
     pub fn display_name(&self) -> String {

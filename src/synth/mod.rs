@@ -92,6 +92,12 @@ pub struct SynthOptions {
     #[arg(long, default_value_t = 1)]
     #[serde(default = "one_sun", skip_serializing_if = "is_one_sun")]
     pub suns: usize,
+    /// Anti-aliasing as a path tracer does it: N x N stratified rays per pixel, averaged (a box
+    /// filter over the pixel); the mask is coverage above one half and pixels outside it are
+    /// black, as the scene format asks. 1: one ray through the pixel's centre.
+    #[arg(long, default_value_t = 1)]
+    #[serde(default = "one_pixel_sample", skip_serializing_if = "is_one_pixel_sample")]
+    pub pixel_samples: usize,
     /// Also write a ground-truth OBJ mesh per frame (marching tetrahedra of the exact SDF).
     #[arg(long)]
     #[serde(default)]
@@ -104,6 +110,14 @@ pub struct SynthOptions {
 
 fn default_mesh_cell() -> f64 {
     0.02
+}
+
+fn one_pixel_sample() -> usize {
+    1
+}
+
+fn is_one_pixel_sample(n: &usize) -> bool {
+    *n == 1
 }
 
 fn one_sun() -> usize {
@@ -138,6 +152,7 @@ impl Default for SynthOptions {
             scale: 1.0,
             lamp_distance: None,
             suns: 1,
+            pixel_samples: 1,
             meshes: false,
             mesh_cell: 0.02,
         }
@@ -228,6 +243,9 @@ impl SynthOptions {
         }
         if self.samples == 0 {
             return bad("--samples must be positive");
+        }
+        if !(1..=16).contains(&self.pixel_samples) {
+            return bad("--pixel-samples must be within 1..=16");
         }
         if !(self.mesh_cell >= 0.002 && self.mesh_cell <= 0.5) {
             return bad("--mesh-cell must be within 0.002..=0.5 metres");
@@ -374,32 +392,52 @@ impl SynthOptions {
     }
 }
 
-/// Linear colour, mask and albedo of one view, rendered at pixel centres.
+/// Linear colour, mask and albedo of one view.
 pub struct Rendered {
     pub colour: RgbImage,
     pub mask: Mask,
     pub albedo: RgbImage,
 }
 
-/// Renders one view of a posed character exactly per the scene format's image formation.
-pub fn render_view(character: &Character, pose: &Pose, camera: &Camera, light: &Light, samples: usize, seed: u64, view_id: u64) -> Rendered {
+/// Renders one view of a posed character exactly per the scene format's image formation, with
+/// `pixel_samples` x `pixel_samples` stratified rays per pixel (1: the pixel's centre) whose
+/// colour and albedo are averaged; the mask is coverage above one half, and pixels outside it
+/// are black in colour and albedo.
+pub fn render_view(
+    character: &Character,
+    pose: &Pose,
+    camera: &Camera,
+    light: &Light,
+    samples: usize,
+    pixel_samples: usize,
+    seed: u64,
+    view_id: u64,
+) -> Rendered {
     let traced = Traced::new(character, pose);
     let (w, h) = (camera.width, camera.height);
+    let n = pixel_samples.max(1);
     let rows: Vec<Vec<([f32; 3], bool, [f32; 3])>> = (0..h)
         .into_par_iter()
         .map(|j| {
             (0..w)
                 .map(|i| {
-                    let ray = camera.pixel_ray(i, j);
-                    match traced.intersect(&ray, f64::INFINITY) {
-                        None => ([0.0; 3], false, [0.0; 3]),
-                        Some(hit) => {
-                            let albedo = character.albedo(pose, hit.point);
-                            let mut stream = Stream::new(seed, view_id, (j * w + i) as u64);
-                            let colour = shade(&traced, &hit, albedo, light, samples, &mut stream);
-                            (colour.as_vec3().to_array(), true, albedo.as_vec3().to_array())
+                    let (mut colour, mut albedo, mut covered) = (DVec3::ZERO, DVec3::ZERO, 0usize);
+                    for s in 0..n * n {
+                        let at = glam::DVec2::new(i as f64 + ((s % n) as f64 + 0.5) / n as f64, j as f64 + ((s / n) as f64 + 0.5) / n as f64);
+                        let ray = camera.ray_through(at);
+                        if let Some(hit) = traced.intersect(&ray, f64::INFINITY) {
+                            let a = character.albedo(pose, hit.point);
+                            let mut stream = Stream::new(seed, view_id, ((j * w + i) * n * n + s) as u64);
+                            colour += shade(&traced, &hit, a, light, samples, &mut stream);
+                            albedo += a;
+                            covered += 1;
                         }
                     }
+                    if 2 * covered <= n * n {
+                        return ([0.0; 3], false, [0.0; 3]);
+                    }
+                    let share = 1.0 / (n * n) as f64;
+                    ((colour * share).as_vec3().to_array(), true, (albedo * share).as_vec3().to_array())
                 })
                 .collect()
         })
@@ -497,7 +535,7 @@ fn write_scene(options: &SynthOptions, plan: &Plan, dir: &Path, progress: &mut i
         progress(k, plan.views.len());
         let (_, _, pose) = &plan.frames[view.frame];
         let light = lights[view.light.as_str()];
-        let r = render_view(&plan.character, pose, &plan.cameras[view.camera], light, options.samples, options.seed, k as u64);
+        let r = render_view(&plan.character, pose, &plan.cameras[view.camera], light, options.samples, options.pixel_samples, options.seed, k as u64);
         let png = |e: imageio::ImageError| io_error(Path::new(&view.name), e);
         let path = format!("images/{}.png", view.name);
         let mask = format!("masks/{}.png", view.name);
