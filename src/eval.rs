@@ -1,5 +1,7 @@
 //! Rendering whole views of a fitted avatar, in its fitted light, in any light of the scene or
-//! as albedo (`metrics` scores them), and extracting its surface in a pose as a mesh: the
+//! as albedo (`metrics` scores them) as the capture's images are made (a pixel is its centre or
+//! the mean over its area, as `scene::footprint` reads off the training images; a pixel covered
+//! by half or less is black), and extracting its surface in a pose as a mesh: the
 //! fitted SDF sampled on a grid whose cell follows the body's size (the grid field's finest
 //! cell, 1/160 of the body's extent) over the posed bones' box widened by the grid's reach,
 //! its zero level set by marching tetrahedra (`isosurface`), each crossing bisected on the
@@ -93,8 +95,9 @@ pub fn render_view(model: &Avatar, scene: &Scene, camera: usize, frame: usize, s
             let r = rays.len();
             let jitter = vec![0.5; r * samples.draws()];
             let deferred = render(&model.field, &pose_tensors, &rays, samples, &jitter, needs_normals.then_some(crate::field::GRADIENT), device);
-            let scaled =
-                |scale: &DVec3| deferred.albedo.clone() * Tensor::<1>::from_data(TensorData::new(scale.as_vec3().to_array().to_vec(), [3]), device).reshape([1, 3]);
+            let scaled = |scale: &DVec3| {
+                deferred.albedo.clone() * Tensor::<1>::from_data(TensorData::new(scale.as_vec3().to_array().to_vec(), [3]), device).reshape([1, 3])
+            };
             let colour = match (lighting, &deferred.normal) {
                 (Lighting::Fitted(_), Some(normal)) => values(fitted.shade(deferred.albedo.clone(), deferred.surface.clone(), normal.clone(), &gaussians)),
                 (Lighting::Albedo { albedo_scale }, _) => values(scaled(albedo_scale)),
@@ -149,7 +152,9 @@ pub fn render_view(model: &Avatar, scene: &Scene, camera: usize, frame: usize, s
             .collect();
         let targets: Vec<([f64; 2], u64)> = refine
             .iter()
-            .flat_map(|&p| offsets.iter().enumerate().map(move |(s, o)| ([(p % w) as f64 + o[0], (p / w) as f64 + o[1]], ((w * h + p * VIEW_PIXEL_RAYS + s) as u64))))
+            .flat_map(|&p| {
+                offsets.iter().enumerate().map(move |(s, o)| ([(p % w) as f64 + o[0], (p / w) as f64 + o[1]], ((w * h + p * VIEW_PIXEL_RAYS + s) as u64)))
+            })
             .collect();
         let traced = trace(&targets);
         for (&p, rays) in refine.iter().zip(traced.chunks(VIEW_PIXEL_RAYS)) {

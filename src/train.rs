@@ -3,6 +3,9 @@
 //! and typed messages that the CLI turns into a progress bar. It skips what a scene does not
 //! need: a uniformly lit capture gets no light, no shadow rays and no light-fitting stage. A
 //! capture under several lights of one kind fits them jointly, each batch under one of them.
+//! A capture whose pixels average their area (`scene::footprint`) is fitted pixel by pixel:
+//! each training pixel is the mean of several stratified rays, and along the silhouette only
+//! the side of half covered its mask gives is trusted (`losses::mask_area`).
 
 use crate::field::{AvatarField, FieldConfig, GradientMethod, PoseTensors};
 use crate::gaussians::{GaussianParams, GaussianSet};
@@ -867,12 +870,9 @@ impl Trainer {
         let mut terms: Vec<(&str, f64, Tensor<1>)> = Vec::new();
         if w("rgb") > 0.0 {
             let colour = match &deferred.normal {
-                Some(normal) => average(background(model.light_at(light_index).shade(
-                    deferred.albedo.clone(),
-                    deferred.surface.clone(),
-                    normal.clone(),
-                    &detached(&posed),
-                ))),
+                Some(normal) => {
+                    average(background(model.light_at(light_index).shade(deferred.albedo.clone(), deferred.surface.clone(), normal.clone(), &detached(&posed))))
+                }
                 None => albedo.clone(),
             };
             let rgb = match &silhouette {

@@ -550,3 +550,47 @@ fn a_run_from_before_the_albedo_decoder_renders_and_resumes_as_it_was_fitted() {
     assert_eq!(state["albedo_layers"], 2);
     assert!(umbra::fit::render_run(&fresh, None, Backend::Flex, |_| {}).is_ok());
 }
+
+/// A capture whose pixels average their area (anti-aliased, `synth --pixel-samples`) is read as
+/// such, and fitted with several rays per training pixel when the schedule asks (the fit runs
+/// and lowers its loss); a centre-sampled one with one ray, unless the schedule says otherwise.
+#[test]
+fn an_anti_aliased_capture_is_fitted_with_several_rays_per_pixel() {
+    let dir = TempDir::new("footprint");
+    // 64 pixels square: at 32 the limbs are a pixel or two wide, with no inside to compare
+    // their silhouette's pixels with.
+    let options = |pixel_samples| umbra::synth::SynthOptions {
+        size: 64,
+        cameras: 4,
+        frames: 2,
+        test_frames: 1,
+        test: vec![TestKind::Poses],
+        samples: 8,
+        seed: 5,
+        pixel_samples,
+        ..umbra::synth::SynthOptions::default()
+    };
+    umbra::synth::generate(&options(4), &dir.path().join("area"), false, |_, _| {}).unwrap();
+    // As many pixels per batch as the quick schedule's centre-sampled fits have.
+    let schedule =
+        Schedule::parse(&format!("pixel_rays = 4\n{}", QUICK.replace("rays_per_batch = 256", "rays_per_batch = 1024")), Path::new("quick.toml")).unwrap();
+    let scene = umbra::scene::Scene::load(&dir.path().join("area")).unwrap();
+    let mut trainer = Trainer::new(scene, schedule.clone(), Backend::Flex, 1).unwrap();
+    assert_eq!(trainer.footprint, umbra::scene::Footprint::Area, "{:?}", trainer.footprint_estimate);
+    assert_eq!(trainer.pixel_rays, 4);
+    let losses: Vec<f64> = (0..60).map(|_| trainer.step().unwrap().total).collect();
+    assert!(losses.iter().all(|l| l.is_finite()));
+    let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len() as f64;
+    assert!(mean(&losses[50..]) < 0.8 * mean(&losses[..10]), "{losses:?}");
+    // The default schedule trains an area capture with one ray through each pixel's centre.
+    let default = Schedule::parse(umbra::schedule::DEFAULT_TEXT, Path::new("default.toml")).unwrap();
+    let trainer = Trainer::new(umbra::scene::Scene::load(&dir.path().join("area")).unwrap(), default, Backend::Flex, 1).unwrap();
+    assert_eq!((trainer.footprint, trainer.pixel_rays), (umbra::scene::Footprint::Area, 1));
+    // The same capture sampled at pixel centres: one ray per pixel, or as the schedule says.
+    let centre = tiny_scene(dir.path(), TrainingLight::Sun);
+    let trainer = Trainer::new(umbra::scene::Scene::load(&centre).unwrap(), schedule.clone(), Backend::Flex, 1).unwrap();
+    assert_eq!((trainer.footprint, trainer.pixel_rays), (umbra::scene::Footprint::Centre, 1));
+    let forced = Schedule::parse(&format!("footprint = \"area\"\npixel_rays = 9\n{QUICK}"), Path::new("quick.toml")).unwrap();
+    let trainer = Trainer::new(umbra::scene::Scene::load(&centre).unwrap(), forced, Backend::Flex, 1).unwrap();
+    assert_eq!((trainer.footprint, trainer.pixel_rays), (umbra::scene::Footprint::Area, 9));
+}
