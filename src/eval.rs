@@ -1,7 +1,7 @@
 //! Rendering whole views of a fitted avatar, in its fitted light, in any light of the scene or
 //! as albedo (`metrics` scores them) as the capture's images are made (a pixel is its centre or
-//! the mean over its area, as `scene::footprint` reads off the training images; a pixel covered
-//! by half or less is black), and extracting its surface in a pose as a mesh: the
+//! the mean over its area, as `scene::footprint` reads off the training images, where a pixel
+//! covered by half or less is black), and extracting its surface in a pose as a mesh: the
 //! fitted SDF sampled on a grid whose cell follows the body's size (the grid field's finest
 //! cell, 1/160 of the body's extent) over the posed bones' box widened by the grid's reach,
 //! its zero level set by marching tetrahedra (`isosurface`), each crossing bisected on the
@@ -163,11 +163,13 @@ pub fn render_view(model: &Avatar, scene: &Scene, camera: usize, frame: usize, s
             pixels[p] = (colour, rays.iter().map(|(_, a)| a * share).sum());
         }
     }
-    // A pixel the body covers by half or less is background, black, as the scene format's
-    // images and masks have it.
+    // Over a pixel's area, one the body covers by half or less is background, black, as the
+    // scene format's images and masks have it. (At a centre sample the opacity is not a
+    // coverage: there the same rule cost human-sun 0.85 dB over the foreground.)
+    let area = scene.footprint().footprint == Footprint::Area;
     let mut image = RgbImage::new(w, h);
     for (p, (colour, coverage)) in pixels.into_iter().enumerate() {
-        if coverage > 0.5 {
+        if !area || coverage > 0.5 {
             image.pixels[p] = colour;
         }
     }
