@@ -136,7 +136,8 @@ pub fn render_view(model: &Avatar, scene: &Scene, camera: usize, frame: usize, s
     // A capture whose pixels average their area: every pixel that may hold an edge (its 3 x 3
     // neighbourhood's centres differ by more than an 8-bit step, or in coverage) is the mean
     // of the centres of its 4 x 4 strata instead; elsewhere the centre is that mean already.
-    if scene.footprint().footprint == Footprint::Area {
+    let area = scene.footprint().footprint == Footprint::Area;
+    if area {
         let offsets = crate::scene::footprint::subpixel_offsets(VIEW_PIXEL_RAYS, None);
         let step = 1.0 / 255.0;
         let encoded: Vec<[f32; 3]> = pixels.iter().map(|(c, _)| c.map(|v| crate::imageio::linear_to_srgb(v.max(0.0)))).collect();
@@ -166,7 +167,6 @@ pub fn render_view(model: &Avatar, scene: &Scene, camera: usize, frame: usize, s
     // Over a pixel's area, one the body covers by half or less is background, black, as the
     // scene format's images and masks have it. (At a centre sample the opacity is not a
     // coverage: there the same rule cost human-sun 0.85 dB over the foreground.)
-    let area = scene.footprint().footprint == Footprint::Area;
     let mut image = RgbImage::new(w, h);
     for (p, (colour, coverage)) in pixels.into_iter().enumerate() {
         if !area || coverage > 0.5 {
