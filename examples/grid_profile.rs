@@ -3,7 +3,7 @@
 use burn::tensor::{Device, Tensor, TensorData};
 use glam::DVec3;
 use std::time::Instant;
-use umbra::field::grid::{lookup, Skinning};
+use umbra::field::grid::lookup;
 use umbra::field::{FieldConfig, PoseTensors};
 use umbra::synth::character::{Character, Kind};
 use umbra::synth::trace::Stream;
@@ -20,7 +20,7 @@ fn main() {
     let mut s = Stream::new(1, 2, 3);
     let n = 512 * 24;
     let points: Vec<f32> = (0..n * 3).map(|k| (lo[k % 3] + (hi[k % 3] - lo[k % 3]) * s.uniform()) as f32).collect();
-    let skinning = Skinning { sharpness: -0.5 / (0.05f32 * 0.05), prior_radius: 0.06 };
+    let skinning = config.skinning();
     let repeat = 10;
     let t = Instant::now();
     for _ in 0..repeat {

@@ -13,7 +13,7 @@ use crate::gaussians::PosedGaussian;
 use crate::imageio::RgbImage;
 use crate::isosurface::{bisect, extract, Grid, Mesh};
 use crate::light::Light;
-use crate::render::{ray_bounds, render, RaySet, Sampling};
+use crate::render::{ray_bounds, render_still, RaySet, Sampling};
 use crate::scene::{Footprint, Scene};
 use crate::shading::{shade_lambertian, Emitter, LightKind};
 use crate::train::{Avatar, FitError};
@@ -38,11 +38,49 @@ pub enum Lighting<'a> {
 }
 
 /// How whole views are sampled for evaluation and relighting: twice a training step's.
-pub const VIEW_SAMPLING: Sampling = Sampling { coarse: 48, probe: 0, fine: 32 };
+pub const VIEW_SAMPLING: Sampling = Sampling { coarse: 48, probe: 0, fine: 32, albedo_floor: crate::render::ALBEDO_WEIGHT_FLOOR };
 
 /// Rays per pixel of a view of a capture whose pixels average their area, where the pixel may
 /// hold an edge: the centres of 4 x 4 strata.
 pub const VIEW_PIXEL_RAYS: usize = 16;
+
+/// Whether pixel `p` of a centre-sampled render (sRGB `encoded`, `coverage`, `w x h`) must be
+/// rendered over its area to stand for its mean there: where its 3 x 3 neighbourhood's
+/// coverage differs by more than an 8-bit step (a silhouette), or where its colour is curved:
+/// over a box the mean of a smooth image is its centre plus a ninth of how far the centre lies
+/// from its 8 neighbours' mean (both `(f_xx + f_yy) / 24` and `3 (f_xx + f_yy) / 8` on a
+/// quadratic; taken over opposite pairs of neighbours, so that a linear image gives 0 at the
+/// image's border too), so a pixel whose centre is within `REFINE_CURVATURE` of that mean is within
+/// half an 8-bit step of its area's mean already. A linear shading ramp is never refined; an
+/// edge through the pixel (a checker, a stripe, a shadow's border) is.
+fn needs_area(encoded: &[[f32; 3]], coverage: &[f32], w: usize, h: usize, p: usize) -> bool {
+    let step = 1.0 / 255.0;
+    let (x, y) = ((p % w) as isize, (p / w) as isize);
+    let neighbours: Vec<usize> = (-1..=1)
+        .flat_map(|dy| (-1..=1).map(move |dx| (x + dx, y + dy)))
+        .filter(|&(i, j)| (i, j) != (x, y) && i >= 0 && j >= 0 && (i as usize) < w && (j as usize) < h)
+        .map(|(i, j)| j as usize * w + i as usize)
+        .collect();
+    if neighbours.iter().any(|&q| (coverage[p] - coverage[q]).abs() > step) {
+        return true;
+    }
+    // The neighbours in opposite pairs (both inside the image, so a linear image gives zero at
+    // its border too): how far the centre lies from the pairs' mean.
+    let at = |dx: isize, dy: isize| {
+        let (i, j) = (x + dx, y + dy);
+        (i >= 0 && j >= 0 && (i as usize) < w && (j as usize) < h).then(|| j as usize * w + i as usize)
+    };
+    let pairs: Vec<(usize, usize)> = [(1, 0), (0, 1), (1, 1), (1, -1)].into_iter().filter_map(|(dx, dy)| Some((at(dx, dy)?, at(-dx, -dy)?))).collect();
+    if pairs.is_empty() {
+        return false;
+    }
+    let n = pairs.len() as f32;
+    (0..3).any(|c| (pairs.iter().map(|&(a, b)| (encoded[a][c] + encoded[b][c]) / 2.0).sum::<f32>() / n - encoded[p][c]).abs() > REFINE_CURVATURE)
+}
+
+/// How far (sRGB) a pixel's centre may lie from its 8 neighbours' mean before it is rendered
+/// over its area (`needs_area`): nine times half an 8-bit step.
+const REFINE_CURVATURE: f32 = 4.5 / 255.0;
 
 /// Renders the scene's `camera` in `frame`, sampled as `samples` says, under `lighting`.
 pub fn render_view(model: &Avatar, scene: &Scene, camera: usize, frame: usize, samples: Sampling, device: &Device, lighting: &Lighting) -> RgbImage {
@@ -94,7 +132,7 @@ pub fn render_view(model: &Avatar, scene: &Scene, camera: usize, frame: usize, s
             }
             let r = rays.len();
             let jitter = vec![0.5; r * samples.draws()];
-            let deferred = render(&model.field, &pose_tensors, &rays, samples, &jitter, needs_normals.then_some(crate::field::GRADIENT), device);
+            let deferred = render_still(&model.field, &pose_tensors, &rays, samples, &jitter, needs_normals.then_some(crate::field::GRADIENT), device);
             let scaled = |scale: &DVec3| {
                 deferred.albedo.clone() * Tensor::<1>::from_data(TensorData::new(scale.as_vec3().to_array().to_vec(), [3]), device).reshape([1, 3])
             };
@@ -133,24 +171,15 @@ pub fn render_view(model: &Avatar, scene: &Scene, camera: usize, frame: usize, s
     let (w, h) = (camera.width, camera.height);
     let centre = |p: usize| [(p % w) as f64 + 0.5, (p / w) as f64 + 0.5];
     let mut pixels = trace(&(0..w * h).map(|p| (centre(p), p as u64)).collect::<Vec<_>>());
-    // A capture whose pixels average their area: every pixel that may hold an edge (its 3 x 3
-    // neighbourhood's centres differ by more than an 8-bit step, or in coverage) is the mean
-    // of the centres of its 4 x 4 strata instead; elsewhere the centre is that mean already.
+    // A capture whose pixels average their area: every pixel that may hold an edge is the mean
+    // of the centres of its 4 x 4 strata instead (`needs_area`); elsewhere the centre is that
+    // mean already, to within half an 8-bit step.
     let area = scene.footprint().footprint == Footprint::Area;
     if area {
         let offsets = crate::scene::footprint::subpixel_offsets(VIEW_PIXEL_RAYS, None);
-        let step = 1.0 / 255.0;
         let encoded: Vec<[f32; 3]> = pixels.iter().map(|(c, _)| c.map(|v| crate::imageio::linear_to_srgb(v.max(0.0)))).collect();
-        let refine: Vec<usize> = (0..w * h)
-            .filter(|&p| {
-                let (x, y) = ((p % w) as isize, (p / w) as isize);
-                let neighbours = (-1..=1).flat_map(|dy| (-1..=1).map(move |dx| (x + dx, y + dy)));
-                neighbours.filter(|&(i, j)| i >= 0 && j >= 0 && (i as usize) < w && (j as usize) < h).any(|(i, j)| {
-                    let q = j as usize * w + i as usize;
-                    (pixels[p].1 - pixels[q].1).abs() > step || (0..3).any(|c| (encoded[p][c] - encoded[q][c]).abs() > step)
-                })
-            })
-            .collect();
+        let coverage: Vec<f32> = pixels.iter().map(|p| p.1).collect();
+        let refine: Vec<usize> = (0..w * h).filter(|&p| needs_area(&encoded, &coverage, w, h, p)).collect();
         let targets: Vec<([f64; 2], u64)> = refine
             .iter()
             .flat_map(|&p| {
@@ -264,4 +293,39 @@ fn sdf(model: &Avatar, pose: &PoseTensors, points: &[DVec3], device: &Device) ->
         out.extend(read(model.field.sdf(tensor(chunk, device), pose), chunk.len())?);
     }
     Ok(out)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Which pixels of an 8 x 8 image `needs_area` picks, as (x, y).
+    fn picked(image: impl Fn(usize, usize) -> [f32; 3], coverage: impl Fn(usize, usize) -> f32) -> Vec<(usize, usize)> {
+        let (w, h) = (8, 8);
+        let encoded: Vec<[f32; 3]> = (0..w * h).map(|p| image(p % w, p / w)).collect();
+        let cover: Vec<f32> = (0..w * h).map(|p| coverage(p % w, p / w)).collect();
+        (0..w * h).filter(|&p| needs_area(&encoded, &cover, w, h, p)).map(|p| (p % w, p / w)).collect()
+    }
+
+    #[test]
+    fn only_edges_and_silhouettes_are_rendered_over_their_area() {
+        // A steep linear ramp (ten 8-bit steps a pixel) on a covered image: nothing, since a
+        // box's mean of a linear image is its centre.
+        let ramp = |x: usize, y: usize| [0.1 + 0.04 * x as f32, 0.3 + 0.02 * y as f32, 0.5];
+        assert!(picked(ramp, |_, _| 1.0).is_empty());
+        // A checker edge between columns 3 and 4: the two columns beside it.
+        let edge = |x: usize, _: usize| if x < 4 { [0.2; 3] } else { [0.8; 3] };
+        let cols: std::collections::BTreeSet<usize> = picked(edge, |_, _| 1.0).into_iter().map(|p| p.0).collect();
+        assert_eq!(cols, [3, 4].into_iter().collect());
+        // A silhouette (coverage 1 above row 5, 0 below) on a flat colour: rows 4 and 5.
+        let rows: std::collections::BTreeSet<usize> = picked(|_, _| [0.5; 3], |_, y| if y < 5 { 1.0 } else { 0.0 }).into_iter().map(|p| p.1).collect();
+        assert_eq!(rows, [4, 5].into_iter().collect());
+        // A gentle curve along x (a quadratic of 0.5 steps over the neighbourhood) is left
+        // alone; a strong one is not, except in the first and last columns, which have no
+        // neighbours on one side to tell a curve from a ramp.
+        let curve = |k: f32| move |x: usize, _: usize| [0.5 + k * (x as f32 - 3.5).powi(2), 0.5, 0.5];
+        assert!(picked(curve(0.5 / 255.0), |_, _| 1.0).is_empty());
+        let strong = picked(curve(20.0 / 255.0), |_, _| 1.0);
+        assert!(strong.len() == 48 && strong.iter().all(|p| p.0 > 0 && p.0 < 7), "{strong:?}");
+    }
 }

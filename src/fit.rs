@@ -72,6 +72,8 @@ fn save_checkpoint(trainer: &Trainer, out: &Path, history: &[(usize, StepStats)]
         "light_searches": trainer.searches.iter().skip(1).collect::<Vec<_>>(),
         "light_cones": trainer.cones.iter().skip(1).map(|c| cone_json(*c)).collect::<Vec<_>>(),
         "albedo_layers": trainer.model()?.field.config.albedo_layers,
+        "field": trainer.model()?.field.config,
+        "gaussian_bones": trainer.model()?.gaussians.bones,
     });
     write_text(&temp.join("state.json"), &state.to_string())?;
     write_text(&temp.join("losses.csv"), &losses_csv(history))?;
@@ -142,22 +144,29 @@ fn verified_state(dir: &Path, trainer: &Trainer, resuming: bool) -> Result<serde
     Ok(state)
 }
 
-/// The depth of the albedo's own decoder a run's checkpoint was saved with, so that a run is
-/// rebuilt as it was fitted whatever the current default: `state.json` records it; a
-/// checkpoint without it predates the choice and shares the SDF's decoder (0). `None` without
-/// a readable checkpoint (its loading reports that).
-fn recorded_albedo_layers(run: &Path) -> Result<Option<usize>, FitError> {
-    let Some(state_path) = existing_checkpoint(run).map(|c| c.join("state.json")) else { return Ok(None) };
-    let Ok(text) = std::fs::read_to_string(&state_path) else { return Ok(None) };
-    let Ok(state) = serde_json::from_str::<serde_json::Value>(&text) else { return Ok(None) };
-    match state.get("albedo_layers") {
-        None => Ok(Some(0)),
-        Some(value) => value
-            .as_u64()
-            .filter(|&n| n <= 4)
-            .map(|n| Some(n as usize))
-            .ok_or_else(|| io(&state_path, format!("albedo_layers: expected a whole number up to 4, found {value}"))),
+/// Sets `settings` to the field a run's checkpoint was fitted with, so that a run is rebuilt as
+/// it was fitted whatever today's defaults: `state.json` records the whole field. A checkpoint
+/// from before that records at most its albedo decoder's depth (none: it shared the SDF's
+/// decoder) and predates the root's skinning. Nothing changes without a readable checkpoint
+/// (its loading reports that).
+fn apply_recorded_field(run: &Path, settings: &mut crate::schedule::FieldSettings) -> Result<(), FitError> {
+    let Some(state_path) = existing_checkpoint(run).map(|c| c.join("state.json")) else { return Ok(()) };
+    let Ok(text) = std::fs::read_to_string(&state_path) else { return Ok(()) };
+    let Ok(state) = serde_json::from_str::<serde_json::Value>(&text) else { return Ok(()) };
+    if let Some(field) = state.get("field") {
+        let config = serde_json::from_value(field.clone()).map_err(|e| io(&state_path, format!("field: {e}")))?;
+        settings.recorded = Some(config);
+        return Ok(());
     }
+    settings.root_skinning = Some(false);
+    settings.albedo_layers = Some(match state.get("albedo_layers") {
+        None => 0,
+        Some(value) => {
+            value.as_u64().filter(|&n| n <= 4).ok_or_else(|| io(&state_path, format!("albedo_layers: expected a whole number up to 4, found {value}")))?
+                as usize
+        }
+    });
+    Ok(())
 }
 
 /// The run's last complete checkpoint folder: `checkpoint/`, or the one an interrupted swap
@@ -237,6 +246,14 @@ fn load_model(trainer: &mut Trainer, dir: &Path) -> Result<(), FitError> {
     let model = trainer.model.take().ok_or_else(|| FitError::Input("no model".into()))?;
     let model = model.try_load_file(dir.join("model.bpk")).map_err(|e| io(&dir.join("model.bpk"), format!("cannot load the fitted model: {e:?}")))?;
     trainer.model = Some(model);
+    // The Gaussians' bones, when the fit moved them (`Trainer::rebind_gaussians`); before they
+    // were recorded, each stayed on the bone it started on.
+    let state_path = dir.join("state.json");
+    let state: serde_json::Value = std::fs::read_to_string(&state_path).ok().and_then(|t| serde_json::from_str(&t).ok()).unwrap_or_default();
+    if let Some(bones) = state.get("gaussian_bones") {
+        let bones: Vec<usize> = serde_json::from_value(bones.clone()).map_err(|e| io(&state_path, format!("gaussian_bones: {e}")))?;
+        trainer.set_gaussian_bones(&bones).map_err(|e| io(&state_path, format!("gaussian_bones: {e}")))?;
+    }
     Ok(())
 }
 
@@ -283,9 +300,7 @@ pub fn restore(run: &Path, scene: Option<&Path>, backend: crate::train::Backend)
         return Err(io(run, format!("{what}: name the --out folder of an `umbra fit`")));
     }
     let mut schedule = Schedule::load(&run.join(SCHEDULE_COPY))?;
-    if let Some(layers) = recorded_albedo_layers(run)? {
-        schedule.field.albedo_layers = Some(layers);
-    }
+    apply_recorded_field(run, &mut schedule.field)?;
     let scene_path = match scene {
         Some(path) => path.to_path_buf(),
         None => {
@@ -439,12 +454,10 @@ pub fn fit(options: &FitOptions, mut on: impl FnMut(TrainMessage)) -> Result<ser
     if !options.resume && !options.force && holds_foreign_files(out) {
         return Err(io(out, "exists, is not empty and is not an umbra run (no checkpoint, fit.json or schedule.toml): pass --force to write into it anyway, or choose another --out"));
     }
-    // A resumed run keeps the decoder it was fitted with (the schedule text is compared below).
+    // A resumed run keeps the field it was fitted with (the schedule text is compared below).
     let mut built = schedule.clone();
     if options.resume {
-        if let Some(layers) = recorded_albedo_layers(out)? {
-            built.field.albedo_layers = Some(layers);
-        }
+        apply_recorded_field(out, &mut built.field)?;
     }
     // Everything is validated before the run folder is touched: a refused fit writes nothing.
     let mut trainer = Trainer::new(scene, built, options.backend, options.seed)?;

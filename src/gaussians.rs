@@ -72,6 +72,27 @@ impl GaussianSet {
         self.gaussians.is_empty()
     }
 
+    /// The same Gaussians, each moved to bone `bones[i]` where it differs, unchanged in world
+    /// space in `pose`: its mean and rotation re-expressed in the new bone's frame.
+    pub fn rebound(&self, bones: &[usize], pose: &Pose) -> Self {
+        let frame_rotation = |bone: usize| DQuat::from_mat3(&DMat3::from_mat4(pose.bone_to_world[bone])).normalize();
+        let gaussians = self
+            .gaussians
+            .iter()
+            .zip(bones)
+            .map(|(g, &bone)| {
+                if bone == g.bone {
+                    return g.clone();
+                }
+                let world = pose.bone_to_world[g.bone].transform_point3(DVec3::from_array(g.mean));
+                let mean = pose.bone_to_world[bone].inverse().transform_point3(world);
+                let rotation = frame_rotation(bone).inverse() * frame_rotation(g.bone) * DQuat::from_array(g.rotation).normalize();
+                Gaussian { bone, mean: mean.to_array(), rotation: rotation.normalize().to_array(), ..g.clone() }
+            })
+            .collect();
+        Self { gaussians }
+    }
+
     /// Places every Gaussian in world space with its bone's transform.
     pub fn pose(&self, pose: &Pose) -> Vec<PosedGaussian> {
         self.gaussians
@@ -174,6 +195,38 @@ mod tests {
         let posed = set.pose(&Pose { bone_to_world: vec![m] });
         assert!((posed[0].mean - DVec3::new(0.5, 0.0, 0.0)).length() < 1e-12);
         assert!((posed[0].density(posed[0].mean) - 1.0).abs() < 1e-12);
+    }
+
+    #[test]
+    fn a_rebound_gaussian_stays_where_it_was_in_world_space() {
+        let skeleton = Skeleton { bones: vec![Bone { name: "a".into(), parent: None, length: 0.5 }, Bone { name: "b".into(), parent: Some(0), length: 0.4 }] };
+        let mut set = GaussianSet::along_bones(&skeleton, 2, 0.05, 10.0);
+        for (k, g) in set.gaussians.iter_mut().enumerate() {
+            g.rotation = DQuat::from_euler(glam::EulerRot::XYZ, 0.3 * k as f64, -0.2, 0.7).to_array();
+            g.scales = [0.02, 0.05, 0.09];
+        }
+        let pose = Pose {
+            bone_to_world: vec![
+                glam::DMat4::from_rotation_translation(DQuat::from_rotation_y(0.8), DVec3::new(0.1, 1.0, -0.2)),
+                glam::DMat4::from_rotation_translation(DQuat::from_euler(glam::EulerRot::ZXY, 1.1, 0.4, -0.3), DVec3::new(0.3, 0.6, 0.1)),
+            ],
+        };
+        // Every Gaussian to the other bone.
+        let bones: Vec<usize> = set.gaussians.iter().map(|g| 1 - g.bone).collect();
+        let moved = set.rebound(&bones, &pose);
+        assert!(moved.gaussians.iter().zip(&bones).all(|(g, &b)| g.bone == b));
+        for (before, after) in set.pose(&pose).iter().zip(moved.pose(&pose)) {
+            assert!((before.mean - after.mean).length() < 1e-12);
+            for x in [DVec3::X, DVec3::Y, DVec3::Z] {
+                let p = before.mean + x * 0.03;
+                assert!((before.density(p) - after.density(p)).abs() < 1e-9 * before.amplitude, "the same density around it");
+            }
+        }
+        // Another pose moves it with its new bone.
+        let other = Pose { bone_to_world: vec![pose.bone_to_world[0], glam::DMat4::from_translation(DVec3::new(0.0, 2.0, 0.0))] };
+        let on_b = moved.gaussians.iter().position(|g| g.bone == 1).unwrap();
+        let shift = moved.pose(&other)[on_b].mean - moved.pose(&pose)[on_b].mean;
+        assert!(shift.length() > 0.1);
     }
 }
 
@@ -289,6 +342,22 @@ mod learnable {
             let d = whitened_points - whitened_means;
             let m2 = (d.clone() * d).sum_dim(2).reshape([p, n]);
             ((m2 * -0.5).exp() * posed.amplitudes.clone().reshape([1, n])).sum_dim(1).reshape([p])
+        }
+
+        /// Moves Gaussian `i` to bone `bones[i]`, unchanged in world space in `pose`
+        /// (`GaussianSet::rebound`). The parameters keep their identities, so the optimizer's
+        /// state carries over (its moments were taken in the old bones' frames: a step's worth
+        /// of mismatch, which Adam's decay forgets).
+        pub fn rebind(&mut self, bones: &[usize], pose: &crate::skeleton::Pose) {
+            let set = self.to_set().rebound(bones, pose);
+            let device = self.means.val().device();
+            let n = set.len();
+            let means: Vec<f32> = set.gaussians.iter().flat_map(|g| g.mean.map(|v| (v / self.unit as f64) as f32)).collect();
+            let rotations: Vec<f32> = set.gaussians.iter().flat_map(|g| g.rotation.map(|v| v as f32)).collect();
+            // New values under the same identities, still trained.
+            self.means = self.means.clone().map(|_| Tensor::from_data(TensorData::new(means, [n, 3]), &device).require_grad());
+            self.rotations = self.rotations.clone().map(|_| Tensor::from_data(TensorData::new(rotations, [n, 4]), &device).require_grad());
+            self.bones = bones.to_vec();
         }
 
         /// The current values as a plain set (for JSON, culling bounds and the CPU shadow path).

@@ -314,6 +314,9 @@ struct Batch {
 /// The field the schedule asks for: the Fourier `mlp` field, or feature grids shaped by the
 /// body's `extent` (the diagonal of the posed skeleton's bounds, m) with the schedule's overrides.
 pub fn field_config(settings: &crate::schedule::FieldSettings, skeleton: &crate::skeleton::Skeleton, extent: f32) -> FieldConfig {
+    if let Some(recorded) = &settings.recorded {
+        return recorded.clone();
+    }
     // The field's lengths (tuned in metres on the reference human) follow the body's size.
     let scaled = |config: FieldConfig| {
         let unit = crate::skeleton::body_length(1.0, extent as f64) as f32;
@@ -331,6 +334,8 @@ pub fn field_config(settings: &crate::schedule::FieldSettings, skeleton: &crate:
         crate::schedule::FieldKind::Mlp => scaled(FieldConfig::for_bones(skeleton.len())),
         crate::schedule::FieldKind::Grid => {
             let mut config = scaled(FieldConfig::with_grid(skeleton.bones.iter().map(|b| b.length as f32).collect(), extent));
+            let root = skeleton.bones.iter().position(|b| b.parent.is_none()).filter(|_| settings.root_skinning.unwrap_or(true));
+            let cap = crate::field::ROOT_REACH_PER_WIDTH * config.skinning_width;
             if let Some(grid) = config.grid.as_mut() {
                 grid.levels = settings.levels.unwrap_or(grid.levels);
                 grid.table_log2 = settings.table_log2.unwrap_or(grid.table_log2);
@@ -342,11 +347,24 @@ pub fn field_config(settings: &crate::schedule::FieldSettings, skeleton: &crate:
                 if let Some(reach) = settings.reach_per_extent {
                     grid.reach = extent * reach as f32;
                 }
+                grid.root = root.map(|bone| crate::field::grid::RootSkinning::for_body(bone, cap, grid.reach, extent));
             }
             config
         }
     };
     FieldConfig { albedo_layers: settings.albedo_layers.unwrap_or(config.albedo_layers), ..config }
+}
+
+/// How much farther outside the surface (m on the reference human, on average over the frames)
+/// than the best bone a Gaussian's own bone may carry it before the Gaussian moves
+/// (`Trainer::rebind_gaussians`): a few millimetres, below the surface's own noise, so that
+/// bones that carry it equally well (spine and chest for a point of the back) do not trade it.
+const REBIND_TOLERANCE: f64 = 0.005;
+
+/// Each Gaussian's bone's centre, bone-local (m): where the mean regulariser pulls it.
+fn bone_centres(bones: &[usize], skeleton: &crate::skeleton::Skeleton, device: &Device) -> Tensor<2> {
+    let centres: Vec<f32> = bones.iter().flat_map(|&b| [0.0, skeleton.bones[b].length as f32 / 2.0, 0.0]).collect();
+    Tensor::from_data(TensorData::new(centres, [bones.len(), 3]), device)
 }
 
 /// How far (in the search lattice's spacings, 7.2 degrees at 256 directions) gradient descent
@@ -520,8 +538,7 @@ impl Trainer {
                 .map(|_| LightModel::new(light_kind, initial, centre.as_vec3().to_array(), extent, 0.3, &device).with_learned_strength())
                 .collect(),
         };
-        let centres: Vec<f32> = set.gaussians.iter().flat_map(|g| [0.0, scene.skeleton.bones[g.bone].length as f32 / 2.0, 0.0]).collect();
-        let bone_centres = Tensor::from_data(TensorData::new(centres, [set.len(), 3]), &device);
+        let bone_centres = bone_centres(&set.gaussians.iter().map(|g| g.bone).collect::<Vec<_>>(), &scene.skeleton, &device);
         // Feature tables get tiny, sparse gradients: Adam's epsilon must not swamp them
         // (instant-NGP uses 1e-15).
         let optimizers = crate::schedule::GROUPS
@@ -575,6 +592,82 @@ impl Trainer {
 
     pub fn model(&self) -> Result<&Avatar, FitError> {
         self.model.as_ref().ok_or_else(|| FitError::Input("the model was lost by an interrupted step".into()))
+    }
+
+    /// Moves every Gaussian to the bone that keeps it inside the body. A Gaussian starts on a
+    /// bone and fits the field's density wherever that is, so loose clothing is first reached
+    /// by the Gaussians of whatever bone is near (a skirt's by the hands' and thighs'); bound
+    /// to a bone that does not carry it, it swings off the body in other poses, casting
+    /// shadows and bounding samples where the body is not. Each Gaussian's mean, as placed in
+    /// the first training frame, is carried rigidly by every bone in turn through up to
+    /// `SEARCH_FRAMES` training frames, and scored by how far outside the field's surface it
+    /// ends on average. Among the bones within `REBIND_TOLERANCE` of the best, it stays on its
+    /// own if it is one, else goes to the one nearest it. Returns how many moved.
+    pub fn rebind_gaussians(&mut self) -> Result<usize, FitError> {
+        let model = self.model.as_ref().ok_or_else(|| FitError::Input("the model was lost by an interrupted step".into()))?;
+        let set = model.gaussians.to_set();
+        let bone_count = self.scene.skeleton.len();
+        let count = self.frames.len().clamp(1, Self::SEARCH_FRAMES);
+        let reference = self.scene.frames[self.frames[0].position].pose.clone();
+        let placed: Vec<glam::DVec3> = set.pose(&reference).iter().map(|g| g.mean).collect();
+        // outside[g][b]: the mean distance outside the surface of Gaussian g carried by bone b.
+        let mut outside = vec![vec![0.0f64; bone_count]; set.len()];
+        for k in 0..count {
+            let data = &self.frames[k * self.frames.len() / count];
+            let pose = &self.scene.frames[data.position].pose;
+            // Each bone's motion from the reference frame to this one.
+            let motion: Vec<glam::DMat4> = (0..bone_count).map(|b| pose.bone_to_world[b] * reference.bone_to_world[b].inverse()).collect();
+            let carried: Vec<f32> = placed.iter().flat_map(|&x| motion.iter().flat_map(move |m| m.transform_point3(x).as_vec3().to_array())).collect();
+            let n = carried.len() / 3;
+            let points = Tensor::<2>::from_data(TensorData::new(carried, [n, 3]), &self.device);
+            let sdf = model.field.sdf(points, &data.pose_tensors).into_data().convert::<f32>().try_to_vec::<f32>().unwrap_or_default();
+            for (i, d) in sdf.iter().enumerate() {
+                outside[i / bone_count][i % bone_count] += (*d as f64).max(0.0) / count as f64;
+            }
+        }
+        let tolerance = REBIND_TOLERANCE * self.body_unit();
+        let bones: Vec<usize> = set
+            .gaussians
+            .iter()
+            .enumerate()
+            .map(|(g, gaussian)| {
+                let best = outside[g].iter().copied().fold(f64::INFINITY, f64::min);
+                let near_best = |b: usize| outside[g][b] <= best + tolerance;
+                if near_best(gaussian.bone) {
+                    return gaussian.bone;
+                }
+                let distance = |b: usize| {
+                    let (head, tail) = reference.segment(&self.scene.skeleton, b);
+                    let along = ((placed[g] - head).dot(tail - head) / (tail - head).length_squared().max(1e-12)).clamp(0.0, 1.0);
+                    (placed[g] - (head + (tail - head) * along)).length()
+                };
+                (0..bone_count).filter(|&b| near_best(b)).min_by(|&a, &b| distance(a).total_cmp(&distance(b))).unwrap_or(gaussian.bone)
+            })
+            .collect();
+        let moved = bones.iter().zip(&set.gaussians).filter(|(b, g)| **b != g.bone).count();
+        if moved > 0 {
+            if let Some(model) = self.model.as_mut() {
+                model.gaussians.rebind(&bones, &reference);
+            }
+            self.bone_centres = bone_centres(&bones, &self.scene.skeleton, &self.device);
+        }
+        Ok(moved)
+    }
+
+    /// Sets the Gaussians' bones (from a checkpoint's `state.json`), checked against the set's
+    /// size and the skeleton.
+    pub fn set_gaussian_bones(&mut self, bones: &[usize]) -> Result<(), String> {
+        let bone_count = self.scene.skeleton.len();
+        let model = self.model.as_mut().ok_or("no model")?;
+        if bones.len() != model.gaussians.len() {
+            return Err(format!("expected {} Gaussians' bones, found {}", model.gaussians.len(), bones.len()));
+        }
+        if let Some(b) = bones.iter().find(|&&b| b >= bone_count) {
+            return Err(format!("bone {b} is not in the skeleton's {bone_count}"));
+        }
+        model.gaussians.bones = bones.to_vec();
+        self.bone_centres = bone_centres(bones, &self.scene.skeleton, &self.device);
+        Ok(())
     }
 
     /// Samples a batch of pixels from one random training frame, all from its views under one
@@ -818,6 +911,10 @@ impl Trainer {
         if it == self.schedule.light_from && self.fit_light && self.light_kind != LightKind::Uniform && self.schedule.sun_search > 0 {
             self.search_lights()?;
             clock.mark(0);
+        }
+        let every = self.schedule.rebind_every;
+        if every > 0 && it > 0 && it % every == 0 && it <= self.schedule.light_from && self.schedule.weight("density", it) > 0.0 {
+            self.rebind_gaussians()?;
         }
         let set = self.model()?.gaussians.to_set();
         let Batch { frame, light: light_index, rays, hits, colours, masks, silhouette, gather } = self.batch(&set);

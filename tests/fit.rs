@@ -130,12 +130,13 @@ fn resume_continues_where_the_fit_stopped_bit_for_bit_with_either_field() {
     for kind in ["mlp", "grid"] {
         let (dir, scene_path, schedule_path) = quick_setup(&format!("resume-{kind}"), TrainingLight::Sun, 40);
         // Hierarchical sampling too, so the coarse pass and its draws are part of what resumes;
+        // the Gaussians' rebinding at 5 and 10, so their bones are part of it too;
         // and the sun search at iteration 10 with a light rate that presses the direction
         // against the search's cone, so the checkpoint at 20 must carry the cone.
         let text = std::fs::read_to_string(&schedule_path)
             .unwrap()
             .replace("samples_per_ray = 16", "samples_per_ray = 8\nfine_samples_per_ray = 8")
-            .replace("light_from = 0", "light_from = 10\nsun_search = 512")
+            .replace("light_from = 0", "light_from = 10\nsun_search = 512\nrebind_every = 5")
             .replace("light = 5e-2", "light = 2.0");
         std::fs::write(&schedule_path, format!("{text}\n[field]\nkind = \"{kind}\"\n")).unwrap();
         let options = |out: &str, iterations: usize, resume: bool| fit_options(&scene_path, dir.path().join(out), &schedule_path, Some(iterations), 3, resume);
@@ -525,7 +526,8 @@ fn a_run_from_before_the_albedo_decoder_renders_and_resumes_as_it_was_fitted() {
     let (dir, scene_path, schedule_path) = quick_setup("old-decoder", TrainingLight::Sun, 10);
     let text = std::fs::read_to_string(&schedule_path).unwrap();
     let old = dir.path().join("old.toml");
-    std::fs::write(&old, format!("{text}\n[field]\nkind = \"grid\"\nalbedo_layers = 0\n")).unwrap();
+    // (Nor the root's skinning, which came after.)
+    std::fs::write(&old, format!("{text}\n[field]\nkind = \"grid\"\nalbedo_layers = 0\nroot_skinning = false\n")).unwrap();
     let today = dir.path().join("today.toml");
     std::fs::write(&today, format!("{text}\n[field]\nkind = \"grid\"\n")).unwrap();
     let run = dir.path().join("run");
@@ -534,7 +536,9 @@ fn a_run_from_before_the_albedo_decoder_renders_and_resumes_as_it_was_fitted() {
     let state_path = run.join("checkpoint/state.json");
     let mut state: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&state_path).unwrap()).unwrap();
     assert_eq!(state["albedo_layers"], 0, "a checkpoint records its albedo decoder");
-    state.as_object_mut().unwrap().remove("albedo_layers");
+    for key in ["albedo_layers", "field", "gaussian_bones"] {
+        state.as_object_mut().unwrap().remove(key);
+    }
     std::fs::write(&state_path, state.to_string()).unwrap();
     std::fs::copy(&today, run.join("schedule.toml")).unwrap();
     let evaluation = umbra::fit::render_run(&run, None, Backend::Flex, |_| {}).unwrap();
@@ -543,11 +547,13 @@ fn a_run_from_before_the_albedo_decoder_renders_and_resumes_as_it_was_fitted() {
     assert_eq!(resumed["iterations"], 14, "{resumed}");
     let state: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&state_path).unwrap()).unwrap();
     assert_eq!(state["albedo_layers"], 0, "the resumed run kept its shared decoder");
+    assert!(state["field"]["grid"]["root"].is_null(), "and its skinning by distance alone: {}", state["field"]);
     // A run of today's default records its own decoder and restores with it.
     let fresh = dir.path().join("fresh");
     umbra::fit::fit(&fit_options(&scene_path, fresh.clone(), &today, Some(4), 2, false), |_| {}).unwrap();
     let state: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(fresh.join("checkpoint/state.json")).unwrap()).unwrap();
     assert_eq!(state["albedo_layers"], 2);
+    assert_eq!(state["field"]["grid"]["root"]["bone"], 0, "today's grid lets far points follow the root: {}", state["field"]);
     assert!(umbra::fit::render_run(&fresh, None, Backend::Flex, |_| {}).is_ok());
 }
 
@@ -593,4 +599,49 @@ fn an_anti_aliased_capture_is_fitted_with_several_rays_per_pixel() {
     let forced = Schedule::parse(&format!("footprint = \"area\"\npixel_rays = 9\n{QUICK}"), Path::new("quick.toml")).unwrap();
     let trainer = Trainer::new(umbra::scene::Scene::load(&centre).unwrap(), forced, Backend::Flex, 1).unwrap();
     assert_eq!((trainer.footprint, trainer.pixel_rays), (umbra::scene::Footprint::Area, 9));
+}
+
+/// Gaussians fit the field's density wherever it is; a fit moves each to the bone whose
+/// skinning carries it, and a run keeps the bones its Gaussians ended on.
+#[test]
+fn gaussians_move_to_the_bones_that_carry_them_and_a_run_keeps_their_bones() {
+    let (dir, scene_path, schedule_path) = quick_setup("rebind", TrainingLight::Sun, 4);
+    let text = std::fs::read_to_string(&schedule_path).unwrap();
+    std::fs::write(&schedule_path, format!("{text}\n[field]\nkind = \"grid\"\n")).unwrap();
+    let scene = umbra::scene::Scene::load(&scene_path).unwrap();
+    let pose = scene.frames[0].pose.clone();
+    let mut trainer = Trainer::new(scene, Schedule::load(&schedule_path).unwrap(), Backend::Flex, 1).unwrap();
+    let started: Vec<usize> = trainer.model().unwrap().gaussians.bones.clone();
+    // Every Gaussian handed to the last bone (a foot), where it is not carried: the rebinding
+    // gives each limb its own back, and nothing moves where nothing is wrong.
+    let last = started.iter().max().copied().unwrap();
+    trainer.model.as_mut().unwrap().gaussians.rebind(&vec![last; started.len()], &pose);
+    let moved = trainer.rebind_gaussians().unwrap();
+    let bones = trainer.model().unwrap().gaussians.bones.clone();
+    let back = bones.iter().zip(&started).filter(|(a, b)| a == b).count();
+    assert!(moved > started.len() / 2 && back * 10 >= started.len() * 9, "moved {moved}, back on their bones {back} of {}", started.len());
+    assert_eq!(trainer.rebind_gaussians().unwrap(), 0, "a second rebinding moves nothing");
+    // The moved Gaussians still train.
+    let means = |t: &Trainer| t.model().unwrap().gaussians.means.val().into_data().convert::<f32>().try_to_vec::<f32>().unwrap();
+    let before = means(&trainer);
+    trainer.step().unwrap();
+    assert!(means(&trainer) != before, "a step moves the rebound Gaussians' means");
+    // A run records its Gaussians' bones and restores them with its checkpoint.
+    let run = dir.path().join("run");
+    umbra::fit::fit(&fit_options(&scene_path, run.clone(), &schedule_path, Some(4), 2, false), |_| {}).unwrap();
+    let state_path = run.join("checkpoint/state.json");
+    let mut state: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&state_path).unwrap()).unwrap();
+    let recorded: Vec<usize> = serde_json::from_value(state["gaussian_bones"].clone()).unwrap();
+    assert_eq!(recorded.len(), started.len());
+    let mut edited = recorded.clone();
+    edited[0] = last;
+    state["gaussian_bones"] = serde_json::json!(edited);
+    std::fs::write(&state_path, state.to_string()).unwrap();
+    // (The checksums cover the parameter files, not state.json.)
+    let restored = umbra::fit::restore(&run, None, Backend::Flex).unwrap();
+    assert_eq!(restored.model().unwrap().gaussians.bones, edited);
+    state["gaussian_bones"] = serde_json::json!([0, 1]);
+    std::fs::write(&state_path, state.to_string()).unwrap();
+    let err = umbra::fit::restore(&run, None, Backend::Flex).err().expect("a wrong count is refused");
+    assert!(err.to_string().contains("gaussian_bones"), "{err}");
 }

@@ -36,6 +36,42 @@ pub struct GridConfig {
     pub top_bones: usize,
     /// Bone lengths (m), for the boxes' sizes.
     pub bone_lengths: Vec<f32>,
+    /// How points far from every bone follow the root (none: by distance alone, as grids
+    /// before it).
+    #[serde(default)]
+    pub root: Option<RootSkinning>,
+}
+
+/// The root bone's part in the skinning. Its distance is capped at `cap` (m), so a point
+/// farther than that from every bone (loose clothing: a skirt's hem lies 25-30 cm from the
+/// thighs inside it) follows the root rather than the nearest limb, whose swing would drag it;
+/// and a learned preference, a dense grid of logits in the root's frame (`cell` m, reaching
+/// `reach` m beyond its segment), moves the border between the root and the limbs to where
+/// the images say it is. The capsule prior keeps the true distances.
+#[derive(Clone, Copy, Debug, serde::Serialize, serde::Deserialize, PartialEq)]
+pub struct RootSkinning {
+    pub bone: usize,
+    pub cap: f32,
+    pub cell: f32,
+    pub reach: f32,
+}
+
+/// Cells of the root's preference grid per body extent: 5 cm on a 2 m human, about a
+/// pixel of a 64x64 view; its box reaches twice as far as the feature grids' (a skirt's hem
+/// lies 0.5 m from the pelvis's segment).
+const ROOT_CELLS_PER_EXTENT: f32 = 40.0;
+
+impl RootSkinning {
+    /// The root's skinning on a body of `extent` m whose feature grids reach `reach` m.
+    pub fn for_body(bone: usize, cap: f32, reach: f32, extent: f32) -> Self {
+        Self { bone, cap, cell: extent / ROOT_CELLS_PER_EXTENT, reach: 2.0 * reach }
+    }
+
+    /// Vertices of the preference grid along the root's local axes.
+    fn dims(&self, length: f32) -> [usize; 3] {
+        let across = ((2.0 * self.reach) / self.cell).ceil() as usize + 1;
+        [across, ((length + 2.0 * self.reach) / self.cell).ceil() as usize + 1, across]
+    }
 }
 
 /// Cells per body extent at the coarsest and finest level, and the boxes' reach as a fraction
@@ -58,6 +94,7 @@ impl GridConfig {
             reach: extent * REACH_PER_EXTENT,
             top_bones: 3,
             bone_lengths,
+            root: None,
         }
     }
 
@@ -70,7 +107,7 @@ impl GridConfig {
         1 << self.table_log2
     }
 
-    fn top(&self) -> usize {
+    pub fn top(&self) -> usize {
         self.top_bones.min(self.bone_lengths.len()).max(1)
     }
 
@@ -105,8 +142,14 @@ impl GridConfig {
         let mut stream = crate::synth::trace::Stream::new(seed, 0x6121D, 0);
         let n = self.levels * self.table_size();
         let values: Vec<f32> = (0..n * self.features).map(|_| ((stream.uniform() * 2.0 - 1.0) * 1e-4) as f32).collect();
+        // The root's preference starts at zero: the skinning starts from distances alone.
+        let root_preference = self.root.map(|root| {
+            let [a, b, c] = root.dims(self.bone_lengths.get(root.bone).copied().unwrap_or(0.0));
+            Param::from_tensor(Tensor::zeros([a * b * c, 1], device))
+        });
         FeatureGrid {
             table: Param::from_tensor(Tensor::from_data(TensorData::new(values, [n, self.features]), device)),
+            root_preference,
             config: self.clone(),
             active_levels: self.levels as f32,
             composite: false,
@@ -160,6 +203,8 @@ impl BoneFrame {
 #[derive(Module, Debug)]
 pub struct FeatureGrid {
     pub table: Param<Tensor<2>>,
+    /// The root's learned skinning preference (`RootSkinning`): one logit per vertex.
+    pub root_preference: Option<Param<Tensor<2>>>,
     #[module(skip)]
     pub config: GridConfig,
     /// How many levels, coarsest first, contribute (fractional: the next one fades in); the
@@ -178,87 +223,184 @@ pub struct Skinning {
     /// The factor on squared distance in the softmax's logits.
     pub sharpness: f32,
     pub prior_radius: f32,
+    /// The root bone and the distance (m) beyond which the skinning sees it no farther
+    /// (`RootSkinning::cap`).
+    pub root: Option<(usize, f32)>,
 }
 
-/// The plan of a lookup of `N` points: `N x corners` table rows and their coefficients
-/// (point-major), with their derivatives along the world axes (`[N x corners, 3]`) when asked;
-/// the capsule prior and its gradient (`[N, 3]`).
+impl Skinning {
+    /// The squared distance the skinning weighs for bone `bone` at true squared distance `d2`,
+    /// and whether it is the true one (so its gradient applies).
+    fn distance_squared(&self, bone: usize, d2: f32) -> (f32, bool) {
+        match self.root {
+            Some((root, cap)) if root == bone && d2 > cap * cap => (cap * cap, false),
+            _ => (d2, true),
+        }
+    }
+}
+
+/// The most bones a point is looked up in (the schedule's bound on `top_bones`).
+pub const MAX_TOP_BONES: usize = 8;
+
+/// The plan of a lookup of `N` points in their `K` chosen bones. Table rows and their
+/// trilinear coefficients, `N x K x levels x 8` (point, then bone, then level, then corner),
+/// with the coefficients' derivatives along the world axes (`[.., 3]`) when asked. Per point
+/// and chosen bone, the skinning's logit from distance (shifted so the largest is 0), its
+/// gradient and whether the bone is the root; per point, the root's preference grid's 8
+/// rows and coefficients (zero unless the root is chosen) with their gradients; the capsule
+/// prior and its gradient. The skinning weights are a softmax of the logits plus, for the
+/// root, its learned preference, taken on the tensor side so the preference trains.
 #[derive(Clone, Debug, Default)]
 pub struct Lookup {
     pub rows: Vec<u32>,
     pub coefficients: Vec<f32>,
     pub coefficient_tangents: Vec<f32>,
+    pub logits: Vec<f32>,
+    pub logit_tangents: Vec<f32>,
+    pub root_slot: Vec<f32>,
+    pub root_rows: Vec<u32>,
+    pub root_coefficients: Vec<f32>,
+    pub root_coefficient_tangents: Vec<f32>,
     pub prior: Vec<f32>,
     pub prior_tangents: Vec<f32>,
+}
+
+/// What the plan says about one point besides its feature rows.
+#[derive(Clone, Copy, Default)]
+struct PointSkin {
+    logits: [f32; MAX_TOP_BONES],
+    logit_tangents: [[f32; 3]; MAX_TOP_BONES],
+    root_slot: Option<usize>,
+    root_rows: [u32; 8],
+    root_coefficients: [f32; 8],
+    root_coefficient_tangents: [[f32; 3]; 8],
+    prior: f32,
+    prior_tangent: [f32; 3],
 }
 
 /// Plans the lookup of `points` (`[N * 3]`, world) in the bones `frames`.
 pub fn lookup(config: &GridConfig, levels: &[Level], frames: &[BoneFrame], skinning: Skinning, points: &[f32], tangents: bool) -> Lookup {
     let n = points.len() / 3;
     let c = config.corners();
-    let mut plan = Lookup {
-        rows: vec![0; n * c],
-        coefficients: vec![0.0; n * c],
-        coefficient_tangents: if tangents { vec![0.0; n * c * 3] } else { Vec::new() },
-        prior: vec![0.0; n],
-        prior_tangents: if tangents { vec![0.0; n * 3] } else { Vec::new() },
-    };
+    let mut rows = vec![0u32; n * c];
+    let mut coefficients = vec![0.0f32; n * c];
+    let mut coefficient_tangents = if tangents { vec![0.0f32; n * c * 3] } else { Vec::new() };
+    let mut skins = vec![PointSkin::default(); n];
     // Points in chunks across threads; each chunk writes its own slices of the plan.
     const CHUNK: usize = 64;
     let tangent_chunks: Vec<&mut [f32]> =
-        if tangents { plan.coefficient_tangents.chunks_mut(CHUNK * c * 3).collect() } else { (0..n.div_ceil(CHUNK)).map(|_| &mut [][..]).collect() };
-    let prior_tangent_chunks: Vec<&mut [f32]> =
-        if tangents { plan.prior_tangents.chunks_mut(CHUNK * 3).collect() } else { (0..n.div_ceil(CHUNK)).map(|_| &mut [][..]).collect() };
-    plan.rows
-        .par_chunks_mut(CHUNK * c)
-        .zip(plan.coefficients.par_chunks_mut(CHUNK * c))
-        .zip(plan.prior.par_chunks_mut(CHUNK))
-        .zip(tangent_chunks.into_par_iter().zip(prior_tangent_chunks))
+        if tangents { coefficient_tangents.chunks_mut(CHUNK * c * 3).collect() } else { (0..n.div_ceil(CHUNK)).map(|_| &mut [][..]).collect() };
+    rows.par_chunks_mut(CHUNK * c)
+        .zip(coefficients.par_chunks_mut(CHUNK * c))
+        .zip(skins.par_chunks_mut(CHUNK))
+        .zip(tangent_chunks.into_par_iter())
         .enumerate()
-        .for_each(|(chunk, (((rows, coefficients), prior), (d_coefficients, d_prior)))| {
+        .for_each(|(chunk, (((rows, coefficients), skins), d_coefficients))| {
             let mut scratch = Scratch::default();
-            for k in 0..prior.len() {
+            for (k, skin) in skins.iter_mut().enumerate() {
                 let i = chunk * CHUNK + k;
                 let point = [points[3 * i], points[3 * i + 1], points[3 * i + 2]];
                 let span = k * c..(k + 1) * c;
                 let d_coefficients = if tangents { Some(&mut d_coefficients[k * c * 3..(k + 1) * c * 3]) } else { None };
-                let d_prior = if tangents { Some(&mut d_prior[k * 3..k * 3 + 3]) } else { None };
-                prior[k] = plan_point(
-                    config,
-                    levels,
-                    frames,
-                    skinning,
-                    point,
-                    &mut scratch,
-                    &mut rows[span.clone()],
-                    &mut coefficients[span],
-                    d_coefficients,
-                    d_prior,
-                );
+                *skin = plan_point(config, levels, frames, skinning, point, &mut scratch, &mut rows[span.clone()], &mut coefficients[span], d_coefficients);
             }
         });
+    let top = config.top();
+    let mut plan = Lookup { rows, coefficients, coefficient_tangents, ..Lookup::default() };
+    for skin in &skins {
+        plan.logits.extend_from_slice(&skin.logits[..top]);
+        plan.root_slot.extend((0..top).map(|j| if skin.root_slot == Some(j) { 1.0 } else { 0.0 }));
+        plan.root_rows.extend_from_slice(&skin.root_rows);
+        plan.root_coefficients.extend_from_slice(&skin.root_coefficients);
+        plan.prior.push(skin.prior);
+        if tangents {
+            plan.logit_tangents.extend(skin.logit_tangents[..top].iter().flatten());
+            plan.root_coefficient_tangents.extend(skin.root_coefficient_tangents.iter().flatten());
+            plan.prior_tangents.extend_from_slice(&skin.prior_tangent);
+        }
+    }
     plan
 }
 
-/// One bone near a point: its index, skinning weight and the weight's gradient, the point in
-/// its frame.
-struct Near {
+/// A bone's squared distance to a point: the true one (the capsule prior's) and the one the
+/// skinning weighs (`Skinning::distance_squared`), each with its world gradient.
+struct BoneDistance {
     bone: usize,
-    weight: f32,
-    d_weight: [f32; 3],
+    d2: f32,
+    gradient: [f32; 3],
+    skinning_d2: f32,
+    skinning_gradient: [f32; 3],
+    /// The point in the bone's frame.
     local: [f32; 3],
 }
 
 /// Buffers one thread reuses from point to point (a point's plan allocates nothing).
 #[derive(Default)]
 struct Scratch {
-    /// Per bone: squared distance to its segment, index, the distance's world gradient, the
-    /// point in its frame.
-    all: Vec<(f32, usize, [f32; 3], [f32; 3])>,
-    near: Vec<Near>,
+    /// Every bone's distance to the point.
+    all: Vec<BoneDistance>,
+    /// A softmax's weights and their world gradients.
+    weights: Vec<(f32, [f32; 3])>,
 }
 
-/// Plans one point's corners; returns its capsule prior SDF.
+/// Softmax weights of logits `sharpness d2` over `(d2, gradient of d2)` pairs, with the
+/// weights' world gradients `w_j (d logit_j - sum_k w_k d logit_k)`, into `out`.
+fn softmax_with_gradient(out: &mut Vec<(f32, [f32; 3])>, terms: impl Iterator<Item = (f32, [f32; 3])>, sharpness: f32) {
+    out.clear();
+    out.extend(terms.map(|(d2, g)| (d2 * sharpness, g.map(|v| v * sharpness))));
+    // Shifted by the largest logit, so the exponentials stay finite.
+    let max = out.iter().map(|w| w.0).fold(f32::NEG_INFINITY, f32::max);
+    for w in out.iter_mut() {
+        w.0 = (w.0 - max).exp();
+    }
+    let sum: f32 = out.iter().map(|w| w.0).sum();
+    for w in out.iter_mut() {
+        w.0 /= sum;
+    }
+    let mean_d_logit = [0, 1, 2].map(|x| out.iter().map(|w| w.0 * w.1[x]).sum::<f32>());
+    for w in out.iter_mut() {
+        w.1 = [0, 1, 2].map(|x| w.0 * (w.1[x] - mean_d_logit[x]));
+    }
+}
+
+/// The 8 corners of the trilinear cell around `local` in a grid of `dims` vertices spaced
+/// `cell` apart from `-reach` on each local axis: for each corner its vertex, its weight and
+/// the weight's world gradient (through the bone's `axes`); a point outside the grid is
+/// clamped to its border (a clamped axis has no spatial derivative).
+fn trilinear(local: [f32; 3], reach: f32, cell: f32, dims: [usize; 3], axes: &[[f32; 3]; 3], mut corner: impl FnMut(usize, [usize; 3], f32, [f32; 3])) {
+    let mut base = [0usize; 3];
+    let mut fraction = [0.0f32; 3];
+    let mut inside = [true; 3];
+    for m in 0..3 {
+        let top_vertex = (dims[m] - 1) as f32;
+        let mut u = (local[m] + reach) / cell;
+        if !(u > 0.0) {
+            u = 0.0;
+            inside[m] = false;
+        } else if u >= top_vertex {
+            u = top_vertex;
+            inside[m] = false;
+        }
+        let at = (u.floor() as usize).min(dims[m] - 2);
+        base[m] = at;
+        fraction[m] = u - at as f32;
+    }
+    // d u_m / d x = (local axis m) / cell on axes inside the grid.
+    let du: [[f32; 3]; 3] = [0, 1, 2].map(|m| if inside[m] { axes[m].map(|a| a / cell) } else { [0.0; 3] });
+    for k in 0..8 {
+        let bit = [k & 1, (k >> 1) & 1, (k >> 2) & 1];
+        let factor = [0, 1, 2].map(|m| if bit[m] == 1 { fraction[m] } else { 1.0 - fraction[m] });
+        // d weight / d u_m: the other two factors, signed by the corner's side.
+        let d_tri = [0, 1, 2].map(|m| {
+            let sign = if bit[m] == 1 { 1.0 } else { -1.0 };
+            sign * factor[(m + 1) % 3] * factor[(m + 2) % 3]
+        });
+        let gradient = [0, 1, 2].map(|x| d_tri[0] * du[0][x] + d_tri[1] * du[1][x] + d_tri[2] * du[2][x]);
+        corner(k, [base[0] + bit[0], base[1] + bit[1], base[2] + bit[2]], factor[0] * factor[1] * factor[2], gradient);
+    }
+}
+
+/// Plans one point's corners and returns the rest of its plan.
 #[allow(clippy::too_many_arguments)]
 fn plan_point(
     config: &GridConfig,
@@ -270,8 +412,7 @@ fn plan_point(
     rows: &mut [u32],
     coefficients: &mut [f32],
     mut d_coefficients: Option<&mut [f32]>,
-    d_prior: Option<&mut [f32]>,
-) -> f32 {
+) -> PointSkin {
     // Squared distance to every bone segment and its world gradient 2 R offset.
     let all = &mut scratch.all;
     all.clear();
@@ -279,96 +420,63 @@ fn plan_point(
         let local = f.to_local(point);
         let offset = [local[0], local[1] - local[1].clamp(0.0, f.length), local[2]];
         let d2 = offset[0] * offset[0] + offset[1] * offset[1] + offset[2] * offset[2];
-        let g = [0, 1, 2].map(|a| 2.0 * (f.axes[0][a] * offset[0] + f.axes[1][a] * offset[1] + f.axes[2][a] * offset[2]));
-        (d2, b, g, local)
+        let gradient = [0, 1, 2].map(|a| 2.0 * (f.axes[0][a] * offset[0] + f.axes[1][a] * offset[1] + f.axes[2][a] * offset[2]));
+        let (skinning_d2, moves) = skinning.distance_squared(b, d2);
+        BoneDistance { bone: b, d2, gradient, skinning_d2, skinning_gradient: if moves { gradient } else { [0.0; 3] }, local }
     }));
-    let top = config.top_bones.min(all.len()).max(1);
+    let top = config.top().min(all.len());
     if top < all.len() {
-        all.select_nth_unstable_by(top - 1, |a, b| a.0.total_cmp(&b.0));
+        all.select_nth_unstable_by(top - 1, |a, b| a.skinning_d2.total_cmp(&b.skinning_d2));
     }
     let chosen = &mut all[..top];
-    chosen.sort_unstable_by_key(|a| a.1);
-    // Softmax over the chosen bones (shifted by the largest logit) and its gradient.
-    let max = chosen.iter().map(|a| a.0 * skinning.sharpness).fold(f32::NEG_INFINITY, f32::max);
-    let near = &mut scratch.near;
-    near.clear();
-    near.extend(chosen.iter().map(|a| Near {
-        bone: a.1,
-        weight: (a.0 * skinning.sharpness - max).exp(),
-        d_weight: a.2.map(|g| g * skinning.sharpness),
-        local: a.3,
-    }));
-    let sum: f32 = near.iter().map(|nb| nb.weight).sum();
-    for nb in near.iter_mut() {
-        nb.weight /= sum;
+    chosen.sort_unstable_by_key(|a| a.bone);
+    let mut skin = PointSkin::default();
+    // The skinning's logits from distance, shifted so the largest is 0 (a softmax's weights
+    // do not change), with their gradients.
+    let lead = (0..chosen.len()).min_by(|&a, &b| chosen[a].skinning_d2.total_cmp(&chosen[b].skinning_d2)).unwrap_or(0);
+    let (max, d_max) = (chosen[lead].skinning_d2 * skinning.sharpness, chosen[lead].skinning_gradient.map(|g| g * skinning.sharpness));
+    for (j, a) in chosen.iter().enumerate() {
+        skin.logits[j] = a.skinning_d2 * skinning.sharpness - max;
+        skin.logit_tangents[j] = [0, 1, 2].map(|x| a.skinning_gradient[x] * skinning.sharpness - d_max[x]);
     }
-    // d w_j = w_j (d logit_j - sum_k w_k d logit_k); `d_weight` holds d logit_j until here.
-    let mean_d_logit = [0, 1, 2].map(|x| near.iter().map(|nb| nb.weight * nb.d_weight[x]).sum::<f32>());
-    for nb in near.iter_mut() {
-        nb.d_weight = [0, 1, 2].map(|x| nb.weight * (nb.d_weight[x] - mean_d_logit[x]));
-    }
-    let near = &scratch.near;
-    let chosen = &scratch.all[..top];
-    // The capsule prior: skinning-weighted distance to the segments, minus the radius.
-    let mut prior = -skinning.prior_radius;
-    let mut gradient = [0.0f32; 3];
-    for (j, nb) in near.iter().enumerate() {
-        let distance = (chosen[j].0 + 1e-8).sqrt();
-        prior += nb.weight * distance;
+    // The capsule prior: the distance to the segments, weighted by a softmax of the true
+    // distances (the root's cap would mix distances that differ by the whole cap where the
+    // weights turn, a gradient far steeper than a distance's), minus the radius.
+    softmax_with_gradient(&mut scratch.weights, chosen.iter().map(|a| (a.d2, a.gradient)), skinning.sharpness);
+    skin.prior = -skinning.prior_radius;
+    for (a, &(weight, d_weight)) in chosen.iter().zip(&scratch.weights) {
+        let distance = (a.d2 + 1e-8).sqrt();
+        skin.prior += weight * distance;
         for x in 0..3 {
-            gradient[x] += nb.d_weight[x] * distance + nb.weight * chosen[j].2[x] / (2.0 * distance);
+            skin.prior_tangent[x] += d_weight[x] * distance + weight * a.gradient[x] / (2.0 * distance);
         }
     }
-    if let Some(d) = d_prior {
-        d.copy_from_slice(&gradient);
+    // The root's preference grid, when the root is chosen.
+    if let (Some(root), Some(j)) = (config.root, chosen.iter().position(|a| Some(a.bone) == config.root.map(|r| r.bone))) {
+        skin.root_slot = Some(j);
+        let dims = root.dims(frames[root.bone].length);
+        trilinear(chosen[j].local, root.reach, root.cell, dims, &frames[root.bone].axes, |k, v, weight, gradient| {
+            skin.root_rows[k] = (v[0] + dims[0] * (v[1] + dims[1] * v[2])) as u32;
+            skin.root_coefficients[k] = weight;
+            skin.root_coefficient_tangents[k] = gradient;
+        });
     }
+    // Each chosen bone's corners, level by level.
     let mut k = 0;
-    for level in levels {
-        for nb in near {
-            let frame = &frames[nb.bone];
-            let dims = level.dims[nb.bone];
-            // Grid coordinates, clamped to the box (a clamped axis has no spatial derivative).
-            let mut base = [0usize; 3];
-            let mut fraction = [0.0f32; 3];
-            let mut inside = [true; 3];
-            for m in 0..3 {
-                let top_vertex = (dims[m] - 1) as f32;
-                let mut u = (nb.local[m] + config.reach) / level.cell;
-                if !(u > 0.0) {
-                    u = 0.0;
-                    inside[m] = false;
-                } else if u >= top_vertex {
-                    u = top_vertex;
-                    inside[m] = false;
-                }
-                let cell = (u.floor() as usize).min(dims[m] - 2);
-                base[m] = cell;
-                fraction[m] = u - cell as f32;
-            }
-            // d u_m / d x = (local axis m) / cell on axes inside the box.
-            let du: [[f32; 3]; 3] = [0, 1, 2].map(|m| if inside[m] { frame.axes[m].map(|a| a / level.cell) } else { [0.0; 3] });
-            for corner in 0..8 {
-                let bit = [corner & 1, (corner >> 1) & 1, (corner >> 2) & 1];
-                let factor = [0, 1, 2].map(|m| if bit[m] == 1 { fraction[m] } else { 1.0 - fraction[m] });
-                let trilinear = factor[0] * factor[1] * factor[2];
-                rows[k] = level.row(nb.bone, [base[0] + bit[0], base[1] + bit[1], base[2] + bit[2]]) as u32;
-                coefficients[k] = nb.weight * trilinear;
+    for a in chosen.iter() {
+        let frame = &frames[a.bone];
+        for level in levels {
+            trilinear(a.local, config.reach, level.cell, level.dims[a.bone], &frame.axes, |_, v, weight, gradient| {
+                rows[k] = level.row(a.bone, v) as u32;
+                coefficients[k] = weight;
                 if let Some(d) = d_coefficients.as_deref_mut() {
-                    // d trilinear / d u_m: the other two factors, signed by the corner's side.
-                    let d_tri = [0, 1, 2].map(|m| {
-                        let sign = if bit[m] == 1 { 1.0 } else { -1.0 };
-                        sign * factor[(m + 1) % 3] * factor[(m + 2) % 3]
-                    });
-                    for x in 0..3 {
-                        let spatial = d_tri[0] * du[0][x] + d_tri[1] * du[1][x] + d_tri[2] * du[2][x];
-                        d[k * 3 + x] = nb.d_weight[x] * trilinear + nb.weight * spatial;
-                    }
+                    d[k * 3..k * 3 + 3].copy_from_slice(&gradient);
                 }
                 k += 1;
-            }
+            });
         }
     }
-    prior
+    skin
 }
 
 /// What the grid gives a batch of points: features `[N, W]` and the prior `[N]`, with their
@@ -395,64 +503,107 @@ impl FeatureGrid {
 
     /// Looks `points` up in the posed bones `frames`.
     pub fn encode(&self, points: Tensor<2>, frames: &[BoneFrame], skinning: Skinning, tangents: bool) -> GridFeatures {
-        if self.composite {
-            self.encode_composite(points, frames, skinning, tangents)
-        } else {
-            self.encode_fused(points, frames, skinning, tangents)
-        }
-    }
-
-    /// The lookup as one fused op (`interpolate`).
-    fn encode_fused(&self, points: Tensor<2>, frames: &[BoneFrame], skinning: Skinning, tangents: bool) -> GridFeatures {
         let device = points.device();
-        let config = &self.config;
         let (plan, n) = self.plan(points, frames, skinning, tangents);
-        let width = config.levels * config.features;
-        let fused = super::interpolate::Plan {
-            points: n,
-            levels: config.levels,
-            corners: config.corners() / config.levels,
-            features: config.features,
-            rows: plan.rows,
-            coefficients: plan.coefficients,
-            tangents: tangents.then_some(plan.coefficient_tangents),
-            fade: self.fade(),
-        };
-        let out = super::interpolate::interpolate(self.table.val(), fused);
-        let features = out.clone().slice([0..n, 0..width]);
-        let prior = Tensor::from_data(TensorData::new(plan.prior, [n]), &device);
-        let tangents = tangents.then(|| {
+        let (per_bone, per_bone_tangents, plan) =
+            if self.composite { self.interpolate_composite(plan, n, tangents) } else { self.interpolate_fused(plan, n, tangents) };
+        let prior = Tensor::from_data(TensorData::new(plan.prior.clone(), [n]), &device);
+        let (features, feature_tangents) = self.blend(&plan, n, per_bone, per_bone_tangents, &device);
+        let tangents = feature_tangents.map(|t| {
             let prior_tangents: Tensor<2> = Tensor::from_data(TensorData::new(plan.prior_tangents, [n, 3]), &device);
-            (out.slice([n..4 * n, 0..width]), prior_tangents.transpose())
+            (t, prior_tangents.transpose())
         });
         GridFeatures { features, prior, tangents }
     }
 
-    /// The same lookup as a composite of tensor ops (`select` of every corner's row, a product
-    /// and a sum): the reference the fused op is tested against, and the step benchmark's
-    /// "before".
-    fn encode_composite(&self, points: Tensor<2>, frames: &[BoneFrame], skinning: Skinning, tangents: bool) -> GridFeatures {
-        let device = points.device();
+    /// Each chosen bone's features (`[N, K W]`) and their tangents (`[3N, K W]`) by the fused
+    /// op (`interpolate`).
+    #[allow(clippy::type_complexity)]
+    fn interpolate_fused(&self, mut plan: Lookup, n: usize, tangents: bool) -> (Tensor<2>, Option<Tensor<2>>, Lookup) {
         let config = &self.config;
-        let (plan, n) = self.plan(points, frames, skinning, tangents);
-        let corners = config.corners() / config.levels;
+        let groups = config.top() * config.levels;
+        let fused = super::interpolate::Plan {
+            points: n,
+            levels: groups,
+            corners: 8,
+            features: config.features,
+            rows: std::mem::take(&mut plan.rows),
+            coefficients: std::mem::take(&mut plan.coefficients),
+            tangents: tangents.then(|| std::mem::take(&mut plan.coefficient_tangents)),
+            fade: self.fade().into_iter().cycle().take(groups).collect(),
+        };
+        let out = super::interpolate::interpolate(self.table.val(), fused);
+        let width = groups * config.features;
+        let per_bone = out.clone().slice([0..n, 0..width]);
+        let per_bone_tangents = tangents.then(|| out.slice([n..4 * n, 0..width]));
+        (per_bone, per_bone_tangents, plan)
+    }
+
+    /// The same by a composite of tensor ops (`select` of every corner's row, a product and a
+    /// sum): the reference the fused op is tested against, and the step benchmark's "before".
+    #[allow(clippy::type_complexity)]
+    fn interpolate_composite(&self, plan: Lookup, n: usize, tangents: bool) -> (Tensor<2>, Option<Tensor<2>>, Lookup) {
+        let device = self.table.val().device();
+        let config = &self.config;
+        let groups = config.top() * config.levels;
+        let f = config.features;
         let m = plan.rows.len();
         let rows_index: Tensor<1, Int> = Tensor::from_data(TensorData::new(plan.rows.iter().map(|&r| r as i64).collect::<Vec<_>>(), [m]), &device);
         let rows = self.table.val().select(0, rows_index); // [M, F]
-        let f = config.features;
-        let coefficients: Tensor<2> = Tensor::from_data(TensorData::new(plan.coefficients, [m, 1]), &device);
-        let features = (rows.clone() * coefficients).reshape([n, config.levels, corners, f]).sum_dim(2).reshape([n, config.levels * f]);
-        let prior = Tensor::from_data(TensorData::new(plan.prior, [n]), &device);
-        let fade: Vec<f32> = self.fade().into_iter().flat_map(|w| std::iter::repeat_n(w, f)).collect();
-        let fade: Tensor<2> = Tensor::from_data(TensorData::new(fade, [1, config.levels * f]), &device);
-        let features = features * fade.clone();
-        let tangents = tangents.then(|| {
-            let d: Tensor<2> = Tensor::from_data(TensorData::new(plan.coefficient_tangents, [m, 3]), &device);
+        let coefficients: Tensor<2> = Tensor::from_data(TensorData::new(plan.coefficients.clone(), [m, 1]), &device);
+        let fade: Vec<f32> = self.fade().into_iter().cycle().take(groups).flat_map(|w| std::iter::repeat_n(w, f)).collect();
+        let fade: Tensor<2> = Tensor::from_data(TensorData::new(fade, [1, groups * f]), &device);
+        let per_bone = (rows.clone() * coefficients).reshape([n, groups, 8, f]).sum_dim(2).reshape([n, groups * f]) * fade.clone();
+        let per_bone_tangents = tangents.then(|| {
+            let d: Tensor<2> = Tensor::from_data(TensorData::new(plan.coefficient_tangents.clone(), [m, 3]), &device);
             let d = d.transpose().reshape([3, m, 1]);
-            let feature_tangents = (rows.unsqueeze_dim::<3>(0) * d).reshape([3 * n, config.levels, corners, f]).sum_dim(2).reshape([3 * n, config.levels * f]);
-            let prior_tangents: Tensor<2> = Tensor::from_data(TensorData::new(plan.prior_tangents, [n, 3]), &device);
-            (feature_tangents * fade, prior_tangents.transpose())
+            (rows.unsqueeze_dim::<3>(0) * d).reshape([3 * n, groups, 8, f]).sum_dim(2).reshape([3 * n, groups * f]) * fade
         });
-        GridFeatures { features, prior, tangents }
+        (per_bone, per_bone_tangents, plan)
+    }
+
+    /// The features (`[N, W]`) as the chosen bones' features weighted by the skinning: a
+    /// softmax of the planned logits plus the root's learned preference; and their tangents
+    /// (`[3N, W]`), through the weights' gradients too.
+    fn blend(&self, plan: &Lookup, n: usize, per_bone: Tensor<2>, per_bone_tangents: Option<Tensor<2>>, device: &Device) -> (Tensor<2>, Option<Tensor<2>>) {
+        let config = &self.config;
+        let (k, w) = (config.top(), config.width());
+        let logits: Tensor<2> = Tensor::from_data(TensorData::new(plan.logits.clone(), [n, k]), device);
+        let root_slot: Tensor<2> = Tensor::from_data(TensorData::new(plan.root_slot.clone(), [n, k]), device);
+        let tangents = per_bone_tangents.is_some();
+        // The root's preference at each point (and its gradient), by the same fused op.
+        let preference = self.root_preference.as_ref().map(|table| {
+            let lookup = super::interpolate::Plan {
+                points: n,
+                levels: 1,
+                corners: 8,
+                features: 1,
+                rows: plan.root_rows.clone(),
+                coefficients: plan.root_coefficients.clone(),
+                tangents: tangents.then(|| plan.root_coefficient_tangents.clone()),
+                fade: vec![1.0],
+            };
+            super::interpolate::interpolate(table.val(), lookup)
+        });
+        let logits = match &preference {
+            Some(p) => logits + root_slot.clone() * p.clone().slice([0..n, 0..1]),
+            None => logits,
+        };
+        let weights = burn::tensor::activation::softmax(logits, 1); // [N, K]
+        let per_bone = per_bone.reshape([n, k, w]);
+        let features = (per_bone.clone() * weights.clone().reshape([n, k, 1])).sum_dim(1).reshape([n, w]);
+        let feature_tangents = per_bone_tangents.map(|d_per_bone| {
+            let d_logits: Tensor<3> = Tensor::<2>::from_data(TensorData::new(plan.logit_tangents.clone(), [n * k, 3]), device).transpose().reshape([3, n, k]);
+            let d_logits = match &preference {
+                Some(p) => d_logits + root_slot.unsqueeze_dim::<3>(0) * p.clone().slice([n..4 * n, 0..1]).reshape([3, n, 1]),
+                None => d_logits,
+            };
+            let weights = weights.unsqueeze_dim::<3>(0); // [1, N, K]
+            let d_weights = weights.clone() * (d_logits.clone() - (weights.clone() * d_logits).sum_dim(2)); // [3, N, K]
+            let through_weights = d_weights.reshape([3, n, k, 1]) * per_bone.unsqueeze_dim::<4>(0);
+            let through_features = weights.reshape([1, n, k, 1]) * d_per_bone.reshape([3, n, k, w]);
+            (through_weights + through_features).sum_dim(2).reshape([3 * n, w])
+        });
+        (features, feature_tangents)
     }
 }

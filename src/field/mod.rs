@@ -18,7 +18,7 @@ use grid::{BoneFrame, FeatureGrid, GridConfig, Skinning};
 use burn::module::{Module, Param};
 use burn::nn::{Linear, LinearConfig};
 use burn::tensor::activation::{relu, sigmoid, softmax};
-use burn::tensor::{Device, Tensor, TensorData};
+use burn::tensor::{Device, Int, Tensor, TensorData};
 
 /// A frame's bones as tensors: rotations `[B, 3, 3]` (bone-local axes as columns) and head
 /// positions `[B, 3]` in world space, plus bone lengths `[B]`.
@@ -97,6 +97,12 @@ pub struct FieldConfig {
     pub albedo_layers: usize,
 }
 
+/// How far from the root bone (in skinning widths) the `grid` field's skinning sees its
+/// distance stop growing (`grid::RootSkinning`): a point on a tight limb (within 1.5 widths of
+/// its bone) then gives the root a few percent at most, exp(-(3^2 - 1.5^2) / 2) = 3%, before
+/// the root's learned preference moves the border.
+pub const ROOT_REACH_PER_WIDTH: f32 = 3.0;
+
 impl FieldConfig {
     /// The `mlp` field: Fourier features in every bone's frame into a 3 x 64 MLP.
     pub fn for_bones(bones: usize) -> Self {
@@ -126,8 +132,12 @@ impl FieldConfig {
         Self { layers: 2, grid: Some(GridConfig::for_body(bone_lengths, extent)), albedo_layers: 2, ..Self::for_bones(bones) }
     }
 
-    fn skinning(&self) -> Skinning {
-        Skinning { sharpness: self.sharpness(), prior_radius: self.prior_radius }
+    pub fn skinning(&self) -> Skinning {
+        Skinning {
+            sharpness: self.sharpness(),
+            prior_radius: self.prior_radius,
+            root: self.grid.as_ref().and_then(|g| g.root).map(|root| (root.bone, root.cap)),
+        }
     }
 
     /// The factor on squared distance in the skinning softmax's logits.
@@ -251,6 +261,14 @@ pub enum GradientMethod {
 /// differences (`umbra bench eikonal`) and exact.
 pub const GRADIENT: GradientMethod = GradientMethod::Tangents;
 
+/// The SDF of a batch of points and the decoder inputs and outputs their albedo is made from
+/// (`AvatarField::decode`, `AvatarField::albedo_at`).
+pub struct Decoded {
+    pub sdf: Tensor<1>,
+    features: Tensor<2>,
+    shared: Tensor<2>,
+}
+
 /// What the field says at a batch of points.
 pub struct FieldOutput {
     pub sdf: Tensor<1>,
@@ -295,19 +313,36 @@ impl AvatarField {
 
     /// SDF (metres) and albedo of world points in a pose.
     pub fn forward(&self, points: Tensor<2>, pose: &PoseTensors) -> FieldOutput {
+        let decoded = self.decode(points, pose);
+        let albedo = self.albedo_at(&decoded, None);
+        FieldOutput { sdf: decoded.sdf, albedo }
+    }
+
+    /// The SDF of world points in a pose, with what their albedo needs kept for `albedo_at`,
+    /// so that a renderer can ask for the albedo only where the compositing weights matter.
+    pub fn decode(&self, points: Tensor<2>, pose: &PoseTensors) -> Decoded {
         let (features, prior, _) = self.features(points, pose, false);
-        let (sdf, out) = self.decode_sdf(features.clone(), prior);
+        let (sdf, shared) = self.decode_sdf(features.clone(), prior);
+        Decoded { sdf, features, shared }
+    }
+
+    /// The albedo of decoded points, `[N, 3]`, or of the rows `rows` of them, `[K, 3]`.
+    pub fn albedo_at(&self, decoded: &Decoded, rows: Option<Tensor<1, Int>>) -> Tensor<2> {
+        let pick = |t: Tensor<2>| match &rows {
+            Some(rows) => t.select(0, rows.clone()),
+            None => t,
+        };
         let logits = match &self.albedo_output {
             Some(head) => {
-                let mut y = features;
+                let mut y = pick(decoded.features.clone());
                 for layer in &self.albedo_hidden {
                     y = relu(layer.forward(y));
                 }
                 head.forward(y)
             }
-            None => out.narrow(1, 1, 3),
+            None => pick(decoded.shared.clone()).narrow(1, 1, 3),
         };
-        FieldOutput { sdf, albedo: sigmoid(logits + 0.5) }
+        sigmoid(logits + 0.5)
     }
 
     /// The SDF from the decoder's input and the prior, and the decoder's whole output (with a
