@@ -84,6 +84,23 @@ const REFINE_CURVATURE: f32 = 4.5 / 255.0;
 
 /// Renders the scene's `camera` in `frame`, sampled as `samples` says, under `lighting`.
 pub fn render_view(model: &Avatar, scene: &Scene, camera: usize, frame: usize, samples: Sampling, device: &Device, lighting: &Lighting) -> RgbImage {
+    render_view_and_albedo(model, scene, camera, frame, samples, device, lighting, None).0
+}
+
+/// `render_view`, and with `albedo_scale` also the view's albedo (as `Lighting::Albedo` renders
+/// it) from the same rays: the field is traced once for both. Over an area capture's pixels
+/// the two share the pixels rendered over their area, those either needs (`needs_area`).
+#[allow(clippy::too_many_arguments)]
+pub fn render_view_and_albedo(
+    model: &Avatar,
+    scene: &Scene,
+    camera: usize,
+    frame: usize,
+    samples: Sampling,
+    device: &Device,
+    lighting: &Lighting,
+    albedo_scale: Option<DVec3>,
+) -> (RgbImage, Option<RgbImage>) {
     let camera_index = camera;
     let camera = &scene.cameras[camera];
     let pose = &scene.frames[frame].pose;
@@ -113,10 +130,10 @@ pub fn render_view(model: &Avatar, scene: &Scene, camera: usize, frame: usize, s
         _ => None,
     };
     let sky_casters: Vec<PosedGaussian> = model.light.shadow_casters_posed(&posed);
-    // The colour and coverage of rays through continuous pixel positions, each with its own
-    // stream id for the sky's samples.
-    let trace = |targets: &[([f64; 2], u64)]| -> Vec<([f32; 3], f32)> {
-        let mut out = vec![([0.0f32; 3], 0.0f32); targets.len()];
+    // The colour, albedo (when asked) and coverage of rays through continuous pixel
+    // positions, each with its own stream id for the sky's samples.
+    let trace = |targets: &[([f64; 2], u64)]| -> Vec<Traced> {
+        let mut out = vec![Traced::default(); targets.len()];
         for (first, chunk) in targets.chunks(1024).enumerate().map(|(k, c)| (k * 1024, c)) {
             let mut rays = RaySet::default();
             let mut hit = Vec::new();
@@ -162,8 +179,10 @@ pub fn render_view(model: &Avatar, scene: &Scene, camera: usize, frame: usize, s
                 _ => values(deferred.albedo.clone()),
             };
             let coverage = values(deferred.accumulation.clone());
+            let albedo = albedo_scale.as_ref().map(|scale| values(scaled(scale)));
             for (j, &k) in hit.iter().enumerate() {
-                out[k] = ([colour[j * 3], colour[j * 3 + 1], colour[j * 3 + 2]], coverage[j]);
+                let albedo = albedo.as_ref().map_or([0.0; 3], |a| [a[j * 3], a[j * 3 + 1], a[j * 3 + 2]]);
+                out[k] = Traced { colour: [colour[j * 3], colour[j * 3 + 1], colour[j * 3 + 2]], albedo, coverage: coverage[j] };
             }
         }
         out
@@ -177,9 +196,12 @@ pub fn render_view(model: &Avatar, scene: &Scene, camera: usize, frame: usize, s
     let area = scene.footprint().footprint == Footprint::Area;
     if area {
         let offsets = crate::scene::footprint::subpixel_offsets(VIEW_PIXEL_RAYS, None);
-        let encoded: Vec<[f32; 3]> = pixels.iter().map(|(c, _)| c.map(|v| crate::imageio::linear_to_srgb(v.max(0.0)))).collect();
-        let coverage: Vec<f32> = pixels.iter().map(|p| p.1).collect();
-        let refine: Vec<usize> = (0..w * h).filter(|&p| needs_area(&encoded, &coverage, w, h, p)).collect();
+        let coverage: Vec<f32> = pixels.iter().map(|p| p.coverage).collect();
+        let encode = |c: [f32; 3]| c.map(|v| crate::imageio::linear_to_srgb(v.max(0.0)));
+        let colours: Vec<[f32; 3]> = pixels.iter().map(|p| encode(p.colour)).collect();
+        let albedos: Vec<[f32; 3]> = pixels.iter().map(|p| encode(p.albedo)).collect();
+        let refine: Vec<usize> =
+            (0..w * h).filter(|&p| needs_area(&colours, &coverage, w, h, p) || (albedo_scale.is_some() && needs_area(&albedos, &coverage, w, h, p))).collect();
         let targets: Vec<([f64; 2], u64)> = refine
             .iter()
             .flat_map(|&p| {
@@ -189,20 +211,34 @@ pub fn render_view(model: &Avatar, scene: &Scene, camera: usize, frame: usize, s
         let traced = trace(&targets);
         for (&p, rays) in refine.iter().zip(traced.chunks(VIEW_PIXEL_RAYS)) {
             let share = 1.0 / VIEW_PIXEL_RAYS as f32;
-            let colour = rays.iter().fold([0.0f32; 3], |a, (c, _)| [a[0] + c[0] * share, a[1] + c[1] * share, a[2] + c[2] * share]);
-            pixels[p] = (colour, rays.iter().map(|(_, a)| a * share).sum());
+            let mean =
+                |of: fn(&Traced) -> [f32; 3]| rays.iter().fold([0.0f32; 3], |a, r| [a[0] + of(r)[0] * share, a[1] + of(r)[1] * share, a[2] + of(r)[2] * share]);
+            pixels[p] = Traced { colour: mean(|r| r.colour), albedo: mean(|r| r.albedo), coverage: rays.iter().map(|r| r.coverage * share).sum() };
         }
     }
     // Over a pixel's area, one the body covers by half or less is background, black, as the
     // scene format's images and masks have it. (At a centre sample the opacity is not a
     // coverage: there the same rule cost human-sun 0.85 dB over the foreground.)
     let mut image = RgbImage::new(w, h);
-    for (p, (colour, coverage)) in pixels.into_iter().enumerate() {
-        if !area || coverage > 0.5 {
-            image.pixels[p] = colour;
+    let mut albedo = albedo_scale.map(|_| RgbImage::new(w, h));
+    for (p, traced) in pixels.into_iter().enumerate() {
+        if !area || traced.coverage > 0.5 {
+            image.pixels[p] = traced.colour;
+            if let Some(albedo) = albedo.as_mut() {
+                albedo.pixels[p] = traced.albedo;
+            }
         }
     }
-    image
+    (image, albedo)
+}
+
+/// What a ray through a view brings back: its shaded colour, its albedo (scaled; zero when not
+/// asked for) and its coverage.
+#[derive(Clone, Copy, Default)]
+struct Traced {
+    colour: [f32; 3],
+    albedo: [f32; 3],
+    coverage: f32,
 }
 
 fn vectors(flat: Vec<f32>) -> Vec<DVec3> {

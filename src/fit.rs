@@ -2,7 +2,7 @@
 //! `losses.csv`, `losses.png`, `gaussians.json`, renders), atomic checkpoints every N
 //! iterations, exact `--resume`, and the evaluation of the test images at the end.
 
-use crate::eval::{render_view, Lighting};
+use crate::eval::{render_view_and_albedo, Lighting};
 use crate::imageio::RgbImage;
 use crate::metrics::{score, ImageScores};
 use crate::plot::{Chart, Series};
@@ -801,10 +801,11 @@ pub fn score_view(
     albedo_scale: glam::DVec3,
     device: &burn::tensor::Device,
 ) -> ScoredView {
-    let image = render_view(model, scene, view.camera, view.frame, crate::eval::VIEW_SAMPLING, device, lighting);
+    // The image and its albedo from one trace of the field.
+    let wants_albedo = view.albedo.is_some().then_some(albedo_scale);
+    let (image, albedo) = render_view_and_albedo(model, scene, view.camera, view.frame, crate::eval::VIEW_SAMPLING, device, lighting, wants_albedo);
     let scores = score(&image, &view.colour, view.mask.as_ref());
-    let albedo = view.albedo.as_ref().map(|truth| {
-        let albedo = render_view(model, scene, view.camera, view.frame, crate::eval::VIEW_SAMPLING, device, &Lighting::Albedo { albedo_scale });
+    let albedo = view.albedo.as_ref().zip(albedo).map(|(truth, albedo)| {
         let s = score(&albedo, truth, view.mask.as_ref());
         (albedo, s)
     });

@@ -557,6 +557,19 @@ fn a_run_from_before_the_albedo_decoder_renders_and_resumes_as_it_was_fitted() {
     assert!(umbra::fit::render_run(&fresh, None, Backend::Flex, |_| {}).is_ok());
 }
 
+/// The first test view of a trainer's scene in its fitted light and its albedo, rendered from
+/// one trace (`render_view_and_albedo`) and each on its own (`render_view`).
+fn view_and_albedo(trainer: &Trainer) -> (umbra::imageio::RgbImage, umbra::imageio::RgbImage, umbra::imageio::RgbImage, umbra::imageio::RgbImage) {
+    use umbra::eval::{render_view, render_view_and_albedo, Lighting, VIEW_SAMPLING};
+    let (model, scene, device) = (trainer.model().unwrap(), &trainer.scene, &trainer.device);
+    let view = scene.views.iter().find(|v| v.split == umbra::scene::Split::Test).unwrap();
+    let scale = glam::DVec3::new(1.0, 0.9, 1.1);
+    let (image, albedo) = render_view_and_albedo(model, scene, view.camera, view.frame, VIEW_SAMPLING, device, &Lighting::Fitted(0), Some(scale));
+    let alone = render_view(model, scene, view.camera, view.frame, VIEW_SAMPLING, device, &Lighting::Fitted(0));
+    let albedo_alone = render_view(model, scene, view.camera, view.frame, VIEW_SAMPLING, device, &Lighting::Albedo { albedo_scale: scale });
+    (image, albedo.unwrap(), alone, albedo_alone)
+}
+
 /// A capture whose pixels average their area (anti-aliased, `synth --pixel-samples`) is read as
 /// such, and fitted with several rays per training pixel when the schedule asks (the fit runs
 /// and lowers its loss); a centre-sampled one with one ray, unless the schedule says otherwise.
@@ -588,14 +601,32 @@ fn an_anti_aliased_capture_is_fitted_with_several_rays_per_pixel() {
     assert!(losses.iter().all(|l| l.is_finite()));
     let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len() as f64;
     assert!(mean(&losses[50..]) < 0.8 * mean(&losses[..10]), "{losses:?}");
+    // A test view and its albedo from one trace, against two renders: over an area capture's
+    // pixels the two share the pixels rendered over their area, so a pixel may be its area's
+    // mean in one and its centre in the other, where the image is smooth.
+    let (image, albedo, alone, albedo_alone) = view_and_albedo(&trainer);
+    let srgb = |v: f32| umbra::imageio::linear_to_srgb(v.max(0.0));
+    for (a, b) in [(&image, &alone), (&albedo, &albedo_alone)] {
+        let gaps: Vec<f32> = a.pixels.iter().zip(&b.pixels).flat_map(|(p, q)| (0..3).map(move |c| (srgb(p[c]) - srgb(q[c])).abs())).collect();
+        let worst = gaps.iter().cloned().fold(0.0, f32::max);
+        let average = gaps.iter().sum::<f32>() / gaps.len() as f32;
+        assert!(worst < 8.0 / 255.0 && average < 0.5 / 255.0, "worst {worst}, mean {average}");
+    }
     // The default schedule trains an area capture with one ray through each pixel's centre.
     let default = Schedule::parse(umbra::schedule::DEFAULT_TEXT, Path::new("default.toml")).unwrap();
     let trainer = Trainer::new(umbra::scene::Scene::load(&dir.path().join("area")).unwrap(), default, Backend::Flex, 1).unwrap();
     assert_eq!((trainer.footprint, trainer.pixel_rays), (umbra::scene::Footprint::Area, 1));
     // The same capture sampled at pixel centres: one ray per pixel, or as the schedule says.
     let centre = tiny_scene(dir.path(), TrainingLight::Sun);
-    let trainer = Trainer::new(umbra::scene::Scene::load(&centre).unwrap(), schedule.clone(), Backend::Flex, 1).unwrap();
+    let mut trainer = Trainer::new(umbra::scene::Scene::load(&centre).unwrap(), schedule.clone(), Backend::Flex, 1).unwrap();
     assert_eq!((trainer.footprint, trainer.pixel_rays), (umbra::scene::Footprint::Centre, 1));
+    // At pixel centres one trace gives exactly the two renders.
+    for _ in 0..20 {
+        trainer.step().unwrap();
+    }
+    let (image, albedo, alone, albedo_alone) = view_and_albedo(&trainer);
+    assert!(image.pixels == alone.pixels && albedo.pixels == albedo_alone.pixels);
+    assert!(albedo.pixels.iter().any(|p| p[0] > 0.0), "the view sees the body");
     let forced = Schedule::parse(&format!("footprint = \"area\"\npixel_rays = 9\n{QUICK}"), Path::new("quick.toml")).unwrap();
     let trainer = Trainer::new(umbra::scene::Scene::load(&centre).unwrap(), forced, Backend::Flex, 1).unwrap();
     assert_eq!((trainer.footprint, trainer.pixel_rays), (umbra::scene::Footprint::Area, 9));

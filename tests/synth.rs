@@ -306,6 +306,24 @@ fn a_near_lamp_sits_at_its_distance_and_lights_the_body_as_brightly() {
 }
 
 #[test]
+fn the_training_sun_can_come_from_any_direction() {
+    let base = SynthOptions { test: vec![TestKind::Poses], meshes: false, ..tiny(Kind::Human, TrainingLight::Sun) };
+    let low = SynthOptions { sun_direction: Some(vec![0.9, 0.3, -0.3]), ..base.clone() };
+    match (&base.plan().unwrap().lights[0].1, &low.plan().unwrap().lights[0].1) {
+        (Light::Directional { direction: usual, .. }, Light::Directional { direction, .. }) => {
+            assert!((*usual - DVec3::new(0.45, 0.8, 0.4).normalize()).length() < 1e-12, "the default sun is unchanged");
+            assert!((*direction - DVec3::new(0.9, 0.3, -0.3).normalize()).length() < 1e-12, "{direction:?}");
+        }
+        _ => panic!("the training light is a sun"),
+    }
+    // Three numbers, not all zero, and only for a sun.
+    for bad in [vec![0.0, 0.0, 0.0], vec![1.0, 2.0], vec![f64::NAN, 1.0, 0.0]] {
+        assert!(SynthOptions { sun_direction: Some(bad.clone()), ..base.clone() }.plan().is_err(), "{bad:?}");
+    }
+    assert!(SynthOptions { sun_direction: Some(vec![0.0, 1.0, 0.0]), ..tiny(Kind::Human, TrainingLight::Point) }.plan().is_err());
+}
+
+#[test]
 fn a_light_stage_capture_lights_each_image_by_one_of_its_suns() {
     let options = SynthOptions { suns: 3, test: vec![TestKind::Poses, TestKind::Relight], meshes: false, ..tiny(Kind::Human, TrainingLight::Sun) };
     let plan = options.plan().unwrap();

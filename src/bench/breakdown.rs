@@ -7,7 +7,7 @@
 //! backends run eagerly, so each part's tensor work is done within its span.
 
 use super::fit::peak_rss_mib;
-use crate::eval::{render_view, Lighting, VIEW_SAMPLING};
+use crate::eval::{render_view, render_view_and_albedo, Lighting, VIEW_SAMPLING};
 use crate::plot::BarChart;
 use crate::scene::Scene;
 use crate::schedule::Schedule;
@@ -78,6 +78,22 @@ fn render_parts(scene: &Scene, schedule: &Schedule, repeats: usize) -> Result<Ve
         }
         let ms = start.elapsed().as_secs_f64() / repeats as f64 * 1e3;
         parts.push(Part { stage: "render one view".into(), part: name.into(), ms, peak_mib: peak_rss_mib() });
+    }
+    // A test image and its albedo, as the evaluation scores them: two renders, or one trace.
+    let sun = Lighting::Fitted(0);
+    let start = Instant::now();
+    for _ in 0..repeats {
+        render_view(&model, scene, view.camera, view.frame, VIEW_SAMPLING, &device, &sun);
+        render_view(&model, scene, view.camera, view.frame, VIEW_SAMPLING, &device, &Lighting::Albedo { albedo_scale: scale });
+    }
+    let apart = start.elapsed().as_secs_f64() / repeats as f64 * 1e3;
+    let start = Instant::now();
+    for _ in 0..repeats {
+        render_view_and_albedo(&model, scene, view.camera, view.frame, VIEW_SAMPLING, &device, &sun, Some(scale));
+    }
+    let together = start.elapsed().as_secs_f64() / repeats as f64 * 1e3;
+    for (part, ms) in [("sun-lit image and its albedo, two renders", apart), ("sun-lit image and its albedo, one trace (as the evaluation does)", together)] {
+        parts.push(Part { stage: "render one test image".into(), part: part.into(), ms, peak_mib: peak_rss_mib() });
     }
     Ok(parts)
 }

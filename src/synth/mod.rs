@@ -92,6 +92,12 @@ pub struct SynthOptions {
     #[arg(long, default_value_t = 1)]
     #[serde(default = "one_sun", skip_serializing_if = "is_one_sun")]
     pub suns: usize,
+    /// With `--light sun`: the training sun's direction (toward the sun, normalised; default
+    /// 0.45,0.8,0.4: high, on the side of the first camera), to see a fit under other suns: low,
+    /// from the side, from behind the character.
+    #[arg(long, value_delimiter = ',', allow_hyphen_values = true)]
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub sun_direction: Option<Vec<f64>>,
     /// Anti-aliasing as a path tracer does it: N x N stratified rays per pixel, averaged (a box
     /// filter over the pixel); the mask is coverage above one half and pixels outside it are
     /// black, as the scene format asks. 1: one ray through the pixel's centre.
@@ -152,6 +158,7 @@ impl Default for SynthOptions {
             scale: 1.0,
             lamp_distance: None,
             suns: 1,
+            sun_direction: None,
             pixel_samples: 1,
             meshes: false,
             mesh_cell: 0.02,
@@ -259,6 +266,15 @@ impl SynthOptions {
         if self.suns > 1 && self.light != TrainingLight::Sun {
             return bad("--suns needs --light sun");
         }
+        if let Some(d) = &self.sun_direction {
+            if self.light != TrainingLight::Sun {
+                return bad("--sun-direction needs --light sun");
+            }
+            let length = d.iter().map(|v| v * v).sum::<f64>().sqrt();
+            if d.len() != 3 || !length.is_finite() || length < 1e-6 {
+                return bad("--sun-direction must be three finite numbers x,y,z, not all zero");
+            }
+        }
         if let Some(d) = self.lamp_distance {
             if self.light != TrainingLight::Point {
                 return bad("--lamp-distance needs --light point");
@@ -321,7 +337,13 @@ impl SynthOptions {
             }
         }
         let (train_name, train_light) = match self.light {
-            TrainingLight::Sun => ("sun", sun([0.45, 0.8, 0.4], [0.85, 0.82, 0.78], [0.2, 0.21, 0.24])),
+            TrainingLight::Sun => {
+                let direction = match self.sun_direction.as_deref() {
+                    Some(&[x, y, z]) => [x, y, z],
+                    _ => [0.45, 0.8, 0.4],
+                };
+                ("sun", sun(direction, [0.85, 0.82, 0.78], [0.2, 0.21, 0.24]))
+            }
             TrainingLight::Uniform => ("studio", Light::Uniform { radiance: DVec3::new(0.9, 0.9, 0.88) }),
             TrainingLight::Point => {
                 let (position, intensity) = (DVec3::new(1.1, 2.3, 1.4), DVec3::new(4.6, 4.4, 4.1));
