@@ -199,9 +199,9 @@ pub fn render_view_and_albedo(
         let coverage: Vec<f32> = pixels.iter().map(|p| p.coverage).collect();
         let encode = |c: [f32; 3]| c.map(|v| crate::imageio::linear_to_srgb(v.max(0.0)));
         let colours: Vec<[f32; 3]> = pixels.iter().map(|p| encode(p.colour)).collect();
-        let albedos: Vec<[f32; 3]> = pixels.iter().map(|p| encode(p.albedo)).collect();
+        let albedos: Option<Vec<[f32; 3]>> = albedo_scale.map(|_| pixels.iter().map(|p| encode(p.albedo)).collect());
         let refine: Vec<usize> =
-            (0..w * h).filter(|&p| needs_area(&colours, &coverage, w, h, p) || (albedo_scale.is_some() && needs_area(&albedos, &coverage, w, h, p))).collect();
+            (0..w * h).filter(|&p| needs_area(&colours, &coverage, w, h, p) || albedos.as_ref().is_some_and(|a| needs_area(a, &coverage, w, h, p))).collect();
         let targets: Vec<([f64; 2], u64)> = refine
             .iter()
             .flat_map(|&p| {

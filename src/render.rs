@@ -321,6 +321,13 @@ pub fn composite_albedo(field: &AvatarField, decoded: &Decoded, weights: &Tensor
     Tensor::zeros([r, 3], &device).select_assign(0, rays, weighted, IndexingUpdateOp::Add)
 }
 
+/// The rays' origins and directions as `[R, 3]` tensors.
+fn ray_tensors(rays: &RaySet, device: &Device) -> (Tensor<2>, Tensor<2>) {
+    let r = rays.len();
+    let tensor = |values: &Vec<f32>| Tensor::<2>::from_data(TensorData::new(values.clone(), [r, 3]), device);
+    (tensor(&rays.origins), tensor(&rays.directions))
+}
+
 /// Points `o + t d` of every sample, `[R * S, 3]`.
 fn sample_points(origins: &Tensor<2>, directions: &Tensor<2>, t: &Tensor<2>) -> Tensor<2> {
     let [r, s] = t.dims();
@@ -389,8 +396,7 @@ pub fn render_still(
 ) -> Deferred {
     let start = std::time::Instant::now();
     let r = rays.len();
-    let origins: Tensor<2> = Tensor::from_data(TensorData::new(rays.origins.clone(), [r, 3]), device);
-    let directions: Tensor<2> = Tensor::from_data(TensorData::new(rays.directions.clone(), [r, 3]), device);
+    let (origins, directions) = ray_tensors(rays, device);
     let (samples, density) = locate(field, pose, rays, &origins, &directions, sampling, jitter, true);
     let located = start.elapsed().as_secs_f64();
     let s = sampling.total();
@@ -459,8 +465,7 @@ pub fn render(
 ) -> Deferred {
     let start = std::time::Instant::now();
     let r = rays.len();
-    let origins: Tensor<2> = Tensor::from_data(TensorData::new(rays.origins.clone(), [r, 3]), device);
-    let directions: Tensor<2> = Tensor::from_data(TensorData::new(rays.directions.clone(), [r, 3]), device);
+    let (origins, directions) = ray_tensors(rays, device);
     let samples = locate(field, pose, rays, &origins, &directions, sampling, jitter, false).0;
     let located = start.elapsed().as_secs_f64();
     let s = sampling.total();
