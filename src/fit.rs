@@ -603,7 +603,11 @@ pub fn fit(options: &FitOptions, mut on: impl FnMut(TrainMessage)) -> Result<ser
 fn field_report(trainer: &Trainer) -> serde_json::Value {
     let Ok(model) = trainer.model() else { return serde_json::Value::Null };
     let beta = model.field.beta().into_data().convert::<f32>().try_to_vec::<f32>().ok().and_then(|v| v.first().copied());
-    json!({"kind": if model.field.grid.is_some() { "grid" } else { "mlp" }, "beta": beta})
+    // Where the training masks put body beyond every bone's grid box (loose clothing), the
+    // root's grids reach it: how far from the root's segment, m (null: a body tight on its bones).
+    let root = model.field.grid.as_ref().and_then(|g| g.config.root);
+    let loose = root.filter(|r| r.features_reach_body).map(|r| r.reach);
+    json!({"kind": if model.field.grid.is_some() { "grid" } else { "mlp" }, "beta": beta, "root_grids_reach_loose_body": loose})
 }
 
 /// How much `compare.png` amplifies the difference between a render and its truth.

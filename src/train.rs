@@ -313,7 +313,14 @@ struct Batch {
 
 /// The field the schedule asks for: the Fourier `mlp` field, or feature grids shaped by the
 /// body's `extent` (the diagonal of the posed skeleton's bounds, m) with the schedule's overrides.
-pub fn field_config(settings: &crate::schedule::FieldSettings, skeleton: &crate::skeleton::Skeleton, extent: f32) -> FieldConfig {
+/// `loose` says how far the body reaches beyond every bone's grid box as the training masks
+/// show it (`masked_reach_beyond_bones`): the root's grids then reach that far.
+pub fn field_config(
+    settings: &crate::schedule::FieldSettings,
+    skeleton: &crate::skeleton::Skeleton,
+    extent: f32,
+    loose: impl Fn(f32, usize) -> Option<f32>,
+) -> FieldConfig {
     if let Some(recorded) = &settings.recorded {
         return recorded.clone();
     }
@@ -347,12 +354,72 @@ pub fn field_config(settings: &crate::schedule::FieldSettings, skeleton: &crate:
                 if let Some(reach) = settings.reach_per_extent {
                     grid.reach = extent * reach as f32;
                 }
-                grid.root = root.map(|bone| crate::field::grid::RootSkinning::for_body(bone, cap, grid.reach, extent));
+                grid.root = root.map(|bone| crate::field::grid::RootSkinning::for_body(bone, cap, grid.reach, loose(grid.reach, bone), extent));
             }
             config
         }
     };
     FieldConfig { albedo_layers: settings.albedo_layers.unwrap_or(config.albedo_layers), ..config }
+}
+
+/// Lattice steps per body extent (the posed bones' diagonal) when the training masks are
+/// searched for body beyond the bones' grids (`masked_reach_beyond_bones`): 3 cm on a human,
+/// a tenth of what a box reaches beyond its bone.
+const HULL_STEPS_PER_EXTENT: f64 = 64.0;
+
+/// How far from the `root` bone's segment the body reaches where it lies farther than `reach`
+/// from every bone, as the training masks show it: the farthest point of a lattice over each
+/// training frame's bones (widened by twice `reach`) that every masked training view of the
+/// frame sees inside its mask (the frame's visual hull) and that lies farther than `reach`
+/// from every bone's segment, plus a quarter of `reach` so the surface is inside the grid;
+/// `None` when no such point exists (a body tight on its bones: the grids hold it already).
+/// From one camera the hull is a cone, so every point of it behind the body counts: the root's
+/// grids then reach across the lattice.
+pub fn masked_reach_beyond_bones(scene: &Scene, reach: f64, root: usize) -> Option<f64> {
+    use rayon::prelude::*;
+    let skeleton = &scene.skeleton;
+    let farthest_in_frame = |(position, frame): (usize, &crate::scene::Frame)| -> Option<f64> {
+        let views: Vec<&crate::scene::View> =
+            scene.views.iter().filter(|v| v.frame == position && v.split == Split::Train && v.mask.is_some()).collect();
+        if views.is_empty() {
+            return None;
+        }
+        let segments: Vec<(glam::DVec3, glam::DVec3)> = (0..skeleton.len()).map(|b| frame.pose.segment(skeleton, b)).collect();
+        let distance = |p: glam::DVec3, (a, b): (glam::DVec3, glam::DVec3)| {
+            let ab = b - a;
+            let t = ((p - a).dot(ab) / ab.length_squared().max(1e-18)).clamp(0.0, 1.0);
+            (p - (a + ab * t)).length()
+        };
+        let inside_every_mask = |p: glam::DVec3| {
+            views.iter().all(|v| {
+                let camera = &scene.cameras[v.camera];
+                let Some(mask) = v.mask.as_ref() else { return false };
+                camera.project(p).is_some_and(|px| {
+                    let (x, y) = (px.x.floor(), px.y.floor());
+                    x >= 0.0 && y >= 0.0 && (x as usize) < mask.width && (y as usize) < mask.height && mask.foreground[y as usize * mask.width + x as usize]
+                })
+            })
+        };
+        let (lo, hi) = frame.pose.bounds(skeleton);
+        let step = (hi - lo).length() / HULL_STEPS_PER_EXTENT;
+        let (lo, hi) = (lo - glam::DVec3::splat(2.0 * reach), hi + glam::DVec3::splat(2.0 * reach));
+        let counts = ((hi - lo) / step).ceil().as_uvec3();
+        let mut farthest: Option<f64> = None;
+        for k in 0..counts.z {
+            for j in 0..counts.y {
+                for i in 0..counts.x {
+                    let p = lo + glam::DVec3::new(i as f64 + 0.5, j as f64 + 0.5, k as f64 + 0.5) * step;
+                    if segments.iter().all(|&s| distance(p, s) > reach) && inside_every_mask(p) {
+                        let d = distance(p, segments[root]);
+                        farthest = Some(farthest.map_or(d, |f| f.max(d)));
+                    }
+                }
+            }
+        }
+        farthest
+    };
+    let farthest = scene.frames.par_iter().enumerate().filter_map(farthest_in_frame).reduce_with(f64::max);
+    farthest.map(|d| d + 0.25 * reach)
 }
 
 /// How much farther outside the surface (m on the reference human, on average over the frames)
@@ -526,7 +593,8 @@ impl Trainer {
             LightKind::Point => (centre + glam::DVec3::Y * (LAMP_START_PER_EXTENT * extent)).as_vec3().to_array(),
             _ => [0.0, 1.0, 0.0],
         };
-        let field_config = field_config(&schedule.field, &scene.skeleton, extent as f32);
+        let field_config =
+            field_config(&schedule.field, &scene.skeleton, extent as f32, |reach, root| masked_reach_beyond_bones(&scene, reach as f64, root).map(|r| r as f32));
         let model = Avatar {
             field: field_config.init(&device, seed),
             gaussians: GaussianParams::from_set(&set, unit as f32, &device),

@@ -30,7 +30,8 @@ fn setup() -> Setup {
     // As a fit sets it up: the root's distance capped and its preference grid.
     let cap = umbra::field::ROOT_REACH_PER_WIDTH * config.skinning_width;
     let grid = config.grid.as_mut().unwrap();
-    grid.root = Some(RootSkinning::for_body(0, cap, grid.reach, extent));
+    // Loose clothing 0.6 m from the pelvis's segment: the root's grids reach it.
+    grid.root = Some(RootSkinning::for_body(0, cap, grid.reach, Some(0.6), extent));
     Setup { character, pose, config }
 }
 
@@ -83,7 +84,7 @@ fn the_plan_stays_in_the_table_and_interpolates_a_partition_of_unity() {
     let frames = PoseTensors::new(&s.pose, &s.character.skeleton, &device).frames;
     let pts = points(&s, 200, 3);
     let plan = lookup(&grid, &levels, &frames, skinning(&s.config), &flat(&pts), false);
-    let rows = grid.levels * grid.table_size();
+    let rows = grid.table_rows();
     assert!(plan.rows.iter().all(|&r| (r as usize) < rows));
     for (p, chunk) in plan.coefficients.chunks(grid.corners()).enumerate() {
         for (g, cell) in chunk.chunks(8).enumerate() {
@@ -99,13 +100,52 @@ fn the_plan_stays_in_the_table_and_interpolates_a_partition_of_unity() {
         assert!((sum - chosen).abs() < 1e-5, "point {p}: root preference {sum}, root chosen {chosen}");
     }
     // A dense level lays the bones' grids one after another: every row of level 0 lies
-    // within their total, which fits the level's table.
+    // within their total, which fits the level's table. The root's grids, which hold the
+    // whole skeleton, are in a table of their own after it.
     let dense = &levels[0];
-    let total: usize = dense.dims.iter().map(|d| d[0] * d[1] * d[2]).sum();
-    assert!(total <= grid.table_size());
-    let level0 = plan.rows.iter().enumerate().filter(|(k, _)| ((k % grid.corners()) / 8) % grid.levels == 0);
-    assert!(level0.clone().all(|(_, &r)| (r as usize) < total));
-    assert!(dense.offsets.windows(2).zip(&dense.dims).all(|(o, d)| o[1] - o[0] == d[0] * d[1] * d[2]), "bones' grids do not overlap");
+    let root = dense.root.expect("the root's grids have a table of their own");
+    let others: Vec<usize> = (0..dense.dims.len()).filter(|&b| b != root.bone).collect();
+    let size = |b: usize| dense.dims[b][0] * dense.dims[b][1] * dense.dims[b][2];
+    let total: usize = others.iter().map(|&b| size(b)).sum();
+    assert!(total <= grid.table_size() && root.dense && size(root.bone) <= grid.table_size());
+    assert_eq!(root.offset, grid.table_size());
+    let slots = plan.root_slot.chunks(grid.top());
+    for (p, slot) in slots.enumerate() {
+        for (j, &is_root) in slot.iter().enumerate() {
+            let level0 = &plan.rows[p * grid.corners() + j * grid.levels * 8..][..8];
+            let (lo, hi) = if is_root == 1.0 { (root.offset, root.offset + size(root.bone)) } else { (0, total) };
+            assert!(level0.iter().all(|&r| (lo..hi).contains(&(r as usize))), "point {p} bone slot {j}: {level0:?} outside {lo}..{hi}");
+        }
+    }
+    assert!(others.windows(2).all(|w| dense.offsets[w[1]] - dense.offsets[w[0]] == size(w[0])), "bones' grids do not overlap");
+}
+
+#[test]
+fn the_roots_grids_reach_a_skirts_hem_that_the_other_bones_grids_do_not() {
+    // A point of a bell skirt's hem: 0.36 m out from the pelvis's head and 0.36 m below it,
+    // 0.5 m from its segment, farther than the other bones' boxes reach. The root carries it;
+    // its features must still change with the point along every axis, as they do only inside
+    // a grid (outside, a grid is clamped to its border: the features are constant there).
+    let s = setup();
+    let frames = PoseTensors::new(&s.pose, &s.character.skeleton, &Device::flex()).frames;
+    let hem = s.pose.to_world(0, DVec3::new(0.36, -0.36, 0.0));
+    let root_changes_along_every_axis = |grid: &umbra::field::grid::GridConfig| {
+        assert!(grid.reach < 0.5, "the other bones' boxes stop short of the hem");
+        let plan = lookup(grid, &grid.layout(), &frames, skinning(&s.config), &hem.as_vec3().to_array(), true);
+        let slot = plan.root_slot.iter().position(|&r| r == 1.0).expect("the root is chosen at the hem");
+        // The root's corners at the finest level: their coefficients' derivatives along each
+        // of the root's own axes (a clamped axis has none).
+        let corners = (slot * grid.levels + grid.levels - 1) * 8..(slot * grid.levels + grid.levels) * 8;
+        let axes = frames[0].axes;
+        let along = |m: usize| corners.clone().map(|k| (0..3).map(|x| plan.coefficient_tangents[k * 3 + x] * axes[m][x]).sum::<f32>().abs()).sum::<f32>();
+        (0..3).all(|m| along(m) > 1e-3)
+    };
+    let grid = s.config.grid.clone().unwrap();
+    assert!(root_changes_along_every_axis(&grid), "the root's grids reach as far as its skeleton");
+    // As the root's grids were before (as far as the other bones'): clamped at the hem.
+    let mut short = grid.clone();
+    short.root = short.root.map(|r| RootSkinning { features_reach_body: false, ..r });
+    assert!(!root_changes_along_every_axis(&short));
 }
 
 #[test]
@@ -315,7 +355,15 @@ fn table_gradient_matches_finite_differences() {
     // The entries with the largest gradients (they are touched by many corners).
     let mut order: Vec<usize> = (0..analytic.len()).collect();
     order.sort_by(|a, b| analytic[*b].abs().total_cmp(&analytic[*a].abs()));
-    let h = 1e-3f32;
+    // The loss point by point, summed in f64: the points an entry does not touch cancel
+    // exactly, so the f32 rounding of the others does not swamp a short step's change. A step
+    // this short rarely switches a decoder unit, even in an entry of the root's coarsest grids
+    // (they hold loose clothing, and the root is one of nearly every point's bones).
+    let per_point = |f: &AvatarField| {
+        let out = f.forward(input.clone(), &pose);
+        values(out.sdf.powf_scalar(2.0) + out.albedo.sum_dim(1).reshape([pts.len()])).into_iter().map(f64::from).collect::<Vec<f64>>()
+    };
+    let h = 1e-4f32;
     let mut checked = 0;
     for &k in order.iter().take(12) {
         let perturbed = |delta: f32| {
@@ -330,10 +378,11 @@ fn table_gradient_matches_finite_differences() {
                 active_levels: g.active_levels,
                 composite: g.composite,
             });
-            values(loss(&f))[0] as f64
+            per_point(&f)
         };
-        let here = values(loss(&field))[0] as f64;
-        let (forward, backward) = ((perturbed(h) - here) / h as f64, (here - perturbed(-h)) / h as f64);
+        let here = per_point(&field);
+        let slope = |other: Vec<f64>, sign: f64| other.iter().zip(&here).map(|(a, b)| sign * (a - b)).sum::<f64>() / h as f64;
+        let (forward, backward) = (slope(perturbed(h), 1.0), slope(perturbed(-h), -1.0));
         // A ReLU of the decoder switching within h: the one-sided slopes differ; skipped.
         if (forward - backward).abs() > 2e-2 * forward.abs().max(1e-1) {
             continue;
@@ -376,12 +425,14 @@ fn root_preference_gradient_matches_finite_differences() {
     order.sort_by(|a, b| analytic[*b].abs().total_cmp(&analytic[*a].abs()));
     let largest = analytic[order[0]].abs() as f64;
     assert!(largest > 1e-5, "the preference gets a gradient: {largest}");
-    // A logit step this long keeps the loss's change far above its f32 rounding. The softmax
-    // curves over it, so one-sided slopes differ; central differences at h and h/2 agree where
-    // nothing switches within the step (and the second is the reference).
-    let h = 0.02f32;
+    // A logit step this long keeps the loss's change far above its f32 rounding (at 0.02 a
+    // vertex with a sixth of the largest gradient moved its points' SDF by a few ulps: its
+    // central differences at h and h/2 disagreed by 1.6%). The softmax curves over it, so
+    // one-sided slopes differ; central differences at h and h/2 agree where nothing switches
+    // within the step (and the second is the reference).
+    let h = 0.1f32;
     let mut checked = 0;
-    for &k in order.iter().take(12) {
+    for &k in order.iter().take(24) {
         let perturbed = |delta: f32| {
             let mut v = start.clone();
             v[k] += delta;
@@ -399,7 +450,7 @@ fn root_preference_gradient_matches_finite_differences() {
         if (coarse - fine).abs() > 2e-2 * scale {
             continue;
         }
-        assert!((analytic[k] as f64 - fine).abs() < 2e-2 * scale, "vertex {k}: {} vs {fine}", analytic[k]);
+        assert!((analytic[k] as f64 - fine).abs() < 2e-2 * scale, "vertex {k}: {} vs {fine} (coarse {coarse}, largest {largest})", analytic[k]);
         checked += 1;
     }
     assert!(checked >= 6, "only {checked} vertices away from a kink");
@@ -670,17 +721,46 @@ fn a_still_render_is_the_training_render_without_its_gradients() {
             accumulation.iter().filter(|&&a| a > 0.5).count() > 10 && accumulation.iter().filter(|&&a| a < 0.5).count() > 10,
             "rays both hit and miss: {accumulation:?}"
         );
+        let close = |x: f32, y: f32| (x - y).abs() <= 1e-3 * (1.0 + x.abs());
         let pairs = [
             ("accumulation", accumulation, values(still.accumulation)),
             ("depth", values(trained.depth), values(still.depth)),
             ("albedo", values(trained.albedo), values(still.albedo)),
-            ("normal", values(trained.normal.unwrap()), values(still.normal.unwrap())),
+            ("surface", values(trained.surface.clone()), values(still.surface)),
         ];
         for (what, a, b) in pairs {
             assert_eq!(a.len(), b.len());
             for (k, (x, y)) in a.iter().zip(&b).enumerate() {
-                assert!((x - y).abs() <= 1e-3 * (1.0 + x.abs()), "{what}[{k}] ({sampling:?}): training {x}, still {y}");
+                assert!(close(*x, *y), "{what}[{k}] ({sampling:?}): training {x}, still {y}");
             }
         }
+        // Normals: the same SDF gradient at surface points that agree to rounding. A trilinear
+        // grid's gradient jumps across a cell's face, so where a surface point lies within
+        // rounding of one the two normals may be its two sides: then each must be the normal
+        // just before or just after the point along the ray, and such rays must be rare.
+        let (trained_normal, still_normal) = (values(trained.normal.unwrap()), values(still.normal.unwrap()));
+        let surface = values(trained.surface);
+        let mut on_a_face = 0;
+        for ray in 0..rays.len() {
+            let agree = |a: &[f32], b: &[f32]| (0..3).all(|c| close(a[3 * ray + c], b[3 * ray + c]));
+            if agree(&trained_normal, &still_normal) {
+                continue;
+            }
+            let side = |step: f32| {
+                let p: Vec<f32> = (0..3).map(|c| surface[3 * ray + c] + step * rays.directions[3 * ray + c]).collect();
+                let g = values(field.sdf_gradient(Tensor::from_data(TensorData::new(p, [1, 3]), &device), &pose, umbra::field::GRADIENT));
+                let norm = g.iter().map(|x| x * x).sum::<f32>().sqrt();
+                let mut n = vec![0.0; 3 * rays.len()];
+                n[3 * ray..3 * ray + 3].copy_from_slice(&[g[0] / norm, g[1] / norm, g[2] / norm]);
+                n
+            };
+            let (before, after) = (side(-1e-5), side(1e-5));
+            assert!(!agree(&before, &after), "ray {ray} ({sampling:?}): normals differ where the gradient is continuous");
+            for (what, n) in [("training", &trained_normal), ("still", &still_normal)] {
+                assert!(agree(n, &before) || agree(n, &after), "ray {ray} ({sampling:?}): the {what} normal is neither side's");
+            }
+            on_a_face += 1;
+        }
+        assert!(on_a_face <= 2, "{on_a_face} of {} rays' normals differ ({sampling:?})", rays.len());
     }
 }
