@@ -379,8 +379,7 @@ pub fn masked_reach_beyond_bones(scene: &Scene, reach: f64, root: usize) -> Opti
     use rayon::prelude::*;
     let skeleton = &scene.skeleton;
     let farthest_in_frame = |(position, frame): (usize, &crate::scene::Frame)| -> Option<f64> {
-        let views: Vec<&crate::scene::View> =
-            scene.views.iter().filter(|v| v.frame == position && v.split == Split::Train && v.mask.is_some()).collect();
+        let views: Vec<&crate::scene::View> = scene.views.iter().filter(|v| v.frame == position && v.split == Split::Train && v.mask.is_some()).collect();
         if views.is_empty() {
             return None;
         }
@@ -593,8 +592,9 @@ impl Trainer {
             LightKind::Point => (centre + glam::DVec3::Y * (LAMP_START_PER_EXTENT * extent)).as_vec3().to_array(),
             _ => [0.0, 1.0, 0.0],
         };
-        let field_config =
-            field_config(&schedule.field, &scene.skeleton, extent as f32, |reach, root| masked_reach_beyond_bones(&scene, reach as f64, root).map(|r| r as f32));
+        let field_config = field_config(&schedule.field, &scene.skeleton, extent as f32, |reach, root| {
+            masked_reach_beyond_bones(&scene, reach as f64, root).map(|r| r as f32)
+        });
         let model = Avatar {
             field: field_config.init(&device, seed),
             gaussians: GaussianParams::from_set(&set, unit as f32, &device),
