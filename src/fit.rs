@@ -19,7 +19,7 @@ use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
-const CHECKPOINT: &str = "checkpoint";
+pub const CHECKPOINT: &str = "checkpoint";
 /// Where the previous checkpoint waits while a new one is swapped in.
 const OLD_CHECKPOINT: &str = ".checkpoint.old";
 /// The schedule a run was fitted with, copied into the run (rendering rebuilds the model
@@ -43,13 +43,39 @@ fn write_text(path: &Path, text: &str) -> Result<(), FitError> {
 }
 
 fn save_checkpoint(trainer: &Trainer, out: &Path, history: &[(usize, StepStats)]) -> Result<(), FitError> {
+    save_checkpoint_until(trainer, out, history, usize::MAX).map(|_| ())
+}
+
+/// `save_checkpoint` stopped after its first `steps` file-system steps, as a kill there
+/// would leave the run folder (for the test that interrupts it at every step); returns whether
+/// it finished.
+#[doc(hidden)]
+pub fn save_checkpoint_until(trainer: &Trainer, out: &Path, history: &[(usize, StepStats)], steps: usize) -> Result<bool, FitError> {
+    let mut done = 0usize;
+    // One step taken; true when the budget is spent (the "kill").
+    let mut step = || {
+        done += 1;
+        done >= steps
+    };
     let temp = out.join(".checkpoint.tmp");
     let _ = std::fs::remove_dir_all(&temp);
+    if step() {
+        return Ok(false);
+    }
     std::fs::create_dir_all(&temp).map_err(|e| io(&temp, e))?;
+    if step() {
+        return Ok(false);
+    }
     trainer.model()?.clone().save_file(temp.join("model.bpk")).map_err(|e| io(&temp.join("model.bpk"), format!("{e:?}")))?;
+    if step() {
+        return Ok(false);
+    }
     for (name, optimizer) in &trainer.optimizers {
         let path = temp.join(format!("optimizer-{name}.bpk"));
         optimizer.save(&path).map_err(|e| io(&path, format!("{e:?}")))?;
+        if step() {
+            return Ok(false);
+        }
     }
     let mut checksums = serde_json::Map::new();
     for file in checkpoint_files(trainer) {
@@ -76,7 +102,13 @@ fn save_checkpoint(trainer: &Trainer, out: &Path, history: &[(usize, StepStats)]
         "gaussian_bones": trainer.model()?.gaussians.bones,
     });
     write_text(&temp.join("state.json"), &state.to_string())?;
+    if step() {
+        return Ok(false);
+    }
     write_text(&temp.join("losses.csv"), &losses_csv(history))?;
+    if step() {
+        return Ok(false);
+    }
     // Some complete checkpoint is on disk at every moment: the previous one is set aside (and
     // an older one set aside before deleted) only while a complete one sits in `checkpoint/`,
     // and a kill between the two renames leaves `.checkpoint.old`, which `existing_checkpoint`
@@ -85,13 +117,22 @@ fn save_checkpoint(trainer: &Trainer, out: &Path, history: &[(usize, StepStats)]
     let old = out.join(OLD_CHECKPOINT);
     if target.join("state.json").is_file() {
         let _ = std::fs::remove_dir_all(&old);
+        if step() {
+            return Ok(false);
+        }
         std::fs::rename(&target, &old).map_err(|e| io(&target, e))?;
     } else {
         let _ = std::fs::remove_dir_all(&target);
     }
+    if step() {
+        return Ok(false);
+    }
     std::fs::rename(&temp, &target).map_err(|e| io(&target, e))?;
+    if step() {
+        return Ok(false);
+    }
     let _ = std::fs::remove_dir_all(&old);
-    Ok(())
+    Ok(true)
 }
 
 /// The files of a checkpoint that hold parameters: the model and one per optimizer.
@@ -173,6 +214,13 @@ fn apply_recorded_field(run: &Path, settings: &mut crate::schedule::FieldSetting
 /// left aside.
 pub fn existing_checkpoint(out: &Path) -> Option<PathBuf> {
     [CHECKPOINT, OLD_CHECKPOINT].iter().map(|name| out.join(name)).find(|dir| dir.join("state.json").is_file())
+}
+
+/// Resumes `trainer` from the last complete checkpoint in the run folder `out`, as `umbra fit
+/// --resume` does (the entry the checkpoint fuzz target drives); returns the iteration reached.
+pub fn resume_checkpoint(trainer: &mut Trainer, out: &Path) -> Result<usize, FitError> {
+    load_checkpoint(trainer, out)?;
+    Ok(trainer.iteration)
 }
 
 fn load_checkpoint(trainer: &mut Trainer, out: &Path) -> Result<Vec<(usize, StepStats)>, FitError> {

@@ -123,8 +123,21 @@ fn kind(path: &Path) -> Option<&'static str> {
 
 /// Decoders of third-party crates may panic on hostile input; a corrupt file must be an error.
 fn guarded<T>(path: &Path, f: impl FnOnce() -> Result<T, ImageError>) -> Result<T, ImageError> {
-    std::panic::catch_unwind(std::panic::AssertUnwindSafe(f))
-        .unwrap_or_else(|_| Err(ImageError::Decode(path.display().to_string(), "decoder panicked on corrupt data".into())))
+    DECODER_GUARDS.with(|depth| depth.set(depth.get() + 1));
+    let result = std::panic::catch_unwind(std::panic::AssertUnwindSafe(f));
+    DECODER_GUARDS.with(|depth| depth.set(depth.get() - 1));
+    result.unwrap_or_else(|_| Err(ImageError::Decode(path.display().to_string(), "decoder panicked on corrupt data".into())))
+}
+
+thread_local! {
+    /// How many decoder guards this thread is inside (`guarded`).
+    static DECODER_GUARDS: std::cell::Cell<u32> = const { std::cell::Cell::new(0) };
+}
+
+/// Whether this thread is inside a third-party decoder's guard, where a panic is caught and
+/// becomes a decode error (a fuzzing panic hook lets those unwind: `fuzzing::install_panic_hook`).
+pub fn inside_decoder_guard() -> bool {
+    DECODER_GUARDS.with(|depth| depth.get() > 0)
 }
 
 fn decode_png(path: &Path) -> Result<image::DynamicImage, ImageError> {

@@ -9,6 +9,7 @@ pub mod eval;
 pub mod export;
 pub mod field;
 pub mod fit;
+pub mod fuzzing;
 pub mod gaussians;
 pub mod geometry;
 pub mod imageio;

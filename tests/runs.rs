@@ -367,3 +367,49 @@ fn eval_scores_test_and_training_images_and_the_surface_against_the_scenes_meshe
     assert!(groups.contains(&"training pose and view"), "{groups:?}");
     assert_eq!(train["images"].as_array().unwrap().len(), 9);
 }
+
+#[test]
+fn a_checkpoint_swap_interrupted_at_every_step_leaves_a_complete_checkpoint() {
+    let (dir, _scene, run) = short_run("swap-every-step");
+    let pristine = dir.path().join("pristine");
+    copy_tree(&run, &pristine);
+    let iteration_on_disk = |run: &Path| -> u64 {
+        let found = umbra::fit::existing_checkpoint(run).expect("some complete checkpoint is on disk");
+        let state: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(found.join("state.json")).unwrap()).unwrap();
+        state["iteration"].as_u64().unwrap()
+    };
+    let mut steps = 1;
+    loop {
+        let _ = std::fs::remove_dir_all(&run);
+        copy_tree(&pristine, &run);
+        let mut trainer = umbra::fit::restore(&run, None, umbra::train::Backend::Flex).unwrap();
+        trainer.iteration = 7;
+        let finished = umbra::fit::save_checkpoint_until(&trainer, &run, &[], steps).unwrap();
+        // Killed after `steps` steps: the run still loads, from the old checkpoint or the new.
+        let on_disk = iteration_on_disk(&run);
+        assert!(on_disk == 2 || on_disk == 7, "step {steps}: iteration {on_disk} on disk");
+        umbra::fit::restore(&run, None, umbra::train::Backend::Flex).unwrap_or_else(|e| panic!("step {steps}: the run does not load: {e}"));
+        if finished {
+            assert_eq!(on_disk, 7);
+            break;
+        }
+        // The next save after the kill completes and leaves nothing aside.
+        assert!(umbra::fit::save_checkpoint_until(&trainer, &run, &[], usize::MAX).unwrap());
+        assert_eq!(iteration_on_disk(&run), 7, "step {steps}");
+        assert!(!run.join(".checkpoint.old").exists() && !run.join(".checkpoint.tmp").exists(), "step {steps}");
+        steps += 1;
+    }
+    assert!(steps >= 10, "the swap has its writes and both renames: {steps} steps");
+}
+
+fn copy_tree(from: &Path, to: &Path) {
+    std::fs::create_dir_all(to).unwrap();
+    for entry in std::fs::read_dir(from).unwrap().flatten() {
+        let target = to.join(entry.file_name());
+        if entry.path().is_dir() {
+            copy_tree(&entry.path(), &target);
+        } else {
+            std::fs::copy(entry.path(), &target).unwrap();
+        }
+    }
+}
