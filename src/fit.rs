@@ -66,13 +66,13 @@ pub fn save_checkpoint_until(trainer: &Trainer, out: &Path, history: &[(usize, S
     if step() {
         return Ok(false);
     }
-    trainer.model()?.clone().save_file(temp.join("model.bpk")).map_err(|e| io(&temp.join("model.bpk"), format!("{e:?}")))?;
+    trainer.model()?.clone().save_file(temp.join("model.bpk")).map_err(|e| io(&temp.join("model.bpk"), format!("{e}")))?;
     if step() {
         return Ok(false);
     }
     for (name, optimizer) in &trainer.optimizers {
         let path = temp.join(format!("optimizer-{name}.bpk"));
-        optimizer.save(&path).map_err(|e| io(&path, format!("{e:?}")))?;
+        optimizer.save(&path).map_err(|e| io(&path, format!("{e}")))?;
         if step() {
             return Ok(false);
         }
@@ -237,7 +237,7 @@ fn load_checkpoint(trainer: &mut Trainer, out: &Path) -> Result<Vec<(usize, Step
         if name == "features" && !path.exists() {
             continue;
         }
-        *optimizer = optimizer.clone().load(&path).map_err(|e| io(&path, format!("{e:?}")))?;
+        *optimizer = optimizer.clone().load(&path).map_err(|e| io(&path, format!("{e}")))?;
     }
     trainer.optimizers = optimizers;
     trainer.iteration = iteration;
@@ -292,7 +292,7 @@ fn parse_cone(cone: &serde_json::Value, state_path: &Path, key: &str) -> Result<
 /// Replaces the trainer's model by the one saved in checkpoint folder `dir`.
 fn load_model(trainer: &mut Trainer, dir: &Path) -> Result<(), FitError> {
     let model = trainer.model.take().ok_or_else(|| FitError::Input("no model".into()))?;
-    let model = model.try_load_file(dir.join("model.bpk")).map_err(|e| io(&dir.join("model.bpk"), format!("cannot load the fitted model: {e:?}")))?;
+    let model = model.try_load_file(dir.join("model.bpk")).map_err(|e| io(&dir.join("model.bpk"), format!("cannot load the fitted model: {e}")))?;
     trainer.model = Some(model);
     // The Gaussians' bones, when the fit moved them (`Trainer::rebind_gaussians`); before they
     // were recorded, each stayed on the bone it started on.

@@ -413,3 +413,17 @@ fn copy_tree(from: &Path, to: &Path) {
         }
     }
 }
+
+#[test]
+fn a_truncated_model_without_checksums_is_refused_in_words_not_a_debug_dump() {
+    let (_dir, _scene, run) = short_run("truncated-model");
+    let state_path = run.join("checkpoint/state.json");
+    let mut state: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&state_path).unwrap()).unwrap();
+    state.as_object_mut().unwrap().remove("checksums");
+    std::fs::write(&state_path, state.to_string()).unwrap();
+    let model = run.join("checkpoint/model.bpk");
+    let bytes = std::fs::read(&model).unwrap();
+    std::fs::write(&model, &bytes[..bytes.len() / 2]).unwrap();
+    let stderr = fails(&std::env::current_dir().unwrap(), &["render", run.to_str().unwrap()]);
+    assert!(stderr.contains("model.bpk") && stderr.contains("truncated") && !stderr.contains("Io(\""), "{stderr}");
+}
