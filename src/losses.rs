@@ -74,7 +74,7 @@ pub fn ambient(ambient: Tensor<1>, target: f64) -> Tensor<1> {
 
 /// `(|grad sdf| - 1)^2`, mean over points.
 pub fn eikonal(gradient: Tensor<2>) -> Tensor<1> {
-    let norm = (gradient.clone() * gradient).sum_dim(1).sqrt();
+    let norm = crate::render::row_lengths(gradient);
     let d = norm - 1.0;
     (d.clone() * d).mean().reshape([1])
 }

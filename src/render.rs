@@ -21,6 +21,20 @@ use glam::DVec3;
 pub const BOUND_SIGMAS: f64 = 3.0;
 pub const MIN_BOUND_RADIUS: f64 = 0.08;
 
+/// The length of each row of `v`, `[N, 1]`, with a finite gradient everywhere: the square
+/// root of the squared length plus 1e-12, so a zero row (an SDF flat at a point: no prior's
+/// slope and every decoder unit off) has length 1e-6 and gradient zero, where `sqrt` of 0 would
+/// send infinity times zero, NaN, into every parameter (it did: a fit diverged at its first
+/// RGB step). For a row of length 1e-3 or more the added term is below f32's resolution.
+pub fn row_lengths(v: Tensor<2>) -> Tensor<2> {
+    ((v.clone() * v).sum_dim(1) + 1e-12).sqrt()
+}
+
+/// Each row of `v` scaled to unit length (`row_lengths`): surface normals from SDF gradients.
+pub fn unit_rows(v: Tensor<2>) -> Tensor<2> {
+    v.clone() / row_lengths(v)
+}
+
 /// Step (m) of the central differences that give surface normals.
 pub const NORMAL_STEP: f32 = 0.004;
 
@@ -433,7 +447,7 @@ pub fn render_still(
     let surface = tensor2(surface, 3);
     let normal = normals.map(|method| {
         let gradient = field.sdf_gradient(surface.clone(), pose, method);
-        gradient.clone() / (gradient.clone() * gradient).sum_dim(1).sqrt().clamp_min(1e-6)
+        unit_rows(gradient)
     });
     let t = Tensor::<2>::from_data(TensorData::new(samples.t, [r, s]), device);
     let seconds = [located, forward - located, start.elapsed().as_secs_f64() - forward];
@@ -482,7 +496,7 @@ pub fn render(
     let forward = start.elapsed().as_secs_f64();
     let normal = normals.map(|method| {
         let gradient = field.sdf_gradient(surface.clone(), pose, method);
-        gradient.clone() / (gradient.clone() * gradient).sum_dim(1).sqrt().clamp_min(1e-6)
+        unit_rows(gradient)
     });
     let seconds = [located, forward - located, start.elapsed().as_secs_f64() - forward];
     Deferred { accumulation, albedo, depth, surface, normal, sample_points: points, sample_density: density, seconds }

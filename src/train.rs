@@ -1095,7 +1095,7 @@ impl Trainer {
                     (0..q * 3).map(|_| ((self.stream.uniform() - 0.5) * 2.0 * self.schedule.curvature_epsilon * self.body_unit()) as f32).collect();
                 let perturbed = points + Tensor::<2>::from_data(TensorData::new(noise, [q, 3]), &device);
                 let g2 = model.field.sdf_gradient(perturbed, &pose, self.gradient);
-                let unit = |g: Tensor<2>| g.clone() / (g.clone() * g).sum_dim(1).sqrt().clamp_min(1e-6);
+                let unit = crate::render::unit_rows;
                 terms.push(("curvature", w("curvature"), crate::losses::curvature(unit(gradient), unit(g2))));
             }
         }

@@ -695,7 +695,11 @@ fn the_albedo_is_composited_from_the_samples_that_carry_weight() {
 fn a_still_render_is_the_training_render_without_its_gradients() {
     let s = setup();
     let device = Device::flex();
-    let separate = FieldConfig { albedo_layers: 2, ..s.config.clone() };
+    let mut separate = FieldConfig { albedo_layers: 2, ..s.config.clone() };
+    // The prior uncapped: the busy field's random residual on a capped prior leaves no empty
+    // space for rays to miss, and the comparison needs both.
+    let grid = separate.grid.as_mut().unwrap();
+    grid.root = grid.root.map(|r| RootSkinning { prior_capped: false, ..r });
     let field = busy_field(&separate, &device, false);
     let pose = PoseTensors::new(&s.pose, &s.character.skeleton, &device);
     let (lo, hi) = s.pose.bounds(&s.character.skeleton);
@@ -762,5 +766,36 @@ fn a_still_render_is_the_training_render_without_its_gradients() {
             on_a_face += 1;
         }
         assert!(on_a_face <= 2, "{on_a_face} of {} rays' normals differ ({sampling:?})", rays.len());
+    }
+}
+
+/// Beyond the root's cap the capsule prior is the cap (less the prior's radius) in every pose:
+/// a point carried rigidly by the pelvis (a skirt's side at its hem) keeps its prior while the
+/// thighs swing inside the skirt; uncapped, the prior follows the nearest thigh.
+#[test]
+fn the_capped_prior_holds_a_hem_point_still_while_the_legs_swing() {
+    let s = setup();
+    let device = Device::flex();
+    let hem = DVec3::new(0.36, -0.36, 0.0);
+    let prior_at = |config: &FieldConfig, phase: f64| -> f32 {
+        let field = config.init(&device, 0);
+        let pose = s.character.pose(phase, 0.2, DVec3::ZERO);
+        let frames = PoseTensors::new(&pose, &s.character.skeleton, &device).frames;
+        let point = pose.to_world(0, hem);
+        let input = Tensor::<2>::from_data(TensorData::new(vec![point.x as f32, point.y as f32, point.z as f32], [1, 3]), &device);
+        values(field.grid.as_ref().unwrap().encode(input, &frames, config.skinning(), false).prior)[0]
+    };
+    let capped = &s.config;
+    let root = capped.grid.as_ref().unwrap().root.unwrap();
+    assert!(root.prior_capped, "a loose body's root caps the prior");
+    let mut uncapped = s.config.clone();
+    uncapped.grid.as_mut().unwrap().root = Some(RootSkinning { prior_capped: false, ..root });
+    let phases = [0.0, 0.25, 0.5];
+    let free: Vec<f32> = phases.iter().map(|&p| prior_at(&uncapped, p)).collect();
+    let held: Vec<f32> = phases.iter().map(|&p| prior_at(capped, p)).collect();
+    let spread = |v: &[f32]| v.iter().cloned().fold(f32::MIN, f32::max) - v.iter().cloned().fold(f32::MAX, f32::min);
+    assert!(spread(&free) > 0.01, "the uncapped prior follows the legs: {free:?}");
+    for h in &held {
+        assert!((h - (root.cap - capped.prior_radius)).abs() < 1e-6, "{held:?}");
     }
 }

@@ -102,3 +102,20 @@ fn tiny_and_huge_learning_rates_either_fit_or_stop_naming_the_loss() {
         Err(other) => panic!("a diverging fit must stop as non-finite, not {other}"),
     }
 }
+
+#[test]
+fn normals_and_the_eikonal_loss_have_finite_gradients_where_the_sdf_is_flat() {
+    // An SDF can be flat at a point (the capped prior's slope is zero beyond the root's cap
+    // and every decoder unit can be off): the rows' lengths must not send sqrt(0)'s infinite
+    // slope, times zero, into the parameters.
+    let device = burn::tensor::Device::flex().autodiff();
+    let rows = Tensor::<2>::from_data(TensorData::new(vec![0.0f32, 0.0, 0.0, 0.6, 0.0, 0.8, 0.0, 0.0, 0.0], [3, 3]), &device).require_grad();
+    let direction = Tensor::<2>::from_data(TensorData::new(vec![0.3f32, -0.2, 0.9], [1, 3]), &device);
+    let loss = umbra::losses::eikonal(rows.clone()) + (umbra::render::unit_rows(rows.clone()) * direction).sum().reshape([1]);
+    let grads = loss.backward();
+    let gradient = values(rows.grad(&grads).unwrap());
+    assert!(all_finite(&gradient), "{gradient:?}");
+    // The unit row keeps its exact normal.
+    let unit = values(umbra::render::unit_rows(rows.inner()));
+    assert!((unit[3] - 0.6).abs() < 1e-6 && (unit[5] - 0.8).abs() < 1e-6, "{unit:?}");
+}

@@ -48,7 +48,8 @@ pub struct GridConfig {
 /// thighs inside it) follows the root rather than the nearest limb, whose swing would drag it;
 /// and a learned preference, a dense grid of logits in the root's frame (`cell` m, reaching
 /// `reach` m beyond its segment), moves the border between the root and the limbs to where
-/// the images say it is. The capsule prior keeps the true distances.
+/// the images say it is. The capsule prior keeps the true distances, up to the cap when the
+/// body is loose (`prior_capped`).
 #[derive(Clone, Copy, Debug, serde::Serialize, serde::Deserialize, PartialEq)]
 pub struct RootSkinning {
     pub bone: usize,
@@ -63,6 +64,13 @@ pub struct RootSkinning {
     /// Runs before it: false.
     #[serde(default)]
     pub features_reach_body: bool,
+    /// Whether the capsule prior stops growing at the root's `cap` (less its radius): beyond
+    /// it the body is the root's, and so is its shape. The prior is the distance to the
+    /// nearest bones, so a skirt's hem, carried rigidly by the root, would otherwise get a
+    /// prior that moves with the thighs swinging inside it (lower where a leg comes near) and
+    /// the root's residual could not hold it still. Runs before it: false.
+    #[serde(default)]
+    pub prior_capped: bool,
 }
 
 /// Cells of the root's preference grid per body extent: 5 cm on a 2 m human, about a
@@ -74,12 +82,15 @@ impl RootSkinning {
     /// beyond their segments. Its preference grid reaches twice as far; where the body lies
     /// farther than `reach` from every bone (`loose`: how far from the root's segment it then
     /// reaches, e.g. a skirt's hem 0.5 m), it and the root's feature grids reach that far, so
-    /// whatever the root carries is inside them (beyond its border a grid is constant).
+    /// whatever the root carries is inside them (beyond its border a grid is constant), and
+    /// the capsule prior stops at the cap, so what the root carries keeps its shape while the
+    /// limbs move inside it (`human-dressed` seed 0: foreground novel pose 22.24 -> 23.63 dB,
+    /// novel view 17.91 -> 21.34 dB).
     pub fn for_body(bone: usize, cap: f32, reach: f32, loose: Option<f32>, extent: f32) -> Self {
         let cell = extent / ROOT_CELLS_PER_EXTENT;
         match loose {
-            Some(far) => Self { bone, cap, cell, reach: far.max(2.0 * reach), features_reach_body: true },
-            None => Self { bone, cap, cell, reach: 2.0 * reach, features_reach_body: false },
+            Some(far) => Self { bone, cap, cell, reach: far.max(2.0 * reach), features_reach_body: true, prior_capped: true },
+            None => Self { bone, cap, cell, reach: 2.0 * reach, features_reach_body: false, prior_capped: false },
         }
     }
 
@@ -290,6 +301,8 @@ pub struct Skinning {
     /// The root bone and the distance (m) beyond which the skinning sees it no farther
     /// (`RootSkinning::cap`).
     pub root: Option<(usize, f32)>,
+    /// The most the capsule prior gives (m), when capped (`RootSkinning::prior_capped`).
+    pub prior_cap: Option<f32>,
 }
 
 impl Skinning {
@@ -514,6 +527,10 @@ fn plan_point(
         for x in 0..3 {
             skin.prior_tangent[x] += d_weight[x] * distance + weight * a.gradient[x] / (2.0 * distance);
         }
+    }
+    if let Some(cap) = skinning.prior_cap.filter(|&cap| skin.prior > cap) {
+        skin.prior = cap;
+        skin.prior_tangent = [0.0; 3];
     }
     // The root's preference grid, when the root is chosen.
     if let (Some(root), Some(j)) = (config.root, chosen.iter().position(|a| Some(a.bone) == config.root.map(|r| r.bone))) {

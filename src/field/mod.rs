@@ -137,6 +137,7 @@ impl FieldConfig {
             sharpness: self.sharpness(),
             prior_radius: self.prior_radius,
             root: self.grid.as_ref().and_then(|g| g.root).map(|root| (root.bone, root.cap)),
+            prior_cap: self.grid.as_ref().and_then(|g| g.root).filter(|root| root.prior_capped).map(|root| root.cap - self.prior_radius),
         }
     }
 
