@@ -119,3 +119,36 @@ fn normals_and_the_eikonal_loss_have_finite_gradients_where_the_sdf_is_flat() {
     let unit = values(umbra::render::unit_rows(rows.inner()));
     assert!((unit[3] - 0.6).abs() < 1e-6 && (unit[5] - 0.8).abs() < 1e-6, "{unit:?}");
 }
+
+#[test]
+fn a_bone_far_from_the_others_leaves_the_field_and_the_renderer_finite() {
+    // One hand posed 1 km from the body (a broken capture's pose): every bone is still looked
+    // up, the far bone's grids hash points it never sees, and the body near the others is
+    // what it was.
+    let device = Backend::Flex.device();
+    let character = Character::new(Kind::Human);
+    let mut pose = character.pose(0.3, 0.2, DVec3::ZERO);
+    let (lo, hi) = pose.bounds(&character.skeleton);
+    let extent = (hi - lo).length() as f32;
+    let far_bone = character.skeleton.len() - 1;
+    pose.bone_to_world[far_bone].w_axis += glam::DVec4::new(1000.0, 0.0, 0.0, 0.0);
+    let lengths: Vec<f32> = character.skeleton.bones.iter().map(|b| b.length as f32).collect();
+    let pose_tensors = PoseTensors::new(&pose, &character.skeleton, &device);
+    let far = pose.bone_to_world[far_bone].w_axis.truncate();
+    for config in [FieldConfig::with_grid(lengths.clone(), extent), FieldConfig::for_bones(character.skeleton.len())] {
+        let field = config.init(&device, 5);
+        let mut points = vec![0.0f32, 1.0, 0.0, 0.2, 0.9, -0.1, far.x as f32, far.y as f32 + 0.05, far.z as f32, 500.0, 1.0, 0.0];
+        points.extend([far.x as f32 + 0.3, far.y as f32, far.z as f32 - 0.2]);
+        let n = points.len() / 3;
+        let (sdf, gradient) = field.sdf_and_gradient(Tensor::from_data(TensorData::new(points, [n, 3]), &device), &pose_tensors);
+        let (sdf, gradient) = (values(sdf), values(gradient));
+        assert!(all_finite(&sdf) && all_finite(&gradient), "{sdf:?} {gradient:?}");
+        let mut rays = RaySet::default();
+        rays.push(DVec3::new(0.0, 1.0, 3.0), DVec3::new(0.0, 0.0, -1.0), Some((2.0, 4.0)));
+        rays.push(far + DVec3::new(0.0, 0.0, 3.0), DVec3::new(0.0, 0.0, -1.0), Some((2.0, 4.0)));
+        let sampling = Sampling { coarse: 8, probe: 8, fine: 8, albedo_floor: umbra::render::ALBEDO_WEIGHT_FLOOR };
+        let jitter = vec![0.5; rays.len() * sampling.draws()];
+        let out = render(&field, &pose_tensors, &rays, sampling, &jitter, Some(umbra::field::GRADIENT), &device);
+        assert!(all_finite(&values(out.accumulation)) && all_finite(&values(out.albedo)) && all_finite(&values(out.normal.unwrap())));
+    }
+}
