@@ -76,6 +76,11 @@ impl Pose {
         (head, tail)
     }
 
+    /// Distance (m) from `p` to bone `bone`'s segment in this pose.
+    pub fn distance_to_bone(&self, skeleton: &Skeleton, bone: usize, p: DVec3) -> f64 {
+        distance_to_segment(p, self.segment(skeleton, bone))
+    }
+
     /// Axis-aligned bounds of every bone segment in this pose.
     pub fn bounds(&self, skeleton: &Skeleton) -> (DVec3, DVec3) {
         let mut lo = DVec3::splat(f64::INFINITY);
@@ -131,4 +136,11 @@ mod tests {
         assert!(check_rigid(&mirrored, 1e-3).unwrap_err().contains("determinant"));
         assert!(check_rigid(&DMat4::IDENTITY, 1e-3).is_ok());
     }
+}
+
+/// Distance from `p` to the segment from `a` to `b` (a point when they coincide).
+pub fn distance_to_segment(p: DVec3, (a, b): (DVec3, DVec3)) -> f64 {
+    let ab = b - a;
+    let t = ((p - a).dot(ab) / ab.length_squared().max(1e-18)).clamp(0.0, 1.0);
+    (p - (a + ab * t)).length()
 }

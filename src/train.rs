@@ -384,11 +384,7 @@ pub fn masked_reach_beyond_bones(scene: &Scene, reach: f64, root: usize) -> Opti
             return None;
         }
         let segments: Vec<(glam::DVec3, glam::DVec3)> = (0..skeleton.len()).map(|b| frame.pose.segment(skeleton, b)).collect();
-        let distance = |p: glam::DVec3, (a, b): (glam::DVec3, glam::DVec3)| {
-            let ab = b - a;
-            let t = ((p - a).dot(ab) / ab.length_squared().max(1e-18)).clamp(0.0, 1.0);
-            (p - (a + ab * t)).length()
-        };
+        let distance = crate::skeleton::distance_to_segment;
         let inside_every_mask = |p: glam::DVec3| {
             views.iter().all(|v| {
                 let camera = &scene.cameras[v.camera];
@@ -704,11 +700,7 @@ impl Trainer {
                 if near_best(gaussian.bone) {
                     return gaussian.bone;
                 }
-                let distance = |b: usize| {
-                    let (head, tail) = reference.segment(&self.scene.skeleton, b);
-                    let along = ((placed[g] - head).dot(tail - head) / (tail - head).length_squared().max(1e-12)).clamp(0.0, 1.0);
-                    (placed[g] - (head + (tail - head) * along)).length()
-                };
+                let distance = |b: usize| reference.distance_to_bone(&self.scene.skeleton, b, placed[g]);
                 (0..bone_count).filter(|&b| near_best(b)).min_by(|&a, &b| distance(a).total_cmp(&distance(b))).unwrap_or(gaussian.bone)
             })
             .collect();

@@ -252,9 +252,10 @@ impl Level {
                 (v[0] as u32) ^ (v[1] as u32).wrapping_mul(2_654_435_761) ^ (v[2] as u32).wrapping_mul(805_459_861) ^ (bone as u32).wrapping_mul(3_674_653_429);
             h as usize & self.table_mask
         };
+        let within_grid = v[0] + d[0] * (v[1] + d[1] * v[2]);
         match self.root {
-            Some(root) if root.bone == bone => root.offset + if root.dense { v[0] + d[0] * (v[1] + d[1] * v[2]) } else { hashed() },
-            _ => self.table_offset + if self.dense { self.offsets[bone] + v[0] + d[0] * (v[1] + d[1] * v[2]) } else { hashed() },
+            Some(root) if root.bone == bone => root.offset + if root.dense { within_grid } else { hashed() },
+            _ => self.table_offset + if self.dense { self.offsets[bone] + within_grid } else { hashed() },
         }
     }
 }
