@@ -144,3 +144,71 @@ pub fn distance_to_segment(p: DVec3, (a, b): (DVec3, DVec3)) -> f64 {
     let t = ((p - a).dot(ab) / ab.length_squared().max(1e-18)).clamp(0.0, 1.0);
     (p - (a + ab * t)).length()
 }
+
+/// Distance between the segment from `p0` to `p1` and the segment from `q0` to `q1` (the
+/// closest pair of points, clamped to both; either may be a point). A ray is the segment to a
+/// point beyond everything it can meet.
+pub fn segment_distance((p0, p1): (DVec3, DVec3), (q0, q1): (DVec3, DVec3)) -> f64 {
+    const EPS: f64 = 1e-18;
+    let (d1, d2, r) = (p1 - p0, q1 - q0, p0 - q0);
+    let (a, e, f) = (d1.length_squared(), d2.length_squared(), d2.dot(r));
+    let (s, t) = if a <= EPS && e <= EPS {
+        (0.0, 0.0)
+    } else if a <= EPS {
+        (0.0, (f / e).clamp(0.0, 1.0))
+    } else {
+        let c = d1.dot(r);
+        if e <= EPS {
+            ((-c / a).clamp(0.0, 1.0), 0.0)
+        } else {
+            // The closest points of the two lines, then each clamped in turn.
+            let b = d1.dot(d2);
+            let denominator = a * e - b * b;
+            let s = if denominator > EPS * a * e { ((b * f - c * e) / denominator).clamp(0.0, 1.0) } else { 0.0 };
+            let t = (b * s + f) / e;
+            if t < 0.0 {
+                ((-c / a).clamp(0.0, 1.0), 0.0)
+            } else if t > 1.0 {
+                (((b - c) / a).clamp(0.0, 1.0), 1.0)
+            } else {
+                (s, t)
+            }
+        }
+    };
+    ((p0 + d1 * s) - (q0 + d2 * t)).length()
+}
+
+#[cfg(test)]
+mod segment_tests {
+    use super::*;
+
+    /// The closest pair by brute force over a fine grid of both parameters.
+    fn brute(p: (DVec3, DVec3), q: (DVec3, DVec3)) -> f64 {
+        let n = 400;
+        let mut best = f64::INFINITY;
+        for i in 0..=n {
+            let a = p.0.lerp(p.1, i as f64 / n as f64);
+            best = best.min(distance_to_segment(a, q));
+        }
+        best
+    }
+
+    #[test]
+    fn segment_distance_matches_brute_force_for_crossing_parallel_and_degenerate_segments() {
+        let v = |x: f64, y: f64, z: f64| DVec3::new(x, y, z);
+        let cases = [
+            ((v(0.0, 0.0, 0.0), v(1.0, 0.0, 0.0)), (v(0.5, -1.0, 0.3), v(0.5, 1.0, 0.3))), // skew, crossing
+            ((v(0.0, 0.0, 0.0), v(1.0, 0.0, 0.0)), (v(2.0, 1.0, 0.0), v(3.0, 2.0, 0.5))),  // past the end
+            ((v(0.0, 0.0, 0.0), v(1.0, 0.0, 0.0)), (v(0.2, 0.5, 0.0), v(2.2, 0.5, 0.0))),  // parallel, overlapping
+            ((v(0.0, 0.0, 0.0), v(1.0, 0.0, 0.0)), (v(-3.0, 0.5, 0.0), v(-2.0, 0.5, 0.0))), // parallel, apart
+            ((v(0.3, 0.2, 0.1), v(0.3, 0.2, 0.1)), (v(-1.0, 1.0, 0.0), v(1.0, -1.0, 0.5))), // a point
+            ((v(0.3, 0.2, 0.1), v(0.3, 0.2, 0.1)), (v(1.0, 1.0, 1.0), v(1.0, 1.0, 1.0))),  // two points
+            ((v(0.0, 0.0, 0.0), v(0.0, 1.0, 0.0)), (v(5.0, 0.4, -100.0), v(5.0, 0.6, 900.0))), // a long ray
+        ];
+        for (p, q) in cases {
+            let (exact, reference) = (segment_distance(p, q), brute(p, q).min(brute(q, p)));
+            assert!((exact - reference).abs() < 1e-5 * (1.0 + reference), "{p:?} {q:?}: {exact} against {reference}");
+            assert!((segment_distance(q, p) - exact).abs() < 1e-9, "symmetric");
+        }
+    }
+}

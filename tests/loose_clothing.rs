@@ -15,9 +15,16 @@ fn reach_beyond_bones(name: &str) -> Option<f64> {
 }
 
 #[test]
-fn the_masks_show_a_skirts_hem_beyond_the_bones_and_nothing_beyond_a_tight_body() {
+fn the_masks_show_a_skirts_hem_beyond_the_bones_and_nothing_beyond_a_tight_body_phantoms_included() {
     // The tight human's visual hull lies within the bones' boxes in every frame.
     assert_eq!(reach_beyond_bones("human-sun"), None);
+    // So do the dog's and the one-camera human's, though their hulls are not: seven views leave
+    // phantoms under the dog's belly 0.36 m from its spine that no camera sees outside the body,
+    // and one camera's hull is a cone behind the body; the bones explain every mask pixel of
+    // either, so neither is loose (before the hull was checked against the pixels that show
+    // it, they read 0.44 m and 1.91 m).
+    assert_eq!(reach_beyond_bones("dog-sun"), None);
+    assert_eq!(reach_beyond_bones("human-mono"), None);
     // The dressed human's skirt hem is 0.51 m from the pelvis's segment (0.36 m out, 0.36 m
     // below its head); the hull adds a little, the margin a quarter of the boxes' reach.
     let hem = reach_beyond_bones("human-dressed").expect("the skirt lies beyond the bones' boxes");
