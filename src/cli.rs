@@ -118,6 +118,11 @@ pub enum Command {
         out: Option<PathBuf>,
         #[arg(long, value_enum, default_value_t = crate::train::Backend::Flex)]
         backend: crate::train::Backend,
+        /// Relight through a visibility basis of DIRECTIONS directions (default 1024) precomputed
+        /// per view, instead of tracing shadow rays for the light: writes basis.md with the
+        /// precompute and relight times and the first view's error against the direct estimator.
+        #[arg(long, value_name = "DIRECTIONS", num_args = 0..=1, default_missing_value = "1024")]
+        basis: Option<usize>,
     },
     /// Export the fitted surface in one of the scene's poses as an OBJ mesh (marching tetrahedra
     /// on the fitted SDF at a cell of 1/160 of the body's size, vertex colours from the albedo,
@@ -242,8 +247,8 @@ pub fn main() -> i32 {
         Command::Ablate { scene, schedules, out, iterations, seed, force, backend } => {
             ablate(&crate::ablate::AblateOptions { scene, schedules, out, iterations, seed, force, backend })
         }
-        Command::Relight { run, light, camera, frame, samples, scene, out, backend } => {
-            relight(&crate::relight::RelightOptions { run, scene, light, cameras: camera, frames: frame, samples, out, backend })
+        Command::Relight { run, light, camera, frame, samples, scene, out, backend, basis } => {
+            relight(&crate::relight::RelightOptions { run, scene, light, cameras: camera, frames: frame, samples, out, backend, basis })
         }
         Command::ExportMesh { run, frame, out, all_frames, scene, backend } => export_mesh(run, frame, out, all_frames, scene, backend),
         Command::Bench { which: BenchKind::Environment, out, quick, .. } => crate::bench::environment(&out, quick).map(|table| print!("{table}")),
@@ -443,6 +448,11 @@ fn relight(options: &crate::relight::RelightOptions) -> Result<(), String> {
     let out = crate::relight::relight_run(options, image_progress(&bar)).map_err(|e| e.to_string())?;
     bar.finish_and_clear();
     println!("wrote {} (one PNG per view, sheet.png)", out.display());
+    if options.basis.is_some() {
+        if let Ok(table) = std::fs::read_to_string(out.join("basis.md")) {
+            print!("{table}");
+        }
+    }
     Ok(())
 }
 

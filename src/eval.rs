@@ -135,21 +135,11 @@ pub fn render_view_and_albedo(
     let trace = |targets: &[([f64; 2], u64)]| -> Vec<Traced> {
         let mut out = vec![Traced::default(); targets.len()];
         for (first, chunk) in targets.chunks(1024).enumerate().map(|(k, c)| (k * 1024, c)) {
-            let mut rays = RaySet::default();
-            let mut hit = Vec::new();
-            for (k, &(at, _)) in chunk.iter().enumerate() {
-                let ray = camera.ray_through(glam::DVec2::new(at[0], at[1]));
-                if let Some(bounds) = ray_bounds(ray.origin, ray.direction, &posed, crate::render::MIN_BOUND_RADIUS * model.light.unit as f64) {
-                    rays.push(ray.origin, ray.direction, Some(bounds));
-                    hit.push(first + k);
-                }
-            }
-            if rays.is_empty() {
+            let at: Vec<[f64; 2]> = chunk.iter().map(|t| t.0).collect();
+            let Some((hit, deferred)) = trace_deferred(model, camera, &posed, &pose_tensors, &at, samples, needs_normals, device) else {
                 continue;
-            }
-            let r = rays.len();
-            let jitter = vec![0.5; r * samples.draws()];
-            let deferred = render_still(&model.field, &pose_tensors, &rays, samples, &jitter, needs_normals.then_some(crate::field::GRADIENT), device);
+            };
+            let hit: Vec<usize> = hit.into_iter().map(|k| first + k).collect();
             let scaled = |scale: &DVec3| {
                 deferred.albedo.clone() * Tensor::<1>::from_data(TensorData::new(scale.as_vec3().to_array().to_vec(), [3]), device).reshape([1, 3])
             };
@@ -230,6 +220,77 @@ pub fn render_view_and_albedo(
         }
     }
     (image, albedo)
+}
+
+/// The rays through continuous pixel positions `at` that meet a Gaussian's bound (their
+/// indices in `at`) and the field's deferred buffers along them, with unit normals when asked:
+/// what every view render and the transfer basis (`basis`) start from. `None` when no ray
+/// meets the body.
+#[allow(clippy::too_many_arguments)]
+pub fn trace_deferred(
+    model: &Avatar,
+    camera: &crate::scene::Camera,
+    posed: &[PosedGaussian],
+    pose_tensors: &PoseTensors,
+    at: &[[f64; 2]],
+    samples: Sampling,
+    normals: bool,
+    device: &Device,
+) -> Option<(Vec<usize>, crate::render::Deferred)> {
+    let mut rays = RaySet::default();
+    let mut hit = Vec::new();
+    for (k, at) in at.iter().enumerate() {
+        let ray = camera.ray_through(glam::DVec2::new(at[0], at[1]));
+        if let Some(bounds) = ray_bounds(ray.origin, ray.direction, posed, crate::render::MIN_BOUND_RADIUS * model.light.unit as f64) {
+            rays.push(ray.origin, ray.direction, Some(bounds));
+            hit.push(k);
+        }
+    }
+    if rays.is_empty() {
+        return None;
+    }
+    let jitter = vec![0.5; rays.len() * samples.draws()];
+    let deferred = render_still(&model.field, pose_tensors, &rays, samples, &jitter, normals.then_some(crate::field::GRADIENT), device);
+    Some((hit, deferred))
+}
+
+/// One pixel's surface as a view render sees it: the composited surface point, unit normal and
+/// reflectance (the fitted albedo, already weighted by the pixel's coverage, times the albedo
+/// scale), and the coverage.
+#[derive(Clone, Copy, Debug)]
+pub struct Surfel {
+    pub point: DVec3,
+    pub normal: DVec3,
+    pub reflectance: DVec3,
+    pub coverage: f64,
+}
+
+/// Every pixel centre's `Surfel` of one view, row by row (`None` where the ray meets no
+/// Gaussian's bound, or, on a capture whose pixels average their area, where the body covers
+/// half of it or less: background, as `render_view` draws it): what a view's shading needs
+/// besides the light, for relighting it many times. Edges are not refined over the pixel's
+/// area here.
+pub fn surfels(model: &Avatar, scene: &Scene, camera: usize, frame: usize, samples: Sampling, albedo_scale: DVec3, device: &Device) -> Vec<Option<Surfel>> {
+    let camera = &scene.cameras[camera];
+    let pose = &scene.frames[frame].pose;
+    let pose_tensors = PoseTensors::new(pose, &scene.skeleton, device);
+    let posed = model.gaussians.to_set().pose(pose);
+    let (w, h) = (camera.width, camera.height);
+    let mut out = vec![None; w * h];
+    let area = scene.footprint().footprint == Footprint::Area;
+    let centres: Vec<[f64; 2]> = (0..w * h).map(|p| [(p % w) as f64 + 0.5, (p / w) as f64 + 0.5]).collect();
+    for (first, chunk) in centres.chunks(1024).enumerate().map(|(k, c)| (k * 1024, c)) {
+        let Some((hit, deferred)) = trace_deferred(model, camera, &posed, &pose_tensors, chunk, samples, true, device) else {
+            continue;
+        };
+        let (points, albedo, coverage) = (vectors(values(deferred.surface)), vectors(values(deferred.albedo)), values(deferred.accumulation));
+        let normals = deferred.normal.map(|n| vectors(values(n))).unwrap_or_default();
+        for (j, &k) in hit.iter().enumerate().filter(|(j, _)| !area || coverage[*j] > 0.5) {
+            let normal = normals.get(j).copied().unwrap_or(DVec3::Z);
+            out[first + k] = Some(Surfel { point: points[j], normal, reflectance: albedo[j] * albedo_scale, coverage: coverage[j] as f64 });
+        }
+    }
+    out
 }
 
 /// What a ray through a view brings back: its shaded colour, its albedo (scaled; zero when not

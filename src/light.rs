@@ -6,6 +6,20 @@ use glam::DVec3;
 use std::f64::consts::PI;
 use std::path::PathBuf;
 
+/// `count` directions spread evenly over the sphere (a spherical Fibonacci lattice: equal
+/// bands in height, golden-angle steps around), turned by `turn` radians about +Y.
+pub fn fibonacci_sphere(count: usize, turn: f64) -> Vec<DVec3> {
+    let golden = PI * (3.0 - 5.0f64.sqrt());
+    (0..count)
+        .map(|k| {
+            let y = 1.0 - (2 * k + 1) as f64 / count as f64;
+            let r = (1.0 - y * y).max(0.0).sqrt();
+            let phi = turn + golden * k as f64;
+            DVec3::new(r * phi.cos(), y, r * phi.sin())
+        })
+        .collect()
+}
+
 #[derive(Clone, Debug, PartialEq)]
 pub enum Light {
     /// A sun: `direction` is a unit vector from the scene toward the light.

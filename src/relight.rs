@@ -79,16 +79,7 @@ impl EnvironmentSampler {
     /// (even in every direction, so any normal's hemisphere gets its share), randomly turned.
     pub fn uniform(radiance: DVec3, count: usize, seed: u64) -> Self {
         let mut stream = Stream::new(seed, 0xE4F, 2);
-        let turn = 2.0 * PI * stream.uniform();
-        let golden = PI * (3.0 - 5.0f64.sqrt());
-        let directions: Vec<DVec3> = (0..count)
-            .map(|k| {
-                let z = 1.0 - (2 * k + 1) as f64 / count as f64;
-                let phi = turn + golden * k as f64;
-                let r = (1.0 - z * z).max(0.0).sqrt();
-                DVec3::new(r * phi.cos(), z, r * phi.sin())
-            })
-            .collect();
+        let directions = crate::light::fibonacci_sphere(count, 2.0 * PI * stream.uniform());
         Self { weights: vec![radiance * 4.0 * PI; count], directions }
     }
 
@@ -141,6 +132,10 @@ pub struct RelightOptions {
     /// Output folder (default: RUN/relit/LIGHT).
     pub out: Option<PathBuf>,
     pub backend: Backend,
+    /// Relight through a visibility basis of this many directions per view (`basis`) instead of
+    /// the per-pixel MIS estimator; `basis.md` then gives the precompute and relight times and,
+    /// for the first view, the error against the direct estimator.
+    pub basis: Option<usize>,
 }
 
 /// The light `options.light` names and a label for it.
@@ -185,6 +180,9 @@ pub fn relight_run(options: &RelightOptions, mut on: impl FnMut(TrainMessage)) -
     let (light, label) = resolve_light(scene, &options.light)?;
     let cameras = chosen("--camera", &options.cameras, scene.cameras.len())?;
     let frames = chosen("--frame", &options.frames, scene.frames.len())?;
+    if options.basis == Some(0) {
+        return Err(FitError::Input("--basis needs at least 1 direction".into()));
+    }
     if options.samples == 0 {
         return Err(FitError::Input("--samples must be at least 1".into()));
     }
@@ -198,9 +196,22 @@ pub fn relight_run(options: &RelightOptions, mut on: impl FnMut(TrainMessage)) -
     on(TrainMessage::Evaluating { images: total });
     let (cell_w, cell_h) = cameras.iter().map(|&c| (scene.cameras[c].width, scene.cameras[c].height)).fold((0, 0), |a, b| (a.0.max(b.0), a.1.max(b.1)));
     let mut sheet = RgbImage::new(cell_w * frames.len(), cell_h * cameras.len());
+    let mut timings = Vec::new();
     for (row, &camera) in cameras.iter().enumerate() {
         for (column, &frame) in frames.iter().enumerate() {
-            let image = render_view(&model, scene, camera, frame, crate::eval::VIEW_SAMPLING, &device, &lighting);
+            let image = match options.basis {
+                None => render_view(&model, scene, camera, frame, crate::eval::VIEW_SAMPLING, &device, &lighting),
+                Some(directions) => {
+                    let (image, mut timing) = relight_by_basis(&model, scene, camera, frame, &light, directions, &device);
+                    if timings.is_empty() {
+                        // The first view also through the direct estimator, as the reference.
+                        let direct = render_view(&model, scene, camera, frame, crate::eval::VIEW_SAMPLING, &device, &lighting);
+                        timing.against_direct = Some(crate::metrics::score(&image, &direct, None));
+                    }
+                    timings.push(timing);
+                    image
+                }
+            };
             let name = format!("c{camera:02}_f{frame:04}.png");
             crate::fit::save_png(&out.join(&name), &image)?;
             sheet.blit(&image, column * cell_w, row * cell_h);
@@ -208,7 +219,75 @@ pub fn relight_run(options: &RelightOptions, mut on: impl FnMut(TrainMessage)) -
         }
     }
     crate::fit::save_png(&out.join("sheet.png"), &sheet)?;
+    if let Some(directions) = options.basis {
+        let table = basis_table(&label, directions, &timings);
+        let path = out.join("basis.md");
+        crate::imageio::write_atomic(&path, table.as_bytes()).map_err(|e| io(&path, e))?;
+    }
     Ok(out)
+}
+
+/// What relighting one view through its basis cost, and how far it is from the direct estimator.
+pub struct BasisTiming {
+    pub camera: usize,
+    pub frame: usize,
+    pub pixels: usize,
+    pub precompute_seconds: f64,
+    /// The fastest of `RELIGHT_REPEATS` relights (the light's binning included).
+    pub relight_seconds: f64,
+    pub against_direct: Option<crate::metrics::ImageScores>,
+}
+
+/// Relights timed per view, the fastest kept (the first pays for cold caches).
+const RELIGHT_REPEATS: usize = 5;
+
+/// One view relit through a visibility basis of `directions` directions built for it.
+fn relight_by_basis(
+    model: &crate::train::Avatar,
+    scene: &Scene,
+    camera: usize,
+    frame: usize,
+    light: &Light,
+    directions: usize,
+    device: &burn::tensor::Device,
+) -> (RgbImage, BasisTiming) {
+    let started = std::time::Instant::now();
+    let albedo_scale = crate::fit::albedo_scale(scene, model);
+    let surfels = crate::eval::surfels(model, scene, camera, frame, crate::eval::VIEW_SAMPLING, albedo_scale, device);
+    let casters = model.light.shadow_casters_posed(&model.gaussians.to_set().pose(&scene.frames[frame].pose));
+    let (w, h) = (scene.cameras[camera].width, scene.cameras[camera].height);
+    let basis = crate::basis::TransferBasis::new(&surfels, w, h, &casters, model.light.shadow_start, directions);
+    let precompute_seconds = started.elapsed().as_secs_f64();
+    let mut relight_seconds = f64::INFINITY;
+    let mut image = RgbImage::new(w, h);
+    for _ in 0..RELIGHT_REPEATS {
+        let started = std::time::Instant::now();
+        image = basis.relight(light);
+        relight_seconds = relight_seconds.min(started.elapsed().as_secs_f64());
+    }
+    (image, BasisTiming { camera, frame, pixels: basis.len(), precompute_seconds, relight_seconds, against_direct: None })
+}
+
+/// `basis.md`: per view the precompute and relight times, and the first view's scores against
+/// the direct estimator.
+pub fn basis_table(label: &str, directions: usize, timings: &[BasisTiming]) -> String {
+    let mut table = format!(
+        "# Relit through a visibility basis: {label}\n\n{directions} directions per view. Relight time: the fastest of {RELIGHT_REPEATS}.\n\n\
+         | view | covered pixels | precompute (s) | relight (ms) | against the direct estimator (PSNR / foreground / SSIM) |\n|---|---|---|---|---|\n"
+    );
+    for t in timings {
+        let against = t.against_direct.map_or("".to_string(), |s| format!("{:.2} / {:.2} dB / {:.4}", s.psnr, s.foreground_psnr, s.ssim));
+        table.push_str(&format!(
+            "| c{:02} f{:04} | {} | {:.2} | {:.1} | {} |\n",
+            t.camera,
+            t.frame,
+            t.pixels,
+            t.precompute_seconds,
+            t.relight_seconds * 1e3,
+            against
+        ));
+    }
+    table
 }
 
 #[cfg(test)]

@@ -69,15 +69,7 @@ pub struct SearchReport {
 
 /// `n` directions spread evenly over the sphere (a Fibonacci lattice).
 pub fn sphere(n: usize) -> Vec<DVec3> {
-    let golden = std::f64::consts::PI * (3.0 - 5f64.sqrt());
-    (0..n)
-        .map(|k| {
-            let y = 1.0 - 2.0 * (k as f64 + 0.5) / n as f64;
-            let r = (1.0 - y * y).max(0.0).sqrt();
-            let phi = golden * k as f64;
-            DVec3::new(r * phi.cos(), y, r * phi.sin())
-        })
-        .collect()
+    crate::light::fibonacci_sphere(n, 0.0)
 }
 
 /// `n` directions evenly over the cap of half-angle `angle` (radians) around `centre`.

@@ -325,6 +325,31 @@ fn evaluation_renders_and_scores_every_test_image_and_umbra_render_repeats_it() 
     let run = cli(&["relight", out.to_str().unwrap(), "--light", lamp.to_str().unwrap(), "--camera", "0", "--frame", "1"]);
     assert!(run.status.success(), "{}", String::from_utf8_lossy(&run.stderr));
     assert!(out.join("relit/lamp/c00_f0001.png").exists());
+    // Through a visibility basis: the same views, and basis.md with its times and the first
+    // view's scores against the direct estimator (the basis is a quadrature of the same
+    // integral, so they agree closely; `basis` tests the maths against dense quadrature).
+    let run = cli(&[
+        "relight",
+        out.to_str().unwrap(),
+        "--light",
+        "sky",
+        "--camera",
+        "0,1",
+        "--frame",
+        "0",
+        "--basis",
+        "256",
+        "--out",
+        dir.path().join("basis").to_str().unwrap(),
+    ]);
+    assert!(run.status.success(), "{}", String::from_utf8_lossy(&run.stderr));
+    let table = std::fs::read_to_string(dir.path().join("basis/basis.md")).unwrap();
+    assert!(table.contains("256 directions") && table.contains("| c00 f0000 |") && table.contains("| c01 f0000 |"), "{table}");
+    let against: Vec<f64> =
+        table.lines().find(|l| l.starts_with("| c00 f0000 |")).unwrap().split('|').nth(5).unwrap().split(['/', ' ']).filter_map(|v| v.parse().ok()).collect();
+    assert!(against.len() == 3 && against[0] > 30.0 && against[2] > 0.98, "{table}");
+    let run = cli(&["relight", out.to_str().unwrap(), "--light", "sky", "--basis", "0"]);
+    assert!(!run.status.success() && String::from_utf8_lossy(&run.stderr).contains("--basis"));
     // Bad input is named: a light file with a bad value, a camera that does not exist.
     std::fs::write(&lamp, r#"{"type": "point", "position": [1.0, 2.0], "intensity": [5, 5, 5]}"#).unwrap();
     let run = cli(&["relight", out.to_str().unwrap(), "--light", lamp.to_str().unwrap()]);

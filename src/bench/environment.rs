@@ -24,14 +24,7 @@ use std::path::Path;
 /// Points on a sphere inside the body cloud, normals outward: partly occluded in every way.
 fn probes(n: usize) -> (Vec<DVec3>, Vec<DVec3>) {
     let centre = DVec3::new(0.0, 0.85, 0.0);
-    let golden = PI * (3.0 - 5.0f64.sqrt());
-    let normals: Vec<DVec3> = (0..n)
-        .map(|k| {
-            let z = 1.0 - (2 * k + 1) as f64 / n as f64;
-            let r = (1.0 - z * z).max(0.0).sqrt();
-            DVec3::new(r * (golden * k as f64).cos(), z, r * (golden * k as f64).sin())
-        })
-        .collect();
+    let normals = crate::light::fibonacci_sphere(n, 0.0);
     (normals.iter().map(|n| centre + *n * 0.35).collect(), normals)
 }
 
