@@ -123,6 +123,11 @@ pub enum Command {
         /// precompute and relight times and the first view's error against the direct estimator.
         #[arg(long, value_name = "DIRECTIONS", num_args = 0..=1, default_missing_value = "1024")]
         basis: Option<usize>,
+        /// A turntable: N views on a circle around the body (at the scene's cameras' height and
+        /// distance) in the first frame (or each --frame), one PNG per view and an animated PNG
+        /// per frame (orbit_fFFFF.png).
+        #[arg(long, value_name = "N", conflicts_with = "camera")]
+        orbit: Option<usize>,
     },
     /// Export the fitted surface in one of the scene's poses as an OBJ mesh (marching tetrahedra
     /// on the fitted SDF at a cell of 1/160 of the body's size, vertex colours from the albedo,
@@ -247,8 +252,8 @@ pub fn main() -> i32 {
         Command::Ablate { scene, schedules, out, iterations, seed, force, backend } => {
             ablate(&crate::ablate::AblateOptions { scene, schedules, out, iterations, seed, force, backend })
         }
-        Command::Relight { run, light, camera, frame, samples, scene, out, backend, basis } => {
-            relight(&crate::relight::RelightOptions { run, scene, light, cameras: camera, frames: frame, samples, out, backend, basis })
+        Command::Relight { run, light, camera, frame, samples, scene, out, backend, basis, orbit } => {
+            relight(&crate::relight::RelightOptions { run, scene, light, cameras: camera, frames: frame, samples, out, backend, basis, orbit })
         }
         Command::ExportMesh { run, frame, out, all_frames, scene, backend } => export_mesh(run, frame, out, all_frames, scene, backend),
         Command::Bench { which: BenchKind::Environment, out, quick, .. } => crate::bench::environment(&out, quick).map(|table| print!("{table}")),

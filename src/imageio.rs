@@ -275,6 +275,31 @@ pub fn encode_png_rgb(image: &RgbImage) -> Result<Vec<u8>, ImageError> {
     encode_png_raw(&raw, image.width, image.height, image::ExtendedColorType::Rgb8)
 }
 
+/// Encodes same-sized linear RGB images as an animated 8-bit sRGB PNG (APNG) that loops for
+/// ever, each frame shown `frame_ms` milliseconds; viewers without APNG show the first frame.
+pub fn encode_apng_rgb(frames: &[RgbImage], frame_ms: u16) -> Result<Vec<u8>, ImageError> {
+    let err = |e: png::EncodingError| ImageError::Decode("apng encoder".into(), e.to_string());
+    let Some(first) = frames.first() else { return Err(ImageError::Decode("apng encoder".into(), "no frames".into())) };
+    if frames.iter().any(|f| (f.width, f.height) != (first.width, first.height)) {
+        return Err(ImageError::Decode("apng encoder".into(), "frames of different sizes".into()));
+    }
+    let mut out = Vec::new();
+    {
+        let mut encoder = png::Encoder::new(&mut out, first.width as u32, first.height as u32);
+        encoder.set_color(png::ColorType::Rgb);
+        encoder.set_depth(png::BitDepth::Eight);
+        encoder.set_animated(frames.len() as u32, 0).map_err(err)?;
+        encoder.set_frame_delay(frame_ms, 1000).map_err(err)?;
+        let mut writer = encoder.write_header().map_err(err)?;
+        for frame in frames {
+            let raw: Vec<u8> = frame.pixels.iter().flat_map(|p| p.map(linear_to_srgb8)).collect();
+            writer.write_image_data(&raw).map_err(err)?;
+        }
+        writer.finish().map_err(err)?;
+    }
+    Ok(out)
+}
+
 /// Encodes a mask as an 8-bit grey PNG (255 foreground, 0 background).
 pub fn encode_png_mask(mask: &Mask) -> Result<Vec<u8>, ImageError> {
     let raw: Vec<u8> = mask.foreground.iter().map(|&f| if f { 255 } else { 0 }).collect();

@@ -136,6 +136,10 @@ pub struct RelightOptions {
     /// the per-pixel MIS estimator; `basis.md` then gives the precompute and relight times and,
     /// for the first view, the error against the direct estimator.
     pub basis: Option<usize>,
+    /// Render a turntable of this many views around the body instead of the scene's cameras
+    /// (`orbit_cameras`): `orbitVVV_fFFFF.png` per view and `orbit_fFFFF.png`, an animated PNG
+    /// per frame (default: the first frame).
+    pub orbit: Option<usize>,
 }
 
 /// The light `options.light` names and a label for it.
@@ -176,10 +180,27 @@ fn chosen(flag: &str, picked: &Option<Vec<usize>>, count: usize) -> Result<Vec<u
 /// across). Returns the output folder.
 pub fn relight_run(options: &RelightOptions, mut on: impl FnMut(TrainMessage)) -> Result<PathBuf, FitError> {
     let trainer = crate::fit::restore(&options.run, options.scene.as_deref(), options.backend)?;
-    let scene = &trainer.scene;
-    let (light, label) = resolve_light(scene, &options.light)?;
-    let cameras = chosen("--camera", &options.cameras, scene.cameras.len())?;
-    let frames = chosen("--frame", &options.frames, scene.frames.len())?;
+    let (light, label) = resolve_light(&trainer.scene, &options.light)?;
+    // A turntable renders cameras of its own (after the scene's), by default in the first frame.
+    let (scene, cameras, frames) = match options.orbit {
+        Some(0) => return Err(FitError::Input("--orbit needs at least 1 view".into())),
+        Some(count) => {
+            let frames = chosen("--frame", &Some(options.frames.clone().unwrap_or(vec![0])), trainer.scene.frames.len())?;
+            let mut scene = trainer.scene.clone();
+            let first = scene.cameras.len();
+            scene.cameras.extend(orbit_cameras(&trainer.scene, frames[0], count));
+            (std::borrow::Cow::Owned(scene), (first..first + count).collect::<Vec<_>>(), frames)
+        }
+        None => {
+            let scene = &trainer.scene;
+            (
+                std::borrow::Cow::Borrowed(scene),
+                chosen("--camera", &options.cameras, scene.cameras.len())?,
+                chosen("--frame", &options.frames, scene.frames.len())?,
+            )
+        }
+    };
+    let scene = scene.as_ref();
     if options.basis == Some(0) {
         return Err(FitError::Input("--basis needs at least 1 direction".into()));
     }
@@ -197,6 +218,7 @@ pub fn relight_run(options: &RelightOptions, mut on: impl FnMut(TrainMessage)) -
     let (cell_w, cell_h) = cameras.iter().map(|&c| (scene.cameras[c].width, scene.cameras[c].height)).fold((0, 0), |a, b| (a.0.max(b.0), a.1.max(b.1)));
     let mut sheet = RgbImage::new(cell_w * frames.len(), cell_h * cameras.len());
     let mut timings = Vec::new();
+    let mut turntables: Vec<Vec<RgbImage>> = vec![Vec::new(); frames.len()];
     for (row, &camera) in cameras.iter().enumerate() {
         for (column, &frame) in frames.iter().enumerate() {
             let image = match options.basis {
@@ -212,19 +234,79 @@ pub fn relight_run(options: &RelightOptions, mut on: impl FnMut(TrainMessage)) -
                     image
                 }
             };
-            let name = format!("c{camera:02}_f{frame:04}.png");
+            let name = match options.orbit {
+                Some(_) => format!("orbit{row:03}_f{frame:04}.png"),
+                None => format!("c{camera:02}_f{frame:04}.png"),
+            };
             crate::fit::save_png(&out.join(&name), &image)?;
             sheet.blit(&image, column * cell_w, row * cell_h);
+            if options.orbit.is_some() {
+                turntables[column].push(image);
+            }
             on(TrainMessage::Rendered { done: row * frames.len() + column + 1, total, name, psnr: None });
         }
     }
     crate::fit::save_png(&out.join("sheet.png"), &sheet)?;
+    for (views, frame) in turntables.iter().zip(&frames).filter(|(views, _)| !views.is_empty()) {
+        let path = out.join(format!("orbit_f{frame:04}.png"));
+        let apng = crate::imageio::encode_apng_rgb(views, TURNTABLE_FRAME_MS).map_err(|e| io(&path, e))?;
+        crate::imageio::write_atomic(&path, &apng).map_err(|e| io(&path, e))?;
+    }
     if let Some(directions) = options.basis {
         let table = basis_table(&label, directions, &timings);
         let path = out.join("basis.md");
         crate::imageio::write_atomic(&path, table.as_bytes()).map_err(|e| io(&path, e))?;
     }
     Ok(out)
+}
+
+/// How long each view of a turntable shows (ms): a 36-view orbit turns once in 3.6 s.
+const TURNTABLE_FRAME_MS: u16 = 100;
+
+/// `count` cameras evenly on a circle around the body in `frame`, looking at the centre of its
+/// bones' box, for a turntable: the circle lies at the scene's cameras' mean height above
+/// that centre and their mean distance from the vertical through it (`world_up`), starts at the first camera's side, and every camera has the first one's image
+/// size and focal length.
+pub fn orbit_cameras(scene: &Scene, frame: usize, count: usize) -> Vec<crate::scene::Camera> {
+    let (lo, hi) = scene.frames[frame].pose.bounds(&scene.skeleton);
+    let centre = (lo + hi) * 0.5;
+    let up = world_up(&scene.cameras);
+    let n = scene.cameras.len().max(1) as f64;
+    let offsets: Vec<DVec3> = scene.cameras.iter().map(|c| c.centre() - centre).collect();
+    let height = offsets.iter().map(|o| o.dot(up)).sum::<f64>() / n;
+    let across = |o: &DVec3| *o - up * o.dot(up);
+    let radius = offsets.iter().map(|o| across(o).length()).sum::<f64>() / n;
+    let start = offsets.first().and_then(|o| across(o).try_normalize()).unwrap_or_else(|| up.any_orthonormal_vector());
+    let (width, image_height, focal) = scene.cameras.first().map_or((128, 128, 128.0), |c| (c.width, c.height, c.fx));
+    (0..count)
+        .map(|k| {
+            let turn = glam::DQuat::from_axis_angle(up, 2.0 * PI * k as f64 / count as f64);
+            let eye = centre + up * height + turn * start * radius.max(1e-6);
+            crate::scene::Camera::look_at(&format!("orbit{k:03}"), eye, centre, up, width, image_height, focal)
+        })
+        .collect()
+}
+
+/// The world's up as the cameras show it. A camera that looks down at a body is pitched, so
+/// its own up leans toward the body, but its image rows stay level (no roll): every camera's
+/// right axis is horizontal, and up is the direction across all of them (the cross products of
+/// pairs of right axes, each turned to the cameras' mean up, summed). With one camera, or all
+/// facing one way, the cameras' mean up (a camera's image +Y points down).
+fn world_up(cameras: &[crate::scene::Camera]) -> DVec3 {
+    let mean_up = cameras.iter().map(|c| -c.camera_to_world.y_axis.truncate()).sum::<DVec3>().try_normalize().unwrap_or(DVec3::Y);
+    let rights: Vec<DVec3> = cameras.iter().filter_map(|c| c.camera_to_world.x_axis.truncate().try_normalize()).collect();
+    let mut across = DVec3::ZERO;
+    for (i, a) in rights.iter().enumerate() {
+        for b in &rights[i + 1..] {
+            let c = a.cross(*b);
+            across += if c.dot(mean_up) < 0.0 { -c } else { c };
+        }
+    }
+    if across.length() > 1e-3 * rights.len().max(1) as f64 {
+        across.normalize()
+    } else {
+        mean_up
+    }
 }
 
 /// What relighting one view through its basis cost, and how far it is from the direct estimator.

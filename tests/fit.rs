@@ -350,6 +350,31 @@ fn evaluation_renders_and_scores_every_test_image_and_umbra_render_repeats_it() 
     assert!(against.len() == 3 && against[0] > 30.0 && against[2] > 0.98, "{table}");
     let run = cli(&["relight", out.to_str().unwrap(), "--light", "sky", "--basis", "0"]);
     assert!(!run.status.success() && String::from_utf8_lossy(&run.stderr).contains("--basis"));
+    // A turntable: N views around the body in the chosen frame, and an animated PNG of them.
+    let run = cli(&[
+        "relight",
+        out.to_str().unwrap(),
+        "--light",
+        "sun2",
+        "--orbit",
+        "4",
+        "--frame",
+        "1",
+        "--basis",
+        "64",
+        "--out",
+        dir.path().join("orbit").to_str().unwrap(),
+    ]);
+    assert!(run.status.success(), "{}", String::from_utf8_lossy(&run.stderr));
+    for k in 0..4 {
+        assert!(dir.path().join(format!("orbit/orbit{k:03}_f0001.png")).exists());
+    }
+    let apng = std::fs::read(dir.path().join("orbit/orbit_f0001.png")).unwrap();
+    let actl = apng.windows(4).position(|w| w == b"acTL").expect("an animation control chunk");
+    assert_eq!(u32::from_be_bytes(apng[actl + 4..actl + 8].try_into().unwrap()), 4, "four frames");
+    assert_eq!(apng.windows(4).filter(|w| *w == b"fcTL").count(), 4);
+    let run = cli(&["relight", out.to_str().unwrap(), "--light", "sun2", "--orbit", "4", "--camera", "0"]);
+    assert!(!run.status.success(), "--orbit renders its own cameras: --camera is refused");
     // Bad input is named: a light file with a bad value, a camera that does not exist.
     std::fs::write(&lamp, r#"{"type": "point", "position": [1.0, 2.0], "intensity": [5, 5, 5]}"#).unwrap();
     let run = cli(&["relight", out.to_str().unwrap(), "--light", lamp.to_str().unwrap()]);
@@ -704,4 +729,33 @@ fn gaussians_move_to_the_bones_that_carry_them_and_a_run_keeps_their_bones() {
     std::fs::write(&state_path, state.to_string()).unwrap();
     let err = umbra::fit::restore(&run, None, Backend::Flex).err().expect("a wrong count is refused");
     assert!(err.to_string().contains("gaussian_bones"), "{err}");
+}
+
+/// A turntable's cameras circle the body at the scene's cameras' mean height and distance, each
+/// looking at the centre of the bones' box.
+#[test]
+fn orbit_cameras_circle_the_body_at_the_scenes_height_and_distance() {
+    let dir = TempDir::new("orbit");
+    let scene = umbra::scene::Scene::load(&tiny_scene(dir.path(), TrainingLight::Sun)).unwrap();
+    let (lo, hi) = scene.frames[0].pose.bounds(&scene.skeleton);
+    let centre = (lo + hi) * 0.5;
+    let mean = |f: &dyn Fn(&umbra::scene::Camera) -> f64, cameras: &[umbra::scene::Camera]| cameras.iter().map(f).sum::<f64>() / cameras.len() as f64;
+    let height = |c: &umbra::scene::Camera| (c.centre() - centre).y;
+    let distance = |c: &umbra::scene::Camera| {
+        let o = c.centre() - centre;
+        (o.x * o.x + o.z * o.z).sqrt()
+    };
+    let orbit = umbra::relight::orbit_cameras(&scene, 0, 8);
+    assert_eq!(orbit.len(), 8);
+    for c in &orbit {
+        let at = c.project(centre).unwrap();
+        assert!((at.x - c.cx).abs() < 1e-6 && (at.y - c.cy).abs() < 1e-6, "{at}");
+        assert!((height(c) - mean(&height, &scene.cameras)).abs() < 1e-6 && (distance(c) - mean(&distance, &scene.cameras)).abs() < 1e-6);
+    }
+    // Evenly around: neighbours 45 degrees apart.
+    for pair in orbit.windows(2) {
+        let (a, b) = (pair[0].centre() - centre, pair[1].centre() - centre);
+        let cosine = (a.x * b.x + a.z * b.z) / ((a.x * a.x + a.z * a.z) * (b.x * b.x + b.z * b.z)).sqrt();
+        assert!((cosine.acos().to_degrees() - 45.0).abs() < 1e-6, "{cosine}");
+    }
 }
