@@ -201,6 +201,18 @@ pub fn relight_run(options: &RelightOptions, mut on: impl FnMut(TrainMessage)) -
         }
     };
     let scene = scene.as_ref();
+    // A basis holds 4 bytes per drawn pixel and direction: bound it before any work.
+    if let Some(directions) = options.basis {
+        let pixels = cameras.iter().map(|&c| scene.cameras[c].width * scene.cameras[c].height).max().unwrap_or(0);
+        let bytes = (pixels as f64) * (directions as f64) * 4.0;
+        if bytes > BASIS_BYTES_LIMIT {
+            return Err(FitError::Input(format!(
+                "--basis {directions}: a {pixels}-pixel view could need {:.1} GiB (limit {:.0} GiB); use fewer directions",
+                bytes / (1u64 << 30) as f64,
+                BASIS_BYTES_LIMIT / (1u64 << 30) as f64
+            )));
+        }
+    }
     if options.basis == Some(0) {
         return Err(FitError::Input("--basis needs at least 1 direction".into()));
     }
@@ -259,6 +271,10 @@ pub fn relight_run(options: &RelightOptions, mut on: impl FnMut(TrainMessage)) -
     }
     Ok(out)
 }
+
+/// The most a view's basis may hold (bytes, every pixel drawn): 2 GiB, the memory budget of
+/// a fit on this project's 2-core machines.
+const BASIS_BYTES_LIMIT: f64 = 2.0 * (1u64 << 30) as f64;
 
 /// How long each view of a turntable shows (ms): a 36-view orbit turns once in 3.6 s.
 const TURNTABLE_FRAME_MS: u16 = 100;

@@ -348,8 +348,12 @@ fn evaluation_renders_and_scores_every_test_image_and_umbra_render_repeats_it() 
     let against: Vec<f64> =
         table.lines().find(|l| l.starts_with("| c00 f0000 |")).unwrap().split('|').nth(5).unwrap().split(['/', ' ']).filter_map(|v| v.parse().ok()).collect();
     assert!(against.len() == 3 && against[0] > 30.0 && against[2] > 0.98, "{table}");
-    let run = cli(&["relight", out.to_str().unwrap(), "--light", "sky", "--basis", "0"]);
-    assert!(!run.status.success() && String::from_utf8_lossy(&run.stderr).contains("--basis"));
+    for directions in ["0", "100000000"] {
+        // No direction, or more than a basis may hold in memory: refused before any work.
+        let run = cli(&["relight", out.to_str().unwrap(), "--light", "sky", "--basis", directions, "--out", dir.path().join("refused").to_str().unwrap()]);
+        assert!(!run.status.success() && String::from_utf8_lossy(&run.stderr).contains("--basis"), "{}", String::from_utf8_lossy(&run.stderr));
+        assert!(!dir.path().join("refused").exists(), "nothing written");
+    }
     // A turntable: N views around the body in the chosen frame, and an animated PNG of them.
     let run = cli(&[
         "relight",
