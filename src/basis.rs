@@ -56,7 +56,7 @@ impl TransferBasis {
     /// `casters` in its pose and the shadow ray's start off the surface (m).
     pub fn new(surfels: &[Option<Surfel>], width: usize, height: usize, casters: &[PosedGaussian], shadow_start: f32, count: usize) -> Self {
         let directions = fibonacci_sphere(count.max(1), 0.0);
-        let covered: Vec<(usize, Surfel)> = surfels.iter().enumerate().filter_map(|(p, s)| s.map(|s| (p, s))).collect();
+        let covered: Vec<(usize, Surfel)> = surfels.iter().take(width * height).enumerate().filter_map(|(p, s)| s.map(|s| (p, s))).collect();
         let caster = ShadowCaster::new(casters, 1e-4);
         let visibility: Vec<f32> = covered
             .par_iter()
@@ -103,7 +103,9 @@ impl TransferBasis {
     }
 
     /// The view (linear RGB) under `light`: `reflectance x (ambient + E max(0, n.l) V)` for a
-    /// sun or point light (V blended from the nearest directions), `reflectance x (1/pi) sum_k
+    /// sun or point light (V blended from the nearest directions; a light grazing the horizon
+    /// blends in directions below it, whose V is 0, where its cosine is near 0 anyway),
+    /// `reflectance x (1/pi) sum_k
     /// L_k Omega_k max(0, n.w_k) V_k` for a sky (`L_k Omega_k` the light of direction k's cell).
     pub fn relight(&self, light: &Light) -> RgbImage {
         let mut image = RgbImage::new(self.width, self.height);
