@@ -14,7 +14,7 @@
 use crate::eval::Surfel;
 use crate::gaussians::PosedGaussian;
 use crate::imageio::RgbImage;
-use crate::light::{fibonacci_sphere, uv_to_direction, Light};
+use crate::light::{fibonacci_sphere, uv_to_direction, EnvironmentMap, Light};
 use crate::shadow::{ShadowCaster, ShadowRay};
 use glam::DVec3;
 use rayon::prelude::*;
@@ -133,31 +133,41 @@ impl TransferBasis {
                 })
                 .collect(),
             Light::Uniform { radiance } => self.sky(&vec![*radiance * (4.0 * PI / k as f64); k]),
-            Light::Environment { map, scale, .. } => {
-                // Each texel's light (radiance x solid angle) into the cells of its directions:
-                // a map with fewer texels than SUBSAMPLES_PER_CELL per cell has each texel split
-                // into s x s parts first, so every cell gets light from its own directions.
-                let mut cells = vec![DVec3::ZERO; k];
-                let (w, h) = (map.image.width, map.image.height);
-                let s = ((SUBSAMPLES_PER_CELL * k as f64 / (w * h).max(1) as f64).sqrt().ceil() as usize).clamp(1, 8);
-                for y in 0..h {
-                    let solid_angle = map.texel_solid_angle(y) * scale / (s * s) as f64;
-                    for x in 0..w {
-                        let [r, g, b] = map.image.pixels[y * w + x];
-                        let light = DVec3::new(r as f64, g as f64, b as f64) * solid_angle;
-                        for (i, j) in (0..s * s).map(|q| (q % s, q / s)) {
-                            let (u, v) = ((x as f64 + (i as f64 + 0.5) / s as f64) / w as f64, (y as f64 + (j as f64 + 0.5) / s as f64) / h as f64);
-                            cells[self.cell_of_uv(u, v)] += light;
-                        }
-                    }
-                }
-                self.sky(&cells)
-            }
+            Light::Environment { map, scale, .. } => self.sky(&self.sky_cells(map, *scale)),
         };
         for (p, v) in self.pixels.iter().zip(values) {
             image.pixels[*p] = v.as_vec3().to_array();
         }
         image
+    }
+
+    /// Each direction's cell's light from an environment map (radiance x solid angle, summed
+    /// over the texels nearest the direction): a map with fewer texels than
+    /// `SUBSAMPLES_PER_CELL` per cell has each texel split into s x s parts first, so every
+    /// cell gets light from its own directions.
+    pub fn sky_cells(&self, map: &EnvironmentMap, scale: f64) -> Vec<DVec3> {
+        let k = self.directions.len();
+        let mut cells = vec![DVec3::ZERO; k];
+        let (w, h) = (map.image.width, map.image.height);
+        let s = ((SUBSAMPLES_PER_CELL * k as f64 / (w * h).max(1) as f64).sqrt().ceil() as usize).clamp(1, 8);
+        for y in 0..h {
+            let solid_angle = map.texel_solid_angle(y) * scale / (s * s) as f64;
+            for x in 0..w {
+                let [r, g, b] = map.image.pixels[y * w + x];
+                let light = DVec3::new(r as f64, g as f64, b as f64) * solid_angle;
+                for (i, j) in (0..s * s).map(|q| (q % s, q / s)) {
+                    let (u, v) = ((x as f64 + (i as f64 + 0.5) / s as f64) / w as f64, (y as f64 + (j as f64 + 0.5) / s as f64) / h as f64);
+                    cells[self.cell_of_uv(u, v)] += light;
+                }
+            }
+        }
+        cells
+    }
+
+    /// The basis's arrays, for a viewer that relights it elsewhere (`report`): covered pixel
+    /// indices, reflectance, unit normals and the visibility rows (pixel after pixel).
+    pub fn parts(&self) -> (&[usize], &[DVec3], &[DVec3], &[f32]) {
+        (&self.pixels, &self.reflectance, &self.normals, &self.visibility)
     }
 
     /// `reflectance x (1/pi) sum_k light_k max(0, n.w_k) V_k`, `light_k` each direction's
@@ -215,7 +225,6 @@ fn nearest(directions: &[DVec3], d: DVec3) -> usize {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::light::EnvironmentMap;
     use crate::shading::SHADOW_START;
     use glam::DMat3;
 

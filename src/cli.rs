@@ -129,6 +129,26 @@ pub enum Command {
         #[arg(long, value_name = "N", conflicts_with = "camera")]
         orbit: Option<usize>,
     },
+    /// Write RUN/report.html (self-contained: the recovered light against the scene's, stage
+    /// times, losses, metrics, renders beside the truth, and a relighting panel: drag the sun or
+    /// pick an environment) and RUN/report.md. `fit` writes it at the end too.
+    Report {
+        /// The run folder `umbra fit` wrote.
+        run: PathBuf,
+        /// The view of the relighting panel: a camera by index and a frame by position.
+        #[arg(long, default_value_t = 0)]
+        camera: usize,
+        #[arg(long, default_value_t = 0)]
+        frame: usize,
+        /// Directions of the panel's visibility basis.
+        #[arg(long, default_value_t = crate::report::PANEL_DIRECTIONS)]
+        directions: usize,
+        /// The scene whose cameras and poses to use (default: the run's).
+        #[arg(long)]
+        scene: Option<PathBuf>,
+        #[arg(long, value_enum, default_value_t = crate::train::Backend::Flex)]
+        backend: crate::train::Backend,
+    },
     /// Export the fitted surface in one of the scene's poses as an OBJ mesh (marching tetrahedra
     /// on the fitted SDF at a cell of 1/160 of the body's size, vertex colours from the albedo,
     /// normals from the SDF's gradient).
@@ -256,6 +276,9 @@ pub fn main() -> i32 {
             relight(&crate::relight::RelightOptions { run, scene, light, cameras: camera, frames: frame, samples, out, backend, basis, orbit })
         }
         Command::ExportMesh { run, frame, out, all_frames, scene, backend } => export_mesh(run, frame, out, all_frames, scene, backend),
+        Command::Report { run, camera, frame, directions, scene, backend } => {
+            report(&crate::report::ReportOptions { run, scene, camera, frame, directions, backend })
+        }
         Command::Bench { which: BenchKind::Environment, out, quick, .. } => crate::bench::environment(&out, quick).map(|table| print!("{table}")),
         Command::Bench { which: BenchKind::Shadows, out, quick, .. } => crate::bench::shadows(&out, quick).map(|table| print!("{table}")),
         Command::Bench { which: BenchKind::Fit, out, scene, kinds, schedule, evaluations, iterations, seed, equal_time, .. } => {
@@ -346,6 +369,19 @@ fn fit(options: &crate::train::FitOptions) -> Result<(), String> {
     })
     .map_err(|e| e.to_string())?;
     println!("wrote {}", options.out.join("fit.json").display());
+    if options.evaluate {
+        // The report needs the renders beside the truth that the evaluation writes.
+        let report = crate::report::ReportOptions {
+            run: options.out.clone(),
+            scene: None,
+            camera: 0,
+            frame: 0,
+            directions: crate::report::PANEL_DIRECTIONS,
+            backend: options.backend,
+        };
+        let (html, _) = crate::report::write_report(&report).map_err(|e| format!("the fit is complete (fit.json written), but its report failed: {e}"))?;
+        println!("wrote {}", html.display());
+    }
     println!("light: {}", report["light"]);
     if let Some(search) = report["sun_search"].as_object() {
         let start = search
@@ -458,6 +494,12 @@ fn relight(options: &crate::relight::RelightOptions) -> Result<(), String> {
             print!("{table}");
         }
     }
+    Ok(())
+}
+
+fn report(options: &crate::report::ReportOptions) -> Result<(), String> {
+    let (html, md) = crate::report::write_report(options).map_err(|e| e.to_string())?;
+    println!("wrote {} and {}", html.display(), md.display());
     Ok(())
 }
 

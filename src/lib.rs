@@ -22,6 +22,7 @@ pub mod plot;
 pub mod progress;
 pub mod relight;
 pub mod render;
+pub mod report;
 pub mod run_lock;
 pub mod scene;
 pub mod schedule;

@@ -308,7 +308,7 @@ pub fn orbit_cameras(scene: &Scene, frame: usize, count: usize) -> Vec<crate::sc
 /// right axis is horizontal, and up is the direction across all of them (the cross products of
 /// pairs of right axes, each turned to the cameras' mean up, summed). With one camera, or all
 /// facing one way, the cameras' mean up (a camera's image +Y points down).
-fn world_up(cameras: &[crate::scene::Camera]) -> DVec3 {
+pub fn world_up(cameras: &[crate::scene::Camera]) -> DVec3 {
     let mean_up = cameras.iter().map(|c| -c.camera_to_world.y_axis.truncate()).sum::<DVec3>().try_normalize().unwrap_or(DVec3::Y);
     let rights: Vec<DVec3> = cameras.iter().filter_map(|c| c.camera_to_world.x_axis.truncate().try_normalize()).collect();
     let mut across = DVec3::ZERO;

@@ -379,6 +379,45 @@ fn evaluation_renders_and_scores_every_test_image_and_umbra_render_repeats_it() 
     assert_eq!(apng.windows(4).filter(|w| *w == b"fcTL").count(), 4);
     let run = cli(&["relight", out.to_str().unwrap(), "--light", "sun2", "--orbit", "4", "--camera", "0"]);
     assert!(!run.status.success(), "--orbit renders its own cameras: --camera is refused");
+    // `umbra report`: a self-contained page (images and data inline, nothing fetched) with the
+    // relighting panel, and its Markdown twin; a bad camera is refused and changes nothing.
+    let run = cli(&["report", out.to_str().unwrap(), "--directions", "64"]);
+    assert!(run.status.success(), "{}", String::from_utf8_lossy(&run.stderr));
+    let html = std::fs::read_to_string(out.join("report.html")).unwrap();
+    assert!(html.contains("<canvas") && html.contains("id=\"basis\"") && html.contains("expected_mean_srgb8"));
+    assert!(!html.contains("http://") && !html.contains("https://") && !html.contains("<script src"), "self-contained");
+    assert!(html.matches("data:image/png;base64,").count() >= 2, "the losses and the renders beside the truth are embedded");
+    let md = std::fs::read_to_string(out.join("report.md")).unwrap();
+    assert!(md.contains("| novel pose |") && md.contains("light direction error") && md.contains("report-relit.png"), "{md}");
+    let run = cli(&["report", out.to_str().unwrap(), "--camera", "99"]);
+    assert!(!run.status.success() && String::from_utf8_lossy(&run.stderr).contains("--camera 99"));
+    assert_eq!(std::fs::read_to_string(out.join("report.html")).unwrap(), html, "a refused report leaves the old one");
+    // In a real browser (where Chromium is installed: `apt-get install chromium`), the page's
+    // own relighting of the training sun must agree with umbra's (it prints whether it does).
+    if Path::new("/usr/bin/chromium").exists() {
+        let profile = dir.path().join("chromium-profile");
+        let page = format!("file://{}", out.join("report.html").canonicalize().unwrap().display());
+        let flags = [
+            "--headless",
+            "--no-sandbox",
+            "--disable-gpu",
+            "--disable-quic",
+            "--no-first-run",
+            "--disable-background-networking",
+            "--disable-component-update",
+            "--disable-sync",
+        ];
+        let dom = std::process::Command::new("/usr/bin/chromium")
+            .args(flags)
+            .arg(format!("--user-data-dir={}", profile.display()))
+            .args(["--dump-dom", &page])
+            .output()
+            .unwrap();
+        let dom = String::from_utf8_lossy(&dom.stdout);
+        assert!(dom.contains("; agree</pre>"), "{}", dom.lines().find(|l| l.contains("id=\"check\"")).unwrap_or("no check line: the script did not run"));
+    } else {
+        eprintln!("chromium not installed: the report's in-browser check was not run");
+    }
     // Bad input is named: a light file with a bad value, a camera that does not exist.
     std::fs::write(&lamp, r#"{"type": "point", "position": [1.0, 2.0], "intensity": [5, 5, 5]}"#).unwrap();
     let run = cli(&["relight", out.to_str().unwrap(), "--light", lamp.to_str().unwrap()]);
