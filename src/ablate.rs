@@ -115,10 +115,10 @@ enum RunState {
 /// The state of the run in `folder` for `schedule_text`; an error when the folder holds a run
 /// of another schedule, iteration count or seed (unless `force`, which starts afresh).
 fn run_state(folder: &Path, schedule_text: &str, options: &AblateOptions, force: bool) -> Result<RunState, FitError> {
-    if force || crate::fit::existing_checkpoint(folder).is_none() {
+    if force || crate::run::existing_checkpoint(folder).is_none() {
         return Ok(RunState::Fresh);
     }
-    let copy = std::fs::read_to_string(folder.join(crate::fit::SCHEDULE_COPY)).unwrap_or_default();
+    let copy = std::fs::read_to_string(folder.join(crate::run::SCHEDULE_COPY)).unwrap_or_default();
     if copy != schedule_text {
         return Err(io(folder, "holds a run of another schedule: pass --force to replace it, or choose another --out"));
     }

@@ -12,9 +12,9 @@
 //! end at the light.
 
 use crate::eval::Surfel;
-use crate::gaussians::PosedGaussian;
 use crate::imageio::RgbImage;
 use crate::light::{fibonacci_sphere, uv_to_direction, EnvironmentMap, Light};
+use crate::shadow::PosedGaussian;
 use crate::shadow::{ShadowCaster, ShadowRay};
 use glam::DVec3;
 use rayon::prelude::*;

@@ -228,6 +228,9 @@ pub enum Command {
         /// `../shared/examples/quadruped-tiny`).
         #[arg(long, value_delimiter = ',')]
         scenes: Vec<PathBuf>,
+        /// `render`: the run folder of a fit whose views to time.
+        #[arg(long)]
+        run: Option<PathBuf>,
     },
 }
 
@@ -256,6 +259,10 @@ pub enum BenchKind {
     /// Every shipped scene fitted once: light error, foreground PSNR, SSIM and wall time in one
     /// table (`scenes.md`, `scenes.csv`; each fit in `OUT/NAME`).
     Scenes,
+    /// Seconds per view of a fitted run (--run RUN) in its fitted light, a sun, a point light
+    /// and a sky at 64 samples per pixel, with every thread and with one; and views one after
+    /// another against several at once.
+    Render,
 }
 
 /// Runs the CLI and returns the process exit code.
@@ -279,6 +286,10 @@ pub fn main() -> i32 {
         Command::Report { run, camera, frame, directions, scene, backend } => {
             report(&crate::report::ReportOptions { run, scene, camera, frame, directions, backend })
         }
+        Command::Bench { which: BenchKind::Render, out, quick, run, .. } => match run {
+            Some(run) => crate::bench::render(&run, &out, quick).map(|table| print!("{table}")).map_err(|e| e.to_string()),
+            None => Err("bench render needs --run RUN (the folder of a fit)".into()),
+        },
         Command::Bench { which: BenchKind::Environment, out, quick, .. } => crate::bench::environment(&out, quick).map(|table| print!("{table}")),
         Command::Bench { which: BenchKind::Shadows, out, quick, .. } => crate::bench::shadows(&out, quick).map(|table| print!("{table}")),
         Command::Bench { which: BenchKind::Fit, out, scene, kinds, schedule, evaluations, iterations, seed, equal_time, .. } => {

@@ -7,12 +7,12 @@
 //! 1/sqrt(samples), never a pattern shared by all its pixels. Uniform light is the same
 //! estimator on a one-texel map.
 
-use crate::gaussians::PosedGaussian;
 use crate::imageio::RgbImage;
 use crate::light::{direction_to_uv, uv_to_direction, EnvironmentMap};
+use crate::random::Stream;
 use crate::shading::SHADOW_START;
+use crate::shadow::PosedGaussian;
 use crate::shadow::{ShadowCaster, ShadowRay};
-use crate::synth::trace::Stream;
 use glam::DVec3;
 use rayon::prelude::*;
 use std::borrow::Cow;

@@ -8,14 +8,14 @@
 //! field itself.
 
 use crate::environment::MisEstimator;
-use crate::field::PoseTensors;
-use crate::gaussians::PosedGaussian;
 use crate::imageio::RgbImage;
 use crate::isosurface::{bisect, extract, Grid, Mesh};
 use crate::light::Light;
 use crate::render::{ray_bounds, render_still, RaySet, Sampling};
 use crate::scene::{Footprint, Scene};
 use crate::shading::{shade_lambertian, Emitter, LightKind};
+use crate::shadow::PosedGaussian;
+use crate::skeleton::PoseTensors;
 use crate::train::{Avatar, FitError};
 use burn::tensor::{Device, Tensor, TensorData};
 use glam::DVec3;
@@ -104,7 +104,7 @@ pub fn render_view_and_albedo(
     let camera_index = camera;
     let camera = &scene.cameras[camera];
     let pose = &scene.frames[frame].pose;
-    let pose_tensors = crate::field::PoseTensors::new(pose, &scene.skeleton, device);
+    let pose_tensors = crate::skeleton::PoseTensors::new(pose, &scene.skeleton, device);
     let set = model.gaussians.to_set();
     let posed = set.pose(pose);
     let gaussians = model.gaussians.posed(&pose_tensors);

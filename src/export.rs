@@ -3,7 +3,7 @@
 //! as the renders are) and normals (the SDF's exact gradient).
 
 use crate::eval::surface_mesh;
-use crate::field::PoseTensors;
+use crate::skeleton::PoseTensors;
 use crate::train::{io, FitError, TrainMessage};
 use burn::module::Module;
 use std::path::PathBuf;
@@ -47,13 +47,13 @@ impl Targets {
 /// Exports the meshes; every file is written atomically, and nothing before the run, its scene
 /// and the frames are known good.
 pub fn export_meshes(options: &ExportOptions, mut on: impl FnMut(TrainMessage)) -> Result<Vec<Exported>, FitError> {
-    let trainer = crate::fit::restore(&options.run, options.scene.as_deref(), options.backend)?;
+    let trainer = crate::run::restore(&options.run, options.scene.as_deref(), options.backend)?;
     let scene = &trainer.scene;
     let targets = options.targets.resolve(scene.frames.len())?;
     let _lock = crate::run_lock::RunLock::acquire(&options.run, "export-mesh")?;
     let model = trainer.model()?.valid();
     let device = trainer.device.clone().without_autodiff();
-    let scale = crate::fit::albedo_scale(scene, &model);
+    let scale = crate::run::albedo_scale(scene, &model);
     let extent = scene.body_extent();
     on(TrainMessage::Evaluating { images: targets.len() });
     let mut done = Vec::new();

@@ -1,30 +1,24 @@
 //! A whole fit as the CLI runs it: the training loop with its outputs (`fit.json`,
-//! `losses.csv`, `losses.png`, `gaussians.json`, renders), atomic checkpoints every N
-//! iterations, exact `--resume`, and the evaluation of the test images at the end.
+//! `losses.csv`, `losses.png`, `gaussians.json`, renders), a checkpoint every N iterations
+//! (written and read back by `run`), exact `--resume`, and the evaluation of the test images
+//! at the end (rendered by `eval`).
 
 use crate::eval::{render_view_and_albedo, Lighting};
 use crate::imageio::RgbImage;
 use crate::metrics::{score, ImageScores};
 use crate::plot::{Chart, Series};
+pub use crate::run::{albedo_scale, existing_checkpoint, restore, resume_checkpoint, save_checkpoint_until, save_png, CHECKPOINT, SCHEDULE_COPY};
+use crate::run::{apply_recorded_field, load_checkpoint, losses_csv, save_checkpoint, write_text, OLD_CHECKPOINT};
 use crate::run_lock::RunLock;
-use crate::scene::identity::file_checksum;
 use crate::scene::{Scene, Split};
 use crate::schedule::Schedule;
 use crate::shading::LightKind;
-use crate::synth::trace::Stream;
 use crate::train::{io, Avatar, FitError, FitOptions, StepStats, TrainMessage, Trainer};
 use burn::module::Module;
 use serde_json::json;
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
-
-pub const CHECKPOINT: &str = "checkpoint";
-/// Where the previous checkpoint waits while a new one is swapped in.
-const OLD_CHECKPOINT: &str = ".checkpoint.old";
-/// The schedule a run was fitted with, copied into the run (rendering rebuilds the model
-/// from it; the original file may have moved).
-pub const SCHEDULE_COPY: &str = "schedule.toml";
 
 /// The three segments of the schedule, for timing and reporting.
 fn segment(schedule: &Schedule, iteration: usize) -> &'static str {
@@ -36,273 +30,6 @@ fn segment(schedule: &Schedule, iteration: usize) -> &'static str {
     } else {
         "light and RGB fitting"
     }
-}
-
-fn write_text(path: &Path, text: &str) -> Result<(), FitError> {
-    crate::imageio::write_atomic(path, text.as_bytes()).map_err(|e| io(path, e))
-}
-
-fn save_checkpoint(trainer: &Trainer, out: &Path, history: &[(usize, StepStats)]) -> Result<(), FitError> {
-    save_checkpoint_until(trainer, out, history, usize::MAX).map(|_| ())
-}
-
-/// `save_checkpoint` stopped after its first `steps` file-system steps, as a kill there
-/// would leave the run folder (for the test that interrupts it at every step); returns whether
-/// it finished.
-#[doc(hidden)]
-pub fn save_checkpoint_until(trainer: &Trainer, out: &Path, history: &[(usize, StepStats)], steps: usize) -> Result<bool, FitError> {
-    let mut done = 0usize;
-    // One step taken; true when the budget is spent (the "kill").
-    let mut step = || {
-        done += 1;
-        done >= steps
-    };
-    let temp = out.join(".checkpoint.tmp");
-    let _ = std::fs::remove_dir_all(&temp);
-    if step() {
-        return Ok(false);
-    }
-    std::fs::create_dir_all(&temp).map_err(|e| io(&temp, e))?;
-    if step() {
-        return Ok(false);
-    }
-    trainer.model()?.clone().save_file(temp.join("model.bpk")).map_err(|e| io(&temp.join("model.bpk"), format!("{e}")))?;
-    if step() {
-        return Ok(false);
-    }
-    for (name, optimizer) in &trainer.optimizers {
-        let path = temp.join(format!("optimizer-{name}.bpk"));
-        optimizer.save(&path).map_err(|e| io(&path, format!("{e}")))?;
-        if step() {
-            return Ok(false);
-        }
-    }
-    let mut checksums = serde_json::Map::new();
-    for file in checkpoint_files(trainer) {
-        let sum = file_checksum(&temp.join(&file)).map_err(|e| io(&temp.join(&file), e))?;
-        checksums.insert(file, json!(sum));
-    }
-    // The sun search and its cone are part of the state: a resumed fit keeps the same cone.
-    // The scene's identity and the files' checksums let a load refuse another scene's run or
-    // a damaged file.
-    let state = json!({
-        "skeleton": trainer.scene.skeleton_identity(),
-        "training_data": trainer.training_identity(),
-        "checksums": checksums,
-        "iteration": trainer.iteration,
-        "iterations_total": trainer.schedule.iterations,
-        "stream": trainer.stream.state().to_string(),
-        // The first light's search and cone under their one-light keys, the others' after.
-        "sun_search": trainer.searches.first().cloned().flatten(),
-        "sun_cone": cone_json(trainer.cones.first().copied().flatten()),
-        "light_searches": trainer.searches.iter().skip(1).collect::<Vec<_>>(),
-        "light_cones": trainer.cones.iter().skip(1).map(|c| cone_json(*c)).collect::<Vec<_>>(),
-        "albedo_layers": trainer.model()?.field.config.albedo_layers,
-        "field": trainer.model()?.field.config,
-        "gaussian_bones": trainer.model()?.gaussians.bones,
-    });
-    write_text(&temp.join("state.json"), &state.to_string())?;
-    if step() {
-        return Ok(false);
-    }
-    write_text(&temp.join("losses.csv"), &losses_csv(history))?;
-    if step() {
-        return Ok(false);
-    }
-    // Some complete checkpoint is on disk at every moment: the previous one is set aside (and
-    // an older one set aside before deleted) only while a complete one sits in `checkpoint/`,
-    // and a kill between the two renames leaves `.checkpoint.old`, which `existing_checkpoint`
-    // finds.
-    let target = out.join(CHECKPOINT);
-    let old = out.join(OLD_CHECKPOINT);
-    if target.join("state.json").is_file() {
-        let _ = std::fs::remove_dir_all(&old);
-        if step() {
-            return Ok(false);
-        }
-        std::fs::rename(&target, &old).map_err(|e| io(&target, e))?;
-    } else {
-        let _ = std::fs::remove_dir_all(&target);
-    }
-    if step() {
-        return Ok(false);
-    }
-    std::fs::rename(&temp, &target).map_err(|e| io(&target, e))?;
-    if step() {
-        return Ok(false);
-    }
-    let _ = std::fs::remove_dir_all(&old);
-    Ok(true)
-}
-
-/// The files of a checkpoint that hold parameters: the model and one per optimizer.
-fn checkpoint_files(trainer: &Trainer) -> Vec<String> {
-    std::iter::once("model.bpk".to_string()).chain(trainer.optimizers.iter().map(|(name, _)| format!("optimizer-{name}.bpk"))).collect()
-}
-
-/// Reads a checkpoint's `state.json` and checks it against `scene` (the skeleton, and the
-/// training data when `resuming`) and the checksums of the files it lists. Checkpoints written
-/// before these were recorded pass unchecked.
-fn verified_state(dir: &Path, trainer: &Trainer, resuming: bool) -> Result<serde_json::Value, FitError> {
-    let scene = &trainer.scene;
-    let state_path = dir.join("state.json");
-    let text = std::fs::read_to_string(&state_path).map_err(|e| io(&state_path, format!("cannot read the checkpoint: {e}")))?;
-    let state: serde_json::Value = serde_json::from_str(&text).map_err(|e| io(&state_path, e))?;
-    let scene_file = crate::scene::scene_file(&scene.root);
-    if let Some(skeleton) = state["skeleton"].as_str() {
-        if skeleton != scene.skeleton_identity() {
-            return Err(io(
-                &state_path,
-                format!("skeleton: this run was fitted on another skeleton than {}'s (bone names, parents or lengths differ)", scene_file.display()),
-            ));
-        }
-    }
-    if resuming {
-        if let Some(data) = state["training_data"].as_str() {
-            if data != trainer.training_identity() {
-                return Err(io(
-                    &state_path,
-                    format!(
-                        "training_data: this run was fitted on other training images, cameras or poses than {}'s: resume it on its own scene",
-                        scene_file.display()
-                    ),
-                ));
-            }
-        }
-    }
-    if let Some(sums) = state["checksums"].as_object() {
-        for (file, expected) in sums {
-            let path = dir.join(file);
-            let found = file_checksum(&path).map_err(|e| io(&path, format!("listed in the checkpoint but unreadable: {e}")))?;
-            if Some(found.as_str()) != expected.as_str() {
-                return Err(io(
-                    &path,
-                    format!("checksum {found} differs from {} recorded in state.json: the file is damaged", expected.as_str().unwrap_or("?")),
-                ));
-            }
-        }
-    }
-    Ok(state)
-}
-
-/// Sets `settings` to the field a run's checkpoint was fitted with, so that a run is rebuilt as
-/// it was fitted whatever today's defaults: `state.json` records the whole field. A checkpoint
-/// from before that records at most its albedo decoder's depth (none: it shared the SDF's
-/// decoder) and predates the root's skinning. Nothing changes without a readable checkpoint
-/// (its loading reports that).
-fn apply_recorded_field(run: &Path, settings: &mut crate::schedule::FieldSettings) -> Result<(), FitError> {
-    let Some(state_path) = existing_checkpoint(run).map(|c| c.join("state.json")) else { return Ok(()) };
-    let Ok(text) = std::fs::read_to_string(&state_path) else { return Ok(()) };
-    let Ok(state) = serde_json::from_str::<serde_json::Value>(&text) else { return Ok(()) };
-    if let Some(field) = state.get("field") {
-        let config = serde_json::from_value(field.clone()).map_err(|e| io(&state_path, format!("field: {e}")))?;
-        settings.recorded = Some(config);
-        return Ok(());
-    }
-    settings.root_skinning = Some(false);
-    settings.albedo_layers = Some(match state.get("albedo_layers") {
-        None => 0,
-        Some(value) => {
-            value.as_u64().filter(|&n| n <= 4).ok_or_else(|| io(&state_path, format!("albedo_layers: expected a whole number up to 4, found {value}")))?
-                as usize
-        }
-    });
-    Ok(())
-}
-
-/// The run's last complete checkpoint folder: `checkpoint/`, or the one an interrupted swap
-/// left aside.
-pub fn existing_checkpoint(out: &Path) -> Option<PathBuf> {
-    [CHECKPOINT, OLD_CHECKPOINT].iter().map(|name| out.join(name)).find(|dir| dir.join("state.json").is_file())
-}
-
-/// Resumes `trainer` from the last complete checkpoint in the run folder `out`, as `umbra fit
-/// --resume` does (the entry the checkpoint fuzz target drives); returns the iteration reached.
-pub fn resume_checkpoint(trainer: &mut Trainer, out: &Path) -> Result<usize, FitError> {
-    load_checkpoint(trainer, out)?;
-    Ok(trainer.iteration)
-}
-
-fn load_checkpoint(trainer: &mut Trainer, out: &Path) -> Result<Vec<(usize, StepStats)>, FitError> {
-    let dir = existing_checkpoint(out).ok_or_else(|| io(out, "holds no checkpoint to resume"))?;
-    let state_path = dir.join("state.json");
-    let state = verified_state(&dir, trainer, true)?;
-    let iteration = state["iteration"].as_u64().ok_or_else(|| io(&state_path, "iteration: missing"))? as usize;
-    let stream: u64 = state["stream"].as_str().and_then(|s| s.parse().ok()).ok_or_else(|| io(&state_path, "stream: missing"))?;
-    load_model(trainer, &dir)?;
-    let mut optimizers = std::mem::take(&mut trainer.optimizers);
-    for (name, optimizer) in optimizers.iter_mut() {
-        let path = dir.join(format!("optimizer-{name}.bpk"));
-        // Checkpoints from before the feature tables had their own optimizer have no file for it.
-        if name == "features" && !path.exists() {
-            continue;
-        }
-        *optimizer = optimizer.clone().load(&path).map_err(|e| io(&path, format!("{e}")))?;
-    }
-    trainer.optimizers = optimizers;
-    trainer.iteration = iteration;
-    trainer.stream = Stream::from_state(stream);
-    let lights = trainer.cones.len();
-    let mut searches = vec![serde_json::from_value(state["sun_search"].clone()).map_err(|e| io(&state_path, format!("sun_search: {e}")))?];
-    let mut cones = vec![parse_cone(&state["sun_cone"], &state_path, "sun_cone")?];
-    // Checkpoints from before several lights could be fitted have neither list.
-    let others = |key: &str| state[key].as_array().cloned().unwrap_or_default();
-    for (k, value) in others("light_searches").iter().enumerate() {
-        searches.push(serde_json::from_value(value.clone()).map_err(|e| io(&state_path, format!("light_searches[{k}]: {e}")))?);
-    }
-    for (k, value) in others("light_cones").iter().enumerate() {
-        cones.push(parse_cone(value, &state_path, &format!("light_cones[{k}]"))?);
-    }
-    if searches.len() != lights || cones.len() != lights {
-        return Err(io(
-            &state_path,
-            format!(
-                "light_searches, light_cones: the checkpoint holds {} training lights' searches and {} cones, the scene has {lights} training lights",
-                searches.len(),
-                cones.len()
-            ),
-        ));
-    }
-    trainer.searches = searches;
-    trainer.cones = cones;
-    let csv = std::fs::read_to_string(dir.join("losses.csv")).map_err(|e| io(&dir.join("losses.csv"), e))?;
-    Ok(parse_losses_csv(&csv))
-}
-
-fn cone_json(cone: Option<(glam::DVec3, f64)>) -> serde_json::Value {
-    cone.map_or(json!(null), |(axis, angle)| json!({"axis": axis.to_array(), "angle_radians": angle}))
-}
-
-/// A sun's cone from a checkpoint's `state.json` (`key` names it in errors); null: none.
-fn parse_cone(cone: &serde_json::Value, state_path: &Path, key: &str) -> Result<Option<(glam::DVec3, f64)>, FitError> {
-    if cone.is_null() {
-        return Ok(None);
-    }
-    let axis: [f64; 3] = serde_json::from_value(cone["axis"].clone()).map_err(|e| io(state_path, format!("{key}.axis: {e}")))?;
-    let angle = cone["angle_radians"]
-        .as_f64()
-        .filter(|a| a.is_finite() && *a >= 0.0)
-        .ok_or_else(|| io(state_path, format!("{key}.angle_radians: missing or not a finite angle")))?;
-    if !axis.iter().all(|c| c.is_finite()) || glam::DVec3::from_array(axis).length() < 1e-9 {
-        return Err(io(state_path, format!("{key}.axis: not a finite non-zero vector")));
-    }
-    Ok(Some((glam::DVec3::from_array(axis), angle)))
-}
-
-/// Replaces the trainer's model by the one saved in checkpoint folder `dir`.
-fn load_model(trainer: &mut Trainer, dir: &Path) -> Result<(), FitError> {
-    let model = trainer.model.take().ok_or_else(|| FitError::Input("no model".into()))?;
-    let model = model.try_load_file(dir.join("model.bpk")).map_err(|e| io(&dir.join("model.bpk"), format!("cannot load the fitted model: {e}")))?;
-    trainer.model = Some(model);
-    // The Gaussians' bones, when the fit moved them (`Trainer::rebind_gaussians`); before they
-    // were recorded, each stayed on the bone it started on.
-    let state_path = dir.join("state.json");
-    let state: serde_json::Value = std::fs::read_to_string(&state_path).ok().and_then(|t| serde_json::from_str(&t).ok()).unwrap_or_default();
-    if let Some(bones) = state.get("gaussian_bones") {
-        let bones: Vec<usize> = serde_json::from_value(bones.clone()).map_err(|e| io(&state_path, format!("gaussian_bones: {e}")))?;
-        trainer.set_gaussian_bones(&bones).map_err(|e| io(&state_path, format!("gaussian_bones: {e}")))?;
-    }
-    Ok(())
 }
 
 /// Renders and scores the test images of a finished (or checkpointed) fit in `run`, with the
@@ -338,64 +65,6 @@ fn restore_and_evaluate(
     let dir = run.join(if split == Split::Test { "renders" } else { "renders-train" });
     let evaluation = evaluate_split(&trainer, &dir, split, &mut on)?;
     Ok((dir, evaluation))
-}
-
-/// A fit rebuilt from its run folder (its schedule copy and last checkpoint), on the scene it
-/// was fitted on (from `fit.json`) or on `scene`.
-pub fn restore(run: &Path, scene: Option<&Path>, backend: crate::train::Backend) -> Result<Trainer, FitError> {
-    if !run.join(SCHEDULE_COPY).is_file() {
-        let what = if run.is_dir() { "is not an umbra run (it has no schedule.toml)" } else { "does not exist" };
-        return Err(io(run, format!("{what}: name the --out folder of an `umbra fit`")));
-    }
-    let mut schedule = Schedule::load(&run.join(SCHEDULE_COPY))?;
-    apply_recorded_field(run, &mut schedule.field)?;
-    let scene_path = match scene {
-        Some(path) => path.to_path_buf(),
-        None => {
-            let report = run.join("fit.json");
-            let text = std::fs::read_to_string(&report).map_err(|e| io(&report, format!("{e} (pass --scene to name the scene)")))?;
-            let value: serde_json::Value = serde_json::from_str(&text).map_err(|e| io(&report, e))?;
-            value["scene"].as_str().map(std::path::PathBuf::from).ok_or_else(|| io(&report, "scene: missing (pass --scene)"))?
-        }
-    };
-    let scene = Scene::load(&scene_path)?;
-    let mut trainer = Trainer::new(scene, schedule, backend, 0)?;
-    let checkpoint = existing_checkpoint(run).ok_or_else(|| io(run, "holds no checkpoint"))?;
-    verified_state(&checkpoint, &trainer, false)?;
-    load_model(&mut trainer, &checkpoint)?;
-    Ok(trainer)
-}
-
-/// The factor from the fitted albedo to reflectance (`relight::albedo_scale`) for a model
-/// fitted on `scene`.
-pub fn albedo_scale(scene: &Scene, model: &Avatar) -> glam::DVec3 {
-    let fitted_intensity = (model.light.kind == LightKind::Point).then(|| model.light.intensity().into_scalar::<f32>() as f64);
-    scene.training_lights().first().map(|name| crate::relight::albedo_scale(&scene.lights[*name], fitted_intensity)).unwrap_or(glam::DVec3::ONE)
-}
-
-fn losses_csv(history: &[(usize, StepStats)]) -> String {
-    let mut out = format!("iteration,total,seconds,{}\n", crate::schedule::TERMS.join(","));
-    for (it, s) in history {
-        let terms: Vec<String> = crate::schedule::TERMS.iter().map(|t| s.terms.get(*t).map(|v| format!("{v:.6e}")).unwrap_or_default()).collect();
-        out += &format!("{it},{:.6e},{:.4},{}\n", s.total, s.seconds, terms.join(","));
-    }
-    out
-}
-
-fn parse_losses_csv(text: &str) -> Vec<(usize, StepStats)> {
-    let mut rows = Vec::new();
-    for line in text.lines().skip(1) {
-        let cells: Vec<&str> = line.split(',').collect();
-        let (Some(it), Some(total), Some(seconds)) =
-            (cells.first().and_then(|c| c.parse().ok()), cells.get(1).and_then(|c| c.parse().ok()), cells.get(2).and_then(|c| c.parse().ok()))
-        else {
-            continue;
-        };
-        let terms =
-            crate::schedule::TERMS.iter().enumerate().filter_map(|(k, t)| cells.get(3 + k).and_then(|c| c.parse().ok()).map(|v| (t.to_string(), v))).collect();
-        rows.push((it, StepStats { total, terms, seconds, phases: Vec::new() }));
-    }
-    rows
 }
 
 /// Running mean over `window` points: per-batch losses are noisy, trends are what one reads.
@@ -700,13 +369,20 @@ pub fn evaluate_split(trainer: &Trainer, dir: &Path, split: Split, on: &mut impl
     let albedo_scale = albedo_scale(scene, &model);
     let mut rows = Vec::new();
     let mut compare: Vec<Vec<RgbImage>> = Vec::new();
-    for (done, view) in tests.iter().enumerate() {
+    // As many views at once as there are threads (one view's render keeps about one busy);
+    // each view's samples are seeded by its own camera and frame, so the images do not depend
+    // on the schedule.
+    let lighting_of = |view: &crate::scene::View| match kinds.of(view).relit {
+        false => Lighting::Fitted(kinds.training_light(view)),
+        true => Lighting::Known { light: &scene.lights[&view.light], albedo_scale, samples: SKY_SAMPLES },
+    };
+    let at_once = rayon::current_num_threads().max(1);
+    let rendered = tests.chunks(at_once).flat_map(|batch| {
+        use rayon::prelude::*;
+        batch.par_iter().map(|view| score_view(&model, scene, view, &lighting_of(view), albedo_scale, &device)).collect::<Vec<_>>()
+    });
+    for ((done, view), scored) in tests.iter().enumerate().zip(rendered) {
         let TestKind { novel_pose, novel_view, relit, group } = kinds.of(view);
-        let lighting = match relit {
-            false => Lighting::Fitted(kinds.training_light(view)),
-            true => Lighting::Known { light: &scene.lights[&view.light], albedo_scale, samples: SKY_SAMPLES },
-        };
-        let scored = score_view(&model, scene, view, &lighting, albedo_scale, &device);
         let name = render_name(scene, view);
         save_png(&dir.join(&name), &scored.image)?;
         let mut row = vec![view.colour.clone(), scored.image.clone(), scored.image.difference(&view.colour, COMPARE_GAIN)];
@@ -787,7 +463,7 @@ fn geometry_scores(trainer: &Trainer, model: &Avatar, albedo_scale: glam::DVec3,
     for (position, frame) in scene.frames.iter().enumerate() {
         let Some(path) = &frame.mesh else { continue };
         let truth = crate::geometry::load_obj(path).map_err(FitError::Input)?;
-        let pose = crate::field::PoseTensors::new(&frame.pose, &scene.skeleton, device);
+        let pose = crate::skeleton::PoseTensors::new(&frame.pose, &scene.skeleton, device);
         let (fitted, _, _) = crate::eval::surface_mesh(model, &pose, frame.pose.bounds(&scene.skeleton), extent, albedo_scale, device)?;
         let scores = crate::geometry::compare(&fitted, &truth, GEOMETRY_SAMPLES, position as u64);
         out.push(json!({"frame": position, "index": frame.index, "mesh": path, "accuracy": scores.map(|s| s.accuracy), "completeness": scores.map(|s| s.completeness), "chamfer": scores.map(|s| s.chamfer), "normal_angle": scores.map(|s| s.normal_angle)}));
@@ -870,11 +546,6 @@ pub fn score_view(
 fn render_name(scene: &Scene, view: &crate::scene::View) -> String {
     let relative = view.path.strip_prefix(&scene.root).unwrap_or(&view.path).with_extension("png");
     relative.to_string_lossy().replace(['/', '\\'], "_")
-}
-
-pub fn save_png(path: &Path, image: &crate::imageio::RgbImage) -> Result<(), FitError> {
-    let png = crate::imageio::encode_png_rgb(image).map_err(|e| io(path, e))?;
-    crate::imageio::write_atomic(path, &png).map_err(|e| io(path, e))
 }
 
 /// The score of one rendered test image (and of its albedo, when the scene has one).

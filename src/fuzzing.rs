@@ -218,18 +218,18 @@ impl CheckpointTarget {
     /// The scene and schedule of `run` (a finished `umbra fit` folder), with its field as its
     /// checkpoint records it (so a trainer is built without looking at the training masks).
     pub fn new(run: &Path, scene: &Path) -> Result<Self, FitError> {
-        let trainer = crate::fit::restore(run, Some(scene), Backend::Flex)?;
+        let trainer = crate::run::restore(run, Some(scene), Backend::Flex)?;
         Ok(Self { scene: trainer.scene.clone(), schedule: trainer.schedule.clone() })
     }
 
     pub fn run(&self, data: &[u8]) -> Outcome {
         let dir = scratch("checkpoint");
-        let checkpoint = dir.join(crate::fit::CHECKPOINT);
+        let checkpoint = dir.join(crate::run::CHECKPOINT);
         if Folder::decode(data).write_into(&checkpoint).is_err() {
             return Outcome::Refused;
         }
         let Ok(mut trainer) = Trainer::new(self.scene.clone(), self.schedule.clone(), Backend::Flex, 0) else { return Outcome::Refused };
-        match crate::fit::resume_checkpoint(&mut trainer, &dir) {
+        match crate::run::resume_checkpoint(&mut trainer, &dir) {
             Ok(_) => Outcome::Accepted,
             Err(e) => {
                 let text = e.to_string();

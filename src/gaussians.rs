@@ -28,28 +28,7 @@ pub struct GaussianSet {
     pub gaussians: Vec<Gaussian>,
 }
 
-/// A Gaussian placed in world space by a pose.
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub struct PosedGaussian {
-    pub mean: DVec3,
-    /// Columns are the Gaussian's axes in world space.
-    pub axes: DMat3,
-    pub scales: DVec3,
-    pub amplitude: f64,
-}
-
-impl PosedGaussian {
-    pub fn rotation_columns(&self) -> [[f64; 3]; 3] {
-        [self.axes.x_axis.to_array(), self.axes.y_axis.to_array(), self.axes.z_axis.to_array()]
-    }
-
-    /// The density at a world point.
-    pub fn density(&self, x: DVec3) -> f64 {
-        let local = self.axes.transpose() * (x - self.mean);
-        let whitened = local / self.scales.max(DVec3::splat(crate::shadow::MIN_SCALE));
-        self.amplitude * (-0.5 * whitened.length_squared()).exp()
-    }
-}
+pub use crate::shadow::PosedGaussian;
 
 impl GaussianSet {
     /// `per_bone` Gaussians spread along each bone from head to tail, isotropic with `std`.
@@ -249,8 +228,8 @@ pub struct GaussianParams {
 
 mod learnable {
     use super::{Gaussian, GaussianParams, GaussianSet};
-    use crate::field::PoseTensors;
     use crate::shadow::tensor::GaussianTensors;
+    use crate::skeleton::PoseTensors;
     use burn::module::Param;
     use burn::tensor::{Device, Int, Tensor, TensorData};
 

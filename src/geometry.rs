@@ -6,7 +6,7 @@
 //! truth's nearest triangle.
 
 use crate::isosurface::Mesh;
-use crate::synth::trace::Stream;
+use crate::random::Stream;
 use glam::DVec3;
 use std::collections::HashMap;
 use std::path::Path;

@@ -20,6 +20,19 @@ pub fn fibonacci_sphere(count: usize, turn: f64) -> Vec<DVec3> {
         .collect()
 }
 
+/// How the fitted albedo maps to reflectance: the fit cannot separate the albedo's scale from
+/// the training light's strength (a sun is fitted with irradiance 1), so the light the scene
+/// states for its training images fixes it. `fitted_intensity` is a fitted point light's.
+pub fn albedo_scale(training: &Light, fitted_intensity: Option<f64>) -> DVec3 {
+    let inverse = |v: DVec3| DVec3::ONE / v.max(DVec3::splat(1e-8));
+    match training {
+        Light::Directional { irradiance, .. } => inverse(*irradiance),
+        Light::Point { intensity, .. } => inverse(*intensity) * fitted_intensity.unwrap_or(1.0),
+        Light::Uniform { radiance } => inverse(*radiance),
+        Light::Environment { map, scale, .. } => inverse(map.mean_radiance() * *scale),
+    }
+}
+
 #[derive(Clone, Debug, PartialEq)]
 pub enum Light {
     /// A sun: `direction` is a unit vector from the scene toward the light.

@@ -4,13 +4,13 @@
 //! that turns the fitted albedo, which carries the training light's strength, into reflectance.
 
 use crate::eval::{render_view, Lighting};
-use crate::gaussians::PosedGaussian;
 use crate::imageio::RgbImage;
 use crate::light::{uv_to_direction, EnvironmentMap, Light};
+use crate::random::Stream;
 use crate::scene::Scene;
 use crate::shading::SHADOW_START;
+use crate::shadow::PosedGaussian;
 use crate::shadow::{ShadowCaster, ShadowRay};
-use crate::synth::trace::Stream;
 use crate::train::{io, Backend, FitError, TrainMessage};
 use burn::module::Module;
 use glam::DVec3;
@@ -18,18 +18,7 @@ use rayon::prelude::*;
 use std::f64::consts::PI;
 use std::path::{Path, PathBuf};
 
-/// How the fitted albedo maps to reflectance: the fit cannot separate the albedo's scale from
-/// the training light's strength (a sun is fitted with irradiance 1), so the light the scene
-/// states for its training images fixes it. `fitted_intensity` is a fitted point light's.
-pub fn albedo_scale(training: &Light, fitted_intensity: Option<f64>) -> DVec3 {
-    let inverse = |v: DVec3| DVec3::ONE / v.max(DVec3::splat(1e-8));
-    match training {
-        Light::Directional { irradiance, .. } => inverse(*irradiance),
-        Light::Point { intensity, .. } => inverse(*intensity) * fitted_intensity.unwrap_or(1.0),
-        Light::Uniform { radiance } => inverse(*radiance),
-        Light::Environment { map, scale, .. } => inverse(map.mean_radiance() * *scale),
-    }
-}
+pub use crate::light::albedo_scale;
 
 /// A fixed set of directions drawn from an environment's radiance (times texel solid angle),
 /// stratified, with their radiance over pdf, shared by every pixel of a view (its error is that
@@ -179,7 +168,7 @@ fn chosen(flag: &str, picked: &Option<Vec<usize>>, count: usize) -> Result<Vec<u
 /// per view (`cCC_fFFFF.png`, the frame's position) and `sheet.png` (cameras down, frames
 /// across). Returns the output folder.
 pub fn relight_run(options: &RelightOptions, mut on: impl FnMut(TrainMessage)) -> Result<PathBuf, FitError> {
-    let trainer = crate::fit::restore(&options.run, options.scene.as_deref(), options.backend)?;
+    let trainer = crate::run::restore(&options.run, options.scene.as_deref(), options.backend)?;
     let (light, label) = resolve_light(&trainer.scene, &options.light)?;
     // A turntable renders cameras of its own (after the scene's), by default in the first frame.
     let (scene, cameras, frames) = match options.orbit {
@@ -224,41 +213,51 @@ pub fn relight_run(options: &RelightOptions, mut on: impl FnMut(TrainMessage)) -
     std::fs::create_dir_all(&out).map_err(|e| io(&out, e))?;
     let model = trainer.model()?.valid();
     let device = trainer.device.clone().without_autodiff();
-    let lighting = Lighting::Known { light: &light, albedo_scale: crate::fit::albedo_scale(scene, &model), samples: options.samples };
+    let lighting = Lighting::Known { light: &light, albedo_scale: crate::run::albedo_scale(scene, &model), samples: options.samples };
     let total = cameras.len() * frames.len();
     on(TrainMessage::Evaluating { images: total });
     let (cell_w, cell_h) = cameras.iter().map(|&c| (scene.cameras[c].width, scene.cameras[c].height)).fold((0, 0), |a, b| (a.0.max(b.0), a.1.max(b.1)));
     let mut sheet = RgbImage::new(cell_w * frames.len(), cell_h * cameras.len());
     let mut timings = Vec::new();
     let mut turntables: Vec<Vec<RgbImage>> = vec![Vec::new(); frames.len()];
-    for (row, &camera) in cameras.iter().enumerate() {
-        for (column, &frame) in frames.iter().enumerate() {
-            let image = match options.basis {
-                None => render_view(&model, scene, camera, frame, crate::eval::VIEW_SAMPLING, &device, &lighting),
+    let views: Vec<(usize, usize, usize, usize)> =
+        cameras.iter().enumerate().flat_map(|(row, &camera)| frames.iter().enumerate().map(move |(column, &frame)| (row, column, camera, frame))).collect();
+    // Direct renders of as many views at once as there are threads (a basis keeps every thread
+    // busy by itself, and its timings must not share the cores).
+    let at_once = if options.basis.is_some() { 1 } else { rayon::current_num_threads().max(1) };
+    let rendered = views.chunks(at_once).flat_map(|batch| {
+        batch
+            .par_iter()
+            .map(|&(_, _, camera, frame)| match options.basis {
+                None => (render_view(&model, scene, camera, frame, crate::eval::VIEW_SAMPLING, &device, &lighting), None),
                 Some(directions) => {
-                    let (image, mut timing) = relight_by_basis(&model, scene, camera, frame, &light, directions, &device);
-                    if timings.is_empty() {
-                        // The first view also through the direct estimator, as the reference.
-                        let direct = render_view(&model, scene, camera, frame, crate::eval::VIEW_SAMPLING, &device, &lighting);
-                        timing.against_direct = Some(crate::metrics::score(&image, &direct, None));
-                    }
-                    timings.push(timing);
-                    image
+                    let (image, timing) = relight_by_basis(&model, scene, camera, frame, &light, directions, &device);
+                    (image, Some(timing))
                 }
-            };
-            let name = match options.orbit {
-                Some(_) => format!("orbit{row:03}_f{frame:04}.png"),
-                None => format!("c{camera:02}_f{frame:04}.png"),
-            };
-            crate::fit::save_png(&out.join(&name), &image)?;
-            sheet.blit(&image, column * cell_w, row * cell_h);
-            if options.orbit.is_some() {
-                turntables[column].push(image);
+            })
+            .collect::<Vec<_>>()
+    });
+    for (done, (&(row, column, camera, frame), (image, timing))) in views.iter().zip(rendered).enumerate() {
+        if let Some(mut timing) = timing {
+            if timings.is_empty() {
+                // The first view also through the direct estimator, as the reference.
+                let direct = render_view(&model, scene, camera, frame, crate::eval::VIEW_SAMPLING, &device, &lighting);
+                timing.against_direct = Some(crate::metrics::score(&image, &direct, None));
             }
-            on(TrainMessage::Rendered { done: row * frames.len() + column + 1, total, name, psnr: None });
+            timings.push(timing);
         }
+        let name = match options.orbit {
+            Some(_) => format!("orbit{row:03}_f{frame:04}.png"),
+            None => format!("c{camera:02}_f{frame:04}.png"),
+        };
+        crate::run::save_png(&out.join(&name), &image)?;
+        sheet.blit(&image, column * cell_w, row * cell_h);
+        if options.orbit.is_some() {
+            turntables[column].push(image);
+        }
+        on(TrainMessage::Rendered { done: done + 1, total, name, psnr: None });
     }
-    crate::fit::save_png(&out.join("sheet.png"), &sheet)?;
+    crate::run::save_png(&out.join("sheet.png"), &sheet)?;
     for (views, frame) in turntables.iter().zip(&frames).filter(|(views, _)| !views.is_empty()) {
         let path = out.join(format!("orbit_f{frame:04}.png"));
         let apng = crate::imageio::encode_apng_rgb(views, TURNTABLE_FRAME_MS).map_err(|e| io(&path, e))?;
@@ -350,7 +349,7 @@ fn relight_by_basis(
     device: &burn::tensor::Device,
 ) -> (RgbImage, BasisTiming) {
     let started = std::time::Instant::now();
-    let albedo_scale = crate::fit::albedo_scale(scene, model);
+    let albedo_scale = crate::run::albedo_scale(scene, model);
     let surfels = crate::eval::surfels(model, scene, camera, frame, crate::eval::VIEW_SAMPLING, albedo_scale, device);
     let casters = model.light.shadow_casters_posed(&model.gaussians.to_set().pose(&scene.frames[frame].pose));
     let (w, h) = (scene.cameras[camera].width, scene.cameras[camera].height);

@@ -10,7 +10,7 @@
 //! silhouette, which coarse samples alone integrate into a halo.
 
 use crate::field::{AvatarField, Decoded, GradientMethod, PoseTensors};
-use crate::gaussians::PosedGaussian;
+use crate::shadow::PosedGaussian;
 use burn::module::Module;
 use burn::tensor::{Device, IndexingUpdateOp, Int, Tensor, TensorData};
 use glam::DVec3;

@@ -38,7 +38,7 @@ pub fn write_report(options: &ReportOptions) -> Result<(PathBuf, PathBuf), FitEr
     let fit_json = run.join("fit.json");
     let text = std::fs::read_to_string(&fit_json).map_err(|e| io(&fit_json, format!("{e} (a report needs a finished fit)")))?;
     let fit: Value = serde_json::from_str(&text).map_err(|e| io(&fit_json, e))?;
-    let trainer = crate::fit::restore(run, options.scene.as_deref(), options.backend)?;
+    let trainer = crate::run::restore(run, options.scene.as_deref(), options.backend)?;
     let scene = &trainer.scene;
     if options.camera >= scene.cameras.len() {
         return Err(FitError::Input(format!("--camera {}: out of range, the scene has {}", options.camera, scene.cameras.len())));
@@ -54,7 +54,7 @@ pub fn write_report(options: &ReportOptions) -> Result<(PathBuf, PathBuf), FitEr
     let device = trainer.device.clone().without_autodiff();
 
     // The panel: one view's basis, the scene's training sun as the first light.
-    let albedo_scale = crate::fit::albedo_scale(scene, &model);
+    let albedo_scale = crate::run::albedo_scale(scene, &model);
     let surfels = crate::eval::surfels(&model, scene, options.camera, options.frame, crate::eval::VIEW_SAMPLING, albedo_scale, &device);
     let casters = model.light.shadow_casters_posed(&model.gaussians.to_set().pose(&scene.frames[options.frame].pose));
     let camera = &scene.cameras[options.camera];

@@ -185,10 +185,10 @@ impl LightModel {
     }
 
     /// The same for posed Gaussians on the CPU (rendering's sky visibility, the sun search).
-    pub fn shadow_casters_posed(&self, posed: &[crate::gaussians::PosedGaussian]) -> Vec<crate::gaussians::PosedGaussian> {
+    pub fn shadow_casters_posed(&self, posed: &[crate::shadow::PosedGaussian]) -> Vec<crate::shadow::PosedGaussian> {
         let scale = self.density_scale().into_data().convert::<f64>().try_to_vec::<f64>().ok().and_then(|v| v.first().copied()).unwrap_or(1.0);
         let per_metre = scale / self.unit as f64;
-        posed.iter().map(|g| crate::gaussians::PosedGaussian { amplitude: g.amplitude * per_metre, ..*g }).collect()
+        posed.iter().map(|g| crate::shadow::PosedGaussian { amplitude: g.amplitude * per_metre, ..*g }).collect()
     }
 
     /// The light as plain numbers for fit.json: direction or position, ambient, intensity.

@@ -1,6 +1,8 @@
 //! The skeleton and its poses: bones (head joint at the origin, extending along local +Y),
-//! per-frame rigid `bone_to_world` transforms, and the maps between bone-local and world space.
+//! per-frame rigid `bone_to_world` transforms, the maps between bone-local and world space, and a
+//! pose as tensors (`PoseTensors`) and CPU bone frames for the field and the Gaussians.
 
+use burn::tensor::{Device, Tensor, TensorData};
 use glam::{DMat3, DMat4, DVec3};
 use serde::{Deserialize, Serialize};
 
@@ -91,6 +93,71 @@ impl Pose {
             hi = hi.max(a).max(b);
         }
         (lo, hi)
+    }
+}
+
+/// A frame's bones as tensors: rotations `[B, 3, 3]` (bone-local axes as columns) and head
+/// positions `[B, 3]` in world space, plus bone lengths `[B]`.
+#[derive(Clone, Debug)]
+pub struct PoseTensors {
+    pub rotations: Tensor<3>,
+    pub translations: Tensor<2>,
+    pub lengths: Tensor<1>,
+    /// The same bones on the CPU, for planning grid lookups.
+    pub frames: Vec<BoneFrame>,
+}
+
+impl PoseTensors {
+    pub fn new(pose: &Pose, skeleton: &Skeleton, device: &Device) -> Self {
+        let b = skeleton.len();
+        // Row-major rotation: element (i, j) is component i of local axis j.
+        let rotations: Vec<f32> = pose.bone_to_world.iter().flat_map(|m| glam::DMat3::from_mat4(*m).transpose().to_cols_array().map(|v| v as f32)).collect();
+        let translations: Vec<f32> = pose.bone_to_world.iter().flat_map(|m| m.w_axis.truncate().as_vec3().to_array()).collect();
+        let lengths: Vec<f32> = skeleton.bones.iter().map(|bone| bone.length as f32).collect();
+        let frames = pose
+            .bone_to_world
+            .iter()
+            .zip(&skeleton.bones)
+            .map(|(m, bone)| BoneFrame {
+                axes: [m.x_axis, m.y_axis, m.z_axis].map(|a| a.truncate().as_vec3().to_array()),
+                origin: m.w_axis.truncate().as_vec3().to_array(),
+                length: bone.length as f32,
+            })
+            .collect();
+        Self {
+            frames,
+            rotations: Tensor::from_data(TensorData::new(rotations, [b, 3, 3]), device),
+            translations: Tensor::from_data(TensorData::new(translations, [b, 3]), device),
+            lengths: Tensor::from_data(TensorData::new(lengths, [b]), device),
+        }
+    }
+
+    pub fn bones(&self) -> usize {
+        self.lengths.dims()[0]
+    }
+
+    /// Bone-local coordinates of world points: `[N, B, 3]`.
+    pub fn to_local(&self, points: Tensor<2>) -> Tensor<3> {
+        let [n, _] = points.dims();
+        let b = self.bones();
+        let relative = points.unsqueeze_dim::<3>(1) - self.translations.clone().unsqueeze_dim::<3>(0); // [N, B, 3]
+                                                                                                       // local = R^T (x - t); as rows: local_row = relative_row R.
+        relative.swap_dims(0, 1).matmul(self.rotations.clone()).swap_dims(0, 1).reshape([n, b, 3])
+    }
+}
+
+/// A posed bone on the CPU: its local axes in world space, its head and its length.
+#[derive(Clone, Copy, Debug)]
+pub struct BoneFrame {
+    pub axes: [[f32; 3]; 3],
+    pub origin: [f32; 3],
+    pub length: f32,
+}
+
+impl BoneFrame {
+    pub fn to_local(&self, p: [f32; 3]) -> [f32; 3] {
+        let r = [p[0] - self.origin[0], p[1] - self.origin[1], p[2] - self.origin[2]];
+        self.axes.map(|a| a[0] * r[0] + a[1] * r[1] + a[2] * r[2])
     }
 }
 

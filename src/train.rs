@@ -10,12 +10,12 @@
 use crate::field::{AvatarField, FieldConfig, GradientMethod, PoseTensors};
 use crate::gaussians::{GaussianParams, GaussianSet};
 use crate::light::Light;
+use crate::random::Stream;
 use crate::render::{box_bounds, ray_bounds, render, Deferred, RaySet};
 use crate::scene::{Scene, Split};
 use crate::schedule::Schedule;
 use crate::shading::{LightKind, LightModel};
 use crate::shadow::tensor::GaussianTensors;
-use crate::synth::trace::Stream;
 use burn::module::Module;
 use burn::optim::{AdamConfig, GradientsParams, ModuleOptimizer};
 use burn::tensor::{Device, Int, Tensor, TensorData};

@@ -6,9 +6,9 @@ use burn::module::Param;
 use burn::tensor::{Device, Tensor, TensorData};
 use glam::DVec3;
 use umbra::field::{AvatarField, FieldConfig, GradientMethod, PoseTensors};
+use umbra::random::Stream;
 use umbra::skeleton::{Pose, Skeleton};
 use umbra::synth::character::{Character, Kind};
-use umbra::synth::trace::Stream;
 
 fn values<const D: usize>(t: Tensor<D>) -> Vec<f32> {
     t.into_data().convert::<f32>().try_to_vec::<f32>().unwrap()

@@ -379,6 +379,14 @@ fn evaluation_renders_and_scores_every_test_image_and_umbra_render_repeats_it() 
     assert_eq!(apng.windows(4).filter(|w| *w == b"fcTL").count(), 4);
     let run = cli(&["relight", out.to_str().unwrap(), "--light", "sun2", "--orbit", "4", "--camera", "0"]);
     assert!(!run.status.success(), "--orbit renders its own cameras: --camera is refused");
+    // `umbra bench render`: a view's seconds under four lights, all threads and one.
+    let run = cli(&["bench", "render", "--run", out.to_str().unwrap(), "--quick", "--out", dir.path().join("bench").to_str().unwrap()]);
+    assert!(run.status.success(), "{}", String::from_utf8_lossy(&run.stderr));
+    let table = std::fs::read_to_string(dir.path().join("bench/render.md")).unwrap();
+    for light in ["fitted light", "a sun", "a point light", "an environment"] {
+        assert!(table.lines().any(|l| l.starts_with(&format!("| {light}")) && l.ends_with("x |")), "{table}");
+    }
+    assert!(dir.path().join("bench/render.png").exists() && table.contains("at once"));
     // `umbra report`: a self-contained page (images and data inline, nothing fetched) with the
     // relighting panel, and its Markdown twin; a bad camera is refused and changes nothing.
     let run = cli(&["report", out.to_str().unwrap(), "--directions", "64"]);

@@ -8,8 +8,8 @@ use burn::tensor::{Device, Tensor, TensorData};
 use glam::DVec3;
 use umbra::field::grid::{lookup, RootSkinning, Skinning};
 use umbra::field::{AvatarField, FieldConfig, PoseTensors};
+use umbra::random::Stream;
 use umbra::synth::character::{Character, Kind};
-use umbra::synth::trace::Stream;
 
 fn values<const D: usize>(t: Tensor<D>) -> Vec<f32> {
     t.into_data().convert::<f32>().try_to_vec::<f32>().unwrap()

@@ -8,7 +8,7 @@ mod common;
 
 use common::TempDir;
 use std::panic::{catch_unwind, AssertUnwindSafe};
-use umbra::synth::trace::Stream;
+use umbra::random::Stream;
 
 /// One random edit of `bytes`: flip a byte, delete or duplicate a span, or write a digit,
 /// quote, bracket or huge number at a random place.

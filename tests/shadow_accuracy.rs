@@ -7,8 +7,8 @@ mod common;
 
 use glam::{DMat3, DQuat, DVec3};
 use umbra::gaussians::PosedGaussian;
+use umbra::random::Stream;
 use umbra::shadow::{erf_difference, optical_depth, optical_depth_f32, transmittance_f64, ShadowCaster, ShadowRay};
-use umbra::synth::trace::Stream;
 
 /// Gauss-Legendre nodes and weights on [-1, 1] by Newton iteration on P_n.
 fn legendre(n: usize) -> Vec<(f64, f64)> {

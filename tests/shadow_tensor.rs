@@ -6,9 +6,9 @@ mod common;
 use burn::tensor::{Device, Tensor, TensorData};
 use glam::{DMat3, DQuat, DVec3};
 use umbra::gaussians::PosedGaussian;
+use umbra::random::Stream;
 use umbra::shadow::tensor::{erfc_nonnegative, optical_depth as tensor_depth, transmittance, GaussianTensors, RaySegments};
 use umbra::shadow::{optical_depth, ShadowCaster, ShadowRay};
-use umbra::synth::trace::Stream;
 
 fn device() -> Device {
     Device::flex().autodiff()

@@ -8,14 +8,14 @@
 use super::shadows::body_cloud;
 use super::time;
 use crate::environment::{cosine_sample, MisEstimator};
-use crate::gaussians::PosedGaussian;
 use crate::imageio::RgbImage;
 use crate::light::{uv_to_direction, EnvironmentMap};
 use crate::plot::{Chart, Series};
+use crate::random::Stream;
 use crate::relight::EnvironmentSampler;
 use crate::shading::SHADOW_START;
+use crate::shadow::PosedGaussian;
 use crate::shadow::{ShadowCaster, ShadowRay};
-use crate::synth::trace::Stream;
 use glam::DVec3;
 use rayon::prelude::*;
 use std::f64::consts::PI;

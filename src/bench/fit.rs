@@ -4,8 +4,9 @@
 //! training wall time against each, both kinds on the same axes. Scoring time is not counted.
 
 use crate::eval::Lighting;
-use crate::fit::{albedo_scale, light_error, score_view, TestKinds};
+use crate::fit::{light_error, score_view, TestKinds};
 use crate::plot::{Chart, Series};
+use crate::run::albedo_scale;
 use crate::scene::{Scene, Split};
 use crate::schedule::{FieldKind, Schedule};
 use crate::train::{Backend, FitError, Trainer};

@@ -5,9 +5,9 @@
 use super::time;
 use crate::field::{AvatarField, FieldConfig, GradientMethod, PoseTensors};
 use crate::plot::{Chart, Series};
+use crate::random::Stream;
 use crate::render::NORMAL_STEP;
 use crate::synth::character::{Character, Kind};
-use crate::synth::trace::Stream;
 use burn::module::Param;
 use burn::tensor::{Device, Tensor, TensorData};
 use glam::DVec3;

@@ -3,11 +3,11 @@
 //! the same culling.
 
 use super::{machine_peak_flops, time};
-use crate::gaussians::PosedGaussian;
 use crate::plot::{Chart, Series};
+use crate::random::Stream;
 use crate::shadow::tensor::{transmittance, GaussianTensors, RaySegments};
+use crate::shadow::PosedGaussian;
 use crate::shadow::{transmittance_f64, ShadowCaster, ShadowRay};
-use crate::synth::trace::Stream;
 use burn::tensor::{Device, Tensor, TensorData};
 use glam::{DMat3, DQuat, DVec3};
 use std::path::Path;

@@ -203,7 +203,7 @@ impl GridConfig {
 
     /// A grid with features uniform in +-1e-4 (instant-NGP's start) from our own seeded stream.
     pub fn init(&self, device: &Device, seed: u64) -> FeatureGrid {
-        let mut stream = crate::synth::trace::Stream::new(seed, 0x6121D, 0);
+        let mut stream = crate::random::Stream::new(seed, 0x6121D, 0);
         let n = self.table_rows();
         let values: Vec<f32> = (0..n * self.features).map(|_| ((stream.uniform() * 2.0 - 1.0) * 1e-4) as f32).collect();
         // The root's preference starts at zero: the skinning starts from distances alone.
@@ -260,20 +260,7 @@ impl Level {
     }
 }
 
-/// A posed bone on the CPU: its local axes in world space, its head and its length.
-#[derive(Clone, Copy, Debug)]
-pub struct BoneFrame {
-    pub axes: [[f32; 3]; 3],
-    pub origin: [f32; 3],
-    pub length: f32,
-}
-
-impl BoneFrame {
-    fn to_local(&self, p: [f32; 3]) -> [f32; 3] {
-        let r = [p[0] - self.origin[0], p[1] - self.origin[1], p[2] - self.origin[2]];
-        self.axes.map(|a| a[0] * r[0] + a[1] * r[1] + a[2] * r[2])
-    }
-}
+pub use crate::skeleton::BoneFrame;
 
 /// The learnable table: `levels x 2^table_log2` rows of `features`.
 #[derive(Module, Debug)]

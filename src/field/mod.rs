@@ -13,62 +13,14 @@
 pub mod grid;
 pub mod interpolate;
 
-use grid::{BoneFrame, FeatureGrid, GridConfig, Skinning};
+use grid::{FeatureGrid, GridConfig, Skinning};
 
 use burn::module::{Module, Param};
 use burn::nn::{Linear, LinearConfig};
 use burn::tensor::activation::{relu, sigmoid, softmax};
 use burn::tensor::{Device, Int, Tensor, TensorData};
 
-/// A frame's bones as tensors: rotations `[B, 3, 3]` (bone-local axes as columns) and head
-/// positions `[B, 3]` in world space, plus bone lengths `[B]`.
-#[derive(Clone, Debug)]
-pub struct PoseTensors {
-    pub rotations: Tensor<3>,
-    pub translations: Tensor<2>,
-    pub lengths: Tensor<1>,
-    /// The same bones on the CPU, for planning grid lookups.
-    pub frames: Vec<BoneFrame>,
-}
-
-impl PoseTensors {
-    pub fn new(pose: &crate::skeleton::Pose, skeleton: &crate::skeleton::Skeleton, device: &Device) -> Self {
-        let b = skeleton.len();
-        // Row-major rotation: element (i, j) is component i of local axis j.
-        let rotations: Vec<f32> = pose.bone_to_world.iter().flat_map(|m| glam::DMat3::from_mat4(*m).transpose().to_cols_array().map(|v| v as f32)).collect();
-        let translations: Vec<f32> = pose.bone_to_world.iter().flat_map(|m| m.w_axis.truncate().as_vec3().to_array()).collect();
-        let lengths: Vec<f32> = skeleton.bones.iter().map(|bone| bone.length as f32).collect();
-        let frames = pose
-            .bone_to_world
-            .iter()
-            .zip(&skeleton.bones)
-            .map(|(m, bone)| BoneFrame {
-                axes: [m.x_axis, m.y_axis, m.z_axis].map(|a| a.truncate().as_vec3().to_array()),
-                origin: m.w_axis.truncate().as_vec3().to_array(),
-                length: bone.length as f32,
-            })
-            .collect();
-        Self {
-            frames,
-            rotations: Tensor::from_data(TensorData::new(rotations, [b, 3, 3]), device),
-            translations: Tensor::from_data(TensorData::new(translations, [b, 3]), device),
-            lengths: Tensor::from_data(TensorData::new(lengths, [b]), device),
-        }
-    }
-
-    pub fn bones(&self) -> usize {
-        self.lengths.dims()[0]
-    }
-
-    /// Bone-local coordinates of world points: `[N, B, 3]`.
-    pub fn to_local(&self, points: Tensor<2>) -> Tensor<3> {
-        let [n, _] = points.dims();
-        let b = self.bones();
-        let relative = points.unsqueeze_dim::<3>(1) - self.translations.clone().unsqueeze_dim::<3>(0); // [N, B, 3]
-                                                                                                       // local = R^T (x - t); as rows: local_row = relative_row R.
-        relative.swap_dims(0, 1).matmul(self.rotations.clone()).swap_dims(0, 1).reshape([n, b, 3])
-    }
-}
+pub use crate::skeleton::PoseTensors;
 
 #[derive(Clone, Debug, serde::Serialize, serde::Deserialize, PartialEq)]
 pub struct FieldConfig {
@@ -156,7 +108,7 @@ impl FieldConfig {
     /// A field with weights drawn from our own seeded stream (uniform in +-1/sqrt(fan_in), as
     /// burn's default), so that a fit is reproducible whatever else uses burn's global RNG.
     pub fn init(&self, device: &Device, seed: u64) -> AvatarField {
-        let mut stream = crate::synth::trace::Stream::new(seed, 0xF1E1D, 0);
+        let mut stream = crate::random::Stream::new(seed, 0xF1E1D, 0);
         let mut linear = |fan_in: usize, fan_out: usize, scale: f32| {
             let bound = scale / (fan_in as f32).sqrt();
             let mut draw = |n: usize| (0..n).map(|_| ((stream.uniform() * 2.0 - 1.0) as f32) * bound).collect::<Vec<f32>>();

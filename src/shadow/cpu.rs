@@ -6,7 +6,7 @@
 
 use super::integral::{optical_depth_whitened, WhitenedGaussian};
 use super::lanes::{self, Block, Collected, LANES};
-use crate::gaussians::PosedGaussian;
+use crate::shadow::PosedGaussian;
 use rayon::prelude::*;
 
 /// A ray segment `origin + t direction`, `t` in `[t0, t1]` (`t1` may be infinite).

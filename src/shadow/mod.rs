@@ -11,4 +11,30 @@ pub mod real;
 pub mod tensor;
 
 pub use cpu::{transmittance_f64, ShadowCaster, ShadowRay};
+use glam::{DMat3, DVec3};
+
 pub use integral::{erf_difference, optical_depth, optical_depth_f32, optical_depth_whitened, WhitenedGaussian, MIN_SCALE};
+
+/// A Gaussian in world space (a `gaussians::GaussianSet` posed): what the integral casts
+/// shadows with.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct PosedGaussian {
+    pub mean: DVec3,
+    /// Columns are the Gaussian's axes in world space.
+    pub axes: DMat3,
+    pub scales: DVec3,
+    pub amplitude: f64,
+}
+
+impl PosedGaussian {
+    pub fn rotation_columns(&self) -> [[f64; 3]; 3] {
+        [self.axes.x_axis.to_array(), self.axes.y_axis.to_array(), self.axes.z_axis.to_array()]
+    }
+
+    /// The density at a world point.
+    pub fn density(&self, x: DVec3) -> f64 {
+        let local = self.axes.transpose() * (x - self.mean);
+        let whitened = local / self.scales.max(DVec3::splat(MIN_SCALE));
+        self.amplitude * (-0.5 * whitened.length_squared()).exp()
+    }
+}

@@ -24,7 +24,7 @@ impl GaussianTensors {
     }
 
     /// Constant tensors of a posed set (no gradients), for rendering or tests.
-    pub fn from_posed(posed: &[crate::gaussians::PosedGaussian], device: &Device) -> Self {
+    pub fn from_posed(posed: &[crate::shadow::PosedGaussian], device: &Device) -> Self {
         let n = posed.len();
         let means: Vec<f32> = posed.iter().flat_map(|g| g.mean.to_array().map(|v| v as f32)).collect();
         let rotations: Vec<f32> = posed.iter().flat_map(|g| g.axes.transpose().to_cols_array().map(|v| v as f32)).collect();

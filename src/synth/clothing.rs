@@ -168,7 +168,7 @@ mod tests {
 
     #[test]
     fn every_shape_is_a_distance_with_its_exact_gradient() {
-        let mut stream = crate::synth::trace::Stream::new(5, 6, 7);
+        let mut stream = crate::random::Stream::new(5, 6, 7);
         for garment in dressed_human() {
             let mut checked = 0;
             for _ in 0..2000 {

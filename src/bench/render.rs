@@ -1,0 +1,108 @@
+//! Render time per view of a fitted run (`umbra bench render RUN`): one test view (its camera
+//! and frame) in the fitted light, under a sun, a point light and a sky at 64 samples per pixel,
+//! timed with every thread and inside a one-thread pool, the ratio taken in the same run; then
+//! the evaluation's way, a batch of views one after another against several at once.
+
+use super::fit::peak_rss_mib;
+use crate::eval::{render_view, Lighting, VIEW_SAMPLING};
+use crate::light::Light;
+use crate::plot::BarChart;
+use crate::train::{io, Backend, FitError};
+use burn::module::Module;
+use glam::DVec3;
+use rayon::prelude::*;
+use std::path::Path;
+
+/// Sky samples per pixel the benchmark renders an environment with (the figure).
+const SKY_SAMPLES: usize = 64;
+
+/// Measures `run`'s renders; writes `render.{md,csv,png}` into `out`, returns the Markdown.
+pub fn render(run: &Path, out: &Path, quick: bool) -> Result<String, FitError> {
+    let trainer = crate::run::restore(run, None, Backend::Flex)?;
+    let scene = &trainer.scene;
+    let model = trainer.model()?.valid();
+    let device = trainer.device.clone().without_autodiff();
+    let albedo_scale = crate::run::albedo_scale(scene, &model);
+    let view = scene
+        .views_in(crate::scene::Split::Test)
+        .next()
+        .or(scene.views.first())
+        .ok_or_else(|| FitError::Input(format!("{}: the scene has no images", scene.root.display())))?;
+    let (camera, frame) = (view.camera, view.frame);
+    let (lo, hi) = scene.frames[frame].pose.bounds(&scene.skeleton);
+    let extent = scene.body_extent();
+    let up = crate::relight::world_up(&scene.cameras);
+    let sun = Light::Directional { direction: (up + DVec3::new(0.4, 0.0, 0.3)).normalize(), irradiance: DVec3::ONE, ambient: DVec3::splat(0.1) };
+    let lamp = Light::Point {
+        position: (lo + hi) * 0.5 + (up + DVec3::new(0.5, 0.0, 0.5)).normalize() * extent,
+        intensity: DVec3::splat(extent * extent),
+        ambient: DVec3::splat(0.1),
+    };
+    let sky = Light::Environment { path: "synthetic sky".into(), scale: 1.0, map: crate::synth::synthetic_sky(128, 64) };
+    let known = |light| Lighting::Known { light, albedo_scale, samples: SKY_SAMPLES };
+    let cases: [(&str, Lighting); 4] = [
+        ("fitted light (sun with Gaussian shadows)", Lighting::Fitted(0)),
+        ("a sun", known(&sun)),
+        ("a point light", known(&lamp)),
+        ("an environment, 64 samples per pixel", known(&sky)),
+    ];
+    let budget = if quick { 0.0 } else { 2.0 };
+    let one_thread = rayon::ThreadPoolBuilder::new().num_threads(1).build().map_err(|e| FitError::Input(format!("a one-thread pool: {e}")))?;
+    let threads = rayon::current_num_threads();
+    let mut rows: Vec<(String, f64, f64)> = Vec::new();
+    for (name, lighting) in &cases {
+        let all = super::time(budget, || {
+            render_view(&model, scene, camera, frame, VIEW_SAMPLING, &device, lighting);
+        });
+        let one = one_thread.install(|| {
+            super::time(budget, || {
+                render_view(&model, scene, camera, frame, VIEW_SAMPLING, &device, lighting);
+            })
+        });
+        rows.push((name.to_string(), all, one));
+    }
+    // The evaluation's way: `threads` views of the fitted light one after another, and at once.
+    let views: Vec<(usize, usize)> = scene.views_in(crate::scene::Split::Test).map(|v| (v.camera, v.frame)).take(threads.max(2)).collect();
+    let fitted = Lighting::Fitted(0);
+    let start = std::time::Instant::now();
+    for &(c, f) in &views {
+        render_view(&model, scene, c, f, VIEW_SAMPLING, &device, &fitted);
+    }
+    let sequential = start.elapsed().as_secs_f64() / views.len().max(1) as f64;
+    let start = std::time::Instant::now();
+    views.par_iter().for_each(|&(c, f)| {
+        render_view(&model, scene, c, f, VIEW_SAMPLING, &device, &fitted);
+    });
+    let together = start.elapsed().as_secs_f64() / views.len().max(1) as f64;
+
+    let (w, h) = (scene.cameras[camera].width, scene.cameras[camera].height);
+    let mut md = format!(
+        "## Render time per view: {} ({w} x {h}, camera {camera}, frame {frame}; {threads} threads)\n\n| light | s per view, all threads | s per view, one thread | ratio |\n|---|---|---|---|\n",
+        run.display()
+    );
+    let mut csv = String::from("light,seconds_all_threads,seconds_one_thread\n");
+    for (name, all, one) in &rows {
+        md += &format!("| {name} | {all:.3} | {one:.3} | {:.2}x |\n", all / one);
+        csv += &format!("{name},{all:.5},{one:.5}\n");
+    }
+    md += &format!(
+        "\n{} test views of the fitted light, as the evaluation renders them: {sequential:.3} s per view one after another, {together:.3} s per view {} at once ({:.2}x). Peak memory {} MiB.\n",
+        views.len(),
+        views.len(),
+        together / sequential,
+        peak_rss_mib().map_or("-".to_string(), |m| format!("{m:.0}"))
+    );
+    csv += &format!("views one after another,{sequential:.5},\nviews at once,{together:.5},\n");
+    std::fs::create_dir_all(out).map_err(|e| io(out, e))?;
+    let write = |name: &str, text: &str| crate::imageio::write_atomic(&out.join(name), text.as_bytes()).map_err(|e| io(&out.join(name), e));
+    write("render.md", &md)?;
+    write("render.csv", &csv)?;
+    let chart = BarChart {
+        title: "seconds per view".into(),
+        unit: "s".into(),
+        labels: rows.iter().map(|r| r.0.clone()).collect(),
+        series: vec![("all threads".into(), rows.iter().map(|r| r.1).collect()), ("one thread".into(), rows.iter().map(|r| r.2).collect())],
+    };
+    chart.render(900).save_png(&out.join("render.png")).map_err(|e| io(&out.join("render.png"), e))?;
+    Ok(md)
+}
