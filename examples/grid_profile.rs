@@ -5,8 +5,8 @@ use glam::DVec3;
 use std::time::Instant;
 use umbra::field::grid::lookup;
 use umbra::field::{FieldConfig, PoseTensors};
+use umbra::random::Stream;
 use umbra::synth::character::{Character, Kind};
-use umbra::synth::trace::Stream;
 
 fn main() {
     let character = Character::new(Kind::Human);

@@ -1,7 +1,8 @@
 //! What a fitted avatar looks like under a light it was not fitted in: a sun or a point light
 //! (the training image formation with a known light), uniform light or an HDR environment map
-//! (per pixel, `environment::MisEstimator`, with visibility from the Gaussians). Also the scale
-//! that turns the fitted albedo, which carries the training light's strength, into reflectance.
+//! (per pixel, `environment::MisEstimator`, with visibility from the Gaussians), in the scene's
+//! cameras or a turntable around the body (`orbit_cameras`), directly or through a visibility
+//! basis precomputed per view (`basis`, timed and checked against the direct estimator).
 
 use crate::eval::{render_view, Lighting};
 use crate::imageio::RgbImage;
