@@ -48,7 +48,14 @@ pub struct TransferBasis {
     visibility: Vec<f32>,
     /// Each (u, v) table cell's nearest direction.
     table: Vec<u32>,
+    /// Per direction, the others within `NEIGHBOUR_SPACINGS` lattice spacings.
+    neighbours: Vec<Vec<u32>>,
 }
+
+/// How far (in lattice spacings, plus a table cell's diagonal) a direction's neighbours reach:
+/// a light within one spacing of a direction is within one spacing, the lattice's covering
+/// radius (under one spacing) and a table cell of the table's nearest direction to it.
+const NEIGHBOUR_SPACINGS: f64 = 2.0;
 
 impl TransferBasis {
     /// The basis of a view from its `surfels` (`eval::surfels`, row by row, `width x height`:
@@ -80,9 +87,17 @@ impl TransferBasis {
                 nearest(&directions, d) as u32
             })
             .collect();
+        let cell_diagonal = std::f64::consts::SQRT_2 * 2.0 * PI / TABLE_COLUMNS as f64;
+        let reach = (NEIGHBOUR_SPACINGS * (4.0 * PI / directions.len() as f64).sqrt() + cell_diagonal).min(PI).cos();
+        let neighbours = directions
+            .par_iter()
+            .enumerate()
+            .map(|(i, a)| directions.iter().enumerate().filter(|&(j, b)| j != i && a.dot(*b) > reach).map(|(j, _)| j as u32).collect())
+            .collect();
         Self {
             width,
             height,
+            neighbours,
             directions,
             pixels: covered.iter().map(|(p, _)| *p).collect(),
             reflectance: covered.iter().map(|(_, s)| s.reflectance).collect(),
@@ -200,14 +215,16 @@ impl TransferBasis {
 
     /// The directions near `l` and their weights (summing to 1): a tent over the angle, out to
     /// one lattice spacing, so the blend changes continuously as `l` moves.
+    /// Only the table's nearest direction to `l` and its neighbours are tried (a point light
+    /// blends per pixel).
     fn blend(&self, l: DVec3) -> Vec<(usize, f64)> {
         let spacing = (4.0 * PI / self.directions.len() as f64).sqrt();
-        let weights: Vec<(usize, f64)> = self
-            .directions
-            .iter()
-            .enumerate()
-            .filter(|(_, d)| d.dot(l) > spacing.cos())
-            .map(|(j, d)| (j, 1.0 - d.dot(l).clamp(-1.0, 1.0).acos() / spacing))
+        let (u, v) = crate::light::direction_to_uv(l);
+        let near = self.cell_of_uv(u, v);
+        let weights: Vec<(usize, f64)> = std::iter::once(near)
+            .chain(self.neighbours[near].iter().map(|&j| j as usize))
+            .filter(|&j| self.directions[j].dot(l) > spacing.cos())
+            .map(|j| (j, 1.0 - self.directions[j].dot(l).clamp(-1.0, 1.0).acos() / spacing))
             .collect();
         let total: f64 = weights.iter().map(|w| w.1).sum();
         if total <= 0.0 {
@@ -333,6 +350,23 @@ mod tests {
                     let expected = reflectance * (ambient + DVec3::splat(2.0) * n.dot(direction).max(0.0) * t);
                     close(pixel(&image, p), expected, 0.03);
                 }
+            }
+        }
+    }
+
+    #[test]
+    fn the_blend_found_through_the_table_is_the_blend_over_every_direction() {
+        for count in [64, 1024] {
+            let basis = TransferBasis::new(&[surfel(DVec3::Y)], 1, 1, &[], SHADOW_START, count);
+            let spacing = (4.0 * PI / count as f64).sqrt();
+            let mut stream = crate::random::Stream::new(5, count as u64, 0);
+            for _ in 0..500 {
+                let l = DVec3::new(stream.uniform() - 0.5, stream.uniform() - 0.5, stream.uniform() - 0.5).normalize();
+                let mut every: Vec<usize> = (0..count).filter(|&j| basis.directions[j].dot(l) > spacing.cos()).collect();
+                let mut found: Vec<usize> = basis.blend(l).into_iter().map(|(j, _)| j).collect();
+                every.sort();
+                found.sort();
+                assert_eq!(found, every, "{count} directions, light {l}");
             }
         }
     }
