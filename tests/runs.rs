@@ -75,6 +75,8 @@ fn a_fit_started_elsewhere_uses_the_built_in_schedule_and_its_run_renders_from_a
     let light = stages.iter().find(|s| s["name"] == "light and RGB fitting").unwrap();
     assert_eq!(light["ran"], false, "{light}");
     assert_eq!(std::fs::read_to_string(run.join("schedule.toml")).unwrap(), umbra::schedule::DEFAULT_TEXT);
+    // `umbra fit` ends with the run's report.
+    assert!(run.join("report.html").exists() && run.join("report.md").exists());
     // A run moved to another folder renders from a third one.
     let moved = dir.path().join("moved-run");
     std::fs::rename(&run, &moved).unwrap();
