@@ -134,7 +134,7 @@ impl<'a> MisEstimator<'a> {
     }
 
     /// Visibility rays start `start` (m) off the surface instead of the reference human's
-    /// `SHADOW_START` (a fitted body's own, `LightModel::shadow_start`).
+    /// `SHADOW_START` (a fitted body's own, `FittedLight::shadow_start`).
     pub fn with_shadow_start(self, start: f32) -> Self {
         Self { shadow_start: start, ..self }
     }

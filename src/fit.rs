@@ -239,7 +239,7 @@ pub fn fit(options: &FitOptions, mut on: impl FnMut(TrainMessage)) -> Result<ser
     let light_stage = if trainer.fit_light {
         json!({"name": "light and RGB fitting", "ran": schedule.iterations > schedule.light_from, "from": schedule.light_from, "seconds": segment_seconds.get("light and RGB fitting").copied().unwrap_or(0.0)})
     } else {
-        let why = if trainer.light_kind == LightKind::Uniform && schedule.light != crate::schedule::LightFit::Off {
+        let why = if trainer.light_kind == LightKind::Uniform && schedule.light != crate::schedule::LightPolicy::Off {
             "every training image is uniformly lit: no light direction, no shadow rays; RGB fits the albedo directly"
         } else {
             "the schedule sets light = \"off\""

@@ -1,5 +1,13 @@
 //! Light sources of the scene format (directional sun, point, uniform, environment map) and
 //! the equirectangular environment map with its exact direction <-> (u, v) mapping.
+//!
+//! umbra's light vocabulary, one word per idea:
+//! - `Light` (here): a light as a scene states it, data, in the scene's units.
+//! - `shading::LightKind`: which light a fit models (sun, point, uniform).
+//! - `shading::FittedLight`: the learnable light of a fit (a burn module) and its report.
+//! - `shading::Emitter`: a shadow-casting light as tensors, for the image formation.
+//! - `eval::Lighting`: how a view is rendered: in fitted light k, as albedo, or in a `Light`.
+//! - `schedule::LightPolicy`: whether a fit fits its light (`light = "auto" | "fit" | "off"`).
 
 use crate::imageio::RgbImage;
 use glam::DVec3;

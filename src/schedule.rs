@@ -106,7 +106,7 @@ impl Ramp {
 /// Whether the light (direction or position, and ambient) is fitted.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize)]
 #[serde(rename_all = "lowercase")]
-pub enum LightFit {
+pub enum LightPolicy {
     /// Fit it when a training light casts shadows (sun or point), skip it for uniform light.
     Auto,
     /// Always fit it: an error for a uniformly lit scene.
@@ -135,7 +135,7 @@ pub struct Schedule {
     pub density_points: usize,
     pub regulariser_points: usize,
     pub checkpoint_every: usize,
-    pub light: LightFit,
+    pub light: LightPolicy,
     /// Iteration from which the light is fitted (before it, shading uses the initial light).
     pub light_from: usize,
     /// Iterations of the last segment that only the light needs: a scene whose light is not
@@ -356,11 +356,11 @@ impl Schedule {
         }
         let iterations = count(file, &table, "iterations", 2000, 1)?;
         let light = match table.get("light") {
-            None => LightFit::Auto,
+            None => LightPolicy::Auto,
             Some(toml::Value::String(s)) => match s.as_str() {
-                "auto" => LightFit::Auto,
-                "fit" => LightFit::Fit,
-                "off" => LightFit::Off,
+                "auto" => LightPolicy::Auto,
+                "fit" => LightPolicy::Fit,
+                "off" => LightPolicy::Off,
                 other => return Err(err(file, "light", format!("expected \"auto\", \"fit\" or \"off\", found {other:?}"))),
             },
             Some(other) => return Err(err(file, "light", format!("expected a string, found {}", other.type_str()))),
@@ -536,12 +536,12 @@ impl Schedule {
     /// Checks the schedule against what the scene can feed; returns whether the light is fitted.
     pub fn check_against(&self, scene_casts_shadows: bool) -> Result<bool, ScheduleError> {
         match (self.light, scene_casts_shadows) {
-            (LightFit::Fit, false) => Err(err(
+            (LightPolicy::Fit, false) => Err(err(
                 &self.file,
                 "light",
                 "\"fit\" asks for a light-fitting stage, but every training image of this scene is uniformly lit: there is no light direction or shadow to recover (use \"auto\" or \"off\")",
             )),
-            (LightFit::Off, _) => Ok(false),
+            (LightPolicy::Off, _) => Ok(false),
             (_, shadows) => Ok(shadows),
         }
     }

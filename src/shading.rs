@@ -21,7 +21,7 @@ pub enum LightKind {
 }
 
 #[derive(burn::module::Module, Debug)]
-pub struct LightModel {
+pub struct FittedLight {
     /// Unnormalised direction toward a sun, or a point light's position in body units
     /// (`position` gives metres).
     pub vector: Param<Tensor<1>>,
@@ -54,7 +54,7 @@ pub struct LightModel {
 }
 
 /// Distance (m, on the reference human: a fit uses `skeleton::body_length` of it, kept in
-/// `LightModel::shadow_start`) the shadow ray starts off the surface, along the normal and
+/// `FittedLight::shadow_start`) the shadow ray starts off the surface, along the normal and
 /// along the ray, so a surface is not shadowed by the Gaussians that model its own skin.
 /// Measured on human-sun
 /// (default schedule, central-difference normals): 0.03 m -> sun 4.0 deg off, 28.2 dB;
@@ -104,7 +104,7 @@ fn inverse_softplus(v: f32) -> f32 {
     (v.exp() - 1.0).ln()
 }
 
-impl LightModel {
+impl FittedLight {
     /// A light of `kind` starting at `initial` (a direction, or a position in metres) for a
     /// body centred at `anchor` whose extent is `extent` (m).
     pub fn new(kind: LightKind, initial: [f32; 3], anchor: [f32; 3], extent: f64, ambient: f32, device: &Device) -> Self {

@@ -14,7 +14,7 @@ use crate::random::Stream;
 use crate::render::{box_bounds, ray_bounds, render, Deferred, RaySet};
 use crate::scene::{Scene, Split};
 use crate::schedule::Schedule;
-use crate::shading::{LightKind, LightModel};
+use crate::shading::{FittedLight, LightKind};
 use crate::shadow::tensor::GaussianTensors;
 use burn::module::Module;
 use burn::optim::{AdamConfig, GradientsParams, ModuleOptimizer};
@@ -48,15 +48,15 @@ pub struct Avatar {
     pub field: AvatarField,
     pub gaussians: GaussianParams,
     /// The first training light (in the order of `Scene::training_lights`).
-    pub light: LightModel,
+    pub light: FittedLight,
     /// The other training lights of a capture lit by several (none for one light, so a
     /// one-light checkpoint holds exactly what it did before there could be more).
-    pub other_lights: Vec<LightModel>,
+    pub other_lights: Vec<FittedLight>,
 }
 
 impl Avatar {
     /// Training light `k` (0: `light`).
-    pub fn light_at(&self, k: usize) -> &LightModel {
+    pub fn light_at(&self, k: usize) -> &FittedLight {
         if k == 0 {
             &self.light
         } else {
@@ -64,7 +64,7 @@ impl Avatar {
         }
     }
 
-    fn light_at_mut(&mut self, k: usize) -> &mut LightModel {
+    fn light_at_mut(&mut self, k: usize) -> &mut FittedLight {
         if k == 0 || k > self.other_lights.len() {
             &mut self.light
         } else {
@@ -489,7 +489,7 @@ pub const SUN_CONE_SPACINGS: f64 = 2.0;
 
 /// The light with its sun direction rotated back onto the cone of half-angle `angle` around
 /// `axis` when a step took it outside (ambient and shadow density untouched).
-fn keep_in_cone(mut light: LightModel, axis: glam::DVec3, angle: f64, device: &Device) -> LightModel {
+fn keep_in_cone(mut light: FittedLight, axis: glam::DVec3, angle: f64, device: &Device) -> FittedLight {
     let values = light.vector.val().into_data().convert::<f32>().try_to_vec::<f32>().unwrap_or_default();
     if values.len() != 3 {
         return light;
@@ -643,12 +643,12 @@ impl Trainer {
         let model = Avatar {
             field: field_config.init(&device, seed),
             gaussians: GaussianParams::from_set(&set, unit as f32, &device),
-            light: LightModel::new(light_kind, initial, centre.as_vec3().to_array(), extent, 0.3, &device),
+            light: FittedLight::new(light_kind, initial, centre.as_vec3().to_array(), extent, 0.3, &device),
             // The first light fixes the scale the albedo cannot be told apart from (a sun's
             // irradiance 1, the ambient's target): the others' strengths are learned relative
             // to it.
             other_lights: (1..light_count)
-                .map(|_| LightModel::new(light_kind, initial, centre.as_vec3().to_array(), extent, 0.3, &device).with_learned_strength())
+                .map(|_| FittedLight::new(light_kind, initial, centre.as_vec3().to_array(), extent, 0.3, &device).with_learned_strength())
                 .collect(),
         };
         let bone_centres = bone_centres(&set.gaussians.iter().map(|g| g.bone).collect::<Vec<_>>(), &scene.skeleton, &device);
