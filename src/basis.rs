@@ -58,6 +58,23 @@ pub struct TransferBasis {
 const NEIGHBOUR_SPACINGS: f64 = 2.0;
 
 impl TransferBasis {
+    /// The basis of one view (`camera`, `frame`) of a fitted avatar: its surfels as the view
+    /// renders draw them (`eval::surfels`), the fitted light's shadow casters in that pose.
+    pub fn of_view(
+        model: &crate::train::Avatar,
+        scene: &crate::scene::Scene,
+        camera: usize,
+        frame: usize,
+        directions: usize,
+        device: &burn::tensor::Device,
+    ) -> Self {
+        let albedo_scale = crate::run::albedo_scale(scene, model);
+        let surfels = crate::eval::surfels(model, scene, camera, frame, crate::eval::VIEW_SAMPLING, albedo_scale, device);
+        let casters = model.light.shadow_casters_posed(&model.gaussians.to_set().pose(&scene.frames[frame].pose));
+        let view = &scene.cameras[camera];
+        Self::new(&surfels, view.width, view.height, &casters, model.light.shadow_start, directions)
+    }
+
     /// The basis of a view from its `surfels` (`eval::surfels`, row by row, `width x height`:
     /// the pixels it draws, their reflectance weighted by their coverage), the shadow
     /// `casters` in its pose and the shadow ray's start off the surface (m).
@@ -147,13 +164,24 @@ impl TransferBasis {
                     self.reflectance[p] * (*ambient + *intensity / (distance * distance) * (self.normals[p].dot(l).max(0.0) * v))
                 })
                 .collect(),
-            Light::Uniform { radiance } => self.sky(&vec![*radiance * (4.0 * PI / k as f64); k]),
-            Light::Environment { map, scale, .. } => self.sky(&self.sky_cells(map, *scale)),
+            Light::Uniform { .. } | Light::Environment { .. } => self.sky(&self.sky_light(light).unwrap_or_default()),
         };
         for (p, v) in self.pixels.iter().zip(values) {
             image.pixels[*p] = v.as_vec3().to_array();
         }
         image
+    }
+
+    /// Each direction's cell's light (radiance x solid angle) from a sky: a uniform light's
+    /// radiance over 4 pi / K each, an environment's texels binned (`sky_cells`); `None` for a
+    /// sun or a point light.
+    pub fn sky_light(&self, light: &Light) -> Option<Vec<DVec3>> {
+        let k = self.directions.len();
+        match light {
+            Light::Uniform { radiance } => Some(vec![*radiance * (4.0 * PI / k as f64); k]),
+            Light::Environment { map, scale, .. } => Some(self.sky_cells(map, *scale)),
+            Light::Directional { .. } | Light::Point { .. } => None,
+        }
     }
 
     /// Each direction's cell's light from an environment map (radiance x solid angle, summed

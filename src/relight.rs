@@ -350,11 +350,8 @@ fn relight_by_basis(
     device: &burn::tensor::Device,
 ) -> (RgbImage, BasisTiming) {
     let started = std::time::Instant::now();
-    let albedo_scale = crate::run::albedo_scale(scene, model);
-    let surfels = crate::eval::surfels(model, scene, camera, frame, crate::eval::VIEW_SAMPLING, albedo_scale, device);
-    let casters = model.light.shadow_casters_posed(&model.gaussians.to_set().pose(&scene.frames[frame].pose));
-    let (w, h) = (scene.cameras[camera].width, scene.cameras[camera].height);
-    let basis = crate::basis::TransferBasis::new(&surfels, w, h, &casters, model.light.shadow_start, directions);
+    let basis = crate::basis::TransferBasis::of_view(model, scene, camera, frame, directions, device);
+    let (w, h) = (basis.width, basis.height);
     let precompute_seconds = started.elapsed().as_secs_f64();
     let mut relight_seconds = f64::INFINITY;
     let mut image = RgbImage::new(w, h);

@@ -54,11 +54,8 @@ pub fn write_report(options: &ReportOptions) -> Result<(PathBuf, PathBuf), FitEr
     let device = trainer.device.clone().without_autodiff();
 
     // The panel: one view's basis, the scene's training sun as the first light.
-    let albedo_scale = crate::run::albedo_scale(scene, &model);
-    let surfels = crate::eval::surfels(&model, scene, options.camera, options.frame, crate::eval::VIEW_SAMPLING, albedo_scale, &device);
-    let casters = model.light.shadow_casters_posed(&model.gaussians.to_set().pose(&scene.frames[options.frame].pose));
+    let basis = TransferBasis::of_view(&model, scene, options.camera, options.frame, options.directions, &device);
     let camera = &scene.cameras[options.camera];
-    let basis = TransferBasis::new(&surfels, camera.width, camera.height, &casters, model.light.shadow_start, options.directions);
     let up = crate::relight::world_up(&scene.cameras);
     let training = scene.training_lights().first().and_then(|name| scene.lights.get(*name)).cloned();
     let (sun, irradiance, ambient) = match &training {
@@ -66,17 +63,7 @@ pub fn write_report(options: &ReportOptions) -> Result<(PathBuf, PathBuf), FitEr
         _ => ((up + camera.camera_to_world.z_axis.truncate() * -0.5).normalize(), DVec3::ONE, DVec3::splat(0.25)),
     };
     let first = basis.relight(&Light::Directional { direction: sun, irradiance, ambient });
-    let skies: Vec<(String, Vec<DVec3>)> = scene
-        .lights
-        .iter()
-        .filter_map(|(name, light)| match light {
-            Light::Environment { map, scale, .. } => Some((name.clone(), basis.sky_cells(map, *scale))),
-            Light::Uniform { radiance } => {
-                Some((name.clone(), vec![*radiance * (4.0 * std::f64::consts::PI / basis.directions.len() as f64); basis.directions.len()]))
-            }
-            _ => None,
-        })
-        .collect();
+    let skies: Vec<(String, Vec<DVec3>)> = scene.lights.iter().filter_map(|(name, light)| basis.sky_light(light).map(|cells| (name.clone(), cells))).collect();
     let panel = panel_json(&basis, up, camera.camera_to_world.z_axis.truncate(), sun, irradiance, ambient, &skies, &first);
 
     let relit_png = crate::imageio::encode_png_rgb(&first).map_err(|e| io(&run.join("report.html"), e))?;

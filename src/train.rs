@@ -387,12 +387,18 @@ pub fn masked_reach_beyond_bones(scene: &Scene, reach: f64, root: usize) -> Opti
     use rayon::prelude::*;
     let skeleton = &scene.skeleton;
     let distance = crate::skeleton::distance_to_segment;
-    let frames: Vec<(&crate::scene::Frame, Vec<&crate::scene::View>)> = scene
+    // Per masked training frame: the frame, its bones' segments (asked for at every lattice
+    // point) and its masked training views.
+    type Segments = Vec<(glam::DVec3, glam::DVec3)>;
+    let frames: Vec<(&crate::scene::Frame, Segments, Vec<&crate::scene::View>)> = scene
         .frames
         .iter()
         .enumerate()
-        .map(|(position, frame)| (frame, scene.views.iter().filter(|v| v.frame == position && v.split == Split::Train && v.mask.is_some()).collect()))
-        .filter(|(_, views): &(_, Vec<_>)| !views.is_empty())
+        .map(|(position, frame)| {
+            let segments = (0..skeleton.len()).map(|b| frame.pose.segment(skeleton, b)).collect();
+            (frame, segments, scene.views.iter().filter(|v| v.frame == position && v.split == Split::Train && v.mask.is_some()).collect())
+        })
+        .filter(|(_, _, views): &(_, _, Vec<_>)| !views.is_empty())
         .collect();
     let inside_every_mask = |views: &[&crate::scene::View], p: glam::DVec3| {
         views.iter().all(|v| {
@@ -404,25 +410,25 @@ pub fn masked_reach_beyond_bones(scene: &Scene, reach: f64, root: usize) -> Opti
             })
         })
     };
-    let beyond_every_bone = |frame: &crate::scene::Frame, p: glam::DVec3| (0..skeleton.len()).all(|b| distance(p, frame.pose.segment(skeleton, b)) > reach);
+    let beyond_every_bone = |segments: &[(glam::DVec3, glam::DVec3)], p: glam::DVec3| segments.iter().all(|&s| distance(p, s) > reach);
     // A view shows body beyond the bones at `p` when the ray through p's pixel passes farther
     // than `reach` from every bone: a body tight on its bones explains every mask pixel, so a
     // phantom of the hull (inside every mask, yet no body there) never passes this test.
     let far_beyond = 4.0 * (scene.body_extent() + reach);
-    let shown_beyond_bones = |frame: &crate::scene::Frame, views: &[&crate::scene::View], p: glam::DVec3| {
+    let shown_beyond_bones = |segments: &[(glam::DVec3, glam::DVec3)], views: &[&crate::scene::View], p: glam::DVec3| {
         views.iter().any(|v| {
             let camera = &scene.cameras[v.camera];
             camera.project(p).is_some_and(|px| {
                 let ray = camera.ray_through(px.floor() + glam::DVec2::splat(0.5));
                 let ray = (ray.origin, ray.at((p - ray.origin).length() + far_beyond));
-                (0..skeleton.len()).all(|b| crate::skeleton::segment_distance(ray, frame.pose.segment(skeleton, b)) > reach)
+                segments.iter().all(|&s| crate::skeleton::segment_distance(ray, s) > reach)
             })
         })
     };
     // Proposals, root-local, from every frame's hull.
     let proposals: Vec<glam::DVec3> = frames
         .par_iter()
-        .flat_map_iter(|(frame, views)| {
+        .flat_map_iter(|(frame, segments, views)| {
             let (lo, hi) = frame.pose.bounds(skeleton);
             let step = (hi - lo).length() / HULL_STEPS_PER_EXTENT;
             let (lo, hi) = (lo - glam::DVec3::splat(2.0 * reach), hi + glam::DVec3::splat(2.0 * reach));
@@ -432,7 +438,7 @@ pub fn masked_reach_beyond_bones(scene: &Scene, reach: f64, root: usize) -> Opti
                 for j in 0..counts.y {
                     for i in 0..counts.x {
                         let p = lo + glam::DVec3::new(i as f64 + 0.5, j as f64 + 0.5, k as f64 + 0.5) * step;
-                        if beyond_every_bone(frame, p) && inside_every_mask(views, p) && shown_beyond_bones(frame, views, p) {
+                        if beyond_every_bone(segments, p) && inside_every_mask(views, p) && shown_beyond_bones(segments, views, p) {
                             found.push(frame.pose.to_local(root, p));
                         }
                     }
@@ -449,9 +455,9 @@ pub fn masked_reach_beyond_bones(scene: &Scene, reach: f64, root: usize) -> Opti
     let root_length = skeleton.bones[root].length;
     let held = |local: &glam::DVec3| {
         let (mut beyond, mut inside) = (0usize, 0usize);
-        for (frame, views) in &frames {
+        for (frame, segments, views) in &frames {
             let p = frame.pose.to_world(root, *local);
-            if beyond_every_bone(frame, p) {
+            if beyond_every_bone(segments, p) {
                 beyond += 1;
                 inside += inside_every_mask(views, p) as usize;
             }
