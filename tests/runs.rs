@@ -104,7 +104,9 @@ fn a_users_folder_is_not_written_into_and_a_failing_resume_writes_nothing() {
     succeeds(&cwd, &["fit", scene.to_str().unwrap(), "--out", run.to_str().unwrap(), "--iterations", "2"]);
     std::fs::write(run.join("checkpoint/state.json"), "{ not json").unwrap();
     let other = dir.path().join("other.toml");
-    std::fs::write(&other, umbra::schedule::DEFAULT_TEXT.replace("iterations = 2900", "iterations = 1700")).unwrap();
+    let changed = umbra::schedule::DEFAULT_TEXT.replace("iterations = 2900", "iterations = 1700");
+    assert_ne!(changed, umbra::schedule::DEFAULT_TEXT, "the other schedule must differ from the default");
+    std::fs::write(&other, changed).unwrap();
     let before = snapshot(&run);
     fails(&cwd, &["fit", scene.to_str().unwrap(), "--out", run.to_str().unwrap(), "--resume", "--schedule", other.to_str().unwrap()]);
     assert_eq!(before, snapshot(&run), "a failing --resume changed the run");
