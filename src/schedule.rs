@@ -165,6 +165,10 @@ pub struct Schedule {
     /// the body's box (the posed bones' box widened by the grid's reach) instead of skipped, so
     /// the field can grow where the masks say the body is and the Gaussians follow it there.
     pub sample_masked_misses: bool,
+    /// The share of the batch's foreground rays drawn in proportion to their pixel's local
+    /// contrast (`train::contrast_weights`: a clothing pattern's or a shadow's edges) instead
+    /// of uniformly over the foreground; 0 draws them all uniformly.
+    pub contrast_rays: f64,
     /// The captures' pixel footprint (`scene::footprint`): `None` reads it off the training
     /// images, else as given.
     pub footprint: Option<crate::scene::Footprint>,
@@ -343,6 +347,7 @@ impl Schedule {
             "sun_search",
             "rebind_every",
             "sample_masked_misses",
+            "contrast_rays",
             "footprint",
             "pixel_rays",
             "learning_rates",
@@ -455,6 +460,11 @@ impl Schedule {
                 None => false,
                 Some(toml::Value::Boolean(b)) => *b,
                 Some(other) => return Err(err(file, "sample_masked_misses", format!("expected true or false, found {other}"))),
+            },
+            contrast_rays: match number(file, &table, "contrast_rays", "")? {
+                None => 0.0,
+                Some(v) if (0.0..=1.0).contains(&v) => v,
+                Some(v) => return Err(err(file, "contrast_rays", format!("must be within [0, 1], found {v}"))),
             },
             footprint: match table.get("footprint") {
                 None => None,
@@ -603,6 +613,8 @@ mod tests {
         assert_eq!(error_of("[field]\nkind = \"grid\"\nreach_per_extent = 0\n[losses]\nmask = 1.0").key, "field.reach_per_extent");
         assert_eq!(error_of("[field]\nreach_per_extent = 0.2\n[losses]\nmask = 1.0").key, "field.reach_per_extent");
         assert_eq!(error_of("sample_masked_misses = 1\n[losses]\nmask = 1.0").key, "sample_masked_misses");
+        assert_eq!(error_of("contrast_rays = 1.5\n[losses]\nmask = 1.0").key, "contrast_rays");
+        assert_eq!(error_of("contrast_rays = \"half\"\n[losses]\nmask = 1.0").key, "contrast_rays");
         assert_eq!(error_of("[field]\nkind = \"grid\"\nfeatures = 0\n[losses]\nmask = 1.0").key, "field.features");
         assert_eq!(error_of("[field]\nkind = \"grid\"\nfinest_per_extent = 2.5\n[losses]\nmask = 1.0").key, "field.finest_per_extent");
         assert_eq!(error_of("[field]\nfinest_per_extent = 320\n[losses]\nmask = 1.0").key, "field.finest_per_extent");

@@ -220,6 +220,49 @@ struct ViewData {
     /// Per pixel, whether it touches a pixel of the other kind (8-neighbours): where a pixel
     /// averaging its area may be partly covered whatever its mask says.
     silhouette: Vec<bool>,
+    /// Foreground pixels with some local contrast and their running sum of it
+    /// (`contrast_weights`), to draw a pixel in proportion to its contrast.
+    contrast: Vec<usize>,
+    contrast_cumulative: Vec<f64>,
+}
+
+impl ViewData {
+    /// A foreground pixel drawn in proportion to its contrast from `u` in [0, 1); `None` when
+    /// the view has no contrast at all.
+    fn by_contrast(&self, u: f64) -> Option<usize> {
+        let total = *self.contrast_cumulative.last()?;
+        let at = self.contrast_cumulative.partition_point(|&c| c <= u * total);
+        self.contrast.get(at.min(self.contrast.len() - 1)).copied()
+    }
+}
+
+/// Per foreground pixel, the largest difference (8-bit sRGB, per channel, over 0-1) between it
+/// and a foreground 8-neighbour: high on a clothing pattern's edges and a shadow's, zero where
+/// the image is flat. The silhouette's own edge is the boundary band's business, so background
+/// neighbours do not count. Pixels without a mask or with no contrast are left out.
+pub fn contrast_weights(image: &crate::imageio::RgbImage, mask: &crate::imageio::Mask) -> Vec<(usize, f64)> {
+    let (w, h) = (image.width, image.height);
+    let srgb: Vec<[f32; 3]> = image.pixels.iter().map(|c| c.map(crate::imageio::linear_to_srgb)).collect();
+    (0..w * h)
+        .filter(|&p| mask.foreground[p])
+        .filter_map(|p| {
+            let (x, y) = ((p % w) as i64, (p / w) as i64);
+            let mut most = 0.0f32;
+            for dy in -1..=1i64 {
+                for dx in -1..=1i64 {
+                    let (u, v) = (x + dx, y + dy);
+                    if (dx, dy) == (0, 0) || u < 0 || v < 0 || u >= w as i64 || v >= h as i64 {
+                        continue;
+                    }
+                    let q = v as usize * w + u as usize;
+                    if mask.foreground[q] {
+                        most = (0..3).map(|c| (srgb[p][c] - srgb[q][c]).abs()).fold(most, f32::max);
+                    }
+                }
+            }
+            (most > 0.0).then_some((p, most as f64))
+        })
+        .collect()
 }
 
 /// How far above the body's centre a point light starts, in body extents (2.5 m for a walking
@@ -626,6 +669,20 @@ impl Trainer {
                         flags
                     })
                     .unwrap_or_default(),
+                contrast: Vec::new(),
+                contrast_cumulative: Vec::new(),
+            })
+            .zip(&scene.views)
+            .map(|(mut data, v)| {
+                if let (Some(mask), true) = (&v.mask, v.split == Split::Train && schedule.contrast_rays > 0.0) {
+                    let mut sum = 0.0;
+                    for (pixel, weight) in contrast_weights(&v.colour, mask) {
+                        sum += weight;
+                        data.contrast.push(pixel);
+                        data.contrast_cumulative.push(sum);
+                    }
+                }
+                data
             })
             .collect();
         let extent = scene.body_extent();
@@ -819,13 +876,22 @@ impl Trainer {
             let view = &self.scene.views[v];
             let camera = &self.scene.cameras[view.camera];
             let pixels = camera.width * camera.height;
-            // A third each from the foreground, the silhouette's band and the whole view.
+            // A third each from the foreground, the silhouette's band and the whole view; of the
+            // foreground's, every (1 / contrast_rays)-th in proportion to its contrast.
             let pool = match k % 3 {
                 0 => &self.views[v].foreground,
                 1 => &self.views[v].boundary,
                 _ => &Vec::new(),
             };
-            let pixel = if pool.is_empty() { self.stream.below(pixels) } else { pool[self.stream.below(pool.len())] };
+            let j = (k / 3) as f64;
+            let f = self.schedule.contrast_rays;
+            let by_contrast = k % 3 == 0 && (j * f).floor() != ((j + 1.0) * f).floor();
+            let contrasted = if by_contrast { self.views[v].by_contrast(self.stream.uniform()) } else { None };
+            let pixel = match contrasted {
+                Some(p) => p,
+                None if pool.is_empty() => self.stream.below(pixels),
+                None => pool[self.stream.below(pool.len())],
+            };
             let mask = view.mask.as_ref().map(|m| m.foreground[pixel] as u8 as f32).unwrap_or(0.0);
             let (x, y) = ((pixel % camera.width) as f64, (pixel / camera.width) as f64);
             let rays: Vec<crate::scene::Ray> = if per_pixel == 1 {
@@ -1196,5 +1262,61 @@ impl Trainer {
         stats.phases = clock.spans;
         stats.seconds = start.elapsed().as_secs_f64();
         Ok(stats)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::imageio::{Mask, RgbImage};
+
+    /// A 6x4 image: the left half black, the right half white, all foreground but the
+    /// bottom-right pixel.
+    fn halves() -> (RgbImage, Mask) {
+        let mut image = RgbImage::new(6, 4);
+        for y in 0..4 {
+            for x in 3..6 {
+                image.set(x, y, [1.0; 3]);
+            }
+        }
+        let mut foreground = vec![true; 24];
+        foreground[23] = false;
+        (image, Mask { width: 6, height: 4, foreground })
+    }
+
+    #[test]
+    fn contrast_is_the_pattern_edge_not_the_flat_or_the_silhouette() {
+        let (image, mask) = halves();
+        let weights = contrast_weights(&image, &mask);
+        let pixels: Vec<usize> = weights.iter().map(|w| w.0).collect();
+        // Columns 2 and 3 border the other colour; the background pixel is left out and its
+        // neighbours' flat colour gives nothing.
+        let expected: Vec<usize> = (0..24).filter(|&p| (p % 6 == 2 || p % 6 == 3) && p != 23).collect();
+        assert_eq!(pixels, expected);
+        assert!(weights.iter().all(|w| (w.1 - 1.0).abs() < 1e-6), "{weights:?}");
+        // A dark step weighs as the sRGB metric sees it: linear 0.01 against 0.02 is 0.099 -> 0.153.
+        let mut dim = image.clone();
+        dim.pixels.iter_mut().for_each(|c| *c = if c[0] > 0.5 { [0.02; 3] } else { [0.01; 3] });
+        let step = crate::imageio::linear_to_srgb(0.02) - crate::imageio::linear_to_srgb(0.01);
+        assert!(contrast_weights(&dim, &mask).iter().all(|w| (w.1 - step as f64).abs() < 1e-6));
+    }
+
+    #[test]
+    fn pixels_are_drawn_in_proportion_to_contrast() {
+        let view = ViewData {
+            foreground: Vec::new(),
+            boundary: Vec::new(),
+            silhouette: Vec::new(),
+            contrast: vec![4, 9, 30],
+            contrast_cumulative: vec![1.0, 1.0 + 3.0, 1.0 + 3.0 + 0.5],
+        };
+        let mut counts = [0usize; 3];
+        let n = 9000;
+        for k in 0..n {
+            let drawn = view.by_contrast((k as f64 + 0.5) / n as f64).unwrap();
+            counts[view.contrast.iter().position(|&p| p == drawn).unwrap()] += 1;
+        }
+        assert_eq!(counts, [2000, 6000, 1000]);
+        assert_eq!(ViewData { contrast: vec![], contrast_cumulative: vec![], ..view }.by_contrast(0.3), None);
     }
 }
