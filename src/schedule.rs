@@ -673,6 +673,21 @@ mod tests {
         assert_eq!(error_of("sun_search = -1\n[losses]\nmask = 1.0").key, "sun_search");
     }
 
+    /// The shipped longer schedule is the default but for its length and where the field's
+    /// learning rates start to fall (a stale copy of an older default would differ in more).
+    #[test]
+    fn the_detail_schedule_is_the_default_made_longer() {
+        let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("schedules/detail.toml");
+        let detail = Schedule::parse(&std::fs::read_to_string(&path).unwrap(), Path::new("x.toml")).unwrap();
+        let default = Schedule::parse(DEFAULT, Path::new("x.toml")).unwrap();
+        assert!(detail.iterations > default.iterations && detail.field_lr_decay_from > default.field_lr_decay_from);
+        assert!(detail.iterations - detail.field_lr_decay_from >= default.iterations - default.field_lr_decay_from, "a tail no shorter");
+        let (a, d) = (serde_json::to_value(&detail).unwrap(), serde_json::to_value(&default).unwrap());
+        let mut keys: Vec<&String> = a.as_object().unwrap().iter().filter(|(k, v)| d.get(k.as_str()) != Some(v)).map(|(k, _)| k).collect();
+        keys.sort();
+        assert_eq!(keys, ["field_lr_decay_from", "iterations"]);
+    }
+
     /// Every shipped ablation parses and differs from the default schedule (in its settings,
     /// not only its comments).
     #[test]
