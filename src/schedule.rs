@@ -673,6 +673,12 @@ mod tests {
         assert_eq!(error_of("sun_search = -1\n[losses]\nmask = 1.0").key, "sun_search");
     }
 
+    /// The top-level settings in which two schedules differ, in name order.
+    fn differing_settings(a: &Schedule, b: &Schedule) -> Vec<String> {
+        let (a, b) = (serde_json::to_value(a).unwrap(), serde_json::to_value(b).unwrap());
+        a.as_object().unwrap().iter().filter(|(k, v)| b.get(k.as_str()) != Some(v)).map(|(k, _)| k.clone()).collect()
+    }
+
     /// The shipped longer schedule is the default but for its length and where the field's
     /// learning rates start to fall (a stale copy of an older default would differ in more).
     #[test]
@@ -682,10 +688,7 @@ mod tests {
         let default = Schedule::parse(DEFAULT, Path::new("x.toml")).unwrap();
         assert!(detail.iterations > default.iterations && detail.field_lr_decay_from > default.field_lr_decay_from);
         assert!(detail.iterations - detail.field_lr_decay_from >= default.iterations - default.field_lr_decay_from, "a tail no shorter");
-        let (a, d) = (serde_json::to_value(&detail).unwrap(), serde_json::to_value(&default).unwrap());
-        let mut keys: Vec<&String> = a.as_object().unwrap().iter().filter(|(k, v)| d.get(k.as_str()) != Some(v)).map(|(k, _)| k).collect();
-        keys.sort();
-        assert_eq!(keys, ["field_lr_decay_from", "iterations"]);
+        assert_eq!(differing_settings(&detail, &default), ["field_lr_decay_from", "iterations"]);
     }
 
     /// Every shipped ablation parses and differs from the default schedule (in its settings,
@@ -702,8 +705,7 @@ mod tests {
             assert_ne!(ablation, default, "{} is the default schedule", path.display());
             // One respect: the settings that differ share one top-level key (a stale copy of
             // an older default would differ in more).
-            let (a, d) = (serde_json::to_value(&ablation).unwrap(), serde_json::to_value(&default).unwrap());
-            let keys: Vec<&String> = a.as_object().unwrap().iter().filter(|(k, v)| d.get(k.as_str()) != Some(v)).map(|(k, _)| k).collect();
+            let keys = differing_settings(&ablation, &default);
             assert_eq!(keys.len(), 1, "{} differs from the default in {keys:?}", path.display());
             count += 1;
         }

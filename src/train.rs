@@ -239,7 +239,7 @@ impl ViewData {
 /// Per foreground pixel, the largest difference (8-bit sRGB, per channel, over 0-1) between it
 /// and a foreground 8-neighbour: high on a clothing pattern's edges and a shadow's, zero where
 /// the image is flat. The silhouette's own edge is the boundary band's business, so background
-/// neighbours do not count. Pixels without a mask or with no contrast are left out.
+/// neighbours do not count. Pixels with no contrast are left out.
 pub fn contrast_weights(image: &crate::imageio::RgbImage, mask: &crate::imageio::Mask) -> Vec<(usize, f64)> {
     let (w, h) = (image.width, image.height);
     let srgb: Vec<[f32; 3]> = image.pixels.iter().map(|c| c.map(crate::imageio::linear_to_srgb)).collect();
@@ -657,32 +657,33 @@ impl Trainer {
         let views = scene
             .views
             .iter()
-            .map(|v| ViewData {
-                foreground: v.mask.as_ref().map(|m| (0..m.foreground.len()).filter(|&k| m.foreground[k]).collect()).unwrap_or_default(),
-                boundary: v.mask.as_ref().map(|m| boundary_pixels(m, BOUNDARY_BAND)).unwrap_or_default(),
-                silhouette: v
-                    .mask
-                    .as_ref()
-                    .map(|m| {
-                        let mut flags = vec![false; m.foreground.len()];
-                        boundary_pixels(m, 1).into_iter().for_each(|p| flags[p] = true);
-                        flags
-                    })
-                    .unwrap_or_default(),
-                contrast: Vec::new(),
-                contrast_cumulative: Vec::new(),
-            })
-            .zip(&scene.views)
-            .map(|(mut data, v)| {
-                if let (Some(mask), true) = (&v.mask, v.split == Split::Train && schedule.contrast_rays > 0.0) {
-                    let mut sum = 0.0;
-                    for (pixel, weight) in contrast_weights(&v.colour, mask) {
-                        sum += weight;
-                        data.contrast.push(pixel);
-                        data.contrast_cumulative.push(sum);
-                    }
+            .map(|v| {
+                // Only a training view's contrast is drawn from, and only when the schedule asks.
+                let weighted = match &v.mask {
+                    Some(mask) if v.split == Split::Train && schedule.contrast_rays > 0.0 => contrast_weights(&v.colour, mask),
+                    _ => Vec::new(),
+                };
+                ViewData {
+                    foreground: v.mask.as_ref().map(|m| (0..m.foreground.len()).filter(|&k| m.foreground[k]).collect()).unwrap_or_default(),
+                    boundary: v.mask.as_ref().map(|m| boundary_pixels(m, BOUNDARY_BAND)).unwrap_or_default(),
+                    silhouette: v
+                        .mask
+                        .as_ref()
+                        .map(|m| {
+                            let mut flags = vec![false; m.foreground.len()];
+                            boundary_pixels(m, 1).into_iter().for_each(|p| flags[p] = true);
+                            flags
+                        })
+                        .unwrap_or_default(),
+                    contrast: weighted.iter().map(|w| w.0).collect(),
+                    contrast_cumulative: weighted
+                        .iter()
+                        .scan(0.0, |sum, w| {
+                            *sum += w.1;
+                            Some(*sum)
+                        })
+                        .collect(),
                 }
-                data
             })
             .collect();
         let extent = scene.body_extent();
