@@ -799,3 +799,20 @@ fn the_capped_prior_holds_a_hem_point_still_while_the_legs_swing() {
         assert!((h - (root.cap - capped.prior_radius)).abs() < 1e-6, "{held:?}");
     }
 }
+
+#[test]
+fn a_lookup_asked_for_more_bones_than_a_plan_holds_takes_the_most_it_can() {
+    // `umbra bench steps` asked for every bone of the human (17): the plan holds at most
+    // MAX_TOP_BONES per point, and asking for more must not index past them.
+    let s = setup();
+    let mut grid = s.config.grid.clone().unwrap();
+    grid.top_bones = s.character.skeleton.len();
+    assert!(grid.top_bones > umbra::field::grid::MAX_TOP_BONES);
+    assert_eq!(grid.top(), umbra::field::grid::MAX_TOP_BONES);
+    let levels = grid.layout();
+    let frames = PoseTensors::new(&s.pose, &s.character.skeleton, &Device::flex()).frames;
+    let pts = points(&s, 50, 5);
+    let plan = lookup(&grid, &levels, &frames, skinning(&s.config), &flat(&pts), true);
+    assert_eq!(plan.coefficients.len(), pts.len() * grid.corners());
+    assert_eq!(plan.root_slot.len(), pts.len() * grid.top());
+}

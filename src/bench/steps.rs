@@ -50,8 +50,8 @@ pub fn steps(scene_path: &Path, schedule_path: &Path, out: &Path, quick: bool) -
         Variant { name: "mlp, every ray rendered (before)", field: mlp.clone(), render_missed_rays: true, composite_lookup: false },
         Variant { name: "mlp, missed rays skipped", field: mlp, render_missed_rays: false, composite_lookup: false },
         Variant {
-            name: "grid, every bone per point, composite lookup",
-            field: grid(Some(scene.skeleton.len())),
+            name: "grid, nearest 8 bones (the most a lookup takes), composite lookup",
+            field: grid(Some(scene.skeleton.len().min(crate::field::grid::MAX_TOP_BONES))),
             render_missed_rays: false,
             composite_lookup: true,
         },

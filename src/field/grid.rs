@@ -142,8 +142,10 @@ impl GridConfig {
         }
     }
 
+    /// Bones a point is looked up in: `top_bones`, at most every bone and at most
+    /// `MAX_TOP_BONES` (a point's plan holds that many in fixed arrays).
     pub fn top(&self) -> usize {
-        self.top_bones.min(self.bone_lengths.len()).max(1)
+        self.top_bones.min(self.bone_lengths.len()).clamp(1, MAX_TOP_BONES)
     }
 
     /// Table rows a point touches: levels x bones x 8 corners.
