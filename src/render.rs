@@ -101,12 +101,18 @@ impl RaySet {
 
     /// The first `n` rays.
     pub fn first(&self, n: usize) -> RaySet {
-        let n = n.min(self.len());
+        self.range(0, n)
+    }
+
+    /// Rays `lo..hi` (clamped to the set).
+    pub fn range(&self, lo: usize, hi: usize) -> RaySet {
+        let hi = hi.min(self.len());
+        let lo = lo.min(hi);
         RaySet {
-            origins: self.origins[..3 * n].to_vec(),
-            directions: self.directions[..3 * n].to_vec(),
-            near: self.near[..n].to_vec(),
-            far: self.far[..n].to_vec(),
+            origins: self.origins[3 * lo..3 * hi].to_vec(),
+            directions: self.directions[3 * lo..3 * hi].to_vec(),
+            near: self.near[lo..hi].to_vec(),
+            far: self.far[lo..hi].to_vec(),
         }
     }
 
@@ -160,6 +166,19 @@ impl Sampling {
         } else {
             self.coarse + self.probe + self.fine
         }
+    }
+
+    /// The jitter of rays `lo..hi` out of `jitter` for `r` rays, laid out as `render` takes
+    /// it: pass by pass (coarse, probe, fine), each pass ray by ray.
+    fn jitter_of(&self, jitter: &[f32], r: usize, lo: usize, hi: usize) -> Vec<f32> {
+        let passes = if self.fine == 0 { vec![self.coarse] } else { vec![self.coarse, self.probe, self.fine] };
+        let mut start = 0;
+        let mut out = Vec::with_capacity((hi - lo) * self.draws());
+        for n in passes {
+            out.extend_from_slice(&jitter[start + lo * n..start + hi * n]);
+            start += r * n;
+        }
+        out
     }
 }
 
@@ -464,8 +483,9 @@ pub fn render_still(
 }
 
 /// Volume-renders `rays` through the field in `pose`, sampled as `sampling` says, with
-/// `jitter` in [0, 1) per sample (`[R * coarse]` values for the coarse strata, then
-/// `[R * fine]` for the fine draws; 0.5 everywhere for a deterministic render).
+/// `jitter` in [0, 1) per sample, pass by pass (`[R * coarse]` values for the coarse strata,
+/// then `[R * probe]` and `[R * fine]` for the probe and fine draws; 0.5 everywhere for a
+/// deterministic render).
 /// Normals cost a gradient of the SDF per ray, so they are computed only when `normals` says
 /// by which method.
 pub fn render(
@@ -500,6 +520,102 @@ pub fn render(
     });
     let seconds = [located, forward - located, start.elapsed().as_secs_f64() - forward];
     Deferred { accumulation, albedo, depth, surface, normal, sample_points: points, sample_density: density, seconds }
+}
+
+/// Fewest rays a part of a split render holds: below this a second thread costs more than it saves.
+const MIN_RAYS_PER_PART: usize = 64;
+
+/// `render`, the rays cut into up to `parts` runs rendered at once on as many threads, their
+/// outputs joined in ray order. Why: most of a step's tensor operations run on one thread
+/// (flex parallelises matrix products, not the element-wise work between them), so a second
+/// core sat idle. Every ray's samples and arithmetic are its own, so the result is the unsplit
+/// render's (a test pins them). Each part renders through its own fork of `field` (the same
+/// parameters, same ids, as leaves of a graph of its own: burn's autodiff graph client is not
+/// safe for several threads registering nodes of one shared graph), so after the backward pass
+/// the parameters' gradients are the sum of the field's and of every returned fork's
+/// (`sum_gradients`). One part: `field` itself, no forks.
+#[allow(clippy::too_many_arguments)]
+pub fn render_in_parts(
+    field: &AvatarField,
+    pose: &PoseTensors,
+    rays: &RaySet,
+    sampling: Sampling,
+    jitter: &[f32],
+    normals: Option<GradientMethod>,
+    device: &Device,
+    parts: usize,
+) -> (Deferred, Vec<AvatarField>) {
+    let r = rays.len();
+    let parts = parts.min(r / MIN_RAYS_PER_PART).max(1);
+    if parts == 1 {
+        return (render(field, pose, rays, sampling, jitter, normals, device), Vec::new());
+    }
+    use rayon::prelude::*;
+    let per_part = r.div_ceil(parts);
+    let forks: Vec<AvatarField> = (0..parts).map(|_| field.clone().fork(device)).collect();
+    let rendered: Vec<Deferred> = forks
+        .par_iter()
+        .enumerate()
+        .map(|(k, fork)| {
+            let (lo, hi) = (k * per_part, ((k + 1) * per_part).min(r));
+            render(fork, pose, &rays.range(lo, hi), sampling, &sampling.jitter_of(jitter, r, lo, hi), normals, device)
+        })
+        .collect();
+    (Deferred::cat(rendered), forks)
+}
+
+/// The gradients of `module`'s parameters, summed over it and its `forks` (the same
+/// parameters as leaves of other graphs: `render::render_in_parts`).
+pub fn sum_gradients<M: Module>(grads: &mut burn::tensor::Gradients, module: &M, forks: &[M]) -> burn::optim::GradientsParams {
+    use burn::optim::GradientsParams;
+    struct Adder {
+        into: GradientsParams,
+        from: GradientsParams,
+    }
+    impl burn::module::ModuleVisitor for Adder {
+        fn visit_float<const D: usize>(&mut self, param: &burn::module::Param<Tensor<D>>) {
+            if let Some(g) = self.from.remove::<D>(param.id) {
+                let sum = match self.into.remove::<D>(param.id) {
+                    Some(sum) => sum + g,
+                    None => g,
+                };
+                self.into.register(param.id, sum);
+            }
+        }
+    }
+    let mut adder = Adder { into: GradientsParams::from_module(grads, module), from: GradientsParams::new() };
+    for fork in forks {
+        adder.from = GradientsParams::from_module(grads, fork);
+        module.visit(&mut adder);
+    }
+    adder.into
+}
+
+impl Deferred {
+    /// Renders of consecutive runs of rays joined into one, in order; each part's time is the
+    /// slowest run's (they ran at once).
+    fn cat(parts: Vec<Deferred>) -> Deferred {
+        let mut seconds = [0.0f64; 3];
+        for part in &parts {
+            for (s, p) in seconds.iter_mut().zip(part.seconds) {
+                *s = s.max(p);
+            }
+        }
+        let normal =
+            if parts.iter().all(|p| p.normal.is_some()) { Some(Tensor::cat(parts.iter().filter_map(|p| p.normal.clone()).collect(), 0)) } else { None };
+        let join1 = |f: fn(&Deferred) -> Tensor<1>| Tensor::cat(parts.iter().map(f).collect(), 0);
+        let join2 = |f: fn(&Deferred) -> Tensor<2>| Tensor::cat(parts.iter().map(f).collect(), 0);
+        Deferred {
+            accumulation: join1(|p| p.accumulation.clone()),
+            albedo: join2(|p| p.albedo.clone()),
+            depth: join1(|p| p.depth.clone()),
+            surface: join2(|p| p.surface.clone()),
+            normal,
+            sample_points: join2(|p| p.sample_points.clone()),
+            sample_density: join1(|p| p.sample_density.clone()),
+            seconds,
+        }
+    }
 }
 
 #[cfg(test)]

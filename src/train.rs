@@ -11,7 +11,7 @@ use crate::field::{AvatarField, FieldConfig, GradientMethod, PoseTensors};
 use crate::gaussians::{GaussianParams, GaussianSet};
 use crate::light::Light;
 use crate::random::Stream;
-use crate::render::{box_bounds, ray_bounds, render, Deferred, RaySet};
+use crate::render::{box_bounds, ray_bounds, render, render_in_parts, sum_gradients, Deferred, RaySet};
 use crate::scene::{Scene, Split};
 use crate::schedule::Schedule;
 use crate::shading::{FittedLight, LightKind};
@@ -310,6 +310,9 @@ pub struct Trainer {
     /// Render rays that miss every Gaussian bound too (as before they were skipped): only
     /// for the benchmark that measures what skipping them saves.
     pub render_missed_rays: bool,
+    /// Threads a step's render is split over (`render::render_in_parts`): every thread by
+    /// default; 1 renders the batch on one (a benchmark's baseline).
+    pub render_threads: usize,
     /// How far (m) the body's box reaches beyond the posed bones (the grid's reach).
     body_reach: f64,
     /// The centre of the skeleton's bounds over the capture and the body's extent (m): where
@@ -739,6 +742,7 @@ impl Trainer {
             stream: Stream::new(seed, 0x7AA1, 0),
             gradient: crate::field::GRADIENT,
             render_missed_rays: false,
+            render_threads: rayon::current_num_threads(),
             body_centre: centre,
             body_extent: extent,
             body_reach: field_config.grid.as_ref().map_or(extent * crate::field::grid::REACH_PER_EXTENT as f64, |g| g.reach as f64),
@@ -1119,7 +1123,8 @@ impl Trainer {
             grid.active_levels = if self.fit_light { self.schedule.active_levels(grid.config.levels, it) } else { grid.config.levels as f32 };
         }
         let shading = self.fit_light && w("rgb") > 0.0;
-        let deferred = render(&model.field, &pose, &rays.first(rendered), sampling, &jitter, shading.then_some(self.gradient), &device);
+        let (deferred, forks) =
+            render_in_parts(&model.field, &pose, &rays.first(rendered), sampling, &jitter, shading.then_some(self.gradient), &device, self.render_threads);
         clock.mark_render(&deferred);
         let background = |t: Tensor<2>| if rendered < r { Tensor::cat(vec![t, Tensor::zeros([r - rendered, 3], &device)], 0) } else { t };
         let accumulation = if rendered < r {
@@ -1232,8 +1237,18 @@ impl Trainer {
         let mut light = if light_index == 0 { light } else { std::mem::replace(&mut other_lights[light_index - 1], light) };
         // A grid's feature tables have their own learning rate and optimizer.
         let grid = field.grid.take();
-        let g_grid = grid.as_ref().map(|g| GradientsParams::from_module(&mut grads, g));
-        let g_field = GradientsParams::from_module(&mut grads, &field);
+        // The forks that rendered parts of the batch on other threads hold gradients of the
+        // same parameters: summed into the field's.
+        let (fork_grids, fork_fields): (Vec<_>, Vec<_>) = forks
+            .into_iter()
+            .map(|mut fork| {
+                let grid = fork.grid.take();
+                (grid, fork)
+            })
+            .unzip();
+        let fork_grids: Vec<_> = fork_grids.into_iter().flatten().collect();
+        let g_grid = grid.as_ref().map(|g| sum_gradients(&mut grads, g, &fork_grids));
+        let g_field = sum_gradients(&mut grads, &field, &fork_fields);
         let g_gaussians = GradientsParams::from_module(&mut grads, &gaussians);
         let g_light = GradientsParams::from_module(&mut grads, &light);
         let lr = |g: &str| self.schedule.learning_rate(g, it);

@@ -3,7 +3,7 @@
 //! SDF against finite differences, and the gradient to the feature table against finite
 //! differences of the loss.
 
-use burn::module::Param;
+use burn::module::{Module, Param};
 use burn::tensor::{Device, Tensor, TensorData};
 use glam::DVec3;
 use umbra::field::grid::{lookup, RootSkinning, Skinning};
@@ -815,4 +815,85 @@ fn a_lookup_asked_for_more_bones_than_a_plan_holds_takes_the_most_it_can() {
     let plan = lookup(&grid, &levels, &frames, skinning(&s.config), &flat(&pts), true);
     assert_eq!(plan.coefficients.len(), pts.len() * grid.corners());
     assert_eq!(plan.root_slot.len(), pts.len() * grid.top());
+}
+
+/// The gradient of every parameter of `field`, by name, summed over its forks.
+fn named_gradients(grads: &mut burn::tensor::Gradients, field: &AvatarField, forks: &[AvatarField]) -> Vec<(String, Vec<f32>)> {
+    struct Collect<'a> {
+        grads: &'a burn::optim::GradientsParams,
+        path: Vec<String>,
+        out: Vec<(String, Vec<f32>)>,
+    }
+    impl burn::module::ModuleVisitor for Collect<'_> {
+        fn enter_module(&mut self, name: &str, _: &str) {
+            self.path.push(name.to_string());
+        }
+        fn exit_module(&mut self, _: &str, _: &str) {
+            self.path.pop();
+        }
+        fn visit_float<const D: usize>(&mut self, param: &Param<Tensor<D>>) {
+            let g = self.grads.get::<D>(param.id).map(values).unwrap_or_default();
+            self.out.push((self.path.join("."), g));
+        }
+    }
+    let summed = umbra::render::sum_gradients(grads, field, forks);
+    let mut collect = Collect { grads: &summed, path: Vec::new(), out: Vec::new() };
+    field.visit(&mut collect);
+    collect.out
+}
+
+#[test]
+fn a_render_split_over_threads_is_the_whole_render_and_so_are_its_gradients() {
+    let s = setup();
+    let device = Device::flex().autodiff();
+    let field = busy_field(&FieldConfig { albedo_layers: 2, ..s.config.clone() }, &device, false);
+    let pose = PoseTensors::new(&s.pose, &s.character.skeleton, &device);
+    let (lo, hi) = s.pose.bounds(&s.character.skeleton);
+    let eye = (lo + hi) * 0.5 + DVec3::new(0.3, 0.2, 3.0);
+    let mut rays = umbra::render::RaySet::default();
+    let mut stream = Stream::new(9, 1, 0);
+    // 301 rays: three parts of 101, 101 and 99 (the last one short).
+    for _ in 0..301 {
+        let target = lo + (hi - lo) * DVec3::new(stream.uniform(), stream.uniform(), stream.uniform());
+        let far = (target - eye).length() + 1.0;
+        rays.push(eye, (target - eye).normalize(), Some((far - 2.5, far)));
+    }
+    let sampling = umbra::render::Sampling { coarse: 16, probe: 16, fine: 16, albedo_floor: umbra::render::ALBEDO_WEIGHT_FLOOR };
+    let jitter: Vec<f32> = (0..rays.len() * sampling.draws()).map(|_| stream.uniform() as f32).collect();
+    let run = |parts: usize| {
+        let (d, forks) = umbra::render::render_in_parts(&field, &pose, &rays, sampling, &jitter, Some(umbra::field::GRADIENT), &device, parts);
+        assert_eq!(forks.len(), if parts == 1 { 0 } else { parts });
+        let normal = d.normal.clone().unwrap();
+        // Every output in the loss, each weighted differently per ray so that a part out of
+        // place changes it.
+        let r = rays.len();
+        let ramp = Tensor::<1>::from_data(TensorData::new((0..r).map(|i| 1.0 + i as f32 / r as f32).collect::<Vec<_>>(), [r]), &device);
+        let loss = (d.accumulation.clone() * ramp.clone()).sum()
+            + (d.albedo.clone().sum_dim(1).reshape([r]) * ramp.clone()).sum()
+            + (normal.sum_dim(1).reshape([r]) * ramp.clone()).sum()
+            + d.sample_density.clone().sum() * 1e-3;
+        let outputs = [values(d.accumulation.clone()), values(d.albedo.clone()), values(d.depth.clone()), values(d.sample_points.clone())];
+        let mut grads = loss.reshape([1]).backward();
+        (outputs, named_gradients(&mut grads, &field, &forks))
+    };
+    let (whole, whole_grads) = run(1);
+    let (split, split_grads) = run(3);
+    assert!(whole[0].iter().filter(|&&a| a > 0.5).count() > 10, "rays hit the body");
+    for (k, (a, b)) in whole.iter().zip(&split).enumerate() {
+        assert_eq!(a.len(), b.len());
+        for (x, y) in a.iter().zip(b) {
+            assert!((x - y).abs() <= 1e-4 * (1.0 + x.abs()), "output {k}: whole {x}, split {y}");
+        }
+    }
+    assert_eq!(whole_grads.len(), split_grads.len());
+    let mut nonzero = 0;
+    for ((name, a), (_, b)) in whole_grads.iter().zip(&split_grads) {
+        assert_eq!(a.len(), b.len(), "{name}: a gradient on one side only");
+        let scale = a.iter().fold(0.0f32, |m, x| m.max(x.abs())).max(1e-6);
+        for (x, y) in a.iter().zip(b) {
+            assert!((x - y).abs() <= 1e-3 * scale, "{name}: whole {x}, split {y} (largest {scale})");
+        }
+        nonzero += usize::from(a.iter().any(|&x| x != 0.0));
+    }
+    assert!(nonzero >= 4, "only {nonzero} parameters have gradients");
 }

@@ -1,9 +1,10 @@
 //! Training-step cost (`umbra bench steps`): milliseconds per step on a real scene for the
 //! field kinds, with and without the work a step need not do (rendering rays that miss every
 //! Gaussian bound; encoding a point in every bone instead of its nearest; the grid's lookup as
-//! a composite of tensor ops instead of one fused op), in the schedule's
-//! first stage (silhouette and grey albedo) and its light stage (normals and shadow rays).
-//! Baseline: the `mlp` field as it was (every ray rendered), measured in the same run.
+//! a composite of tensor ops instead of one fused op; the batch rendered on one thread instead
+//! of split over every thread), in the schedule's first stage (silhouette and grey albedo) and
+//! its light stage (normals and shadow rays).
+//! Baseline: the `mlp` field as it was (every ray rendered, one thread), measured in the same run.
 
 use super::time;
 use crate::plot::{Chart, Series};
@@ -18,6 +19,8 @@ struct Variant {
     render_missed_rays: bool,
     /// The grid's lookup as the composite of tensor ops (before the fused op).
     composite_lookup: bool,
+    /// The batch rendered on one thread (before `render::render_in_parts`), not on every one.
+    one_render_thread: bool,
 }
 
 /// Milliseconds per step of `variant` from `iteration` (its stage), over `budget` seconds.
@@ -27,6 +30,9 @@ fn step_ms(scene: &Scene, schedule: &Schedule, variant: &Variant, iteration: usi
     let mut trainer = Trainer::new(scene.clone(), schedule, Backend::Flex, 0)?;
     trainer.render_missed_rays = variant.render_missed_rays;
     trainer.set_composite_lookup(variant.composite_lookup);
+    if variant.one_render_thread {
+        trainer.render_threads = 1;
+    }
     trainer.iteration = iteration;
     let mut failure = None;
     let seconds = time(budget, || {
@@ -47,16 +53,49 @@ pub fn steps(scene_path: &Path, schedule_path: &Path, out: &Path, quick: bool) -
     let grid = |top_bones: Option<usize>| FieldSettings { top_bones, ..FieldSettings::of(FieldKind::Grid) };
     let mlp = FieldSettings::of(FieldKind::Mlp);
     let variants = [
-        Variant { name: "mlp, every ray rendered (before)", field: mlp.clone(), render_missed_rays: true, composite_lookup: false },
-        Variant { name: "mlp, missed rays skipped", field: mlp, render_missed_rays: false, composite_lookup: false },
+        Variant {
+            name: "mlp, every ray rendered (before), one render thread",
+            field: mlp.clone(),
+            render_missed_rays: true,
+            composite_lookup: false,
+            one_render_thread: true,
+        },
+        Variant {
+            name: "mlp, missed rays skipped, one render thread",
+            field: mlp.clone(),
+            render_missed_rays: false,
+            composite_lookup: false,
+            one_render_thread: true,
+        },
+        Variant { name: "mlp, missed rays skipped", field: mlp, render_missed_rays: false, composite_lookup: false, one_render_thread: false },
         Variant {
             name: "grid, nearest 8 bones (the most a lookup takes), composite lookup",
             field: grid(Some(scene.skeleton.len().min(crate::field::grid::MAX_TOP_BONES))),
             render_missed_rays: false,
             composite_lookup: true,
+            one_render_thread: false,
         },
-        Variant { name: "grid, nearest 3 bones, composite lookup", field: grid(None), render_missed_rays: false, composite_lookup: true },
-        Variant { name: "grid, nearest 3 bones, fused lookup op", field: grid(None), render_missed_rays: false, composite_lookup: false },
+        Variant {
+            name: "grid, nearest 3 bones, composite lookup",
+            field: grid(None),
+            render_missed_rays: false,
+            composite_lookup: true,
+            one_render_thread: false,
+        },
+        Variant {
+            name: "grid, nearest 3 bones, fused lookup op, one render thread",
+            field: grid(None),
+            render_missed_rays: false,
+            composite_lookup: false,
+            one_render_thread: true,
+        },
+        Variant {
+            name: "grid, nearest 3 bones, fused lookup op",
+            field: grid(None),
+            render_missed_rays: false,
+            composite_lookup: false,
+            one_render_thread: false,
+        },
     ];
     let stages = [("silhouette stage", 0), ("light stage", schedule.light_from + 200)];
     let budget = if quick { 1.0 } else { 8.0 };
@@ -95,7 +134,7 @@ pub fn steps(scene_path: &Path, schedule_path: &Path, out: &Path, quick: bool) -
         })
         .collect();
     let chart = Chart {
-        title: "ms per training step by variant (1-5 as in steps.md)".into(),
+        title: "ms per training step by variant (1-7 as in steps.md)".into(),
         x_label: "variant".into(),
         y_label: "ms per step".into(),
         log_x: false,
