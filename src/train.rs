@@ -311,7 +311,8 @@ pub struct Trainer {
     /// for the benchmark that measures what skipping them saves.
     pub render_missed_rays: bool,
     /// Threads a step's render is split over (`render::render_in_parts`): every thread by
-    /// default; 1 renders the batch on one (a benchmark's baseline).
+    /// default; 1 renders the batch on one (a benchmark's baseline). The parts' matrix products
+    /// round differently, so a fit is the same to the bit for a seed and a thread count.
     pub render_threads: usize,
     /// How far (m) the body's box reaches beyond the posed bones (the grid's reach).
     body_reach: f64,
