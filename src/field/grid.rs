@@ -187,7 +187,7 @@ impl GridConfig {
                 }
                 let rows = self.table_rows() / self.levels;
                 let root = own.map(|bone| RootTable { bone, dense: vertices(&dims[bone]) <= table, offset: l * rows + table });
-                Level { cell, dims, offsets, dense: total <= table, table_offset: l * rows, table_mask: table - 1, root }
+                Level { cell, dims, offsets, dense: total <= table, table_offset: l * rows, table_mask: table - 1, root, active: true }
             })
             .collect()
     }
@@ -235,6 +235,10 @@ pub struct Level {
     table_mask: usize,
     /// The root's own table at this level, when it has one.
     pub root: Option<RootTable>,
+    /// Whether the level contributes (coarse to fine: not yet faded in). An inactive level's
+    /// corners are left out of the plan (row 0, coefficient 0), which is what its zero fade
+    /// would make of them anyway.
+    pub active: bool,
 }
 
 /// Where the root's grids live when they have a table of their own.
@@ -434,7 +438,14 @@ fn softmax_with_gradient(out: &mut Vec<(f32, [f32; 3])>, terms: impl Iterator<It
 /// `cell` apart from `-reach` on each local axis: for each corner its vertex, its weight and
 /// the weight's world gradient (through the bone's `axes`); a point outside the grid is
 /// clamped to its border (a clamped axis has no spatial derivative).
-fn trilinear(local: [f32; 3], reach: f32, cell: f32, dims: [usize; 3], axes: &[[f32; 3]; 3], mut corner: impl FnMut(usize, [usize; 3], f32, [f32; 3])) {
+fn trilinear<const TANGENTS: bool>(
+    local: [f32; 3],
+    reach: f32,
+    cell: f32,
+    dims: [usize; 3],
+    axes: &[[f32; 3]; 3],
+    mut corner: impl FnMut(usize, [usize; 3], f32, [f32; 3]),
+) {
     let mut base = [0usize; 3];
     let mut fraction = [0.0f32; 3];
     let mut inside = [true; 3];
@@ -453,16 +464,22 @@ fn trilinear(local: [f32; 3], reach: f32, cell: f32, dims: [usize; 3], axes: &[[
         fraction[m] = u - at as f32;
     }
     // d u_m / d x = (local axis m) / cell on axes inside the grid.
-    let du: [[f32; 3]; 3] = [0, 1, 2].map(|m| if inside[m] { axes[m].map(|a| a / cell) } else { [0.0; 3] });
+    let du: [[f32; 3]; 3] = if TANGENTS { [0, 1, 2].map(|m| if inside[m] { axes[m].map(|a| a / cell) } else { [0.0; 3] }) } else { [[0.0; 3]; 3] };
     for k in 0..8 {
         let bit = [k & 1, (k >> 1) & 1, (k >> 2) & 1];
         let factor = [0, 1, 2].map(|m| if bit[m] == 1 { fraction[m] } else { 1.0 - fraction[m] });
-        // d weight / d u_m: the other two factors, signed by the corner's side.
-        let d_tri = [0, 1, 2].map(|m| {
-            let sign = if bit[m] == 1 { 1.0 } else { -1.0 };
-            sign * factor[(m + 1) % 3] * factor[(m + 2) % 3]
-        });
-        let gradient = [0, 1, 2].map(|x| d_tri[0] * du[0][x] + d_tri[1] * du[1][x] + d_tri[2] * du[2][x]);
+        // Without tangents (the samples that only need the SDF and albedo, most of them) the
+        // corner's derivative is not computed at all: a third of the plan's arithmetic.
+        let gradient = if TANGENTS {
+            // d weight / d u_m: the other two factors, signed by the corner's side.
+            let d_tri = [0, 1, 2].map(|m| {
+                let sign = if bit[m] == 1 { 1.0 } else { -1.0 };
+                sign * factor[(m + 1) % 3] * factor[(m + 2) % 3]
+            });
+            [0, 1, 2].map(|x| d_tri[0] * du[0][x] + d_tri[1] * du[1][x] + d_tri[2] * du[2][x])
+        } else {
+            [0.0; 3]
+        };
         corner(k, [base[0] + bit[0], base[1] + bit[1], base[2] + bit[2]], factor[0] * factor[1] * factor[2], gradient);
     }
 }
@@ -526,25 +543,41 @@ fn plan_point(
     if let (Some(root), Some(j)) = (config.root, chosen.iter().position(|a| Some(a.bone) == config.root.map(|r| r.bone))) {
         skin.root_slot = Some(j);
         let dims = root.dims(frames[root.bone].length);
-        trilinear(chosen[j].local, root.reach, root.cell, dims, &frames[root.bone].axes, |k, v, weight, gradient| {
+        let root_corner = |k: usize, v: [usize; 3], weight: f32, gradient: [f32; 3]| {
             skin.root_rows[k] = (v[0] + dims[0] * (v[1] + dims[1] * v[2])) as u32;
             skin.root_coefficients[k] = weight;
             skin.root_coefficient_tangents[k] = gradient;
-        });
+        };
+        let (local, axes) = (chosen[j].local, &frames[root.bone].axes);
+        match d_coefficients {
+            Some(_) => trilinear::<true>(local, root.reach, root.cell, dims, axes, root_corner),
+            None => trilinear::<false>(local, root.reach, root.cell, dims, axes, root_corner),
+        }
     }
     // Each chosen bone's corners, level by level.
     let mut k = 0;
     for a in chosen.iter() {
         let frame = &frames[a.bone];
         for level in levels {
-            trilinear(a.local, config.bone_reach(a.bone), level.cell, level.dims[a.bone], &frame.axes, |_, v, weight, gradient| {
-                rows[k] = level.row(a.bone, v) as u32;
-                coefficients[k] = weight;
-                if let Some(d) = d_coefficients.as_deref_mut() {
+            if !level.active {
+                // The plan's buffers start at row 0, coefficient 0, tangent 0.
+                k += 8;
+                continue;
+            }
+            let (reach, dims) = (config.bone_reach(a.bone), level.dims[a.bone]);
+            match d_coefficients.as_deref_mut() {
+                Some(d) => trilinear::<true>(a.local, reach, level.cell, dims, &frame.axes, |_, v, weight, gradient| {
+                    rows[k] = level.row(a.bone, v) as u32;
+                    coefficients[k] = weight;
                     d[k * 3..k * 3 + 3].copy_from_slice(&gradient);
-                }
-                k += 1;
-            });
+                    k += 1;
+                }),
+                None => trilinear::<false>(a.local, reach, level.cell, dims, &frame.axes, |_, v, weight, _| {
+                    rows[k] = level.row(a.bone, v) as u32;
+                    coefficients[k] = weight;
+                    k += 1;
+                }),
+            }
         }
     }
     skin
@@ -563,7 +596,10 @@ impl FeatureGrid {
     fn plan(&self, points: Tensor<2>, frames: &[BoneFrame], skinning: Skinning, tangents: bool) -> (Lookup, usize) {
         let [n, _] = points.dims();
         let values = points.into_data().convert::<f32>().try_to_vec::<f32>().unwrap_or_else(|_| vec![f32::NAN; n * 3]);
-        let levels = self.config.layout();
+        let mut levels = self.config.layout();
+        for (l, level) in levels.iter_mut().enumerate() {
+            level.active = (l as f32) < self.active_levels;
+        }
         (lookup(&self.config, &levels, frames, skinning, &values, tangents), n)
     }
 
