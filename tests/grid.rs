@@ -691,6 +691,20 @@ fn the_albedo_is_composited_from_the_samples_that_carry_weight() {
 /// `render_still` (pictures: densities from the sample search, composited on the CPU, the
 /// albedo decoded only where samples carry weight) gives what `render` (training: every sample
 /// evaluated again, with gradients) gives on the same rays and samples.
+/// `count` rays from one eye 3 m off the body toward random points of its bounds, each bounded
+/// to 2.5 m around its target (some hit the body, some miss).
+fn rays_through_the_body(s: &Setup, count: usize, stream: &mut Stream) -> umbra::render::RaySet {
+    let (lo, hi) = s.pose.bounds(&s.character.skeleton);
+    let eye = (lo + hi) * 0.5 + DVec3::new(0.3, 0.2, 3.0);
+    let mut rays = umbra::render::RaySet::default();
+    for _ in 0..count {
+        let target = lo + (hi - lo) * DVec3::new(stream.uniform(), stream.uniform(), stream.uniform());
+        let far = (target - eye).length() + 1.0;
+        rays.push(eye, (target - eye).normalize(), Some((far - 2.5, far)));
+    }
+    rays
+}
+
 #[test]
 fn a_still_render_is_the_training_render_without_its_gradients() {
     let s = setup();
@@ -702,16 +716,8 @@ fn a_still_render_is_the_training_render_without_its_gradients() {
     grid.root = grid.root.map(|r| RootSkinning { prior_capped: false, ..r });
     let field = busy_field(&separate, &device, false);
     let pose = PoseTensors::new(&s.pose, &s.character.skeleton, &device);
-    let (lo, hi) = s.pose.bounds(&s.character.skeleton);
-    let centre = (lo + hi) * 0.5;
-    let eye = centre + DVec3::new(0.3, 0.2, 3.0);
-    let mut rays = umbra::render::RaySet::default();
     let mut stream = Stream::new(8, 1, 0);
-    for _ in 0..96 {
-        let target = lo + (hi - lo) * DVec3::new(stream.uniform(), stream.uniform(), stream.uniform());
-        let far = (target - eye).length() + 1.0;
-        rays.push(eye, (target - eye).normalize(), Some((far - 2.5, far)));
-    }
+    let rays = rays_through_the_body(&s, 96, &mut stream);
     for sampling in [
         umbra::render::Sampling { coarse: 16, probe: 16, fine: 16, albedo_floor: umbra::render::ALBEDO_WEIGHT_FLOOR },
         umbra::render::Sampling { coarse: 24, probe: 0, fine: 0, albedo_floor: 0.0 },
@@ -848,16 +854,9 @@ fn a_render_split_over_threads_is_the_whole_render_and_so_are_its_gradients() {
     let device = Device::flex().autodiff();
     let field = busy_field(&FieldConfig { albedo_layers: 2, ..s.config.clone() }, &device, false);
     let pose = PoseTensors::new(&s.pose, &s.character.skeleton, &device);
-    let (lo, hi) = s.pose.bounds(&s.character.skeleton);
-    let eye = (lo + hi) * 0.5 + DVec3::new(0.3, 0.2, 3.0);
-    let mut rays = umbra::render::RaySet::default();
     let mut stream = Stream::new(9, 1, 0);
     // 301 rays: three parts of 101, 101 and 99 (the last one short).
-    for _ in 0..301 {
-        let target = lo + (hi - lo) * DVec3::new(stream.uniform(), stream.uniform(), stream.uniform());
-        let far = (target - eye).length() + 1.0;
-        rays.push(eye, (target - eye).normalize(), Some((far - 2.5, far)));
-    }
+    let rays = rays_through_the_body(&s, 301, &mut stream);
     let sampling = umbra::render::Sampling { coarse: 16, probe: 16, fine: 16, albedo_floor: umbra::render::ALBEDO_WEIGHT_FLOOR };
     let jitter: Vec<f32> = (0..rays.len() * sampling.draws()).map(|_| stream.uniform() as f32).collect();
     let run = |parts: usize| {
