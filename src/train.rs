@@ -1240,14 +1240,14 @@ impl Trainer {
         let grid = field.grid.take();
         // The forks that rendered parts of the batch on other threads hold gradients of the
         // same parameters: summed into the field's.
-        let (fork_grids, fork_fields): (Vec<_>, Vec<_>) = forks
+        let mut fork_grids = Vec::new();
+        let fork_fields: Vec<AvatarField> = forks
             .into_iter()
             .map(|mut fork| {
-                let grid = fork.grid.take();
-                (grid, fork)
+                fork_grids.extend(fork.grid.take());
+                fork
             })
-            .unzip();
-        let fork_grids: Vec<_> = fork_grids.into_iter().flatten().collect();
+            .collect();
         let g_grid = grid.as_ref().map(|g| sum_gradients(&mut grads, g, &fork_grids));
         let g_field = sum_gradients(&mut grads, &field, &fork_fields);
         let g_gaussians = GradientsParams::from_module(&mut grads, &gaussians);
