@@ -228,7 +228,8 @@ pub enum Command {
         /// `../shared/examples/quadruped-tiny`).
         #[arg(long, value_delimiter = ',')]
         scenes: Vec<PathBuf>,
-        /// `render`: the run folder of a fit whose views to time.
+        /// `render`: the run folder of a fit whose views to time; `steps`: of a fit whose fitted
+        /// field's steps to time as well, with and without culling.
         #[arg(long)]
         run: Option<PathBuf>,
     },
@@ -297,9 +298,9 @@ pub fn main() -> i32 {
             let options = crate::bench::FitBenchOptions { scene, schedule, out, kinds, evaluations, iterations, seed, equal_time };
             crate::bench::fit_curves(&options, |line| eprintln!("{line}")).map(|table| print!("{table}")).map_err(|e| e.to_string())
         }
-        Command::Bench { which: BenchKind::Steps, out, quick, scene, schedule, .. } => {
+        Command::Bench { which: BenchKind::Steps, out, quick, scene, schedule, run, .. } => {
             let scene = scene.unwrap_or_else(|| PathBuf::from("datasets-synthetic/human-sun-128"));
-            crate::bench::steps(&scene, &schedule, &out, quick).map(|table| print!("{table}")).map_err(|e| e.to_string())
+            crate::bench::steps(&scene, &schedule, &out, quick, run.as_deref()).map(|table| print!("{table}")).map_err(|e| e.to_string())
         }
         Command::Bench { which: BenchKind::Breakdown, out, quick, scene, schedule, .. } => {
             let scene = scene.unwrap_or_else(|| PathBuf::from("datasets-synthetic/human-sun-128"));

@@ -38,7 +38,7 @@ pub enum Lighting<'a> {
 }
 
 /// How whole views are sampled for evaluation and relighting: twice a training step's.
-pub const VIEW_SAMPLING: Sampling = Sampling { coarse: 48, probe: 0, fine: 32, albedo_floor: crate::render::ALBEDO_WEIGHT_FLOOR };
+pub const VIEW_SAMPLING: Sampling = Sampling { coarse: 48, probe: 0, fine: 32, albedo_floor: crate::render::ALBEDO_WEIGHT_FLOOR, cull: false };
 
 /// Rays per pixel of a view of a capture whose pixels average their area, where the pixel may
 /// hold an edge: the centres of 4 x 4 strata.

@@ -134,6 +134,9 @@ pub struct Deferred {
     pub sample_density: Tensor<1>,
     /// Wall seconds of the three parts (`RENDER_PARTS`), for the cost breakdown.
     pub seconds: [f64; 3],
+    /// Samples the field was evaluated at with gradients (`R * S`, fewer when culled; none for
+    /// a still render).
+    pub evaluated: usize,
 }
 
 /// The parts of `render` whose time `Deferred::seconds` holds.
@@ -145,12 +148,15 @@ pub const RENDER_PARTS: [&str; 3] =
 /// where coarse and probe samples together found density (none: the coarse samples alone,
 /// rendered with gradients). The differentiable pass renders `coarse + fine`, and decodes the
 /// albedo only at its samples of compositing weight `albedo_floor` or more (0: at all of them).
+/// With `cull`, it evaluates the field only at the samples that can change a ray's colour or
+/// coverage, or pass a gradient (`culled`).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Sampling {
     pub coarse: usize,
     pub probe: usize,
     pub fine: usize,
     pub albedo_floor: f32,
+    pub cull: bool,
 }
 
 impl Sampling {
@@ -297,13 +303,38 @@ fn densities(still: &AvatarField, pose: &PoseTensors, origins: &Tensor<2>, direc
 /// Compositing weights `T alpha` of every ray's samples from their densities, on the CPU (the
 /// same sums as `compositing_weights`).
 fn host_weights(samples: &Samples, density: &[f32], r: usize) -> Vec<f32> {
+    let before = transmittance_before(samples, density, r);
+    (0..before.len()).map(|k| before[k] * (1.0 - (-density[k] * samples.delta[k]).exp())).collect()
+}
+
+/// What a culled differentiable pass (`Sampling::cull`) leaves out: a coarse sample whose
+/// optical depth `sigma delta` is below `CULL_OPTICAL_DEPTH`, or which lies behind
+/// `CULL_TRANSMITTANCE` of the body as the search saw it (the coarse and probe samples'
+/// densities). Every fine sample is kept: they are drawn where the search found weight.
+///
+/// Why the pass is then the full pass to within these figures: a sample reaches the colour and
+/// coverage through its weight `T (1 - exp(-sigma delta))` and the parameters through `d sigma /
+/// d sdf`, which outside the surface is `sigma / beta` (VolSDF): a sample of optical depth below
+/// 1e-7 changes the colour by less than 1e-7 and passes a gradient below 1e-7 / beta per unit
+/// of SDF gradient, against about 1 / beta at the surface. Behind the surface the search's
+/// transmittance is an estimate (the probes resolve the surface, the coarse strata are coarse),
+/// hence a bound far below what matters: a sample behind 1e-8 of transmittance changes the
+/// colour and the earlier samples' gradients by about that. What goes: most coarse samples of a
+/// ray that hits the body (the empty space before the surface and the inside behind it) and
+/// every coarse sample of a ray that passes far from it. A test pins the culled pass to the
+/// full one, outputs and gradients.
+pub const CULL_OPTICAL_DEPTH: f32 = 1e-7;
+pub const CULL_TRANSMITTANCE: f32 = 1e-8;
+
+/// Transmittance before each of a ray's samples, from their densities (`[R * S]`).
+fn transmittance_before(samples: &Samples, density: &[f32], r: usize) -> Vec<f32> {
     let s = samples.t.len() / r.max(1);
     let mut out = Vec::with_capacity(r * s);
     for i in 0..r {
         let mut transmittance = 1.0f32;
         for k in i * s..(i + 1) * s {
+            out.push(transmittance);
             let alpha = 1.0 - (-density[k] * samples.delta[k]).exp();
-            out.push(transmittance * alpha);
             transmittance *= 1.0 - alpha;
         }
     }
@@ -370,8 +401,9 @@ fn sample_points(origins: &Tensor<2>, directions: &Tensor<2>, t: &Tensor<2>) -> 
 /// Where `render` and `render_still` sample each ray: stratified coarse samples; then, if
 /// `sampling.fine`, probes where the coarse pass found density (only the probes evaluated: the
 /// coarse densities are kept), and fine samples drawn from that finer picture of where the
-/// surface is, merged with the coarse ones. All without gradients. With `fine_density`, the
-/// merged samples' densities too (the fine ones evaluated here), else an empty list.
+/// surface is, merged with the coarse ones. All without gradients. `want` says what else to
+/// return: the merged samples' densities (the fine ones evaluated here), or which of them a
+/// culled differentiable pass evaluates.
 #[allow(clippy::too_many_arguments)]
 fn locate(
     field: &AvatarField,
@@ -381,19 +413,20 @@ fn locate(
     directions: &Tensor<2>,
     sampling: Sampling,
     jitter: &[f32],
-    fine_density: bool,
-) -> (Samples, Vec<f32>) {
+    want: Want,
+) -> Located {
     let r = rays.len();
     let (sc, sp, sf) = (sampling.coarse, sampling.probe, sampling.fine);
     let coarse = stratified(rays, sc, &jitter[..r * sc]);
-    if sf == 0 && !fine_density {
-        return (coarse, Vec::new());
+    if sf == 0 && want == Want::Samples {
+        return Located { samples: coarse, density: Vec::new(), kept: None };
     }
     let still = field.valid();
     let (o, d) = (origins.clone().without_autodiff(), directions.clone().without_autodiff());
     let coarse_density = densities(&still, pose, &o, &d, &coarse.t, r);
     if sf == 0 {
-        return (coarse, coarse_density);
+        let kept = (want == Want::Culled).then(|| culled(&coarse, &coarse_density, &transmittance_before(&coarse, &coarse_density, r)));
+        return Located { samples: coarse, density: coarse_density, kept };
     }
     let (located, density) = if sp > 0 {
         let weights = host_weights(&coarse, &coarse_density, r);
@@ -405,12 +438,60 @@ fn locate(
     };
     let weights = host_weights(&located, &density, r);
     let fine = draw(rays, &located, &weights, sf, &jitter[r * (sc + sp)..r * (sc + sp + sf)]);
-    if fine_density {
-        let density = densities(&still, pose, &o, &d, &fine, r);
-        merge(rays, &coarse.t, sc, &fine, sf, Some((&coarse_density, &density)))
-    } else {
-        (merge(rays, &coarse.t, sc, &fine, sf, None).0, Vec::new())
+    match want {
+        Want::Densities => {
+            let density = densities(&still, pose, &o, &d, &fine, r);
+            let (samples, density) = merge(rays, &coarse.t, sc, &fine, sf, Some((&coarse_density, &density)));
+            Located { samples, density, kept: None }
+        }
+        Want::Samples => Located { samples: merge(rays, &coarse.t, sc, &fine, sf, None).0, density: Vec::new(), kept: None },
+        Want::Culled => {
+            // Each coarse sample's transmittance as the search saw it: it is one of the located
+            // samples, whose probes resolve the surface.
+            let before_located = transmittance_before(&located, &density, r);
+            let per_ray = located.t.len() / r.max(1);
+            let mut before_coarse = Vec::with_capacity(r * sc);
+            for i in 0..r {
+                let ray = i * per_ray..(i + 1) * per_ray;
+                let mut k = ray.start;
+                for j in 0..sc {
+                    let t = coarse.t[i * sc + j];
+                    while k + 1 < ray.end && located.t[k] < t {
+                        k += 1;
+                    }
+                    before_coarse.push(before_located[k]);
+                }
+            }
+            // Fine samples carry density +infinity and transmittance 1: never culled.
+            let (samples, density) = merge(rays, &coarse.t, sc, &fine, sf, Some((&coarse_density, &vec![f32::INFINITY; r * sf])));
+            let (_, before) = merge(rays, &coarse.t, sc, &fine, sf, Some((&before_coarse, &vec![1.0; r * sf])));
+            let kept = culled(&samples, &density, &before);
+            Located { samples, density, kept: Some(kept) }
+        }
     }
+}
+
+/// What `locate` returns besides the samples.
+#[derive(Clone, Copy, PartialEq, Eq)]
+enum Want {
+    Samples,
+    Densities,
+    Culled,
+}
+
+struct Located {
+    samples: Samples,
+    /// Per merged sample: its density (`Want::Densities`), or for `Want::Culled` the coarse
+    /// samples' densities and +infinity for the fine ones.
+    density: Vec<f32>,
+    /// `Want::Culled`: the merged samples the differentiable pass evaluates, ascending.
+    kept: Option<Vec<usize>>,
+}
+
+/// The samples a culled pass keeps (`CULL_OPTICAL_DEPTH`, `CULL_TRANSMITTANCE`), from their
+/// densities and the transmittance before them.
+fn culled(samples: &Samples, density: &[f32], before: &[f32]) -> Vec<usize> {
+    (0..samples.t.len()).filter(|&k| before[k] >= CULL_TRANSMITTANCE && density[k] * samples.delta[k] >= CULL_OPTICAL_DEPTH).collect()
 }
 
 /// Renders `rays` for a picture, with no gradients to keep: the same samples and compositing
@@ -430,7 +511,7 @@ pub fn render_still(
     let start = std::time::Instant::now();
     let r = rays.len();
     let (origins, directions) = ray_tensors(rays, device);
-    let (samples, density) = locate(field, pose, rays, &origins, &directions, sampling, jitter, true);
+    let Located { samples, density, .. } = locate(field, pose, rays, &origins, &directions, sampling, jitter, Want::Densities);
     let located = start.elapsed().as_secs_f64();
     let s = sampling.total();
     let weights = host_weights(&samples, &density, r);
@@ -479,6 +560,7 @@ pub fn render_still(
         sample_points: sample_points(&origins, &directions, &t),
         sample_density: Tensor::<1>::from_data(TensorData::new(density, [r * s]), device),
         seconds,
+        evaluated: 0,
     }
 }
 
@@ -500,17 +582,34 @@ pub fn render(
     let start = std::time::Instant::now();
     let r = rays.len();
     let (origins, directions) = ray_tensors(rays, device);
-    let samples = locate(field, pose, rays, &origins, &directions, sampling, jitter, false).0;
+    let want = if sampling.cull { Want::Culled } else { Want::Samples };
+    let Located { samples, density: searched, kept } = locate(field, pose, rays, &origins, &directions, sampling, jitter, want);
     let located = start.elapsed().as_secs_f64();
     let s = sampling.total();
-    let t = Tensor::<2>::from_data(TensorData::new(samples.t, [r, s]), device);
-    let delta = Tensor::<2>::from_data(TensorData::new(samples.delta, [r, s]), device);
+    let t = Tensor::<2>::from_data(TensorData::new(samples.t.clone(), [r, s]), device);
+    let delta = Tensor::<2>::from_data(TensorData::new(samples.delta.clone(), [r, s]), device);
     let points = sample_points(&origins, &directions, &t);
-    let decoded = field.decode(points.clone(), pose);
-    let density = field.density(decoded.sdf.clone());
-    let weights = compositing_weights(density.clone().reshape([r, s]), delta); // [R, S]
+    let (weights, albedo, density, evaluated) = match kept {
+        Some(kept) => {
+            let (weights, albedo, density) = culled_pass(field, pose, rays, &samples.t, &kept, delta, device);
+            // The density-fit and regulariser points are drawn from every sample: a culled
+            // one's density (detached there) is the search's.
+            let mut left_out: Vec<f32> = searched.iter().map(|&d| if d.is_finite() { d } else { 0.0 }).collect();
+            for &k in &kept {
+                left_out[k] = 0.0;
+            }
+            let density = density.detach() + Tensor::<1>::from_data(TensorData::new(left_out, [r * s]), device);
+            (weights, albedo, density, kept.len())
+        }
+        None => {
+            let decoded = field.decode(points.clone(), pose);
+            let density = field.density(decoded.sdf.clone());
+            let weights = compositing_weights(density.clone().reshape([r, s]), delta); // [R, S]
+            let albedo = composite_albedo(field, &decoded, &weights, sampling.albedo_floor);
+            (weights, albedo, density, r * s)
+        }
+    };
     let accumulation = weights.clone().sum_dim(1).reshape([r]);
-    let albedo = composite_albedo(field, &decoded, &weights, sampling.albedo_floor);
     let depth = (weights * t).sum_dim(1).reshape([r]) / (accumulation.clone() + 1e-6);
     let surface = origins + directions * depth.clone().reshape([r, 1]);
     let forward = start.elapsed().as_secs_f64();
@@ -519,7 +618,38 @@ pub fn render(
         unit_rows(gradient)
     });
     let seconds = [located, forward - located, start.elapsed().as_secs_f64() - forward];
-    Deferred { accumulation, albedo, depth, surface, normal, sample_points: points, sample_density: density, seconds }
+    Deferred { accumulation, albedo, depth, surface, normal, sample_points: points, sample_density: density, seconds, evaluated }
+}
+
+/// The differentiable pass over the `kept` samples only (`contributing`): the field decoded at
+/// them, every other sample given density zero, composited over every ray's `S` samples as the
+/// full pass would (`[R, S]` weights), each ray's albedo the weighted sum over its kept samples
+/// (`[R, 3]`), and every sample's density (`[R * S]`, zero where left out).
+fn culled_pass(
+    field: &AvatarField,
+    pose: &PoseTensors,
+    rays: &RaySet,
+    t: &[f32],
+    kept: &[usize],
+    delta: Tensor<2>,
+    device: &Device,
+) -> (Tensor<2>, Tensor<2>, Tensor<1>) {
+    let [r, s] = delta.dims();
+    if kept.is_empty() {
+        return (Tensor::zeros([r, s], device), Tensor::zeros([r, 3], device), Tensor::zeros([r * s], device));
+    }
+    let k = kept.len();
+    let point = |j: usize, c: usize| rays.origins[3 * (j / s) + c] + rays.directions[3 * (j / s) + c] * t[j];
+    let points: Vec<f32> = kept.iter().flat_map(|&j| [point(j, 0), point(j, 1), point(j, 2)]).collect();
+    let points = Tensor::<2>::from_data(TensorData::new(points, [k, 3]), device);
+    let rows = Tensor::<1, Int>::from_data(TensorData::new(kept.iter().map(|&j| j as i64).collect::<Vec<_>>(), [k]), device);
+    let ray_of = Tensor::<1, Int>::from_data(TensorData::new(kept.iter().map(|&j| (j / s) as i64).collect::<Vec<_>>(), [k]), device);
+    let decoded = field.decode(points, pose);
+    let density = Tensor::<1>::zeros([r * s], device).select_assign(0, rows.clone(), field.density(decoded.sdf.clone()), IndexingUpdateOp::Add);
+    let weights = compositing_weights(density.clone().reshape([r, s]), delta);
+    let weighted = field.albedo_at(&decoded, None) * weights.clone().reshape([r * s]).select(0, rows).reshape([k, 1]);
+    let albedo = Tensor::zeros([r, 3], device).select_assign(0, ray_of, weighted, IndexingUpdateOp::Add);
+    (weights, albedo, density)
 }
 
 /// Fewest rays a part of a split render holds: below this a second thread costs more than it saves.
@@ -614,6 +744,7 @@ impl Deferred {
             sample_points: join2(|p| p.sample_points.clone()),
             sample_density: join1(|p| p.sample_density.clone()),
             seconds,
+            evaluated: parts.iter().map(|p| p.evaluated).sum(),
         }
     }
 }

@@ -131,6 +131,9 @@ pub struct Schedule {
     /// Samples per ray, without gradients, that locate the surface between the coarse and the
     /// fine samples (`render::Sampling::probe`).
     pub probe_samples_per_ray: usize,
+    /// Whether the differentiable pass evaluates the field only where a sample can change a ray
+    /// (`render::Sampling::cull`); absent: yes.
+    pub cull_samples: bool,
     /// Points per step for the Gaussian density fit, and for Eikonal and curvature.
     pub density_points: usize,
     pub regulariser_points: usize,
@@ -221,6 +224,14 @@ fn count(file: &Path, table: &toml::Table, key: &str, default: usize, min: usize
     }
 }
 
+fn boolean(file: &Path, table: &toml::Table, key: &str, default: bool) -> Result<bool, ScheduleError> {
+    match table.get(key) {
+        None => Ok(default),
+        Some(toml::Value::Boolean(b)) => Ok(*b),
+        Some(other) => Err(err(file, key, format!("expected true or false, found {other}"))),
+    }
+}
+
 fn parse_field(file: &Path, table: &toml::Table) -> Result<FieldSettings, ScheduleError> {
     let field = match table.get("field") {
         None => toml::Table::new(),
@@ -307,6 +318,7 @@ impl Schedule {
             // the geometry, through its colour, whether density there would match the image
             // (dropping them cost human-sun-128 0.8 dB foreground at seed 0).
             albedo_floor: 0.0,
+            cull: self.cull_samples,
         }
     }
 
@@ -333,6 +345,7 @@ impl Schedule {
             "samples_per_ray",
             "fine_samples_per_ray",
             "probe_samples_per_ray",
+            "cull_samples",
             "density_points",
             "regulariser_points",
             "checkpoint_every",
@@ -443,6 +456,7 @@ impl Schedule {
             samples_per_ray: count(file, &table, "samples_per_ray", 24, 2)?,
             fine_samples_per_ray: count(file, &table, "fine_samples_per_ray", 0, 0)?,
             probe_samples_per_ray: count(file, &table, "probe_samples_per_ray", 0, 0)?,
+            cull_samples: boolean(file, &table, "cull_samples", true)?,
             density_points: count(file, &table, "density_points", 256, 0)?,
             regulariser_points: count(file, &table, "regulariser_points", 128, 0)?,
             checkpoint_every: count(file, &table, "checkpoint_every", 250, 1)?,
@@ -456,11 +470,7 @@ impl Schedule {
             field_lr_decay_from: count(file, &table, "field_lr_decay_from", 0, 0)?,
             sun_search: count(file, &table, "sun_search", 0, 0)?,
             rebind_every: count(file, &table, "rebind_every", 0, 0)?,
-            sample_masked_misses: match table.get("sample_masked_misses") {
-                None => false,
-                Some(toml::Value::Boolean(b)) => *b,
-                Some(other) => return Err(err(file, "sample_masked_misses", format!("expected true or false, found {other}"))),
-            },
+            sample_masked_misses: boolean(file, &table, "sample_masked_misses", false)?,
             contrast_rays: match number(file, &table, "contrast_rays", "")? {
                 None => 0.0,
                 Some(v) if (0.0..=1.0).contains(&v) => v,
@@ -613,6 +623,10 @@ mod tests {
         assert_eq!(error_of("[field]\nkind = \"grid\"\nreach_per_extent = 0\n[losses]\nmask = 1.0").key, "field.reach_per_extent");
         assert_eq!(error_of("[field]\nreach_per_extent = 0.2\n[losses]\nmask = 1.0").key, "field.reach_per_extent");
         assert_eq!(error_of("sample_masked_misses = 1\n[losses]\nmask = 1.0").key, "sample_masked_misses");
+        assert_eq!(error_of("cull_samples = \"yes\"\n[losses]\nmask = 1.0").key, "cull_samples");
+        let parsed = |text: &str| Schedule::parse(text, Path::new("s.toml")).map(|s| s.cull_samples).ok();
+        assert_eq!(parsed("[losses]\nmask = 1.0"), Some(true), "culling is on unless a schedule turns it off");
+        assert_eq!(parsed("cull_samples = false\n[losses]\nmask = 1.0"), Some(false));
         assert_eq!(error_of("contrast_rays = 1.5\n[losses]\nmask = 1.0").key, "contrast_rays");
         assert_eq!(error_of("contrast_rays = \"half\"\n[losses]\nmask = 1.0").key, "contrast_rays");
         assert_eq!(error_of("[field]\nkind = \"grid\"\nfeatures = 0\n[losses]\nmask = 1.0").key, "field.features");

@@ -719,8 +719,8 @@ fn a_still_render_is_the_training_render_without_its_gradients() {
     let mut stream = Stream::new(8, 1, 0);
     let rays = rays_through_the_body(&s, 96, &mut stream);
     for sampling in [
-        umbra::render::Sampling { coarse: 16, probe: 16, fine: 16, albedo_floor: umbra::render::ALBEDO_WEIGHT_FLOOR },
-        umbra::render::Sampling { coarse: 24, probe: 0, fine: 0, albedo_floor: 0.0 },
+        umbra::render::Sampling { coarse: 16, probe: 16, fine: 16, albedo_floor: umbra::render::ALBEDO_WEIGHT_FLOOR, cull: false },
+        umbra::render::Sampling { coarse: 24, probe: 0, fine: 0, albedo_floor: 0.0, cull: false },
     ] {
         let jitter: Vec<f32> = (0..rays.len() * sampling.draws()).map(|_| stream.uniform() as f32).collect();
         let normals = Some(umbra::field::GRADIENT);
@@ -857,7 +857,7 @@ fn a_render_split_over_threads_is_the_whole_render_and_so_are_its_gradients() {
     let mut stream = Stream::new(9, 1, 0);
     // 301 rays: three parts of 101, 101 and 99 (the last one short).
     let rays = rays_through_the_body(&s, 301, &mut stream);
-    let sampling = umbra::render::Sampling { coarse: 16, probe: 16, fine: 16, albedo_floor: umbra::render::ALBEDO_WEIGHT_FLOOR };
+    let sampling = umbra::render::Sampling { coarse: 16, probe: 16, fine: 16, albedo_floor: umbra::render::ALBEDO_WEIGHT_FLOOR, cull: false };
     let jitter: Vec<f32> = (0..rays.len() * sampling.draws()).map(|_| stream.uniform() as f32).collect();
     let run = |parts: usize| {
         let (d, forks) = umbra::render::render_in_parts(&field, &pose, &rays, sampling, &jitter, Some(umbra::field::GRADIENT), &device, parts);
@@ -884,15 +884,68 @@ fn a_render_split_over_threads_is_the_whole_render_and_so_are_its_gradients() {
             assert!((x - y).abs() <= 1e-4 * (1.0 + x.abs()), "output {k}: whole {x}, split {y}");
         }
     }
-    assert_eq!(whole_grads.len(), split_grads.len());
+    assert_same_gradients(&whole_grads, &split_grads, "split");
+}
+
+/// Every parameter's gradient `b` within 1e-3 of the largest of `a`'s, and at least four
+/// parameters with any gradient at all.
+fn assert_same_gradients(a: &[(String, Vec<f32>)], b: &[(String, Vec<f32>)], what: &str) {
+    assert_eq!(a.len(), b.len());
     let mut nonzero = 0;
-    for ((name, a), (_, b)) in whole_grads.iter().zip(&split_grads) {
+    for ((name, a), (_, b)) in a.iter().zip(b) {
         assert_eq!(a.len(), b.len(), "{name}: a gradient on one side only");
         let scale = a.iter().fold(0.0f32, |m, x| m.max(x.abs())).max(1e-6);
         for (x, y) in a.iter().zip(b) {
-            assert!((x - y).abs() <= 1e-3 * scale, "{name}: whole {x}, split {y} (largest {scale})");
+            assert!((x - y).abs() <= 1e-3 * scale, "{name}: whole {x}, {what} {y} (largest {scale})");
         }
         nonzero += usize::from(a.iter().any(|&x| x != 0.0));
     }
     assert!(nonzero >= 4, "only {nonzero} parameters have gradients");
+}
+
+#[test]
+fn a_culled_render_is_the_full_render_and_so_are_its_gradients() {
+    let s = setup();
+    let device = Device::flex().autodiff();
+    // A surface about as sharp as a fit's (beta 2 mm; fits end at 0.5 mm), so that most samples
+    // lie in empty space or behind the surface, as they do in training.
+    let config = FieldConfig { albedo_layers: 2, initial_beta: 0.002, ..s.config.clone() };
+    let field = busy_field(&config, &device, false);
+    let pose = PoseTensors::new(&s.pose, &s.character.skeleton, &device);
+    let mut stream = Stream::new(10, 1, 0);
+    let rays = rays_through_the_body(&s, 200, &mut stream);
+    let full = umbra::render::Sampling { coarse: 16, probe: 16, fine: 16, albedo_floor: 0.0, cull: false };
+    let jitter: Vec<f32> = (0..rays.len() * full.draws()).map(|_| stream.uniform() as f32).collect();
+    let run = |sampling: umbra::render::Sampling| {
+        let (d, forks) =
+            umbra::render::render_in_parts(&field, &pose, &rays, sampling, &jitter, Some(umbra::field::GRADIENT), &device, if sampling.cull { 2 } else { 1 });
+        let r = rays.len();
+        let ramp = Tensor::<1>::from_data(TensorData::new((0..r).map(|i| 1.0 + i as f32 / r as f32).collect::<Vec<_>>(), [r]), &device);
+        let loss = (d.accumulation.clone() * ramp.clone()).sum()
+            + (d.albedo.clone().sum_dim(1).reshape([r]) * ramp.clone()).sum()
+            // Depth and normal as shading sees them: scaled by the ray's coverage.
+            + (d.depth.clone() * d.accumulation.clone() * ramp.clone()).sum()
+            + (d.normal.clone().unwrap().sum_dim(1).reshape([r]) * d.accumulation.clone() * ramp).sum();
+        let outputs = [values(d.accumulation.clone()), values(d.albedo.clone()), values(d.depth.clone()), values(d.sample_density.clone())];
+        let mut grads = loss.reshape([1]).backward();
+        (outputs, named_gradients(&mut grads, &field, &forks), d.evaluated)
+    };
+    let (whole, whole_grads, all) = run(full);
+    let (culled, culled_grads, kept) = run(umbra::render::Sampling { cull: true, ..full });
+    assert_eq!(all, rays.len() * full.total());
+    assert!(whole[0].iter().filter(|&&a| a > 0.5).count() > 20 && whole[0].iter().filter(|&&a| a < 0.5).count() > 20, "rays hit and miss the body");
+    // Every fine sample is kept (half the samples); most coarse ones go.
+    assert!(kept * 8 < all * 5, "culling leaves out most coarse samples: {kept} of {all} evaluated");
+    for (k, (a, b)) in whole.iter().zip(&culled).enumerate() {
+        assert_eq!(a.len(), b.len());
+        for (i, (x, y)) in a.iter().zip(b).enumerate() {
+            // A ray that sees next to nothing has no depth to speak of (its weighted mean
+            // distance over a vanishing weight); what it shades is scaled by that weight.
+            if k == 2 && whole[0][i] < 1e-2 {
+                continue;
+            }
+            assert!((x - y).abs() <= 1e-4 * (1.0 + x.abs()), "output {k}: full {x}, culled {y}");
+        }
+    }
+    assert_same_gradients(&whole_grads, &culled_grads, "culled");
 }

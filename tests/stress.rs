@@ -47,7 +47,7 @@ fn the_field_and_the_renderer_stay_finite_far_away_and_on_rays_that_miss() {
         rays.push(DVec3::new(0.0, 1.0, 3.0), DVec3::new(0.0, 0.0, -1.0), None);
         rays.push(DVec3::new(1000.0, 1.0, 0.0), DVec3::new(-1.0, 0.0, 0.0), Some((999.0, 1001.0)));
         rays.push(DVec3::new(0.0, 1.0, 3.0), DVec3::new(0.0, 0.0, -1.0), Some((2.5, 3.5)));
-        let sampling = Sampling { coarse: 8, probe: 8, fine: 8, albedo_floor: umbra::render::ALBEDO_WEIGHT_FLOOR };
+        let sampling = Sampling { coarse: 8, probe: 8, fine: 8, albedo_floor: umbra::render::ALBEDO_WEIGHT_FLOOR, cull: false };
         let jitter = vec![0.5; rays.len() * sampling.draws()];
         let out = render(&field, &pose_tensors, &rays, sampling, &jitter, Some(umbra::field::GRADIENT), &device);
         let accumulation = values(out.accumulation);
@@ -146,7 +146,7 @@ fn a_bone_far_from_the_others_leaves_the_field_and_the_renderer_finite() {
         let mut rays = RaySet::default();
         rays.push(DVec3::new(0.0, 1.0, 3.0), DVec3::new(0.0, 0.0, -1.0), Some((2.0, 4.0)));
         rays.push(far + DVec3::new(0.0, 0.0, 3.0), DVec3::new(0.0, 0.0, -1.0), Some((2.0, 4.0)));
-        let sampling = Sampling { coarse: 8, probe: 8, fine: 8, albedo_floor: umbra::render::ALBEDO_WEIGHT_FLOOR };
+        let sampling = Sampling { coarse: 8, probe: 8, fine: 8, albedo_floor: umbra::render::ALBEDO_WEIGHT_FLOOR, cull: false };
         let jitter = vec![0.5; rays.len() * sampling.draws()];
         let out = render(&field, &pose_tensors, &rays, sampling, &jitter, Some(umbra::field::GRADIENT), &device);
         assert!(all_finite(&values(out.accumulation)) && all_finite(&values(out.albedo)) && all_finite(&values(out.normal.unwrap())));

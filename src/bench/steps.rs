@@ -21,12 +21,15 @@ struct Variant {
     composite_lookup: bool,
     /// The batch rendered on one thread (before `render::render_in_parts`), not on every one.
     one_render_thread: bool,
+    /// Every sample through the differentiable pass (before `render::Sampling::cull`).
+    every_sample: bool,
 }
 
 /// Milliseconds per step of `variant` from `iteration` (its stage), over `budget` seconds.
 fn step_ms(scene: &Scene, schedule: &Schedule, variant: &Variant, iteration: usize, budget: f64) -> Result<f64, FitError> {
     let mut schedule = schedule.clone();
     schedule.field = variant.field.clone();
+    schedule.cull_samples &= !variant.every_sample;
     let mut trainer = Trainer::new(scene.clone(), schedule, Backend::Flex, 0)?;
     trainer.render_missed_rays = variant.render_missed_rays;
     trainer.set_composite_lookup(variant.composite_lookup);
@@ -34,6 +37,11 @@ fn step_ms(scene: &Scene, schedule: &Schedule, variant: &Variant, iteration: usi
         trainer.render_threads = 1;
     }
     trainer.iteration = iteration;
+    time_steps(&mut trainer, budget)
+}
+
+/// Milliseconds per step of `trainer` from where it is, over `budget` seconds.
+fn time_steps(trainer: &mut Trainer, budget: f64) -> Result<f64, FitError> {
     let mut failure = None;
     let seconds = time(budget, || {
         if let Err(e) = trainer.step() {
@@ -47,7 +55,7 @@ fn step_ms(scene: &Scene, schedule: &Schedule, variant: &Variant, iteration: usi
 }
 
 /// Times the variants on `scene`; writes `steps.{md,csv,png}` into `out`, returns the table.
-pub fn steps(scene_path: &Path, schedule_path: &Path, out: &Path, quick: bool) -> Result<String, FitError> {
+pub fn steps(scene_path: &Path, schedule_path: &Path, out: &Path, quick: bool, run: Option<&Path>) -> Result<String, FitError> {
     let scene = Scene::load(scene_path)?;
     let schedule = Schedule::load(schedule_path)?;
     let grid = |top_bones: Option<usize>| FieldSettings { top_bones, ..FieldSettings::of(FieldKind::Grid) };
@@ -59,6 +67,7 @@ pub fn steps(scene_path: &Path, schedule_path: &Path, out: &Path, quick: bool) -
             render_missed_rays: true,
             composite_lookup: false,
             one_render_thread: true,
+            every_sample: false,
         },
         Variant {
             name: "mlp, missed rays skipped, one render thread",
@@ -66,14 +75,23 @@ pub fn steps(scene_path: &Path, schedule_path: &Path, out: &Path, quick: bool) -
             render_missed_rays: false,
             composite_lookup: false,
             one_render_thread: true,
+            every_sample: false,
         },
-        Variant { name: "mlp, missed rays skipped", field: mlp, render_missed_rays: false, composite_lookup: false, one_render_thread: false },
+        Variant {
+            name: "mlp, missed rays skipped",
+            field: mlp,
+            render_missed_rays: false,
+            composite_lookup: false,
+            one_render_thread: false,
+            every_sample: false,
+        },
         Variant {
             name: "grid, nearest 8 bones (the most a lookup takes), composite lookup",
             field: grid(Some(scene.skeleton.len().min(crate::field::grid::MAX_TOP_BONES))),
             render_missed_rays: false,
             composite_lookup: true,
             one_render_thread: false,
+            every_sample: false,
         },
         Variant {
             name: "grid, nearest 3 bones, composite lookup",
@@ -81,6 +99,7 @@ pub fn steps(scene_path: &Path, schedule_path: &Path, out: &Path, quick: bool) -
             render_missed_rays: false,
             composite_lookup: true,
             one_render_thread: false,
+            every_sample: false,
         },
         Variant {
             name: "grid, nearest 3 bones, fused lookup op, one render thread",
@@ -88,6 +107,15 @@ pub fn steps(scene_path: &Path, schedule_path: &Path, out: &Path, quick: bool) -
             render_missed_rays: false,
             composite_lookup: false,
             one_render_thread: true,
+            every_sample: false,
+        },
+        Variant {
+            name: "grid, nearest 3 bones, fused lookup op, every sample differentiated",
+            field: grid(None),
+            render_missed_rays: false,
+            composite_lookup: false,
+            one_render_thread: false,
+            every_sample: true,
         },
         Variant {
             name: "grid, nearest 3 bones, fused lookup op",
@@ -95,6 +123,7 @@ pub fn steps(scene_path: &Path, schedule_path: &Path, out: &Path, quick: bool) -
             render_missed_rays: false,
             composite_lookup: false,
             one_render_thread: false,
+            every_sample: false,
         },
     ];
     let stages = [("silhouette stage", 0), ("light stage", schedule.light_from + 200)];
@@ -107,6 +136,21 @@ pub fn steps(scene_path: &Path, schedule_path: &Path, out: &Path, quick: bool) -
             let ms = step_ms(&scene, &schedule, v, iteration, budget)?;
             let base = *baseline.get_or_insert(ms);
             rows.push((stage, v.name, ms, ms / base));
+        }
+    }
+    // A fresh field's surface is as soft as its starting beta, so the samples culling leaves out
+    // are fewer than in the steps of a fit: a fitted field shows what culling saves.
+    if let Some(run) = run {
+        let mut baseline = None;
+        let mut trainer = crate::run::restore(run, None, Backend::Flex)?;
+        // Late in the fit: every level in, the light fitted.
+        trainer.iteration = trainer.schedule.iterations.saturating_sub(100).max(trainer.schedule.light_from + 1);
+        let fitted = "fitted field";
+        for (name, cull) in [("every sample differentiated", false), ("culled", true)] {
+            trainer.schedule.cull_samples = cull;
+            let ms = time_steps(&mut trainer, budget)?;
+            let base = *baseline.get_or_insert(ms);
+            rows.push((fitted, name, ms, ms / base));
         }
     }
     let mut md = format!(
@@ -122,12 +166,19 @@ pub fn steps(scene_path: &Path, schedule_path: &Path, out: &Path, quick: bool) -
         csv += &format!("{stage},{name},{ms:.3},{ratio:.4}\n");
     }
     md += "\nBaseline: the first row of each stage (the mlp field rendering every ray), measured in the same run.\n";
+    if let Some(run) = run {
+        md += &format!("The fitted field's rows: the fit in `{}` continued from its checkpoint, 100 iterations before its end.\n", run.display());
+    }
     let write = |name: &str, text: &str| crate::imageio::write_atomic(&out.join(name), text.as_bytes()).map_err(|e| crate::train::io(&out.join(name), e));
     write("steps.md", &md)?;
     write("steps.csv", &csv)?;
-    let series = stages
+    let mut names: Vec<&str> = stages.iter().map(|(stage, _)| *stage).collect();
+    if run.is_some() {
+        names.push("fitted field");
+    }
+    let series = names
         .iter()
-        .map(|(stage, _)| Series {
+        .map(|stage| Series {
             name: stage.to_string(),
             points: rows.iter().filter(|r| r.0 == *stage).enumerate().map(|(k, r)| (k as f64 + 1.0, r.2)).collect(),
             lines: true,
