@@ -228,8 +228,8 @@ pub enum Command {
         /// `../shared/examples/quadruped-tiny`).
         #[arg(long, value_delimiter = ',')]
         scenes: Vec<PathBuf>,
-        /// `render`: the run folder of a fit whose views to time; `steps`: of a fit whose fitted
-        /// field's steps to time as well, with and without culling.
+        /// `render`: the run folder of a fit whose views to time; `steps`, `breakdown`: of a fit
+        /// whose fitted field's steps to time as well (`steps`: with and without culling).
         #[arg(long)]
         run: Option<PathBuf>,
     },
@@ -302,9 +302,9 @@ pub fn main() -> i32 {
             let scene = scene.unwrap_or_else(|| PathBuf::from("datasets-synthetic/human-sun-128"));
             crate::bench::steps(&scene, &schedule, &out, quick, run.as_deref()).map(|table| print!("{table}")).map_err(|e| e.to_string())
         }
-        Command::Bench { which: BenchKind::Breakdown, out, quick, scene, schedule, .. } => {
+        Command::Bench { which: BenchKind::Breakdown, out, quick, scene, schedule, run, .. } => {
             let scene = scene.unwrap_or_else(|| PathBuf::from("datasets-synthetic/human-sun-128"));
-            crate::bench::breakdown(&scene, &schedule, &out, quick).map(|table| print!("{table}")).map_err(|e| e.to_string())
+            crate::bench::breakdown(&scene, &schedule, &out, quick, run.as_deref()).map(|table| print!("{table}")).map_err(|e| e.to_string())
         }
         Command::Bench { which: BenchKind::Scenes, out, scenes, schedule, iterations, seed, .. } => {
             let options = crate::bench::ScenesBenchOptions { scenes, schedule, iterations, seed, out };

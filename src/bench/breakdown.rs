@@ -27,8 +27,14 @@ struct Part {
 /// Mean milliseconds per phase over `steps` training steps from `iteration`.
 fn training_parts(scene: &Scene, schedule: &Schedule, stage: &str, iteration: usize, steps: usize) -> Result<Vec<Part>, FitError> {
     let mut trainer = Trainer::new(scene.clone(), schedule.clone(), Backend::Flex, 0)?;
-    // Past the sun search (a one-off, timed on its own below), warmed up by one step.
+    // Past the sun search (a one-off, timed on its own below).
     trainer.iteration = iteration + 1;
+    trainer_parts(&mut trainer, stage, steps)
+}
+
+/// Mean milliseconds per phase over `steps` steps of `trainer` from where it is, after one
+/// step to warm up.
+fn trainer_parts(trainer: &mut Trainer, stage: &str, steps: usize) -> Result<Vec<Part>, FitError> {
     trainer.step()?;
     let mut sums = vec![0.0; PHASES.len()];
     let mut whole = 0.0;
@@ -100,13 +106,20 @@ fn render_parts(scene: &Scene, schedule: &Schedule, repeats: usize) -> Result<Ve
 
 /// Measures the breakdown on `scene` with `schedule`; writes `breakdown.{md,csv,png}` into
 /// `out` and returns the Markdown table.
-pub fn breakdown(scene_path: &Path, schedule_path: &Path, out: &Path, quick: bool) -> Result<String, FitError> {
+pub fn breakdown(scene_path: &Path, schedule_path: &Path, out: &Path, quick: bool, run: Option<&Path>) -> Result<String, FitError> {
     let scene = Scene::load(scene_path)?;
     let schedule = Schedule::load(schedule_path)?;
     let steps = if quick { 3 } else { 20 };
     std::fs::create_dir_all(out).map_err(|e| io(out, e))?;
     let mut parts = training_parts(&scene, &schedule, "silhouette stage", 0, steps)?;
     parts.extend(training_parts(&scene, &schedule, "light stage", schedule.light_from + 200, steps)?);
+    // A fresh field's surface is as soft as its starting beta; a fitted one's late steps are
+    // what most of a fit's steps look like once the surface has formed.
+    if let Some(run) = run {
+        let mut trainer = crate::run::restore(run, None, Backend::Flex)?;
+        trainer.iteration = trainer.schedule.iterations.saturating_sub(100).max(trainer.schedule.light_from + 1);
+        parts.extend(trainer_parts(&mut trainer, "fitted field", steps)?);
+    }
     // The sun search runs once per fit, at light_from.
     let mut trainer = Trainer::new(scene.clone(), schedule.clone(), Backend::Flex, 0)?;
     trainer.iteration = schedule.light_from;
