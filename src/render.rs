@@ -308,21 +308,22 @@ fn host_weights(samples: &Samples, density: &[f32], r: usize) -> Vec<f32> {
 }
 
 /// What a culled differentiable pass (`Sampling::cull`) leaves out: a coarse sample whose
-/// optical depth `sigma delta` is below `CULL_OPTICAL_DEPTH`, or which lies behind
-/// `CULL_TRANSMITTANCE` of the body as the search saw it (the coarse and probe samples'
-/// densities). Every fine sample is kept: they are drawn where the search found weight.
+/// optical depth `sigma delta` is below `CULL_OPTICAL_DEPTH`, or which lies behind at most
+/// `CULL_TRANSMITTANCE` (an upper bound: the optical depth of the coarse samples before it
+/// alone). Every fine sample is kept: they are drawn where the search found weight.
 ///
 /// Why the pass is then the full pass to within these figures: a sample reaches the colour and
 /// coverage through its weight `T (1 - exp(-sigma delta))` and the parameters through `d sigma /
 /// d sdf`, which outside the surface is `sigma / beta` (VolSDF): a sample of optical depth below
 /// 1e-7 changes the colour by less than 1e-7 and passes a gradient below 1e-7 / beta per unit
-/// of SDF gradient, against about 1 / beta at the surface. Behind the surface the search's
-/// transmittance is an estimate (the probes resolve the surface, the coarse strata are coarse),
-/// hence a bound far below what matters: a sample behind 1e-8 of transmittance changes the
-/// colour and the earlier samples' gradients by about that. What goes: most coarse samples of a
-/// ray that hits the body (the empty space before the surface and the inside behind it) and
-/// every coarse sample of a ray that passes far from it. A test pins the culled pass to the
-/// full one, outputs and gradients.
+/// of SDF gradient, against about 1 / beta at the surface; a sample behind 1e-8 of transmittance
+/// changes the colour, and the earlier samples' gradients, by less than 1e-8. What goes: most
+/// coarse samples of a ray that hits the body (the empty space before the surface and the
+/// inside behind it) and every coarse sample of a ray that passes far from it. A test pins the
+/// culled pass to the full one, outputs and gradients. (A first bound, the transmittance of the
+/// search's coarse and probe samples, is an estimate, not a bound: where a grazing ray's probe
+/// overstated the optical depth it culled what lay behind, and `dog-sun` lost 1.5 dB of novel
+/// view and 0.9 degrees of sun over three seeds.)
 pub const CULL_OPTICAL_DEPTH: f32 = 1e-7;
 pub const CULL_TRANSMITTANCE: f32 = 1e-8;
 
@@ -446,25 +447,14 @@ fn locate(
         }
         Want::Samples => Located { samples: merge(rays, &coarse.t, sc, &fine, sf, None).0, density: Vec::new(), kept: None },
         Want::Culled => {
-            // Each coarse sample's transmittance as the search saw it: it is one of the located
-            // samples, whose probes resolve the surface.
-            let before_located = transmittance_before(&located, &density, r);
-            let per_ray = located.t.len() / r.max(1);
-            let mut before_coarse = Vec::with_capacity(r * sc);
-            for i in 0..r {
-                let ray = i * per_ray..(i + 1) * per_ray;
-                let mut k = ray.start;
-                for j in 0..sc {
-                    let t = coarse.t[i * sc + j];
-                    while k + 1 < ray.end && located.t[k] < t {
-                        k += 1;
-                    }
-                    before_coarse.push(before_located[k]);
-                }
-            }
-            // Fine samples carry density +infinity and transmittance 1: never culled.
+            // Fine samples carry density +infinity: never culled, and left out of the optical
+            // depth below, which is then the coarse samples' alone over their intervals among
+            // the merged samples: a lower bound on the pass's (fine samples only add to it), so
+            // the transmittance it gives is an upper bound and a sample culled by it is hidden
+            // at least that well.
             let (samples, density) = merge(rays, &coarse.t, sc, &fine, sf, Some((&coarse_density, &vec![f32::INFINITY; r * sf])));
-            let (_, before) = merge(rays, &coarse.t, sc, &fine, sf, Some((&before_coarse, &vec![1.0; r * sf])));
+            let coarse_only: Vec<f32> = density.iter().map(|&d| if d.is_finite() { d } else { 0.0 }).collect();
+            let before = transmittance_before(&samples, &coarse_only, r);
             let kept = culled(&samples, &density, &before);
             Located { samples, density, kept: Some(kept) }
         }
