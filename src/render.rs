@@ -373,17 +373,31 @@ pub fn composite_albedo(field: &AvatarField, decoded: &Decoded, weights: &Tensor
     }
     let device = weights.device();
     let host = weights.clone().into_data().convert::<f32>().try_to_vec::<f32>().unwrap_or_default();
-    let rows: Vec<i64> = (0..r * s).filter(|&k| host.get(k).is_none_or(|&w| w >= floor)).map(|k| k as i64).collect();
+    let rows: Vec<usize> = (0..r * s).filter(|&k| host.get(k).is_none_or(|&w| w >= floor)).collect();
     if rows.is_empty() {
         return Tensor::zeros([r, 3], &device);
     }
-    let rays: Vec<i64> = rows.iter().map(|&k| k / s as i64).collect();
+    let picked = Tensor::<1, Int>::from_data(TensorData::new(rows.iter().map(|&k| k as i64).collect::<Vec<_>>(), [rows.len()]), &device);
+    weighted_per_ray(field.albedo_at(decoded, Some(picked)), weights, &rows)
+}
+
+/// The points `o + t d` of the samples `rows` (indices into `[R * S]`, `s` per ray) as an
+/// `[K, 3]` tensor.
+fn points_at(rays: &RaySet, t: &[f32], s: usize, rows: &[usize], device: &Device) -> Tensor<2> {
+    let point = |k: usize, c: usize| rays.origins[3 * (k / s) + c] + rays.directions[3 * (k / s) + c] * t[k];
+    let points: Vec<f32> = rows.iter().flat_map(|&k| [point(k, 0), point(k, 1), point(k, 2)]).collect();
+    Tensor::<2>::from_data(TensorData::new(points, [rows.len(), 3]), device)
+}
+
+/// Each ray's sum of `albedo` (`[K, 3]`, one row per sample of `rows`, indices into `[R * S]`)
+/// weighted by those samples' `weights` (`[R, S]`): `[R, 3]`.
+fn weighted_per_ray(albedo: Tensor<2>, weights: &Tensor<2>, rows: &[usize]) -> Tensor<2> {
+    let [r, s] = weights.dims();
+    let device = weights.device();
     let k = rows.len();
-    let rows = Tensor::<1, Int>::from_data(TensorData::new(rows, [k]), &device);
-    let rays = Tensor::<1, Int>::from_data(TensorData::new(rays, [k]), &device);
-    let albedo = field.albedo_at(decoded, Some(rows.clone())); // [K, 3]
-    let weighted = albedo * weights.clone().reshape([r * s]).select(0, rows).reshape([k, 1]);
-    Tensor::zeros([r, 3], &device).select_assign(0, rays, weighted, IndexingUpdateOp::Add)
+    let index = |v: Vec<i64>| Tensor::<1, Int>::from_data(TensorData::new(v, [k]), &device);
+    let weighted = albedo * weights.clone().reshape([r * s]).select(0, index(rows.iter().map(|&j| j as i64).collect())).reshape([k, 1]);
+    Tensor::zeros([r, 3], &device).select_assign(0, index(rows.iter().map(|&j| (j / s) as i64).collect()), weighted, IndexingUpdateOp::Add)
 }
 
 /// The rays' origins and directions as `[R, 3]` tensors.
@@ -520,10 +534,7 @@ pub fn render_still(
     let rows: Vec<usize> = (0..r * s).filter(|&k| weights[k] >= sampling.albedo_floor).collect();
     let mut albedo = vec![0.0f32; 3 * r];
     if !rows.is_empty() {
-        let point = |k: usize, c: usize| rays.origins[3 * (k / s) + c] + rays.directions[3 * (k / s) + c] * samples.t[k];
-        let points: Vec<f32> = rows.iter().flat_map(|&k| [point(k, 0), point(k, 1), point(k, 2)]).collect();
-        let points = Tensor::<2>::from_data(TensorData::new(points, [rows.len(), 3]), device);
-        let decoded = field.decode(points, pose);
+        let decoded = field.decode(points_at(rays, &samples.t, s, &rows, device), pose);
         let values = field.albedo_at(&decoded, None).into_data().convert::<f32>().try_to_vec::<f32>().unwrap_or_default();
         for (j, &k) in rows.iter().enumerate() {
             for c in 0..3 {
@@ -628,17 +639,11 @@ fn culled_pass(
     if kept.is_empty() {
         return (Tensor::zeros([r, s], device), Tensor::zeros([r, 3], device), Tensor::zeros([r * s], device));
     }
-    let k = kept.len();
-    let point = |j: usize, c: usize| rays.origins[3 * (j / s) + c] + rays.directions[3 * (j / s) + c] * t[j];
-    let points: Vec<f32> = kept.iter().flat_map(|&j| [point(j, 0), point(j, 1), point(j, 2)]).collect();
-    let points = Tensor::<2>::from_data(TensorData::new(points, [k, 3]), device);
-    let rows = Tensor::<1, Int>::from_data(TensorData::new(kept.iter().map(|&j| j as i64).collect::<Vec<_>>(), [k]), device);
-    let ray_of = Tensor::<1, Int>::from_data(TensorData::new(kept.iter().map(|&j| (j / s) as i64).collect::<Vec<_>>(), [k]), device);
-    let decoded = field.decode(points, pose);
-    let density = Tensor::<1>::zeros([r * s], device).select_assign(0, rows.clone(), field.density(decoded.sdf.clone()), IndexingUpdateOp::Add);
+    let decoded = field.decode(points_at(rays, t, s, kept, device), pose);
+    let rows = Tensor::<1, Int>::from_data(TensorData::new(kept.iter().map(|&j| j as i64).collect::<Vec<_>>(), [kept.len()]), device);
+    let density = Tensor::<1>::zeros([r * s], device).select_assign(0, rows, field.density(decoded.sdf.clone()), IndexingUpdateOp::Add);
     let weights = compositing_weights(density.clone().reshape([r, s]), delta);
-    let weighted = field.albedo_at(&decoded, None) * weights.clone().reshape([r * s]).select(0, rows).reshape([k, 1]);
-    let albedo = Tensor::zeros([r, 3], device).select_assign(0, ray_of, weighted, IndexingUpdateOp::Add);
+    let albedo = weighted_per_ray(field.albedo_at(&decoded, None), &weights, kept);
     (weights, albedo, density)
 }
 

@@ -113,11 +113,8 @@ pub fn breakdown(scene_path: &Path, schedule_path: &Path, out: &Path, quick: boo
     std::fs::create_dir_all(out).map_err(|e| io(out, e))?;
     let mut parts = training_parts(&scene, &schedule, "silhouette stage", 0, steps)?;
     parts.extend(training_parts(&scene, &schedule, "light stage", schedule.light_from + 200, steps)?);
-    // A fresh field's surface is as soft as its starting beta; a fitted one's late steps are
-    // what most of a fit's steps look like once the surface has formed.
     if let Some(run) = run {
-        let mut trainer = crate::run::restore(run, None, Backend::Flex)?;
-        trainer.iteration = trainer.schedule.iterations.saturating_sub(100).max(trainer.schedule.light_from + 1);
+        let mut trainer = super::fitted_trainer(run)?;
         parts.extend(trainer_parts(&mut trainer, "fitted field", steps)?);
     }
     // The sun search runs once per fit, at light_from.

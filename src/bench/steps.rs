@@ -142,9 +142,7 @@ pub fn steps(scene_path: &Path, schedule_path: &Path, out: &Path, quick: bool, r
     // are fewer than in the steps of a fit: a fitted field shows what culling saves.
     if let Some(run) = run {
         let mut baseline = None;
-        let mut trainer = crate::run::restore(run, None, Backend::Flex)?;
-        // Late in the fit: every level in, the light fitted.
-        trainer.iteration = trainer.schedule.iterations.saturating_sub(100).max(trainer.schedule.light_from + 1);
+        let mut trainer = super::fitted_trainer(run)?;
         let fitted = "fitted field";
         for (name, cull) in [("every sample differentiated", false), ("culled", true)] {
             trainer.schedule.cull_samples = cull;
