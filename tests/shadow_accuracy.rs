@@ -329,6 +329,17 @@ fn f32_error(got: f64, reference: f64) -> Option<f64> {
     (relative > 1e-4 && transmittance > 1e-6).then(|| relative.min(transmittance / 1e-2))
 }
 
+/// The kernel's sum as dispatched, checked bit for bit against every build this CPU runs.
+fn every_build_alike(caster: &ShadowCaster, ray: &umbra::shadow::ShadowRay, cull: bool, name: &str) -> umbra::shadow::lanes::Collected {
+    let collected = caster.collect(ray, cull);
+    for build in umbra::shadow::lanes::Build::ALL {
+        if let Some(other) = caster.collect_built(build, ray, cull) {
+            assert_eq!(collected, other, "{name}: the {} build differs from the dispatched one", build.name());
+        }
+    }
+    collected
+}
+
 #[test]
 fn vector_kernel_agrees_with_f64_as_the_scalar_f32_path_does() {
     // Each stress case as a one-Gaussian caster whose tolerance (1e-7) lets the f32 lanes add
@@ -338,8 +349,7 @@ fn vector_kernel_agrees_with_f64_as_the_scalar_f32_path_does() {
     for (name, case) in cases(4000, 23) {
         let (posed, ray, reference) = f32_case(&case);
         let caster = ShadowCaster::new(std::slice::from_ref(&posed), 1e-7);
-        let collected = caster.collect(&ray, false);
-        assert_eq!(collected, caster.collect_baseline(&ray, false), "{name}: the AVX2 and baseline builds differ");
+        let collected = every_build_alike(&caster, &ray, false, &name);
         let got = collected.depth as f64;
         assert!(got.is_finite() && got >= 0.0, "{name}: {got}");
         integrated += collected.integrated;
@@ -367,8 +377,7 @@ fn vector_kernel_takes_nearly_every_pair_of_a_body_and_stays_within_tolerance() 
         let caster = ShadowCaster::new(&gaussians, tolerance);
         let (mut scalar, mut worst) = (0usize, 0.0f64);
         for ray in &rays {
-            let c = caster.collect(ray, true);
-            assert_eq!(c, caster.collect_baseline(ray, true));
+            let c = every_build_alike(&caster, ray, true, "body");
             scalar += c.scalar;
             let got = (-(c.depth as f64)).exp();
             worst = worst.max((got - transmittance_f64(&gaussians, ray)).abs());
@@ -416,4 +425,34 @@ fn f32_path_agrees_with_f64_within_1e4_or_1e6_transmittance() {
         }
     }
     assert!(worst.1.is_empty(), "f32 outside tolerance: {}", worst.1);
+}
+
+#[test]
+fn vector_kernel_hands_over_what_its_cut_exponentials_would_drop() {
+    // The lanes take e^x below e^-30 as zero (it keeps their arithmetic out of f32's subnormal
+    // range). A Gaussian of enormous amplitude far off the ray still casts a real shadow there:
+    // its profile across the ray is e^-35, its depth about 1. The lane's error estimate must
+    // see what the cut drops and hand the pair to the scalar integral.
+    let sigma = 0.01;
+    let distance = sigma * 70.0f64.sqrt(); // (distance / sigma)^2 / 2 = 35
+    let amplitude = 1.0 / ((-35.0f64).exp() * sigma * (2.0 * std::f64::consts::PI).sqrt());
+    let gaussian = PosedGaussian { mean: DVec3::new(distance, 0.0, 0.0), axes: DMat3::IDENTITY, scales: DVec3::splat(sigma), amplitude };
+    let ray = ShadowRay { origin: [0.0, -1.0, 0.0], direction: [0.0, 1.0, 0.0], t0: 0.0, t1: f32::INFINITY };
+    let reference = optical_depth(
+        gaussian.mean.to_array(),
+        gaussian.rotation_columns(),
+        gaussian.scales.to_array(),
+        gaussian.amplitude,
+        ray.origin.map(f64::from),
+        ray.direction.map(f64::from),
+        0.0,
+        f64::INFINITY,
+    );
+    assert!((reference - 1.0).abs() < 1e-6, "the case is built to a depth of 1, not {reference}");
+    let caster = ShadowCaster::new(std::slice::from_ref(&gaussian), 1e-6);
+    for cull in [false, true] {
+        let collected = every_build_alike(&caster, &ray, cull, "far, enormous Gaussian");
+        assert_eq!(collected.scalar, 1, "the lane kept a pair whose depth it cut (culling {cull})");
+        assert!((collected.depth as f64 - reference).abs() <= 1e-5, "depth {} against {reference} (culling {cull})", collected.depth);
+    }
 }

@@ -93,7 +93,7 @@ pub fn shadows(out: &Path, quick: bool) -> Result<String, String> {
     let budget = if quick { 0.05 } else { 0.3 };
     let sizes: &[usize] = if quick { &[24, 96] } else { &[24, 96, 1000, 10000] };
     let device = Device::flex();
-    let kernel = if crate::shadow::lanes::uses_avx2() { "8 lanes, AVX2" } else { "8 lanes, baseline ISA" };
+    let kernel = crate::shadow::lanes::kernel_build().name();
     let mut rows = Vec::new();
     for &n in sizes {
         let gaussians = body_cloud(n, 1);
@@ -122,11 +122,14 @@ pub fn shadows(out: &Path, quick: bool) -> Result<String, String> {
             let (integrated, scalar) = rays.iter().map(|r| caster.collect(r, cull)).fold((0, 0), |(i, s), c| (i + c.integrated, s + c.scalar));
             push(format!("closed form, {kernel}, culling {on}"), rays.len(), seconds, Some(scalar as f64 / integrated.max(1) as f64));
         }
-        let seconds = time(budget, || {
-            use rayon::prelude::*;
-            std::hint::black_box(rays.par_iter().map(|r| caster.collect_baseline(r, false).depth).collect::<Vec<f32>>());
-        });
-        push("closed form, 8 lanes, baseline ISA build, culling off".into(), rays.len(), seconds, None);
+        // The slower builds the CPU also runs, for the ratio each instruction set buys.
+        for build in crate::shadow::lanes::Build::ALL.into_iter().filter(|&b| b.available() && b != crate::shadow::lanes::kernel_build()) {
+            let seconds = time(budget, || {
+                use rayon::prelude::*;
+                std::hint::black_box(rays.par_iter().map(|r| caster.collect_built(build, r, false).map_or(0.0, |c| c.depth)).collect::<Vec<f32>>());
+            });
+            push(format!("closed form, {} build, culling off", build.name()), rays.len(), seconds, None);
+        }
         let tensor_rays = &rays[..rays.len().min((4_000_000 / n).max(16))];
         let g = GaussianTensors::from_posed(&gaussians, &device);
         let segments = RaySegments {

@@ -87,10 +87,10 @@ impl ShadowCaster {
         lanes::optical_depth(&self.blocks, &self.gaussians, ray, cull, self.lane_budget())
     }
 
-    /// The same sum by the kernel built for the baseline instruction set (no AVX), to pin the
-    /// two builds to each other.
-    pub fn collect_baseline(&self, ray: &ShadowRay, cull: bool) -> Collected {
-        lanes::optical_depth_any(&self.blocks, &self.gaussians, ray, cull, self.lane_budget())
+    /// The same sum by one build of the kernel (`None` where this CPU lacks it), to pin the
+    /// builds to each other and time them.
+    pub fn collect_built(&self, build: lanes::Build, ray: &ShadowRay, cull: bool) -> Option<Collected> {
+        lanes::optical_depth_built(build, &self.blocks, &self.gaussians, ray, cull, self.lane_budget())
     }
 
     /// The same sum one Gaussian at a time by the scalar integral (f64 geometry, libm erfc):
