@@ -459,7 +459,9 @@ fn trilinear<const TANGENTS: bool>(
             u = top_vertex;
             inside[m] = false;
         }
-        let at = (u.floor() as usize).min(dims[m] - 2);
+        // u is in [0, top] here, so truncation is floor (and, unlike `floor`, needs no call
+        // into libm on the baseline instruction set).
+        let at = (u as usize).min(dims[m] - 2);
         base[m] = at;
         fraction[m] = u - at as f32;
     }
