@@ -456,3 +456,22 @@ fn vector_kernel_hands_over_what_its_cut_exponentials_would_drop() {
         assert!((collected.depth as f64 - reference).abs() <= 1e-5, "depth {} against {reference} (culling {cull})", collected.depth);
     }
 }
+
+#[test]
+fn groups_of_blocks_cull_nothing_their_blocks_keep() {
+    // 1,000 Gaussians (125 blocks): grouped (11 blocks to a group), in groups of 3, and each
+    // block on its own must give the same bits for every ray, since a group's sphere holds its
+    // blocks' spheres; and the groups must skip something, or they are not tested.
+    let gaussians = umbra::bench::shadows::body_cloud(1000, 4);
+    let rays = umbra::bench::shadows::sun_rays(256, 5);
+    let grouped = ShadowCaster::new(&gaussians, 1e-5);
+    let threes = ShadowCaster::new(&gaussians, 1e-5).with_group_size(3);
+    let flat = ShadowCaster::new(&gaussians, 1e-5).with_group_size(1);
+    for ray in &rays {
+        let expected = every_build_alike(&flat, ray, true, "flat");
+        assert_eq!(every_build_alike(&grouped, ray, true, "grouped"), expected);
+        assert_eq!(every_build_alike(&threes, ray, true, "threes"), expected);
+    }
+    let integrated: usize = rays.iter().map(|r| flat.collect(r, true).integrated).sum();
+    assert!(integrated < rays.len() * 1000 / 2, "culling kept {integrated} of {} pairs: the groups are not exercised", rays.len() * 1000);
+}

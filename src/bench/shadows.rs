@@ -122,6 +122,12 @@ pub fn shadows(out: &Path, quick: bool) -> Result<String, String> {
             let (integrated, scalar) = rays.iter().map(|r| caster.collect(r, cull)).fold((0, 0), |(i, s), c| (i + c.integrated, s + c.scalar));
             push(format!("closed form, {kernel}, culling {on}"), rays.len(), seconds, Some(scalar as f64 / integrated.max(1) as f64));
         }
+        // The blocks' spheres each tested on their own, without the groups above them.
+        let flat = ShadowCaster::new(&gaussians, 1e-5).with_group_size(1);
+        let seconds = time(budget, || {
+            std::hint::black_box(flat.transmittance_all(&rays, true));
+        });
+        push(format!("closed form, {kernel}, culling on, no groups of blocks"), rays.len(), seconds, None);
         // The slower builds the CPU also runs, for the ratio each instruction set buys.
         for build in crate::shadow::lanes::Build::ALL.into_iter().filter(|&b| b.available() && b != crate::shadow::lanes::kernel_build()) {
             let seconds = time(budget, || {

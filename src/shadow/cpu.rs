@@ -5,7 +5,7 @@
 //! kernel cannot do to the same accuracy).
 
 use super::integral::{optical_depth_whitened, WhitenedGaussian};
-use super::lanes::{self, Block, Collected, LANES};
+use super::lanes::{self, Block, Collected, Group, LANES};
 use crate::shadow::PosedGaussian;
 use rayon::prelude::*;
 
@@ -25,6 +25,8 @@ pub struct ShadowCaster {
     cull_radius_squared: Vec<f32>,
     /// The same Gaussians, eight to a block, for the vector kernel.
     blocks: Vec<Block>,
+    /// The blocks in groups under bounding spheres, for culling.
+    groups: Vec<Group>,
     tolerance: f64,
 }
 
@@ -54,8 +56,16 @@ impl ShadowCaster {
             .map(|g| WhitenedGaussian::new(g.mean.to_array(), g.rotation_columns(), g.scales.to_array(), g.amplitude))
             .collect();
         let cull_radius_squared: Vec<f32> = order.iter().map(|&i| cull_radius_squared(&gaussians[i], budget) as f32).collect();
-        let blocks = whitened.chunks(LANES).zip(cull_radius_squared.chunks(LANES)).map(|(g, r)| Block::pack(g, r)).collect();
-        Self { gaussians: whitened, cull_radius_squared, blocks, tolerance }
+        let blocks: Vec<Block> = whitened.chunks(LANES).zip(cull_radius_squared.chunks(LANES)).map(|(g, r)| Block::pack(g, r)).collect();
+        let groups = lanes::group(&blocks, lanes::group_size(blocks.len()));
+        Self { gaussians: whitened, cull_radius_squared, blocks, groups, tolerance }
+    }
+
+    /// The same caster with its blocks in groups of `size` (1: every block's sphere tested on
+    /// its own, as before there were groups), for the benchmark and the tests.
+    pub fn with_group_size(mut self, size: usize) -> Self {
+        self.groups = lanes::group(&self.blocks, size);
+        self
     }
 
     /// The absolute error the vector kernel may add per Gaussian.
@@ -84,13 +94,13 @@ impl ShadowCaster {
 
     /// The vector kernel's sum with its counts (how many pairs went to the scalar integral).
     pub fn collect(&self, ray: &ShadowRay, cull: bool) -> Collected {
-        lanes::optical_depth(&self.blocks, &self.gaussians, ray, cull, self.lane_budget())
+        lanes::optical_depth(&self.blocks, &self.groups, &self.gaussians, ray, cull, self.lane_budget())
     }
 
     /// The same sum by one build of the kernel (`None` where this CPU lacks it), to pin the
     /// builds to each other and time them.
     pub fn collect_built(&self, build: lanes::Build, ray: &ShadowRay, cull: bool) -> Option<Collected> {
-        lanes::optical_depth_built(build, &self.blocks, &self.gaussians, ray, cull, self.lane_budget())
+        lanes::optical_depth_built(build, &self.blocks, &self.groups, &self.gaussians, ray, cull, self.lane_budget())
     }
 
     /// The same sum one Gaussian at a time by the scalar integral (f64 geometry, libm erfc):

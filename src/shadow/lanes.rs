@@ -71,6 +71,48 @@ impl Block {
     }
 }
 
+/// Consecutive blocks under one bounding sphere (Morton order keeps them near each other):
+/// with culling, a ray that misses it skips them all, so that a ray tests about sqrt(blocks)
+/// spheres and the blocks of the groups it meets instead of every block's sphere. A two-level
+/// hierarchy; results are those of the blocks alone, since a group's sphere holds theirs.
+#[derive(Clone, Copy, Debug)]
+pub struct Group {
+    centre: [f32; 3],
+    /// Negative: every lane of every block in the group is culled.
+    radius_squared: f32,
+    first: usize,
+    end: usize,
+}
+
+/// `blocks` in groups of `size` (at least 1).
+pub fn group(blocks: &[Block], size: usize) -> Vec<Group> {
+    let size = size.max(1);
+    (0..blocks.len())
+        .step_by(size)
+        .map(|first| {
+            let end = (first + size).min(blocks.len());
+            let kept: Vec<&Block> = blocks[first..end].iter().filter(|b| b.radius_squared >= 0.0).collect();
+            if kept.is_empty() {
+                return Group { centre: [0.0; 3], radius_squared: -1.0, first, end };
+            }
+            let n = kept.len() as f32;
+            let centre = [0, 1, 2].map(|j| kept.iter().map(|b| b.centre[j]).sum::<f32>() / n);
+            let radius =
+                kept.iter().map(|b| (0..3).map(|j| (b.centre[j] - centre[j]).powi(2)).sum::<f32>().sqrt() + b.radius_squared.sqrt()).fold(0.0f32, f32::max);
+            // A wider margin than a block's over its lanes (1e-5): the test is the same f32
+            // arithmetic, but a group's sphere is larger, and a group that rounding culled
+            // would take blocks the blocks' own tests keep.
+            Group { centre, radius_squared: (radius * (1.0 + 1e-3)).powi(2), first, end }
+        })
+        .collect()
+}
+
+/// Blocks per group for `blocks` blocks: the square root balances the groups' tests against
+/// the blocks' tests inside the groups a ray meets.
+pub fn group_size(blocks: usize) -> usize {
+    ((blocks as f64).sqrt().round() as usize).max(1)
+}
+
 /// What one ray collected from a run of blocks.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct Collected {
@@ -85,24 +127,32 @@ pub struct Collected {
 /// set in block order (lane i of block k is `gaussians[k * LANES + i]`), for the lanes that
 /// go back to the scalar integral; `budget` is the absolute error a lane may add. Runs the
 /// fastest build this CPU has.
-pub fn optical_depth(blocks: &[Block], gaussians: &[WhitenedGaussian<f32>], ray: &ShadowRay, cull: bool, budget: f32) -> Collected {
-    optical_depth_built(kernel_build(), blocks, gaussians, ray, cull, budget).unwrap_or_else(|| collect(blocks, gaussians, ray, cull, budget))
+pub fn optical_depth(blocks: &[Block], groups: &[Group], gaussians: &[WhitenedGaussian<f32>], ray: &ShadowRay, cull: bool, budget: f32) -> Collected {
+    optical_depth_built(kernel_build(), blocks, groups, gaussians, ray, cull, budget).unwrap_or_else(|| collect(blocks, groups, gaussians, ray, cull, budget))
 }
 
 /// `optical_depth` by one chosen build; `None` when this CPU cannot run it (so the tests can
 /// pin every build the machine has to the others).
-pub fn optical_depth_built(build: Build, blocks: &[Block], gaussians: &[WhitenedGaussian<f32>], ray: &ShadowRay, cull: bool, budget: f32) -> Option<Collected> {
+pub fn optical_depth_built(
+    build: Build,
+    blocks: &[Block],
+    groups: &[Group],
+    gaussians: &[WhitenedGaussian<f32>],
+    ray: &ShadowRay,
+    cull: bool,
+    budget: f32,
+) -> Option<Collected> {
     if !build.available() {
         return None;
     }
     match build {
-        Build::Baseline => Some(collect(blocks, gaussians, ray, cull, budget)),
+        Build::Baseline => Some(collect(blocks, groups, gaussians, ray, cull, budget)),
         #[cfg(target_arch = "x86_64")]
         // SAFETY: `available` has checked the CPU for the features the build enables.
-        Build::Avx2 => Some(unsafe { optical_depth_avx2(blocks, gaussians, ray, cull, budget) }),
+        Build::Avx2 => Some(unsafe { optical_depth_avx2(blocks, groups, gaussians, ray, cull, budget) }),
         #[cfg(target_arch = "x86_64")]
         // SAFETY: as above.
-        Build::Avx512 => Some(unsafe { optical_depth_avx512(blocks, gaussians, ray, cull, budget) }),
+        Build::Avx512 => Some(unsafe { optical_depth_avx512(blocks, groups, gaussians, ray, cull, budget) }),
         #[cfg(not(target_arch = "x86_64"))]
         _ => None,
     }
@@ -151,22 +201,30 @@ pub fn kernel_build() -> Build {
 
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2,fma")]
-fn optical_depth_avx2(blocks: &[Block], gaussians: &[WhitenedGaussian<f32>], ray: &ShadowRay, cull: bool, budget: f32) -> Collected {
-    collect(blocks, gaussians, ray, cull, budget)
+fn optical_depth_avx2(blocks: &[Block], groups: &[Group], gaussians: &[WhitenedGaussian<f32>], ray: &ShadowRay, cull: bool, budget: f32) -> Collected {
+    collect(blocks, groups, gaussians, ray, cull, budget)
 }
 
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx512f,avx512vl,avx2,fma")]
-fn optical_depth_avx512(blocks: &[Block], gaussians: &[WhitenedGaussian<f32>], ray: &ShadowRay, cull: bool, budget: f32) -> Collected {
-    collect(blocks, gaussians, ray, cull, budget)
+fn optical_depth_avx512(blocks: &[Block], groups: &[Group], gaussians: &[WhitenedGaussian<f32>], ray: &ShadowRay, cull: bool, budget: f32) -> Collected {
+    collect(blocks, groups, gaussians, ray, cull, budget)
 }
 
 #[inline(always)]
-fn collect(blocks: &[Block], gaussians: &[WhitenedGaussian<f32>], ray: &ShadowRay, cull: bool, budget: f32) -> Collected {
+fn collect(blocks: &[Block], groups: &[Group], gaussians: &[WhitenedGaussian<f32>], ray: &ShadowRay, cull: bool, budget: f32) -> Collected {
     let mut out = Collected::default();
     let mut lanes = Lanes::default();
     let toward_infinity = ray.t1 == f32::INFINITY;
-    for (k, block) in blocks.iter().enumerate() {
+    // With culling, the blocks of a group whose sphere the ray misses are never looked at.
+    let whole = [Group { centre: [0.0; 3], radius_squared: f32::INFINITY, first: 0, end: blocks.len() }];
+    let groups = if cull && !groups.is_empty() { groups } else { &whole };
+    let visited = groups
+        .iter()
+        .filter(|g| !cull || g.radius_squared == f32::INFINITY || super::cpu::segment_within(g.centre, ray, g.radius_squared))
+        .flat_map(|g| g.first.min(blocks.len())..g.end.min(blocks.len()));
+    for k in visited {
+        let block = &blocks[k];
         if cull && !super::cpu::segment_within(block.centre, ray, block.radius_squared) {
             continue;
         }
