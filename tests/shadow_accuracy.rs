@@ -309,16 +309,7 @@ fn f32_case(case: &Case) -> (PosedGaussian, ShadowRay, f64) {
         t0: case.t0 as f32,
         t1: case.t1 as f32,
     };
-    let reference = optical_depth(
-        posed.mean.to_array(),
-        posed.rotation_columns(),
-        posed.scales.to_array(),
-        posed.amplitude,
-        ray.origin.map(f64::from),
-        ray.direction.map(f64::from),
-        ray.t0 as f64,
-        ray.t1 as f64,
-    );
+    let reference = f64_depth(&posed, &ray);
     (posed, ray, reference)
 }
 
@@ -327,6 +318,12 @@ fn f32_error(got: f64, reference: f64) -> Option<f64> {
     let relative = (got - reference).abs() / reference.max(1e-300);
     let transmittance = ((-got).exp() - (-reference).exp()).abs();
     (relative > 1e-4 && transmittance > 1e-6).then(|| relative.min(transmittance / 1e-2))
+}
+
+/// The f64 closed form's optical depth of one Gaussian along an f32 ray.
+fn f64_depth(g: &PosedGaussian, ray: &ShadowRay) -> f64 {
+    let (t0, t1) = (ray.t0 as f64, ray.t1 as f64);
+    optical_depth(g.mean.to_array(), g.rotation_columns(), g.scales.to_array(), g.amplitude, ray.origin.map(f64::from), ray.direction.map(f64::from), t0, t1)
 }
 
 /// The kernel's sum as dispatched, checked bit for bit against every build this CPU runs.
@@ -438,16 +435,7 @@ fn vector_kernel_hands_over_what_its_cut_exponentials_would_drop() {
     let amplitude = 1.0 / ((-35.0f64).exp() * sigma * (2.0 * std::f64::consts::PI).sqrt());
     let gaussian = PosedGaussian { mean: DVec3::new(distance, 0.0, 0.0), axes: DMat3::IDENTITY, scales: DVec3::splat(sigma), amplitude };
     let ray = ShadowRay { origin: [0.0, -1.0, 0.0], direction: [0.0, 1.0, 0.0], t0: 0.0, t1: f32::INFINITY };
-    let reference = optical_depth(
-        gaussian.mean.to_array(),
-        gaussian.rotation_columns(),
-        gaussian.scales.to_array(),
-        gaussian.amplitude,
-        ray.origin.map(f64::from),
-        ray.direction.map(f64::from),
-        0.0,
-        f64::INFINITY,
-    );
+    let reference = f64_depth(&gaussian, &ray);
     assert!((reference - 1.0).abs() < 1e-6, "the case is built to a depth of 1, not {reference}");
     let caster = ShadowCaster::new(std::slice::from_ref(&gaussian), 1e-6);
     for cull in [false, true] {

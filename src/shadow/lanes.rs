@@ -221,7 +221,7 @@ fn collect(blocks: &[Block], groups: &[Group], gaussians: &[WhitenedGaussian<f32
     let groups = if cull && !groups.is_empty() { groups } else { &whole };
     let visited = groups
         .iter()
-        .filter(|g| !cull || g.radius_squared == f32::INFINITY || super::cpu::segment_within(g.centre, ray, g.radius_squared))
+        .filter(|g| g.radius_squared == f32::INFINITY || super::cpu::segment_within(g.centre, ray, g.radius_squared))
         .flat_map(|g| g.first.min(blocks.len())..g.end.min(blocks.len()));
     for k in visited {
         let block = &blocks[k];
