@@ -121,6 +121,30 @@ fn the_plan_stays_in_the_table_and_interpolates_a_partition_of_unity() {
 }
 
 #[test]
+fn a_cells_eight_rows_at_once_are_each_vertexs_row() {
+    let s = setup();
+    let grid = s.config.grid.clone().unwrap();
+    let levels = grid.layout();
+    assert!(levels.iter().any(|l| l.dense) && levels.iter().any(|l| !l.dense) && levels.iter().any(|l| l.root.is_some()));
+    let mut stream = Stream::new(5, 6, 0);
+    let mut checked = 0;
+    for level in &levels {
+        for (bone, dims) in level.dims.iter().enumerate() {
+            for _ in 0..50 {
+                let base = [0, 1, 2].map(|m| ((stream.uniform() * (dims[m] - 1) as f64) as usize).min(dims[m] - 2));
+                let rows = level.corner_rows(bone, base);
+                for (k, &row) in rows.iter().enumerate() {
+                    let v = [base[0] + (k & 1), base[1] + ((k >> 1) & 1), base[2] + ((k >> 2) & 1)];
+                    assert_eq!(row, level.row(bone, v), "cell {base:?} of bone {bone}, corner {k}");
+                    checked += 1;
+                }
+            }
+        }
+    }
+    assert!(checked > 1000);
+}
+
+#[test]
 fn the_roots_grids_reach_a_skirts_hem_that_the_other_bones_grids_do_not() {
     // A point of a bell skirt's hem: 0.36 m out from the pelvis's head and 0.36 m below it,
     // 0.5 m from its segment, farther than the other bones' boxes reach. The root carries it;

@@ -249,13 +249,46 @@ pub struct RootTable {
     pub offset: usize,
 }
 
+/// instant-NGP's spatial hash's primes for the second and third axes, and one for the bone.
+const HASH_PRIMES: [u32; 3] = [2_654_435_761, 805_459_861, 3_674_653_429];
+
 impl Level {
+    /// The table rows of the 8 vertices of the cell whose lowest vertex is `base` in bone
+    /// `bone`'s grid, in `trilinear`'s corner order (bit 0 the x side, bit 1 y, bit 2 z):
+    /// `row` of each, with each axis's part of the index or hash taken once for both of its
+    /// sides rather than once per corner.
+    pub fn corner_rows(&self, bone: usize, base: [usize; 3]) -> [usize; 8] {
+        let (offset, dense) = match self.root {
+            Some(root) if root.bone == bone => (root.offset, root.dense),
+            _ => (self.table_offset + if self.dense { self.offsets[bone] } else { 0 }, self.dense),
+        };
+        let mut rows = [0usize; 8];
+        if dense {
+            let d = self.dims[bone];
+            let parts = [0, 1].map(|b| [base[0] + b, d[0] * (base[1] + b), d[0] * d[1] * (base[2] + b)]);
+            for (k, row) in rows.iter_mut().enumerate() {
+                *row = offset + parts[k & 1][0] + parts[(k >> 1) & 1][1] + parts[(k >> 2) & 1][2];
+            }
+        } else {
+            let salt = (bone as u32).wrapping_mul(HASH_PRIMES[2]);
+            let parts = [0, 1].map(|b| {
+                [(base[0] + b) as u32 ^ salt, ((base[1] + b) as u32).wrapping_mul(HASH_PRIMES[0]), ((base[2] + b) as u32).wrapping_mul(HASH_PRIMES[1])]
+            });
+            for (k, row) in rows.iter_mut().enumerate() {
+                *row = offset + ((parts[k & 1][0] ^ parts[(k >> 1) & 1][1] ^ parts[(k >> 2) & 1][2]) as usize & self.table_mask);
+            }
+        }
+        rows
+    }
+
     /// The table row of vertex `v` of bone `bone`'s grid.
-    fn row(&self, bone: usize, v: [usize; 3]) -> usize {
+    pub fn row(&self, bone: usize, v: [usize; 3]) -> usize {
         let d = self.dims[bone];
         let hashed = || {
-            let h =
-                (v[0] as u32) ^ (v[1] as u32).wrapping_mul(2_654_435_761) ^ (v[2] as u32).wrapping_mul(805_459_861) ^ (bone as u32).wrapping_mul(3_674_653_429);
+            let h = (v[0] as u32)
+                ^ (v[1] as u32).wrapping_mul(HASH_PRIMES[0])
+                ^ (v[2] as u32).wrapping_mul(HASH_PRIMES[1])
+                ^ (bone as u32).wrapping_mul(HASH_PRIMES[2]);
             h as usize & self.table_mask
         };
         let within_grid = v[0] + d[0] * (v[1] + d[1] * v[2]);
@@ -567,15 +600,23 @@ fn plan_point(
                 continue;
             }
             let (reach, dims) = (config.bone_reach(a.bone), level.dims[a.bone]);
+            // The first corner is the cell's lowest vertex: all 8 rows from it at once.
+            let mut cell_rows = [0usize; 8];
             match d_coefficients.as_deref_mut() {
-                Some(d) => trilinear::<true>(a.local, reach, level.cell, dims, &frame.axes, |_, v, weight, gradient| {
-                    rows[k] = level.row(a.bone, v) as u32;
+                Some(d) => trilinear::<true>(a.local, reach, level.cell, dims, &frame.axes, |corner, v, weight, gradient| {
+                    if corner == 0 {
+                        cell_rows = level.corner_rows(a.bone, v);
+                    }
+                    rows[k] = cell_rows[corner] as u32;
                     coefficients[k] = weight;
                     d[k * 3..k * 3 + 3].copy_from_slice(&gradient);
                     k += 1;
                 }),
-                None => trilinear::<false>(a.local, reach, level.cell, dims, &frame.axes, |_, v, weight, _| {
-                    rows[k] = level.row(a.bone, v) as u32;
+                None => trilinear::<false>(a.local, reach, level.cell, dims, &frame.axes, |corner, v, weight, _| {
+                    if corner == 0 {
+                        cell_rows = level.corner_rows(a.bone, v);
+                    }
+                    rows[k] = cell_rows[corner] as u32;
                     coefficients[k] = weight;
                     k += 1;
                 }),

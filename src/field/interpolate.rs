@@ -48,7 +48,7 @@ impl Plan {
 
     /// The weighted sums (`[output_rows, W]`, row-major) of `table` (`[T, F]`, row-major).
     fn forward(&self, table: &[f32]) -> Vec<f32> {
-        let (n, w, f, c) = (self.points, self.width(), self.features, self.corners);
+        let (n, w, c) = (self.points, self.width(), self.corners);
         let mut out = vec![0.0f32; self.output_rows() * w];
         let (values, tangents) = out.split_at_mut(n * w);
         // Points in chunks across threads: each point owns its output rows.
@@ -57,42 +57,44 @@ impl Plan {
             Some(_) => tangents.chunks_mut(n * w).collect(),
             None => Vec::new(),
         };
+        let per_point = self.levels * c;
         values.par_chunks_mut(CHUNK * w).enumerate().for_each(|(chunk, values)| {
             for (k, row_out) in values.chunks_mut(w).enumerate() {
                 let i = chunk * CHUNK + k;
-                for l in 0..self.levels {
-                    let fade = self.fade[l];
-                    for j in 0..c {
-                        let at = (i * self.levels + l) * c + j;
-                        let row = self.rows[at] as usize * f;
-                        let coefficient = self.coefficients[at] * fade;
-                        for q in 0..f {
-                            row_out[l * f + q] += coefficient * table.get(row + q).copied().unwrap_or(f32::NAN);
-                        }
-                    }
-                }
+                let rows = &self.rows[i * per_point..(i + 1) * per_point];
+                let coefficients = &self.coefficients[i * per_point..(i + 1) * per_point];
+                self.accumulate(table, rows, coefficients.iter().copied(), row_out);
             }
         });
         if let Some(d) = &self.tangents {
             // One axis per task: each writes its own `[N, W]` block.
             tangent_chunks.into_par_iter().enumerate().for_each(|(axis, block)| {
-                for i in 0..n {
-                    let row_out = &mut block[i * w..(i + 1) * w];
-                    for l in 0..self.levels {
-                        let fade = self.fade[l];
-                        for j in 0..c {
-                            let at = (i * self.levels + l) * c + j;
-                            let row = self.rows[at] as usize * f;
-                            let coefficient = d[at * 3 + axis] * fade;
-                            for q in 0..f {
-                                row_out[l * f + q] += coefficient * table.get(row + q).copied().unwrap_or(f32::NAN);
-                            }
-                        }
-                    }
+                for (i, row_out) in block.chunks_mut(w).enumerate() {
+                    let rows = &self.rows[i * per_point..(i + 1) * per_point];
+                    let d = &d[i * per_point * 3..(i + 1) * per_point * 3];
+                    self.accumulate(table, rows, d.iter().skip(axis).step_by(3).copied(), row_out);
                 }
             });
         }
         out
+    }
+
+    /// One point's weighted sum into `row_out` (`[W]`): level by level, each of its corners'
+    /// table rows (`rows`, `levels x corners`) times its coefficient and the level's fade. A row
+    /// outside the table (never planned) reads NaN, so it cannot pass unseen.
+    fn accumulate(&self, table: &[f32], rows: &[u32], coefficients: impl Iterator<Item = f32>, row_out: &mut [f32]) {
+        let (f, c) = (self.features, self.corners);
+        let mut coefficients = coefficients;
+        for ((out, level_rows), &fade) in row_out.chunks_mut(f).zip(rows.chunks(c)).zip(&self.fade) {
+            for &row in level_rows {
+                let coefficient = coefficients.next().unwrap_or(0.0) * fade;
+                let start = row as usize * f;
+                match table.get(start..start + f) {
+                    Some(entry) => out.iter_mut().zip(entry).for_each(|(o, t)| *o += coefficient * t),
+                    None => out.iter_mut().for_each(|o| *o = f32::NAN),
+                }
+            }
+        }
     }
 
     /// The table's gradient (`[table_rows, F]`) from the output's (`[output_rows, W]`).
