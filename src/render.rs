@@ -352,7 +352,7 @@ fn compositing_weights(density: Tensor<2>, delta: Tensor<2>) -> Tensor<2> {
 }
 
 /// Samples whose compositing weight is below this contribute nothing to a rendered view's
-/// albedo (`Sampling::albedo_floor` of `eval::VIEW_SAMPLING`): with at most 80 samples per ray,
+/// albedo (`Sampling::albedo_floor` of `eval::VIEW_SAMPLING`): with 40 samples per ray (coarse and fine),
 /// what they hold together is under 1e-2 of the albedo's range in the worst case and, with the
 /// surface as sharp as a fitted beta makes it, nearly all of a ray's weight sits on a handful of
 /// samples. Training keeps every sample (floor 0): the gradient of a ray's colour to a sample's
