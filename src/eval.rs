@@ -46,6 +46,44 @@ pub enum Lighting<'a> {
 /// relit 24.54 / 24.55, albedo 21.91 / 21.92; 16 coarse (as training) lost 0.07-0.09 dB.
 pub const VIEW_SAMPLING: Sampling = Sampling { coarse: 24, probe: 8, fine: 16, albedo_floor: crate::render::ALBEDO_WEIGHT_FLOOR, cull: false };
 
+/// How the rays of a refined pixel inside the body are sampled within the window that holds
+/// its surface (`surface_window`): 8 coarse samples a few millimetres apart, 8 probes where
+/// they found density and 8 fine ones, half a whole ray's evaluations.
+pub const WINDOW_SAMPLING: Sampling = Sampling { coarse: 8, probe: 8, fine: 8, albedo_floor: crate::render::ALBEDO_WEIGHT_FLOOR, cull: false };
+
+/// The distances along the rays within pixel `p` that hold the surface, from the centre rays
+/// of its 3 x 3 neighbourhood (`pixels`, `w x h`, focal length `fx` in pixels): when every
+/// one of them is wholly covered and their depths differ by at most `WINDOW_SLOPE` pixels'
+/// width at that depth (no silhouette, no step in depth, no grazing surface), the surface
+/// under any point of the pixel lies between their depths (a smooth surface between the
+/// centres it passes through), and the window is that span widened on each side by itself or
+/// one pixel's width, whichever is more. `None` otherwise: the rays search their whole bound.
+fn surface_window(pixels: &[Traced], w: usize, h: usize, p: usize, fx: f64) -> Option<(f64, f64)> {
+    let (x, y) = ((p % w) as isize, (p / w) as isize);
+    let (mut lo, mut hi) = (f64::INFINITY, f64::NEG_INFINITY);
+    for (dx, dy) in (-1..=1).flat_map(|dy| (-1..=1).map(move |dx| (dx, dy))) {
+        let (i, j) = (x + dx, y + dy);
+        if i < 0 || j < 0 || i as usize >= w || j as usize >= h {
+            continue;
+        }
+        let q = &pixels[j as usize * w + i as usize];
+        if q.coverage < 1.0 - 1.0 / 255.0 || !q.depth.is_finite() {
+            return None;
+        }
+        lo = lo.min(q.depth as f64);
+        hi = hi.max(q.depth as f64);
+    }
+    let pixel = hi / fx.max(1e-9);
+    (hi - lo <= WINDOW_SLOPE * pixel).then(|| {
+        let margin = (hi - lo).max(pixel);
+        (lo - margin, hi + margin)
+    })
+}
+
+/// The most a window's neighbourhood's depths may differ, in pixels' widths at that depth
+/// (`surface_window`): a surface tilted up to about 70 degrees from facing the camera.
+const WINDOW_SLOPE: f64 = 3.0;
+
 /// Rays a view traces through the field at once: a view's chunks go to every thread.
 const TRACE_CHUNK: usize = 1024;
 
@@ -147,7 +185,9 @@ pub fn render_view_and_albedo(
     let sky_casters: Vec<PosedGaussian> = model.light.shadow_casters_posed(&posed);
     // The colour, albedo (when asked) and coverage of rays through continuous pixel
     // positions, each with its own stream id for the sky's samples.
-    let trace = |targets: &[([f64; 2], u64)]| -> Vec<Traced> {
+    // A target may carry a window of distances that holds its surface (`surface_window`): its
+    // ray is then sampled there only, as `samples` says.
+    let trace = |targets: &[([f64; 2], u64)], windows: &[Option<(f64, f64)>], samples: Sampling| -> Vec<Traced> {
         // Chunks of a view on every thread (views are rendered several at once too; rayon
         // shares the threads between both levels), each chunk's samples its own as before.
         let chunks: Vec<Vec<(usize, Traced)>> = targets
@@ -157,7 +197,8 @@ pub fn render_view_and_albedo(
                 let first = k * TRACE_CHUNK;
                 let mut out = Vec::new();
                 let at: Vec<[f64; 2]> = chunk.iter().map(|t| t.0).collect();
-                let Some((hit, deferred)) = trace_deferred(model, camera, &posed, &pose_tensors, &at, samples, needs_normals, device) else {
+                let windows = windows.get(first..(first + chunk.len()).min(windows.len())).unwrap_or(&[]);
+                let Some((hit, deferred)) = trace_deferred(model, camera, &posed, &pose_tensors, &at, windows, samples, needs_normals, device) else {
                     return out;
                 };
                 let hit: Vec<usize> = hit.into_iter().map(|k| first + k).collect();
@@ -190,10 +231,11 @@ pub fn render_view_and_albedo(
                     _ => values(deferred.albedo.clone()),
                 };
                 let coverage = values(deferred.accumulation.clone());
+                let depth = values(deferred.depth.clone());
                 let albedo = albedo_scale.as_ref().map(|scale| values(scaled(scale)));
                 for (j, &k) in hit.iter().enumerate() {
                     let albedo = albedo.as_ref().map_or([0.0; 3], |a| [a[j * 3], a[j * 3 + 1], a[j * 3 + 2]]);
-                    out.push((k, Traced { colour: [colour[j * 3], colour[j * 3 + 1], colour[j * 3 + 2]], albedo, coverage: coverage[j] }));
+                    out.push((k, Traced { colour: [colour[j * 3], colour[j * 3 + 1], colour[j * 3 + 2]], albedo, coverage: coverage[j], depth: depth[j] }));
                 }
                 out
             })
@@ -206,7 +248,7 @@ pub fn render_view_and_albedo(
     };
     let (w, h) = (camera.width, camera.height);
     let centre = |p: usize| [(p % w) as f64 + 0.5, (p / w) as f64 + 0.5];
-    let mut pixels = trace(&(0..w * h).map(|p| (centre(p), p as u64)).collect::<Vec<_>>());
+    let mut pixels = trace(&(0..w * h).map(|p| (centre(p), p as u64)).collect::<Vec<_>>(), &[], samples);
     // A capture whose pixels average their area: every pixel that may hold an edge is the mean
     // of the centres of its 3 x 3 strata instead (`needs_area`); elsewhere the centre is that
     // mean already, to within half an 8-bit step.
@@ -219,18 +261,37 @@ pub fn render_view_and_albedo(
         let albedos: Option<Vec<[f32; 3]>> = albedo_scale.map(|_| pixels.iter().map(|p| encode(p.albedo)).collect());
         let refine: Vec<usize> =
             (0..w * h).filter(|&p| needs_area(&colours, &coverage, w, h, p) || albedos.as_ref().is_some_and(|a| needs_area(a, &coverage, w, h, p))).collect();
-        let targets: Vec<([f64; 2], u64)> = refine
-            .iter()
-            .flat_map(|&p| {
-                offsets.iter().enumerate().map(move |(s, o)| ([(p % w) as f64 + o[0], (p / w) as f64 + o[1]], ((w * h + p * VIEW_PIXEL_RAYS + s) as u64)))
-            })
-            .collect();
-        let traced = trace(&targets);
-        for (&p, rays) in refine.iter().zip(traced.chunks(VIEW_PIXEL_RAYS)) {
+        // Inside the body the surface a pixel's rays meet lies within its neighbours' depths:
+        // those rays are sampled there, at half the cost; along a silhouette or a depth step the
+        // rays search their whole bound as the centres did.
+        let windows: Vec<Option<(f64, f64)>> = refine.iter().map(|&p| surface_window(&pixels, w, h, p, camera.fx)).collect();
+        let (inside, edge): (Vec<usize>, Vec<usize>) = (0..refine.len()).partition(|&r| windows[r].is_some());
+        let targets = |which: &[usize]| -> Vec<([f64; 2], u64)> {
+            which
+                .iter()
+                .flat_map(|&r| {
+                    let p = refine[r];
+                    offsets.iter().enumerate().map(move |(s, o)| ([(p % w) as f64 + o[0], (p / w) as f64 + o[1]], ((w * h + p * VIEW_PIXEL_RAYS + s) as u64)))
+                })
+                .collect()
+        };
+        let inside_windows: Vec<Option<(f64, f64)>> = inside.iter().flat_map(|&r| std::iter::repeat_n(windows[r], VIEW_PIXEL_RAYS)).collect();
+        let mut traced = vec![Vec::new(); refine.len()];
+        for (which, rays) in [(&inside, trace(&targets(&inside), &inside_windows, WINDOW_SAMPLING)), (&edge, trace(&targets(&edge), &[], samples))] {
+            for (&r, rays) in which.iter().zip(rays.chunks(VIEW_PIXEL_RAYS)) {
+                traced[r] = rays.to_vec();
+            }
+        }
+        for (&p, rays) in refine.iter().zip(&traced) {
             let share = 1.0 / VIEW_PIXEL_RAYS as f32;
             let mean =
                 |of: fn(&Traced) -> [f32; 3]| rays.iter().fold([0.0f32; 3], |a, r| [a[0] + of(r)[0] * share, a[1] + of(r)[1] * share, a[2] + of(r)[2] * share]);
-            pixels[p] = Traced { colour: mean(|r| r.colour), albedo: mean(|r| r.albedo), coverage: rays.iter().map(|r| r.coverage * share).sum() };
+            pixels[p] = Traced {
+                colour: mean(|r| r.colour),
+                albedo: mean(|r| r.albedo),
+                coverage: rays.iter().map(|r| r.coverage * share).sum(),
+                depth: pixels[p].depth,
+            };
         }
     }
     // Over a pixel's area, one the body covers by half or less is background, black, as the
@@ -260,6 +321,7 @@ pub fn trace_deferred(
     posed: &[PosedGaussian],
     pose_tensors: &PoseTensors,
     at: &[[f64; 2]],
+    windows: &[Option<(f64, f64)>],
     samples: Sampling,
     normals: bool,
     device: &Device,
@@ -268,7 +330,12 @@ pub fn trace_deferred(
     let mut hit = Vec::new();
     for (k, at) in at.iter().enumerate() {
         let ray = camera.ray_through(glam::DVec2::new(at[0], at[1]));
-        if let Some(bounds) = ray_bounds(ray.origin, ray.direction, posed, crate::render::MIN_BOUND_RADIUS * model.light.unit as f64) {
+        let bounds = ray_bounds(ray.origin, ray.direction, posed, crate::render::MIN_BOUND_RADIUS * model.light.unit as f64);
+        let bounds = match (bounds, windows.get(k).copied().flatten()) {
+            (Some((near, far)), Some((lo, hi))) => Some((near.max(lo), far.min(hi))).filter(|(near, far)| far > near),
+            (bounds, _) => bounds,
+        };
+        if let Some(bounds) = bounds {
             rays.push(ray.origin, ray.direction, Some(bounds));
             hit.push(k);
         }
@@ -307,7 +374,7 @@ pub fn surfels(model: &Avatar, scene: &Scene, camera: usize, frame: usize, sampl
     let area = scene.footprint().footprint == Footprint::Area;
     let centres: Vec<[f64; 2]> = (0..w * h).map(|p| [(p % w) as f64 + 0.5, (p / w) as f64 + 0.5]).collect();
     for (first, chunk) in centres.chunks(1024).enumerate().map(|(k, c)| (k * 1024, c)) {
-        let Some((hit, deferred)) = trace_deferred(model, camera, &posed, &pose_tensors, chunk, samples, true, device) else {
+        let Some((hit, deferred)) = trace_deferred(model, camera, &posed, &pose_tensors, chunk, &[], samples, true, device) else {
             continue;
         };
         let (points, albedo, coverage) = (vectors(values(deferred.surface)), vectors(values(deferred.albedo)), values(deferred.accumulation));
@@ -327,6 +394,8 @@ struct Traced {
     colour: [f32; 3],
     albedo: [f32; 3],
     coverage: f32,
+    /// Distance along the ray to the composited surface.
+    depth: f32,
 }
 
 fn vectors(flat: Vec<f32>) -> Vec<DVec3> {
@@ -429,6 +498,42 @@ mod tests {
         let encoded: Vec<[f32; 3]> = (0..w * h).map(|p| image(p % w, p / w)).collect();
         let cover: Vec<f32> = (0..w * h).map(|p| coverage(p % w, p / w)).collect();
         (0..w * h).filter(|&p| needs_area(&encoded, &cover, w, h, p)).map(|p| (p % w, p / w)).collect()
+    }
+
+    #[test]
+    fn a_window_holds_a_smooth_surface_and_is_refused_at_silhouettes_and_steps() {
+        // 8 x 8 centres of a plane tilted along x, 2 m away, 100 pixels of focal length: a
+        // pixel is 2 cm wide there; the plane recedes `slope` pixels' widths a pixel.
+        let (w, h, fx) = (8, 8, 100.0);
+        let plane = |slope: f32, covered: &dyn Fn(usize, usize) -> bool| -> Vec<Traced> {
+            (0..w * h)
+                .map(|p| {
+                    let (x, y) = (p % w, p / w);
+                    let coverage = if covered(x, y) { 1.0 } else { 0.0 };
+                    Traced { colour: [0.5; 3], albedo: [0.5; 3], coverage, depth: 2.0 + slope * 0.02 * x as f32 }
+                })
+                .collect()
+        };
+        let all = |_: usize, _: usize| true;
+        let gentle = plane(0.5, &all);
+        let (lo, hi) = surface_window(&gentle, w, h, 3 * w + 3, fx).expect("inside a gently tilted plane");
+        // The pixel's own points lie between its neighbours' centres, and within the window.
+        for x in [2.5f64, 3.0, 3.5, 4.0, 4.5] {
+            let depth = 2.0 + 0.5 * 0.02 * (x - 0.5);
+            assert!(lo < depth && depth < hi, "{depth} outside {lo}..{hi}");
+        }
+        assert!(hi - lo < 0.1, "a window, not the whole ray: {lo}..{hi}");
+        // A corner pixel has fewer neighbours and still gets one.
+        assert!(surface_window(&gentle, w, h, 0, fx).is_some());
+        // Grazing: the depths differ by more than WINDOW_SLOPE pixels across the neighbourhood.
+        assert!(surface_window(&plane(2.0, &all), w, h, 3 * w + 3, fx).is_none());
+        // A silhouette: a neighbour not wholly covered.
+        assert!(surface_window(&plane(0.5, &|x, _| x < 4), w, h, 3 * w + 3, fx).is_none());
+        assert!(surface_window(&plane(0.5, &|x, _| x < 4), w, h, 3 * w + 1, fx).is_some());
+        // A step in depth (an arm in front of the body) next to the pixel.
+        let mut step = plane(0.0, &all);
+        step[3 * w + 4].depth -= 0.2;
+        assert!(surface_window(&step, w, h, 3 * w + 3, fx).is_none());
     }
 
     #[test]
