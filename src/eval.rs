@@ -276,22 +276,21 @@ pub fn render_view_and_albedo(
                 .collect()
         };
         let inside_windows: Vec<Option<(f64, f64)>> = inside.iter().flat_map(|&r| std::iter::repeat_n(windows[r], VIEW_PIXEL_RAYS)).collect();
-        let mut traced = vec![Vec::new(); refine.len()];
-        for (which, rays) in [(&inside, trace(&targets(&inside), &inside_windows, WINDOW_SAMPLING)), (&edge, trace(&targets(&edge), &[], samples))] {
-            for (&r, rays) in which.iter().zip(rays.chunks(VIEW_PIXEL_RAYS)) {
-                traced[r] = rays.to_vec();
+        // Each refined pixel becomes the mean of its rays (the depth stays its centre's).
+        let share = 1.0 / VIEW_PIXEL_RAYS as f32;
+        for (which, traced) in [(&inside, trace(&targets(&inside), &inside_windows, WINDOW_SAMPLING)), (&edge, trace(&targets(&edge), &[], samples))] {
+            for (&r, rays) in which.iter().zip(traced.chunks(VIEW_PIXEL_RAYS)) {
+                let p = refine[r];
+                let mean = |of: fn(&Traced) -> [f32; 3]| {
+                    rays.iter().fold([0.0f32; 3], |a, r| [a[0] + of(r)[0] * share, a[1] + of(r)[1] * share, a[2] + of(r)[2] * share])
+                };
+                pixels[p] = Traced {
+                    colour: mean(|r| r.colour),
+                    albedo: mean(|r| r.albedo),
+                    coverage: rays.iter().map(|r| r.coverage * share).sum(),
+                    depth: pixels[p].depth,
+                };
             }
-        }
-        for (&p, rays) in refine.iter().zip(&traced) {
-            let share = 1.0 / VIEW_PIXEL_RAYS as f32;
-            let mean =
-                |of: fn(&Traced) -> [f32; 3]| rays.iter().fold([0.0f32; 3], |a, r| [a[0] + of(r)[0] * share, a[1] + of(r)[1] * share, a[2] + of(r)[2] * share]);
-            pixels[p] = Traced {
-                colour: mean(|r| r.colour),
-                albedo: mean(|r| r.albedo),
-                coverage: rays.iter().map(|r| r.coverage * share).sum(),
-                depth: pixels[p].depth,
-            };
         }
     }
     // Over a pixel's area, one the body covers by half or less is background, black, as the
