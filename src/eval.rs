@@ -97,6 +97,51 @@ const TRACE_CHUNK: usize = 1024;
 /// 4 x 4 worse (26.85). 9 rays cost 0.56x the 16.
 pub const VIEW_PIXEL_RAYS: usize = 9;
 
+/// The 3 x 3 strata of a refined pixel (row-major, as `subpixel_offsets` lays them out): the
+/// four corners and the middles of the four sides; the centre, 4, is the pixel's centre ray,
+/// traced already.
+const CORNER_STRATA: [usize; 4] = [0, 2, 6, 8];
+const SIDE_STRATA: [usize; 4] = [1, 3, 5, 7];
+const _: () = assert!(VIEW_PIXEL_RAYS == 9);
+
+/// How far (sRGB, every channel) a refined pixel's centre ray may lie from its four corner
+/// rays' mean for its sides to be taken as their corners' means (`strata_agree`).
+const STRATA_AGREE: f32 = 1.0 / 255.0;
+
+/// Whether a refined pixel's sides may be taken from its corners: its centre ray and four
+/// corner rays agree on coverage within an 8-bit step, and its colour (and albedo, when it is
+/// rendered) is bilinear over the pixel to within `STRATA_AGREE`: the centre lies that close
+/// to the corners' mean. A ramp (a shading gradient, a blurred border) passes; a straight
+/// sharp edge (a silhouette, a checker's border, a shadow's) that crosses any of the 3 x 3
+/// strata does not: it splits the corners from each other (one from three leaves the centre
+/// a quarter of the contrast from their mean, two from two half of it) or from the centre.
+fn strata_agree(centre: &Traced, corners: &[Traced], albedo: bool) -> bool {
+    let (lo, hi) = std::iter::once(centre).chain(corners).fold((f32::INFINITY, f32::NEG_INFINITY), |(lo, hi), t| (lo.min(t.coverage), hi.max(t.coverage)));
+    let srgb = |v: f32| crate::imageio::linear_to_srgb(v.max(0.0));
+    let bilinear = |of: &dyn Fn(&Traced) -> [f32; 3]| {
+        (0..3).all(|c| (srgb(of(centre)[c]) - corners.iter().map(|t| srgb(of(t)[c])).sum::<f32>() / corners.len() as f32).abs() <= STRATA_AGREE)
+    };
+    hi - lo <= 1.0 / 255.0 && bilinear(&|t| t.colour) && (!albedo || bilinear(&|t| t.albedo))
+}
+
+/// A refined pixel as the mean of its 3 x 3 strata: the centre, the corners and the sides'
+/// middles, or where the sides were not traced (`strata_agree`) each side as its two corners'
+/// mean, so every corner counts twice. The depth stays the centre's.
+fn strata_mean(centre: &Traced, corners: &[Traced], sides: Option<&[Traced]>) -> Traced {
+    let ninth = 1.0 / 9.0;
+    let weighted: Vec<(&Traced, f32)> = match sides {
+        Some(sides) => std::iter::once(centre).chain(corners).chain(sides).map(|t| (t, ninth)).collect(),
+        None => std::iter::once((centre, ninth)).chain(corners.iter().map(|t| (t, 2.0 * ninth))).collect(),
+    };
+    let mean = |of: &dyn Fn(&Traced) -> [f32; 3]| weighted.iter().fold([0.0f32; 3], |a, (t, k)| [a[0] + of(t)[0] * k, a[1] + of(t)[1] * k, a[2] + of(t)[2] * k]);
+    Traced {
+        colour: mean(&|t| t.colour),
+        albedo: mean(&|t| t.albedo),
+        coverage: weighted.iter().map(|(t, k)| t.coverage * k).sum(),
+        depth: centre.depth,
+    }
+}
+
 /// Whether pixel `p` of a centre-sampled render (sRGB `encoded`, `coverage`, `w x h`) must be
 /// rendered over its area to stand for its mean there: where its 3 x 3 neighbourhood's
 /// coverage differs by more than an 8-bit step (a silhouette), or where its colour is curved:
@@ -265,32 +310,42 @@ pub fn render_view_and_albedo(
         // those rays are sampled there, at half the cost; along a silhouette or a depth step the
         // rays search their whole bound as the centres did.
         let windows: Vec<Option<(f64, f64)>> = refine.iter().map(|&p| surface_window(&pixels, w, h, p, camera.fx)).collect();
-        let (inside, edge): (Vec<usize>, Vec<usize>) = (0..refine.len()).partition(|&r| windows[r].is_some());
-        let targets = |which: &[usize]| -> Vec<([f64; 2], u64)> {
-            which
-                .iter()
-                .flat_map(|&r| {
-                    let p = refine[r];
-                    offsets.iter().enumerate().map(move |(s, o)| ([(p % w) as f64 + o[0], (p / w) as f64 + o[1]], ((w * h + p * VIEW_PIXEL_RAYS + s) as u64)))
-                })
-                .collect()
-        };
-        let inside_windows: Vec<Option<(f64, f64)>> = inside.iter().flat_map(|&r| std::iter::repeat_n(windows[r], VIEW_PIXEL_RAYS)).collect();
-        // Each refined pixel becomes the mean of its rays (the depth stays its centre's).
-        let share = 1.0 / VIEW_PIXEL_RAYS as f32;
-        for (which, traced) in [(&inside, trace(&targets(&inside), &inside_windows, WINDOW_SAMPLING)), (&edge, trace(&targets(&edge), &[], samples))] {
-            for (&r, rays) in which.iter().zip(traced.chunks(VIEW_PIXEL_RAYS)) {
-                let p = refine[r];
-                let mean = |of: fn(&Traced) -> [f32; 3]| {
-                    rays.iter().fold([0.0f32; 3], |a, r| [a[0] + of(r)[0] * share, a[1] + of(r)[1] * share, a[2] + of(r)[2] * share])
-                };
-                pixels[p] = Traced {
-                    colour: mean(|r| r.colour),
-                    albedo: mean(|r| r.albedo),
-                    coverage: rays.iter().map(|r| r.coverage * share).sum(),
-                    depth: pixels[p].depth,
-                };
+        // The rays of strata `strata` of the refined pixels `which` (indices into `refine`),
+        // `strata.len()` a pixel in that order.
+        let trace_strata = |which: &[usize], strata: &[usize]| -> Vec<Traced> {
+            let (inside, edge): (Vec<usize>, Vec<usize>) = (0..which.len()).partition(|&k| windows[which[k]].is_some());
+            let targets = |part: &[usize]| -> Vec<([f64; 2], u64)> {
+                part.iter()
+                    .flat_map(|&k| {
+                        let p = refine[which[k]];
+                        let offsets = &offsets;
+                        strata.iter().map(move |&s| ([(p % w) as f64 + offsets[s][0], (p / w) as f64 + offsets[s][1]], (w * h + p * VIEW_PIXEL_RAYS + s) as u64))
+                    })
+                    .collect()
+            };
+            let inside_windows: Vec<Option<(f64, f64)>> = inside.iter().flat_map(|&k| std::iter::repeat_n(windows[which[k]], strata.len())).collect();
+            let mut out = vec![Traced::default(); which.len() * strata.len()];
+            for (part, traced) in [(&inside, trace(&targets(&inside), &inside_windows, WINDOW_SAMPLING)), (&edge, trace(&targets(&edge), &[], samples))] {
+                for (&k, rays) in part.iter().zip(traced.chunks(strata.len())) {
+                    out[k * strata.len()..(k + 1) * strata.len()].clone_from_slice(rays);
+                }
             }
+            out
+        };
+        // First the four corner strata: with the centre (already traced) they bound every
+        // straight edge through the pixel, so where the five agree the pixel holds none and the
+        // four side strata are their corners' means (`strata_mean`); elsewhere those are traced.
+        let corners = trace_strata(&(0..refine.len()).collect::<Vec<_>>(), &CORNER_STRATA);
+        let uneven: Vec<usize> = (0..refine.len())
+            .filter(|&r| !strata_agree(&pixels[refine[r]], &corners[r * 4..r * 4 + 4], albedos.is_some()))
+            .collect();
+        let sides = trace_strata(&uneven, &SIDE_STRATA);
+        let mut side_of = vec![None; refine.len()];
+        for (k, &r) in uneven.iter().enumerate() {
+            side_of[r] = Some(&sides[k * 4..k * 4 + 4]);
+        }
+        for (r, &p) in refine.iter().enumerate() {
+            pixels[p] = strata_mean(&pixels[p], &corners[r * 4..r * 4 + 4], side_of[r]);
         }
     }
     // Over a pixel's area, one the body covers by half or less is background, black, as the
@@ -497,6 +552,59 @@ mod tests {
         let encoded: Vec<[f32; 3]> = (0..w * h).map(|p| image(p % w, p / w)).collect();
         let cover: Vec<f32> = (0..w * h).map(|p| coverage(p % w, p / w)).collect();
         (0..w * h).filter(|&p| needs_area(&encoded, &cover, w, h, p)).map(|p| (p % w, p / w)).collect()
+    }
+
+    /// The 3 x 3 strata of a pixel traced through `image(x, y)` (x, y in [0, 1]), in
+    /// `subpixel_offsets` order, colour and albedo alike, wholly covered.
+    fn strata(image: &dyn Fn(f64, f64) -> f32) -> Vec<Traced> {
+        crate::scene::footprint::subpixel_offsets(9, None)
+            .iter()
+            .map(|o| {
+                let v = image(o[0], o[1]);
+                Traced { colour: [v; 3], albedo: [v; 3], coverage: 1.0, depth: 1.0 }
+            })
+            .collect()
+    }
+
+    #[test]
+    fn the_corners_stand_for_the_sides_on_ramps_and_never_across_a_straight_edge() {
+        let pick = |s: &[Traced], which: &[usize]| which.iter().map(|&k| s[k]).collect::<Vec<_>>();
+        let nine_mean = |s: &[Traced]| s.iter().map(|t| t.colour[0]).sum::<f32>() / 9.0;
+        // A bilinear ramp (dim, where sRGB is steepest, and bright): the five agree and give the
+        // nine strata's mean.
+        for (base, slope) in [(0.02f32, 0.01f32), (0.4, 0.2)] {
+            let ramp = |x: f64, y: f64| base + slope * (x as f32 - 0.3 * y as f32 + 0.5 * (x * y) as f32);
+            let s = strata(&ramp);
+            let corners = pick(&s, &CORNER_STRATA);
+            assert!(strata_agree(&s[4], &corners, true), "ramp {base} {slope}");
+            let mean = strata_mean(&s[4], &corners, None);
+            assert!((mean.colour[0] - nine_mean(&s)).abs() < 1e-6, "{} against {}", mean.colour[0], nine_mean(&s));
+            let traced = strata_mean(&s[4], &corners, Some(&pick(&s, &SIDE_STRATA)));
+            assert!((traced.colour[0] - mean.colour[0]).abs() < 1e-6 && (traced.coverage - 1.0).abs() < 1e-6);
+        }
+        // Any straight edge of a few 8-bit steps' contrast that splits the nine strata is seen by
+        // the centre and corners: lines at 64 angles, through 64 offsets across the pixel.
+        let (dark, light) = (crate::imageio::srgb_to_linear(0.40), crate::imageio::srgb_to_linear(0.40 + 6.0 / 255.0));
+        let mut split = 0;
+        for a in 0..64 {
+            let angle = a as f64 * std::f64::consts::TAU / 64.0 + 0.01;
+            let (nx, ny) = (angle.cos(), angle.sin());
+            for o in 0..64 {
+                let offset = -0.75 + 1.5 * o as f64 / 63.0;
+                let edge = |x: f64, y: f64| if (x - 0.5) * nx + (y - 0.5) * ny > offset { light } else { dark };
+                let s = strata(&edge);
+                if s.iter().all(|t| t.colour[0] == s[0].colour[0]) {
+                    continue;
+                }
+                split += 1;
+                assert!(!strata_agree(&s[4], &pick(&s, &CORNER_STRATA), false), "angle {angle} offset {offset}");
+            }
+        }
+        assert!(split > 1000, "{split} lines split the strata");
+        // A silhouette: coverage that differs between the five.
+        let mut s = strata(&|_, _| 0.3);
+        s[8].coverage = 0.0;
+        assert!(!strata_agree(&s[4], &pick(&s, &CORNER_STRATA), false));
     }
 
     #[test]
