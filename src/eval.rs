@@ -129,17 +129,10 @@ fn strata_agree(centre: &Traced, corners: &[Traced], albedo: bool) -> bool {
 /// mean, so every corner counts twice. The depth stays the centre's.
 fn strata_mean(centre: &Traced, corners: &[Traced], sides: Option<&[Traced]>) -> Traced {
     let ninth = 1.0 / 9.0;
-    let weighted: Vec<(&Traced, f32)> = match sides {
-        Some(sides) => std::iter::once(centre).chain(corners).chain(sides).map(|t| (t, ninth)).collect(),
-        None => std::iter::once((centre, ninth)).chain(corners.iter().map(|t| (t, 2.0 * ninth))).collect(),
-    };
-    let mean = |of: &dyn Fn(&Traced) -> [f32; 3]| weighted.iter().fold([0.0f32; 3], |a, (t, k)| [a[0] + of(t)[0] * k, a[1] + of(t)[1] * k, a[2] + of(t)[2] * k]);
-    Traced {
-        colour: mean(&|t| t.colour),
-        albedo: mean(&|t| t.albedo),
-        coverage: weighted.iter().map(|(t, k)| t.coverage * k).sum(),
-        depth: centre.depth,
-    }
+    let corner_weight = if sides.is_some() { ninth } else { 2.0 * ninth };
+    let weighted = std::iter::once((centre, ninth)).chain(corners.iter().map(|t| (t, corner_weight))).chain(sides.into_iter().flatten().map(|t| (t, ninth)));
+    let mean = |of: fn(&Traced) -> [f32; 3]| weighted.clone().fold([0.0f32; 3], |a, (t, k)| [a[0] + of(t)[0] * k, a[1] + of(t)[1] * k, a[2] + of(t)[2] * k]);
+    Traced { colour: mean(|t| t.colour), albedo: mean(|t| t.albedo), coverage: weighted.clone().map(|(t, k)| t.coverage * k).sum(), depth: centre.depth }
 }
 
 /// Whether pixel `p` of a centre-sampled render (sRGB `encoded`, `coverage`, `w x h`) must be
@@ -319,7 +312,9 @@ pub fn render_view_and_albedo(
                     .flat_map(|&k| {
                         let p = refine[which[k]];
                         let offsets = &offsets;
-                        strata.iter().map(move |&s| ([(p % w) as f64 + offsets[s][0], (p / w) as f64 + offsets[s][1]], (w * h + p * VIEW_PIXEL_RAYS + s) as u64))
+                        strata
+                            .iter()
+                            .map(move |&s| ([(p % w) as f64 + offsets[s][0], (p / w) as f64 + offsets[s][1]], (w * h + p * VIEW_PIXEL_RAYS + s) as u64))
                     })
                     .collect()
             };
@@ -336,9 +331,7 @@ pub fn render_view_and_albedo(
         // straight edge through the pixel, so where the five agree the pixel holds none and the
         // four side strata are their corners' means (`strata_mean`); elsewhere those are traced.
         let corners = trace_strata(&(0..refine.len()).collect::<Vec<_>>(), &CORNER_STRATA);
-        let uneven: Vec<usize> = (0..refine.len())
-            .filter(|&r| !strata_agree(&pixels[refine[r]], &corners[r * 4..r * 4 + 4], albedos.is_some()))
-            .collect();
+        let uneven: Vec<usize> = (0..refine.len()).filter(|&r| !strata_agree(&pixels[refine[r]], &corners[r * 4..r * 4 + 4], albedos.is_some())).collect();
         let sides = trace_strata(&uneven, &SIDE_STRATA);
         let mut side_of = vec![None; refine.len()];
         for (k, &r) in uneven.iter().enumerate() {
