@@ -613,6 +613,40 @@ fn fused_interpolation_matches_the_composite_and_its_gradient() {
     }
 }
 
+/// A lookup with no gradients wanted (an untracked table: the samples that search a ray for the
+/// body) runs planned and summed in one pass on the host; it must give the features and prior of
+/// the planned op (tracked table), with the root's preference in the skinning, a level half
+/// faded and one left out, the root capped and not, on both CPU backends.
+#[test]
+#[allow(deprecated)] // burn-ndarray stays our --backend ndarray
+fn a_lookup_without_gradients_is_the_planned_lookup() {
+    let s = setup();
+    for device in [Device::flex().autodiff(), Device::ndarray().autodiff()] {
+        let mut field = busy_field(&s.config, &device, false);
+        let grid = field.grid.as_mut().unwrap();
+        grid.active_levels = grid.config.levels as f32 - 1.5;
+        let tracked = field.grid.as_ref().unwrap();
+        let still = field.valid();
+        let untracked = still.grid.as_ref().unwrap();
+        assert!(tracked.table.val().is_require_grad() && !untracked.table.val().is_require_grad());
+        let pose = PoseTensors::new(&s.pose, &s.character.skeleton, &device);
+        let pts = points(&s, 300, 23);
+        let input = || Tensor::<2>::from_data(TensorData::new(flat(&pts), [pts.len(), 3]), &device);
+        for skin in [skinning(&s.config), uncapped(&s.config)] {
+            let planned = tracked.encode(input(), &pose.frames, skin, false);
+            let host = untracked.encode(input().inner(), &pose.frames, skin, false);
+            let (a, b) = (values(planned.features.inner()), values(host.features));
+            assert_eq!(a.len(), b.len());
+            let worst = a.iter().zip(&b).map(|(a, b)| (a - b).abs()).fold(0.0f32, f32::max);
+            assert!(worst < 1e-5, "features differ by {worst}");
+            assert!(a.iter().any(|v| v.abs() > 0.1), "the features are not all near zero");
+            let (a, b) = (values(planned.prior.inner()), values(host.prior));
+            let worst = a.iter().zip(&b).map(|(a, b)| (a - b).abs()).fold(0.0f32, f32::max);
+            assert!(worst < 1e-6, "priors differ by {worst}");
+        }
+    }
+}
+
 /// With its own decoder the albedo cannot move the surface: changing the albedo decoder's
 /// weights changes the albedo and leaves the SDF bit for bit; with a shared decoder (the
 /// checkpoints of earlier fits) the albedo is the decoder's last three outputs.

@@ -467,24 +467,27 @@ fn softmax_with_gradient(out: &mut Vec<(f32, [f32; 3])>, terms: impl Iterator<It
     }
 }
 
-/// The 8 corners of the trilinear cell around `local` in a grid of `dims` vertices spaced
-/// `cell` apart from `-reach` on each local axis: for each corner its vertex, its weight and
-/// the weight's world gradient (through the bone's `axes`); a point outside the grid is
-/// clamped to its border (a clamped axis has no spatial derivative).
-fn trilinear<const TANGENTS: bool>(
-    local: [f32; 3],
-    reach: f32,
-    cell: f32,
-    dims: [usize; 3],
-    axes: &[[f32; 3]; 3],
-    mut corner: impl FnMut(usize, [usize; 3], f32, [f32; 3]),
-) {
+/// The trilinear cell around a point: its lowest vertex, and per corner (bit 0 the x side,
+/// bit 1 y, bit 2 z) its weight and the weight's world gradient (zero unless asked for).
+struct Cell {
+    base: [usize; 3],
+    weights: [f32; 8],
+    gradients: [[f32; 3]; 8],
+}
+
+/// The trilinear cell around `local` in a grid of `dims` vertices spaced `cell` apart from
+/// `-reach` on each local axis, with the weights' world gradients (through the bone's `axes`)
+/// when `TANGENTS`; a point outside the grid is clamped to its border (a clamped axis has no
+/// spatial derivative).
+fn trilinear<const TANGENTS: bool>(local: [f32; 3], reach: f32, cell: f32, dims: [usize; 3], axes: &[[f32; 3]; 3]) -> Cell {
     let mut base = [0usize; 3];
     let mut fraction = [0.0f32; 3];
     let mut inside = [true; 3];
+    // One division for the three axes (a cell's corners cost little more than this).
+    let per_cell = 1.0 / cell;
     for m in 0..3 {
         let top_vertex = (dims[m] - 1) as f32;
-        let mut u = (local[m] + reach) / cell;
+        let mut u = (local[m] + reach) * per_cell;
         if !(u > 0.0) {
             u = 0.0;
             inside[m] = false;
@@ -498,25 +501,28 @@ fn trilinear<const TANGENTS: bool>(
         base[m] = at;
         fraction[m] = u - at as f32;
     }
-    // d u_m / d x = (local axis m) / cell on axes inside the grid.
-    let du: [[f32; 3]; 3] = if TANGENTS { [0, 1, 2].map(|m| if inside[m] { axes[m].map(|a| a / cell) } else { [0.0; 3] }) } else { [[0.0; 3]; 3] };
-    for k in 0..8 {
-        let bit = [k & 1, (k >> 1) & 1, (k >> 2) & 1];
-        let factor = [0, 1, 2].map(|m| if bit[m] == 1 { fraction[m] } else { 1.0 - fraction[m] });
-        // Without tangents (the samples that only need the SDF and albedo, most of them) the
-        // corner's derivative is not computed at all: a third of the plan's arithmetic.
-        let gradient = if TANGENTS {
+    // Each axis's two factors, the low side's and the high side's.
+    let factors = [0, 1, 2].map(|m| [1.0 - fraction[m], fraction[m]]);
+    let mut weights = [0.0f32; 8];
+    for (k, w) in weights.iter_mut().enumerate() {
+        *w = factors[0][k & 1] * factors[1][(k >> 1) & 1] * factors[2][k >> 2];
+    }
+    let mut gradients = [[0.0f32; 3]; 8];
+    if TANGENTS {
+        // d u_m / d x = (local axis m) / cell on axes inside the grid.
+        let du: [[f32; 3]; 3] = [0, 1, 2].map(|m| if inside[m] { axes[m].map(|a| a * per_cell) } else { [0.0; 3] });
+        for (k, gradient) in gradients.iter_mut().enumerate() {
+            let bit = [k & 1, (k >> 1) & 1, k >> 2];
+            let factor = [0, 1, 2].map(|m| factors[m][bit[m]]);
             // d weight / d u_m: the other two factors, signed by the corner's side.
             let d_tri = [0, 1, 2].map(|m| {
                 let sign = if bit[m] == 1 { 1.0 } else { -1.0 };
                 sign * factor[(m + 1) % 3] * factor[(m + 2) % 3]
             });
-            [0, 1, 2].map(|x| d_tri[0] * du[0][x] + d_tri[1] * du[1][x] + d_tri[2] * du[2][x])
-        } else {
-            [0.0; 3]
-        };
-        corner(k, [base[0] + bit[0], base[1] + bit[1], base[2] + bit[2]], factor[0] * factor[1] * factor[2], gradient);
+            *gradient = [0, 1, 2].map(|x| d_tri[0] * du[0][x] + d_tri[1] * du[1][x] + d_tri[2] * du[2][x]);
+        }
     }
+    Cell { base, weights, gradients }
 }
 
 /// Plans one point's corners and returns the rest of its plan.
@@ -530,8 +536,29 @@ fn plan_point(
     scratch: &mut Scratch,
     rows: &mut [u32],
     coefficients: &mut [f32],
-    mut d_coefficients: Option<&mut [f32]>,
+    d_coefficients: Option<&mut [f32]>,
 ) -> PointSkin {
+    let tangents = d_coefficients.is_some();
+    let skin = skin_point(config, frames, skinning, point, scratch, tangents);
+    let chosen = &scratch.all[..config.top().min(scratch.all.len())];
+    match d_coefficients {
+        Some(d) => visit_cells::<true>(config, levels, frames, chosen, |k, _, cell_rows, cell| {
+            rows[k..k + 8].copy_from_slice(&cell_rows);
+            coefficients[k..k + 8].copy_from_slice(&cell.weights);
+            d[k * 3..(k + 8) * 3].copy_from_slice(cell.gradients.as_flattened());
+        }),
+        None => visit_cells::<false>(config, levels, frames, chosen, |k, _, cell_rows, cell| {
+            rows[k..k + 8].copy_from_slice(&cell_rows);
+            coefficients[k..k + 8].copy_from_slice(&cell.weights);
+        }),
+    }
+    skin
+}
+
+/// A point's skinning: the `top` nearest bones chosen (left, ascending by bone, at the head of
+/// `scratch.all`), their logits, the capsule prior and the root's preference corners, with
+/// their world gradients when `tangents` says.
+fn skin_point(config: &GridConfig, frames: &[BoneFrame], skinning: Skinning, point: [f32; 3], scratch: &mut Scratch, tangents: bool) -> PointSkin {
     // Squared distance to every bone segment and its world gradient 2 R offset.
     let all = &mut scratch.all;
     all.clear();
@@ -578,52 +605,107 @@ fn plan_point(
     if let (Some(root), Some(j)) = (config.root, chosen.iter().position(|a| Some(a.bone) == config.root.map(|r| r.bone))) {
         skin.root_slot = Some(j);
         let dims = root.dims(frames[root.bone].length);
-        let root_corner = |k: usize, v: [usize; 3], weight: f32, gradient: [f32; 3]| {
-            skin.root_rows[k] = (v[0] + dims[0] * (v[1] + dims[1] * v[2])) as u32;
-            skin.root_coefficients[k] = weight;
-            skin.root_coefficient_tangents[k] = gradient;
-        };
         let (local, axes) = (chosen[j].local, &frames[root.bone].axes);
-        match d_coefficients {
-            Some(_) => trilinear::<true>(local, root.reach, root.cell, dims, axes, root_corner),
-            None => trilinear::<false>(local, root.reach, root.cell, dims, axes, root_corner),
+        let cell =
+            if tangents { trilinear::<true>(local, root.reach, root.cell, dims, axes) } else { trilinear::<false>(local, root.reach, root.cell, dims, axes) };
+        for k in 0..8 {
+            let v = [cell.base[0] + (k & 1), cell.base[1] + ((k >> 1) & 1), cell.base[2] + (k >> 2)];
+            skin.root_rows[k] = (v[0] + dims[0] * (v[1] + dims[1] * v[2])) as u32;
         }
-    }
-    // Each chosen bone's corners, level by level.
-    let mut k = 0;
-    for a in chosen.iter() {
-        let frame = &frames[a.bone];
-        for level in levels {
-            if !level.active {
-                // The plan's buffers start at row 0, coefficient 0, tangent 0.
-                k += 8;
-                continue;
-            }
-            let (reach, dims) = (config.bone_reach(a.bone), level.dims[a.bone]);
-            // The first corner is the cell's lowest vertex: all 8 rows from it at once.
-            let mut cell_rows = [0usize; 8];
-            match d_coefficients.as_deref_mut() {
-                Some(d) => trilinear::<true>(a.local, reach, level.cell, dims, &frame.axes, |corner, v, weight, gradient| {
-                    if corner == 0 {
-                        cell_rows = level.corner_rows(a.bone, v);
-                    }
-                    rows[k] = cell_rows[corner] as u32;
-                    coefficients[k] = weight;
-                    d[k * 3..k * 3 + 3].copy_from_slice(&gradient);
-                    k += 1;
-                }),
-                None => trilinear::<false>(a.local, reach, level.cell, dims, &frame.axes, |corner, v, weight, _| {
-                    if corner == 0 {
-                        cell_rows = level.corner_rows(a.bone, v);
-                    }
-                    rows[k] = cell_rows[corner] as u32;
-                    coefficients[k] = weight;
-                    k += 1;
-                }),
-            }
-        }
+        skin.root_coefficients = cell.weights;
+        skin.root_coefficient_tangents = cell.gradients;
     }
     skin
+}
+
+/// Every cell of a point's lookup in its `chosen` bones, level by level: `cell(k, level, rows,
+/// cell)` with `k` the place of its first corner in the plan (bone, then level, then corner;
+/// an inactive level's 8 places are skipped, left at row 0 and weight 0), the weights' world
+/// gradients computed only when `TANGENTS`.
+fn visit_cells<const TANGENTS: bool>(
+    config: &GridConfig,
+    levels: &[Level],
+    frames: &[BoneFrame],
+    chosen: &[BoneDistance],
+    mut visit: impl FnMut(usize, usize, [u32; 8], &Cell),
+) {
+    let mut k = 0;
+    for a in chosen {
+        let frame = &frames[a.bone];
+        let reach = config.bone_reach(a.bone);
+        for (l, level) in levels.iter().enumerate() {
+            if level.active {
+                let cell = trilinear::<TANGENTS>(a.local, reach, level.cell, level.dims[a.bone], &frame.axes);
+                visit(k, l, level.corner_rows(a.bone, cell.base).map(|r| r as u32), &cell);
+            }
+            k += 8;
+        }
+    }
+}
+
+/// The features `[N, W]` and capsule prior of `points` straight from the table on the host, for
+/// points that need no gradient (the samples that search a ray for the body): the plan's
+/// skinning and corners and the fused op's weighted sum in one pass, so no plan is stored and
+/// read back. Per point `W + 1` values: its features, then its prior. `preference` is the root's
+/// preference grid (one logit per vertex) when the grid has one; `fade` weighs each level.
+#[allow(clippy::too_many_arguments)]
+pub fn features_on_host(
+    config: &GridConfig,
+    levels: &[Level],
+    frames: &[BoneFrame],
+    skinning: Skinning,
+    points: &[f32],
+    table: &[f32],
+    preference: Option<&[f32]>,
+    fade: &[f32],
+) -> Vec<f32> {
+    let (f, l) = (config.features, config.levels);
+    let w = l * f;
+    let n = points.len() / 3;
+    let mut out = vec![0.0f32; n * (w + 1)];
+    const CHUNK: usize = 64;
+    out.par_chunks_mut(CHUNK * (w + 1)).enumerate().for_each(|(chunk, out)| {
+        let mut scratch = Scratch::default();
+        let mut per_bone = vec![0.0f32; MAX_TOP_BONES * w];
+        for (k, out) in out.chunks_mut(w + 1).enumerate() {
+            let i = chunk * CHUNK + k;
+            let point = [points[3 * i], points[3 * i + 1], points[3 * i + 2]];
+            let skin = skin_point(config, frames, skinning, point, &mut scratch, false);
+            let chosen = &scratch.all[..config.top().min(scratch.all.len())];
+            per_bone.iter_mut().for_each(|v| *v = 0.0);
+            visit_cells::<false>(config, levels, frames, chosen, |k, level, rows, cell| {
+                // As the fused op sums: each coefficient times the level's fade, times the entry.
+                let sums = &mut per_bone[(k / 8) * f..(k / 8 + 1) * f];
+                for (&row, &weight) in rows.iter().zip(&cell.weights) {
+                    let coefficient = weight * fade[level];
+                    let start = row as usize * f;
+                    match table.get(start..start + f) {
+                        Some(entry) => sums.iter_mut().zip(entry).for_each(|(o, t)| *o += coefficient * t),
+                        None => sums.iter_mut().for_each(|o| *o = f32::NAN),
+                    }
+                }
+            });
+            // The skinning weights: a softmax of the logits plus the root's preference.
+            let mut logits = [0.0f32; MAX_TOP_BONES];
+            logits[..chosen.len()].copy_from_slice(&skin.logits[..chosen.len()]);
+            if let (Some(j), Some(preference)) = (skin.root_slot, preference) {
+                let value: f32 =
+                    skin.root_rows.iter().zip(&skin.root_coefficients).map(|(&r, &c)| c * preference.get(r as usize).copied().unwrap_or(f32::NAN)).sum();
+                logits[j] += value;
+            }
+            let logits = &mut logits[..chosen.len()];
+            let max = logits.iter().copied().fold(f32::NEG_INFINITY, f32::max);
+            logits.iter_mut().for_each(|v| *v = (*v - max).exp());
+            let total: f32 = logits.iter().sum();
+            let (features, prior) = out.split_at_mut(w);
+            for (j, &e) in logits.iter().enumerate() {
+                let weight = e / total;
+                features.iter_mut().zip(&per_bone[j * w..(j + 1) * w]).for_each(|(o, v)| *o += weight * v);
+            }
+            prior[0] = skin.prior;
+        }
+    });
+    out
 }
 
 /// What the grid gives a batch of points: features `[N, W]` and the prior `[N]`, with their
@@ -639,11 +721,38 @@ impl FeatureGrid {
     fn plan(&self, points: Tensor<2>, frames: &[BoneFrame], skinning: Skinning, tangents: bool) -> (Lookup, usize) {
         let [n, _] = points.dims();
         let values = points.into_data().convert::<f32>().try_to_vec::<f32>().unwrap_or_else(|_| vec![f32::NAN; n * 3]);
+        (lookup(&self.config, &self.active_layout(), frames, skinning, &values, tangents), n)
+    }
+
+    /// `encode` where nothing asks for a gradient (the table is not tracked): planned and summed
+    /// in one pass on the host (`features_on_host`), the same values (a test pins them).
+    fn encode_without_gradients(&self, points: Tensor<2>, frames: &[BoneFrame], skinning: Skinning) -> GridFeatures {
+        let [n, _] = points.dims();
+        let device = points.device();
+        let values = points.into_data().convert::<f32>().try_to_vec::<f32>().unwrap_or_else(|_| vec![f32::NAN; n * 3]);
+        let preference = self.root_preference.as_ref().map(|p| p.val());
+        let lookup = super::interpolate::HostLookup {
+            config: self.config.clone(),
+            levels: self.active_layout(),
+            frames: frames.to_vec(),
+            skinning,
+            points: values,
+            fade: self.fade(),
+            preference: preference.is_some(),
+        };
+        let preference = preference.unwrap_or_else(|| Tensor::zeros([1, 1], &device));
+        let out = super::interpolate::lookup_without_gradients(self.table.val(), preference, lookup);
+        let w = self.config.width();
+        GridFeatures { features: out.clone().slice([0..n, 0..w]), prior: out.slice([0..n, w..w + 1]).reshape([n]), tangents: None }
+    }
+
+    /// The layout with each level marked active or not (coarse to fine).
+    fn active_layout(&self) -> Vec<Level> {
         let mut levels = self.config.layout();
         for (l, level) in levels.iter_mut().enumerate() {
             level.active = (l as f32) < self.active_levels;
         }
-        (lookup(&self.config, &levels, frames, skinning, &values, tangents), n)
+        levels
     }
 
     /// Each level's weight: levels beyond `active_levels` are faded out (coarse to fine).
@@ -654,6 +763,9 @@ impl FeatureGrid {
     /// Looks `points` up in the posed bones `frames`.
     pub fn encode(&self, points: Tensor<2>, frames: &[BoneFrame], skinning: Skinning, tangents: bool) -> GridFeatures {
         let device = points.device();
+        if !tangents && !self.composite && !self.table.val().is_require_grad() {
+            return self.encode_without_gradients(points, frames, skinning);
+        }
         let (plan, n) = self.plan(points, frames, skinning, tangents);
         let (per_bone, per_bone_tangents, plan) =
             if self.composite { self.interpolate_composite(plan, n, tangents) } else { self.interpolate_fused(plan, n, tangents) };
@@ -681,6 +793,7 @@ impl FeatureGrid {
             coefficients: std::mem::take(&mut plan.coefficients),
             tangents: tangents.then(|| std::mem::take(&mut plan.coefficient_tangents)),
             fade: self.fade().into_iter().cycle().take(groups).collect(),
+            table_parts: config.levels,
         };
         let out = super::interpolate::interpolate(self.table.val(), fused);
         let width = groups * config.features;
@@ -732,6 +845,7 @@ impl FeatureGrid {
                 coefficients: plan.root_coefficients.clone(),
                 tangents: tangents.then(|| plan.root_coefficient_tangents.clone()),
                 fade: vec![1.0],
+                table_parts: 1,
             };
             super::interpolate::interpolate(table.val(), lookup)
         });

@@ -10,12 +10,13 @@
 // burn-ndarray is deprecated upstream but stays our `--backend ndarray`.
 #![allow(deprecated)]
 
+use super::grid::{BoneFrame, GridConfig, Level, Skinning};
 use burn::backend::autodiff::checkpoint::base::Checkpointer;
 use burn::backend::autodiff::checkpoint::strategy::CheckpointStrategy;
 use burn::backend::autodiff::grads::Gradients;
 use burn::backend::autodiff::ops::{unary, Backward, Ops, OpsKind};
 use burn::backend::tensor::FloatTensor;
-use burn::backend::{backend_extension, Autodiff, Backend, Dispatch, Flex, NdArray, TensorMetadata};
+use burn::backend::{backend_extension, Autodiff, AutodiffBackend, Backend, Dispatch, Flex, NdArray, TensorMetadata};
 use burn::tensor::{Tensor, TensorData};
 use rayon::prelude::*;
 use std::sync::Arc;
@@ -34,6 +35,9 @@ pub struct Plan {
     pub coefficients: Vec<f32>,
     pub tangents: Option<Vec<f32>>,
     pub fade: Vec<f32>,
+    /// The table's rows are this many equal runs, group `g`'s rows lying in run
+    /// `g % table_parts` (the grid's table is level-major: its level count; 1 for any table).
+    pub table_parts: usize,
 }
 
 impl Plan {
@@ -97,45 +101,51 @@ impl Plan {
         }
     }
 
-    /// The table's gradient (`[table_rows, F]`) from the output's (`[output_rows, W]`).
+    /// The table's gradient (`[table_rows, F]`) from the output's (`[output_rows, W]`). The
+    /// table's rows are level-major (`table_parts` runs), so each thread takes a run of
+    /// consecutive levels and fills their rows alone: no per-thread copies of the table to zero
+    /// and add up (4-8 MB each, a quarter of this op's time).
     fn backward(&self, grad: &[f32], table_rows: usize) -> Vec<f32> {
         let (n, w, f, c) = (self.points, self.width(), self.features, self.corners);
-        // Each thread scatters a share of the points into its own table, then they are summed.
-        let threads = rayon::current_num_threads().max(1);
-        let share = n.div_ceil(threads).max(1);
-        let partials: Vec<Vec<f32>> = (0..threads)
-            .into_par_iter()
-            .map(|t| {
-                let mut table = vec![0.0f32; table_rows * f];
-                for i in (t * share).min(n)..((t + 1) * share).min(n) {
-                    for l in 0..self.levels {
-                        let fade = self.fade[l];
-                        for j in 0..c {
-                            let at = (i * self.levels + l) * c + j;
-                            let row = self.rows[at] as usize * f;
-                            if row + f > table.len() {
-                                continue;
-                            }
-                            for q in 0..f {
-                                let column = l * f + q;
-                                let mut sum = self.coefficients[at] * grad[i * w + column];
-                                if let Some(d) = &self.tangents {
-                                    for axis in 0..3 {
-                                        sum += d[at * 3 + axis] * grad[(n + axis * n + i) * w + column];
-                                    }
+        let parts = self.table_parts.max(1);
+        let part_rows = table_rows / parts;
+        let tasks = rayon::current_num_threads().clamp(1, parts);
+        // Task t's levels, and the slice of the table holding their rows.
+        let levels_of = |t: usize| (t * parts / tasks)..((t + 1) * parts / tasks);
+        let mut total = vec![0.0f32; table_rows * f];
+        let mut slices = Vec::with_capacity(tasks);
+        let mut rest = total.as_mut_slice();
+        for t in 0..tasks {
+            let take = if t + 1 == tasks { rest.len() } else { levels_of(t).len() * part_rows * f };
+            let (slice, tail) = rest.split_at_mut(take);
+            slices.push(slice);
+            rest = tail;
+        }
+        slices.into_par_iter().enumerate().for_each(|(t, values)| {
+            let levels = levels_of(t);
+            let (first, count) = (levels.start * part_rows, values.len() / f);
+            for i in 0..n {
+                for g in (0..self.levels).filter(|g| levels.contains(&(g % parts))) {
+                    let fade = self.fade[g];
+                    for j in 0..c {
+                        let at = (i * self.levels + g) * c + j;
+                        // A row outside this task's run (or the table) is a level left out of
+                        // the plan: row 0, coefficient 0, nothing to add.
+                        let Some(row) = (self.rows[at] as usize).checked_sub(first).filter(|&r| r < count) else { continue };
+                        for q in 0..f {
+                            let column = g * f + q;
+                            let mut sum = self.coefficients[at] * grad[i * w + column];
+                            if let Some(d) = &self.tangents {
+                                for axis in 0..3 {
+                                    sum += d[at * 3 + axis] * grad[(n + axis * n + i) * w + column];
                                 }
-                                table[row + q] += sum * fade;
                             }
+                            values[row * f + q] += sum * fade;
                         }
                     }
                 }
-                table
-            })
-            .collect();
-        let mut total = vec![0.0f32; table_rows * f];
-        for partial in partials {
-            total.par_iter_mut().zip(partial.par_iter()).for_each(|(a, b)| *a += b);
-        }
+            }
+        });
         total
     }
 }
@@ -150,16 +160,68 @@ fn host<B: Backend>(tensor: FloatTensor<B>) -> Vec<f32> {
         .unwrap_or_else(|| vec![f32::NAN; count])
 }
 
-fn forward_on_host<B: Backend>(table: FloatTensor<B>, plan: &Plan) -> FloatTensor<B> {
-    let device = table.device();
-    let values = plan.forward(&host::<B>(table));
-    B::float_from_data(TensorData::new(values, [plan.output_rows(), plan.width()]), &device)
+/// Host access to a backend's float tensors: `with_host` lends a tensor's values as a slice,
+/// without a copy where the backend keeps them on the host in order (flex's contiguous f32
+/// tensors: the feature table, 4-8 MB, was copied once per lookup, a tenth of a training step).
+trait HostValues: Backend {
+    fn with_host<R>(tensor: FloatTensor<Self>, f: impl FnOnce(&[f32]) -> R) -> R {
+        f(&host::<Self>(tensor))
+    }
+
+    fn from_host(values: Vec<f32>, shape: [usize; 2], device: &Self::Device) -> FloatTensor<Self> {
+        Self::float_from_data(TensorData::new(values, shape), device)
+    }
 }
 
-fn backward_on_host<B: Backend>(grad: FloatTensor<B>, plan: &Plan, table_rows: usize) -> FloatTensor<B> {
+impl HostValues for NdArray {}
+
+impl HostValues for Flex {
+    fn with_host<R>(tensor: FloatTensor<Self>, f: impl FnOnce(&[f32]) -> R) -> R {
+        match tensor.as_slice::<f32>() {
+            Some(values) => f(values),
+            None => f(&host::<Self>(tensor)),
+        }
+    }
+}
+
+fn forward_on_host<B: HostValues>(table: FloatTensor<B>, plan: &Plan) -> FloatTensor<B> {
+    let device = table.device();
+    let values = B::with_host(table, |table| plan.forward(table));
+    B::from_host(values, [plan.output_rows(), plan.width()], &device)
+}
+
+fn backward_on_host<B: HostValues>(grad: FloatTensor<B>, plan: &Plan, table_rows: usize) -> FloatTensor<B> {
     let device = grad.device();
-    let values = plan.backward(&host::<B>(grad), table_rows);
-    B::float_from_data(TensorData::new(values, [table_rows, plan.features]), &device)
+    let values = B::with_host(grad, |grad| plan.backward(grad, table_rows));
+    B::from_host(values, [table_rows, plan.features], &device)
+}
+
+/// A lookup with no gradients wanted (`grid::features_on_host`): the points, the posed bones and
+/// the grid's layout.
+#[derive(Debug)]
+pub struct HostLookup {
+    pub config: GridConfig,
+    pub levels: Vec<Level>,
+    pub frames: Vec<BoneFrame>,
+    pub skinning: Skinning,
+    pub points: Vec<f32>,
+    pub fade: Vec<f32>,
+    /// Whether `preference` is the root's preference grid (otherwise a placeholder).
+    pub preference: bool,
+}
+
+impl HostLookup {
+    fn run<B: HostValues>(&self, table: FloatTensor<B>, preference: FloatTensor<B>) -> FloatTensor<B> {
+        let device = table.device();
+        let n = self.points.len() / 3;
+        let values = B::with_host(table, |table| {
+            B::with_host(preference, |preference| {
+                let preference = self.preference.then_some(preference);
+                super::grid::features_on_host(&self.config, &self.levels, &self.frames, self.skinning, &self.points, table, preference, &self.fade)
+            })
+        });
+        B::from_host(values, [n, self.config.width() + 1], &device)
+    }
 }
 
 /// The interpolation op; `Autodiff` adds its analytic backward.
@@ -167,11 +229,24 @@ fn backward_on_host<B: Backend>(grad: FloatTensor<B>, plan: &Plan, table_rows: u
 pub trait GridOps: Backend {
     /// `[output_rows, levels x features]`: the plan's weighted sums of `table`'s rows.
     fn grid_interpolate(table: FloatTensor<Self>, plan: Arc<Plan>) -> FloatTensor<Self>;
+    /// `[table_rows, features]`: the table's gradient from the interpolation's (`grad`).
+    fn grid_interpolate_backward(grad: FloatTensor<Self>, plan: Arc<Plan>, table_rows: usize) -> FloatTensor<Self>;
+    /// `[N, levels x features + 1]`: the features and the prior of a lookup with no gradients,
+    /// straight from `table` and the root's `preference` grid.
+    fn grid_lookup(table: FloatTensor<Self>, preference: FloatTensor<Self>, lookup: Arc<HostLookup>) -> FloatTensor<Self>;
 }
 
 impl GridOps for Flex {
     fn grid_interpolate(table: FloatTensor<Self>, plan: Arc<Plan>) -> FloatTensor<Self> {
         forward_on_host::<Self>(table, &plan)
+    }
+
+    fn grid_interpolate_backward(grad: FloatTensor<Self>, plan: Arc<Plan>, table_rows: usize) -> FloatTensor<Self> {
+        backward_on_host::<Self>(grad, &plan, table_rows)
+    }
+
+    fn grid_lookup(table: FloatTensor<Self>, preference: FloatTensor<Self>, lookup: Arc<HostLookup>) -> FloatTensor<Self> {
+        lookup.run::<Self>(table, preference)
     }
 }
 
@@ -179,18 +254,26 @@ impl GridOps for NdArray {
     fn grid_interpolate(table: FloatTensor<Self>, plan: Arc<Plan>) -> FloatTensor<Self> {
         forward_on_host::<Self>(table, &plan)
     }
+
+    fn grid_interpolate_backward(grad: FloatTensor<Self>, plan: Arc<Plan>, table_rows: usize) -> FloatTensor<Self> {
+        backward_on_host::<Self>(grad, &plan, table_rows)
+    }
+
+    fn grid_lookup(table: FloatTensor<Self>, preference: FloatTensor<Self>, lookup: Arc<HostLookup>) -> FloatTensor<Self> {
+        lookup.run::<Self>(table, preference)
+    }
 }
 
 #[derive(Debug)]
 struct Interpolate;
 
-impl<B: Backend> Backward<B, 1> for Interpolate {
+impl<B: Backend + GridOps> Backward<B, 1> for Interpolate {
     /// The plan and the table's row count.
     type State = (Arc<Plan>, usize);
 
     fn backward(self, ops: Ops<Self::State, 1>, grads: &mut Gradients, _checkpointer: &mut Checkpointer) {
         let (plan, table_rows) = ops.state;
-        unary::<B, _>(ops.parents, ops.node, grads, |grad| backward_on_host::<B>(grad, &plan, table_rows));
+        unary::<B, _>(ops.parents, ops.node, grads, |grad| B::grid_interpolate_backward(grad, plan, table_rows));
     }
 }
 
@@ -204,10 +287,27 @@ impl<B: Backend + GridOps, C: CheckpointStrategy> GridOps for Autodiff<B, C> {
             OpsKind::UnTracked(prep) => prep.finish(out),
         }
     }
+
+    /// Not itself differentiated (the interpolation's backward calls it on the inner backend).
+    fn grid_interpolate_backward(grad: FloatTensor<Self>, plan: Arc<Plan>, table_rows: usize) -> FloatTensor<Self> {
+        <Self as AutodiffBackend>::from_inner(B::grid_interpolate_backward(<Self as AutodiffBackend>::inner(grad), plan, table_rows))
+    }
+
+    /// A constant of the graph: only asked for where no gradient is wanted.
+    fn grid_lookup(table: FloatTensor<Self>, preference: FloatTensor<Self>, lookup: Arc<HostLookup>) -> FloatTensor<Self> {
+        let (table, preference) = (<Self as AutodiffBackend>::inner(table), <Self as AutodiffBackend>::inner(preference));
+        <Self as AutodiffBackend>::from_inner(B::grid_lookup(table, preference, lookup))
+    }
 }
 
 /// Interpolates `table` (`[T, F]`) by `plan`: `[output_rows, levels x features]`, with
 /// gradients to the table when it is tracked.
 pub fn interpolate(table: Tensor<2>, plan: Plan) -> Tensor<2> {
     Tensor::from_dispatch(<Dispatch as GridOps>::grid_interpolate(table.into_dispatch(), Arc::new(plan)))
+}
+
+/// The features and prior (`[N, W + 1]`) of `lookup`'s points from `table` and the root's
+/// `preference` grid (any tensor when `lookup.preference` is false), without gradients.
+pub fn lookup_without_gradients(table: Tensor<2>, preference: Tensor<2>, lookup: HostLookup) -> Tensor<2> {
+    Tensor::from_dispatch(<Dispatch as GridOps>::grid_lookup(table.into_dispatch(), preference.into_dispatch(), Arc::new(lookup)))
 }
