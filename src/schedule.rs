@@ -544,6 +544,18 @@ impl Schedule {
         base * decay.powf(progress)
     }
 
+    /// The schedule run for `iterations` instead: the field's learning rates start to fall at
+    /// the same fraction of the fit (the constant-rate segment and the decay both longer), the
+    /// earlier stages (silhouette, Gaussians, light) where they were. `schedules/detail.toml` is
+    /// the default stretched to 4,700 iterations (to the nearest hundred).
+    pub fn stretched(&self, iterations: usize) -> Schedule {
+        let mut schedule = self.clone();
+        let fraction = self.field_lr_decay_from as f64 / self.iterations.max(1) as f64;
+        schedule.iterations = iterations;
+        schedule.field_lr_decay_from = ((fraction * iterations as f64).round() as usize).max(self.field_lr_decay_from.min(iterations));
+        schedule
+    }
+
     /// The iteration count for a scene whose light is (or is not) fitted.
     pub fn iterations_for(&self, fit_light: bool) -> usize {
         if fit_light {
@@ -703,6 +715,16 @@ mod tests {
         assert!(detail.iterations > default.iterations && detail.field_lr_decay_from > default.field_lr_decay_from);
         assert!(detail.iterations - detail.field_lr_decay_from >= default.iterations - default.field_lr_decay_from, "a tail no shorter");
         assert_eq!(differing_settings(&detail, &default), ["field_lr_decay_from", "iterations"]);
+        // It is the default stretched to its length, to the nearest hundred.
+        let stretched = default.stretched(detail.iterations);
+        assert_eq!(stretched.iterations, detail.iterations);
+        assert!(
+            stretched.field_lr_decay_from.abs_diff(detail.field_lr_decay_from) <= 50,
+            "{} vs {}",
+            stretched.field_lr_decay_from,
+            detail.field_lr_decay_from
+        );
+        assert!(differing_settings(&stretched, &detail).iter().all(|s| *s == "field_lr_decay_from"));
     }
 
     /// Every shipped ablation parses and differs from the default schedule (in its settings,

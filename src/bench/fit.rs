@@ -25,7 +25,7 @@ pub struct FitBenchOptions {
     pub iterations: Option<usize>,
     pub seed: u64,
     /// After the fits, fit the grid again for as many iterations as fill the MLP's training
-    /// time (its schedule's last segment longer): the two fields at equal cost.
+    /// time (its schedule stretched: `Schedule::stretched`): the two fields at equal cost.
     pub equal_time: bool,
 }
 
@@ -120,7 +120,9 @@ pub fn fit_curves(options: &FitBenchOptions, mut on: impl FnMut(String)) -> Resu
     if let (true, Some((grid_iterations, grid_seconds)), Some((_, mlp_seconds))) = (options.equal_time, time_of(FieldKind::Grid), time_of(FieldKind::Mlp)) {
         // The grid's iterations cost about the same all along, so its time scales with them.
         let iterations = ((grid_iterations as f64 * mlp_seconds / grid_seconds.max(1e-9)).floor() as usize).max(grid_iterations);
-        let mut schedule = base.clone();
+        // The default schedule stretched to that length (as `schedules/detail.toml` is): the
+        // field's rates fall over the same last share of the fit.
+        let mut schedule = base.stretched(iterations);
         schedule.field.kind = FieldKind::Grid;
         let trainer = Trainer::new(scene.clone(), schedule, Backend::Flex, options.seed)?;
         let label = format!("grid at the MLP's time ({iterations} iterations)");
