@@ -145,14 +145,37 @@ impl Curve {
         let marks = (1..=evaluations).map(|k| (k * iterations).div_ceil(evaluations)).collect();
         Self { trainer, run, iterations, marks, train_seconds: 0.0 }
     }
+
+    fn finished(&self) -> bool {
+        self.trainer.iteration >= self.iterations
+    }
+
+    /// One training step (timed); the scores if it ends at a mark.
+    fn step(&mut self) -> Result<Option<CurvePoint>, FitError> {
+        let step = Instant::now();
+        self.trainer.step()?;
+        self.train_seconds += step.elapsed().as_secs_f64();
+        let iteration = self.trainer.iteration;
+        if !self.marks.contains(&iteration) {
+            return Ok(None);
+        }
+        score(&self.trainer, &self.run, self.trainer.schedule.field.kind, iteration, self.train_seconds).map(Some)
+    }
 }
 
-/// Trains the fits to their lengths a step of each in turn, scoring each at its evenly spaced
-/// marks; returns each one's kind, length and training time. Stepped in turn, every fit sees
-/// the machine as it is at that moment: a slow spell (this machine's timings vary 2x from run
-/// to run) slows all of them alike, so their times compare as ratios, which fits run one after
-/// the other did not (session 23: the MLP's 2,900 iterations took 290 s in one run and 344 s
-/// in the next, the grid's 240 s and 195 s).
+/// How long a fit steps before the next one takes its turn: long enough that a turn's first
+/// steps, whose memory the other fit's turn pushed out of the caches, do not weigh (a step of
+/// each in turn slowed the grid's lookups, cache-bound, more than the MLP's matrix products:
+/// 0.74x the MLP's time against 0.57x with the fits one after the other), short against the
+/// machine's slow spells (tens of seconds).
+const TURN_SECONDS: f64 = 2.0;
+
+/// Trains the fits to their lengths in turns of about `TURN_SECONDS` each, scoring each at its
+/// evenly spaced marks; returns each one's kind, length and training time. Taking turns, every
+/// fit sees the machine as it is at that moment: a slow spell (this machine's timings vary 2x
+/// from run to run) slows all of them alike, so their times compare as ratios, which fits run
+/// one after the other did not (session 23: the MLP's 2,900 iterations took 290 s in one run
+/// and 344 s in the next, the grid's 240 s and 195 s).
 fn run_curves(
     mut fits: Vec<Curve>,
     options: &FitBenchOptions,
@@ -162,28 +185,28 @@ fn run_curves(
     let started = Instant::now();
     let total: usize = fits.iter().map(|f| f.iterations).sum();
     let mut done = 0usize;
-    while fits.iter().any(|f| f.trainer.iteration < f.iterations) {
-        for fit in fits.iter_mut().filter(|f| f.trainer.iteration < f.iterations) {
-            let step = Instant::now();
-            fit.trainer.step()?;
-            fit.train_seconds += step.elapsed().as_secs_f64();
-            done += 1;
-            let iteration = fit.trainer.iteration;
-            if fit.marks.contains(&iteration) {
-                let point = score(&fit.trainer, &fit.run, fit.trainer.schedule.field.kind, iteration, fit.train_seconds)?;
-                on(format!(
-                    "{} iteration {iteration}/{}: {:.1} s of training, novel pose foreground {:.2} dB, SSIM {:.4}, albedo {}, light {} (eta {:.0} s)",
-                    fit.run,
-                    fit.iterations,
-                    fit.train_seconds,
-                    point.novel_pose_foreground_psnr,
-                    point.novel_pose_ssim,
-                    point.albedo_psnr.map(|v| format!("{v:.2} dB")).unwrap_or("-".into()),
-                    point.light_error_degrees.map(|v| format!("{v:.2} deg")).unwrap_or("-".into()),
-                    started.elapsed().as_secs_f64() / done.max(1) as f64 * total.saturating_sub(done) as f64,
-                ));
-                points.push(point);
-                write_outputs(&options.out, &options.scene, points)?;
+    while fits.iter().any(|f| !f.finished()) {
+        for fit in fits.iter_mut().filter(|f| !f.finished()) {
+            let turn = Instant::now();
+            while !fit.finished() && turn.elapsed().as_secs_f64() < TURN_SECONDS {
+                let scored = fit.step()?;
+                done += 1;
+                if let Some(point) = scored {
+                    on(format!(
+                        "{} iteration {}/{}: {:.1} s of training, novel pose foreground {:.2} dB, SSIM {:.4}, albedo {}, light {} (eta {:.0} s)",
+                        fit.run,
+                        point.iteration,
+                        fit.iterations,
+                        fit.train_seconds,
+                        point.novel_pose_foreground_psnr,
+                        point.novel_pose_ssim,
+                        point.albedo_psnr.map(|v| format!("{v:.2} dB")).unwrap_or("-".into()),
+                        point.light_error_degrees.map(|v| format!("{v:.2} deg")).unwrap_or("-".into()),
+                        started.elapsed().as_secs_f64() / done.max(1) as f64 * total.saturating_sub(done) as f64,
+                    ));
+                    points.push(point);
+                    write_outputs(&options.out, &options.scene, points)?;
+                }
             }
         }
     }

@@ -5,8 +5,10 @@
 //! tangents the same over three axes) a training step materialised `[N x corners, F]` and
 //! `[3, N x corners, F]` intermediates and scatter-added as many rows in the backward. Here the
 //! forward gathers on the host straight into `[N, W]` (plus `[3N, W]`), and the backward
-//! scatters the output's gradient into the table once. The CPU backends (flex, ndarray) run it
-//! on the host; a GPU backend would get its own kernel behind the same trait.
+//! scatters the output's gradient into the table once. A lookup nobody differentiates skips the
+//! plan altogether (`grid_lookup`: skinning, corners and sums in one pass per point). The CPU
+//! backends (flex, ndarray) run both on the host, flex lending its tensors' memory without a
+//! copy; a GPU backend would get its own kernels behind the same trait.
 // burn-ndarray is deprecated upstream but stays our `--backend ndarray`.
 #![allow(deprecated)]
 
