@@ -679,12 +679,7 @@ pub fn features_on_host(
                 // As the fused op sums: each coefficient times the level's fade, times the entry.
                 let sums = &mut per_bone[(k / 8) * f..(k / 8 + 1) * f];
                 for (&row, &weight) in rows.iter().zip(&cell.weights) {
-                    let coefficient = weight * fade[level];
-                    let start = row as usize * f;
-                    match table.get(start..start + f) {
-                        Some(entry) => sums.iter_mut().zip(entry).for_each(|(o, t)| *o += coefficient * t),
-                        None => sums.iter_mut().for_each(|o| *o = f32::NAN),
-                    }
+                    super::interpolate::add_row(table, row as usize, weight * fade[level], sums);
                 }
             });
             // The skinning weights: a softmax of the logits plus the root's preference.
@@ -710,6 +705,13 @@ pub fn features_on_host(
     out
 }
 
+/// Points `[N, 3]` on the host, and N (NaN-filled if the backend cannot give them, which the fit
+/// then reports as a non-finite loss rather than a panic).
+fn host_points(points: Tensor<2>) -> (Vec<f32>, usize) {
+    let [n, _] = points.dims();
+    (points.into_data().convert::<f32>().try_to_vec::<f32>().unwrap_or_else(|_| vec![f32::NAN; n * 3]), n)
+}
+
 /// What the grid gives a batch of points: features `[N, W]` and the prior `[N]`, with their
 /// derivatives along the world axes (`[3N, W]` axis-major, `[3, N]`) when asked.
 pub struct GridFeatures {
@@ -721,17 +723,15 @@ pub struct GridFeatures {
 impl FeatureGrid {
     /// Plans the lookup of `points` (a tensor) in the posed bones `frames`.
     fn plan(&self, points: Tensor<2>, frames: &[BoneFrame], skinning: Skinning, tangents: bool) -> (Lookup, usize) {
-        let [n, _] = points.dims();
-        let values = points.into_data().convert::<f32>().try_to_vec::<f32>().unwrap_or_else(|_| vec![f32::NAN; n * 3]);
+        let (values, n) = host_points(points);
         (lookup(&self.config, &self.active_layout(), frames, skinning, &values, tangents), n)
     }
 
     /// `encode` where nothing asks for a gradient (the table is not tracked): planned and summed
     /// in one pass on the host (`features_on_host`), the same values (a test pins them).
     fn encode_without_gradients(&self, points: Tensor<2>, frames: &[BoneFrame], skinning: Skinning) -> GridFeatures {
-        let [n, _] = points.dims();
         let device = points.device();
-        let values = points.into_data().convert::<f32>().try_to_vec::<f32>().unwrap_or_else(|_| vec![f32::NAN; n * 3]);
+        let (values, n) = host_points(points);
         let preference = self.root_preference.as_ref().map(|p| p.val());
         let lookup = super::interpolate::HostLookup {
             config: self.config.clone(),

@@ -42,6 +42,18 @@ pub struct Plan {
     pub table_parts: usize,
 }
 
+/// Adds `coefficient` times table row `row` (`sums.len()` features wide) to `sums`: the one
+/// weighted sum of the planned op and of the one-pass lookup. A row outside the table (never
+/// planned) reads NaN, so it cannot pass unseen.
+#[inline]
+pub(super) fn add_row(table: &[f32], row: usize, coefficient: f32, sums: &mut [f32]) {
+    let start = row * sums.len();
+    match table.get(start..start + sums.len()) {
+        Some(entry) => sums.iter_mut().zip(entry).for_each(|(o, t)| *o += coefficient * t),
+        None => sums.iter_mut().for_each(|o| *o = f32::NAN),
+    }
+}
+
 impl Plan {
     /// Output rows: the features, then the tangents axis-major when planned.
     pub fn output_rows(&self) -> usize {
@@ -93,12 +105,7 @@ impl Plan {
         let mut coefficients = coefficients;
         for ((out, level_rows), &fade) in row_out.chunks_mut(f).zip(rows.chunks(c)).zip(&self.fade) {
             for &row in level_rows {
-                let coefficient = coefficients.next().unwrap_or(0.0) * fade;
-                let start = row as usize * f;
-                match table.get(start..start + f) {
-                    Some(entry) => out.iter_mut().zip(entry).for_each(|(o, t)| *o += coefficient * t),
-                    None => out.iter_mut().for_each(|o| *o = f32::NAN),
-                }
+                add_row(table, row as usize, coefficients.next().unwrap_or(0.0) * fade, out);
             }
         }
     }
@@ -126,8 +133,9 @@ impl Plan {
         slices.into_par_iter().enumerate().for_each(|(t, values)| {
             let levels = levels_of(t);
             let (first, count) = (levels.start * part_rows, values.len() / f);
+            let groups: Vec<usize> = (0..self.levels).filter(|g| levels.contains(&(g % parts))).collect();
             for i in 0..n {
-                for g in (0..self.levels).filter(|g| levels.contains(&(g % parts))) {
+                for &g in &groups {
                     let fade = self.fade[g];
                     for j in 0..c {
                         let at = (i * self.levels + g) * c + j;
