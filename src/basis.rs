@@ -41,6 +41,8 @@ pub struct TransferBasis {
     /// Pixel index (row by row) of each covered pixel.
     pixels: Vec<usize>,
     reflectance: Vec<DVec3>,
+    /// What each pixel's shaded value is composited with (`eval::Surfel::coverage`).
+    coverage: Vec<f32>,
     normals: Vec<DVec3>,
     /// Surface points (m): a point light's distance and direction differ per pixel.
     points: Vec<DVec3>,
@@ -118,6 +120,7 @@ impl TransferBasis {
             directions,
             pixels: covered.iter().map(|(p, _)| *p).collect(),
             reflectance: covered.iter().map(|(_, s)| s.reflectance).collect(),
+            coverage: covered.iter().map(|(_, s)| s.coverage as f32).collect(),
             normals: covered.iter().map(|(_, s)| s.normal).collect(),
             points: covered.iter().map(|(_, s)| s.point).collect(),
             visibility,
@@ -166,8 +169,8 @@ impl TransferBasis {
                 .collect(),
             Light::Uniform { .. } | Light::Environment { .. } => self.sky(&self.sky_light(light).unwrap_or_default()),
         };
-        for (p, v) in self.pixels.iter().zip(values) {
-            image.pixels[*p] = v.as_vec3().to_array();
+        for ((p, v), &coverage) in self.pixels.iter().zip(values).zip(&self.coverage) {
+            image.pixels[*p] = crate::imageio::composite_centre_sample(v.as_vec3().to_array(), coverage);
         }
         image
     }
@@ -208,9 +211,10 @@ impl TransferBasis {
     }
 
     /// The basis's arrays, for a viewer that relights it elsewhere (`report`): covered pixel
-    /// indices, reflectance, unit normals and the visibility rows (pixel after pixel).
-    pub fn parts(&self) -> (&[usize], &[DVec3], &[DVec3], &[f32]) {
-        (&self.pixels, &self.reflectance, &self.normals, &self.visibility)
+    /// indices, reflectance, unit normals, the visibility rows (pixel after pixel) and the
+    /// coverage each pixel's value is composited with.
+    pub fn parts(&self) -> (&[usize], &[DVec3], &[DVec3], &[f32], &[f32]) {
+        (&self.pixels, &self.reflectance, &self.normals, &self.visibility, &self.coverage)
     }
 
     /// `reflectance x (1/pi) sum_k light_k max(0, n.w_k) V_k`, `light_k` each direction's

@@ -343,14 +343,18 @@ pub fn render_view_and_albedo(
     }
     // Over a pixel's area, one the body covers by half or less is background, black, as the
     // scene format's images and masks have it. (At a centre sample the opacity is not a
-    // coverage: there the same rule cost human-sun 0.85 dB over the foreground.)
+    // coverage but the chance the ray meets the body: there the same rule cost human-sun 0.85 dB
+    // over the foreground, and the expected value below gains.)
     let mut image = RgbImage::new(w, h);
     let mut albedo = albedo_scale.map(|_| RgbImage::new(w, h));
+    // At a centre sample the coverage is the chance the ray meets the body: the pixel is its
+    // expected value in the image's encoding (`imageio::composite_centre_sample`).
+    let pixel = |c: [f32; 3], coverage: f32| if area { c } else { crate::imageio::composite_centre_sample(c, coverage) };
     for (p, traced) in pixels.into_iter().enumerate() {
         if !area || traced.coverage > 0.5 {
-            image.pixels[p] = traced.colour;
+            image.pixels[p] = pixel(traced.colour, traced.coverage);
             if let Some(albedo) = albedo.as_mut() {
-                albedo.pixels[p] = traced.albedo;
+                albedo.pixels[p] = pixel(traced.albedo, traced.coverage);
             }
         }
     }
@@ -397,7 +401,9 @@ pub fn trace_deferred(
 
 /// One pixel's surface as a view render sees it: the composited surface point, unit normal and
 /// reflectance (the fitted albedo, already weighted by the pixel's coverage, times the albedo
-/// scale), and the coverage.
+/// scale), and the coverage its shaded value is composited with
+/// (`imageio::composite_centre_sample`): a centre sample's, or 1 for a pixel of a capture whose
+/// pixels average their area (drawn as it is once covered by more than half).
 #[derive(Clone, Copy, Debug)]
 pub struct Surfel {
     pub point: DVec3,
@@ -428,7 +434,8 @@ pub fn surfels(model: &Avatar, scene: &Scene, camera: usize, frame: usize, sampl
         let normals = deferred.normal.map(|n| vectors(values(n))).unwrap_or_default();
         for (j, &k) in hit.iter().enumerate().filter(|(j, _)| !area || coverage[*j] > 0.5) {
             let normal = normals.get(j).copied().unwrap_or(DVec3::Z);
-            out[first + k] = Some(Surfel { point: points[j], normal, reflectance: albedo[j] * albedo_scale, coverage: coverage[j] as f64 });
+            let coverage = if area { 1.0 } else { coverage[j] as f64 };
+            out[first + k] = Some(Surfel { point: points[j], normal, reflectance: albedo[j] * albedo_scale, coverage });
         }
     }
     out

@@ -221,7 +221,7 @@ fn panel_json(
     skies: &[(String, Vec<DVec3>)],
     first: &RgbImage,
 ) -> Value {
-    let (pixels, reflectance, normals, visibility) = basis.parts();
+    let (pixels, reflectance, normals, visibility, coverage) = basis.parts();
     let u32s: Vec<u8> = pixels.iter().flat_map(|&p| (p as u32).to_le_bytes()).collect();
     let f32s = |v: &[DVec3]| -> Vec<u8> { v.iter().flat_map(|x| x.as_vec3().to_array()).flat_map(|x| x.to_le_bytes()).collect() };
     let quantised: Vec<u8> = visibility.iter().map(|&v| (v.clamp(0.0, 1.0) * 255.0).round() as u8).collect();
@@ -245,6 +245,7 @@ fn panel_json(
         "reflectance": base64(&f32s(reflectance)),
         "normals": base64(&f32s(normals)),
         "visibility": base64(&quantised),
+        "coverage": base64(&coverage.iter().flat_map(|c| c.to_le_bytes()).collect::<Vec<u8>>()),
         "directions": flat(&basis.directions),
         "up": up.to_array(),
         "toward_camera": toward_camera.to_array(),
@@ -268,12 +269,15 @@ const pix = new Uint32Array(bytes(D.pixels).buffer), refl = new Float32Array(byt
 const nrm = new Float32Array(bytes(D.normals).buffer), vis = bytes(D.visibility), dirs = D.directions;
 const K = dirs.length / 3, P = pix.length, spacing = Math.sqrt(4 * Math.PI / K);
 const canvas = document.getElementById('view'); canvas.width = D.width; canvas.height = D.height;
-const srgb8 = v => { v = Math.min(1, Math.max(0, v)); return Math.round(255 * (v <= 0.0031308 ? 12.92 * v : 1.055 * Math.pow(v, 1 / 2.4) - 0.055)); };
+const cov = new Float32Array(bytes(D.coverage).buffer);
+const srgb = v => { v = Math.min(1, Math.max(0, v)); return v <= 0.0031308 ? 12.92 * v : 1.055 * Math.pow(v, 1 / 2.4) - 0.055; };
+// A pixel is composited as its image stores it (umbra's imageio::composite_centre_sample).
+const srgb8 = (v, a) => Math.round(255 * (a >= 1 ? srgb(v) : a > 0 ? a * srgb(v / a) : 0));
 function draw(values) {
   const ctx = canvas.getContext('2d'), img = ctx.createImageData(D.width, D.height);
   for (let i = 3; i < img.data.length; i += 4) img.data[i] = 255;
   const mean = [0, 0, 0];
-  for (let p = 0; p < P; p++) for (let c = 0; c < 3; c++) { const v = srgb8(values[p * 3 + c]); img.data[pix[p] * 4 + c] = v; mean[c] += v / Math.max(P, 1); }
+  for (let p = 0; p < P; p++) for (let c = 0; c < 3; c++) { const v = srgb8(values[p * 3 + c], cov[p]); img.data[pix[p] * 4 + c] = v; mean[c] += v / Math.max(P, 1); }
   ctx.putImageData(img, 0, 0);
   return mean;
 }
