@@ -9,6 +9,31 @@ pub fn rgb(colour: Tensor<2>, target: Tensor<2>) -> Tensor<1> {
     (colour - target).abs().mean().reshape([1])
 }
 
+/// Linear radiance to sRGB-encoded values in [0, 1], the images' own encoding: the tensor form
+/// of `imageio::linear_to_srgb` (a test pins the two), for an RGB loss in the space the eye and
+/// the 8-bit scores see (`Schedule::rgb_space`).
+pub fn srgb(linear: Tensor<2>) -> Tensor<2> {
+    let v = linear.clamp(0.0, 1.0);
+    let toe = v.clone() * 12.92;
+    let curve = v.clone().clamp_min(SRGB_TOE).powf_scalar(1.0 / 2.4) * 1.055 - 0.055;
+    curve.mask_where(v.lower_equal_elem(SRGB_TOE), toe)
+}
+
+/// A centre-sampled pixel in the image's encoding (`imageio::composite_centre_sample`, which
+/// a test pins this to): `coverage x srgb(colour / coverage)` from the colour composited over
+/// black and the coverage, the chance the ray meets the body.
+pub fn srgb_centre_sample(premultiplied: Tensor<2>, coverage: Tensor<1>) -> Tensor<2> {
+    let [p, _] = premultiplied.dims();
+    let coverage = coverage.clamp(0.0, 1.0).reshape([p, 1]);
+    srgb(premultiplied / coverage.clone().clamp_min(MIN_COVERAGE)) * coverage
+}
+
+/// The least coverage a colour is divided by (a ray that meets nothing has colour 0 too).
+const MIN_COVERAGE: f32 = 1e-6;
+
+/// Where the sRGB curve's linear toe ends.
+const SRGB_TOE: f32 = 0.003_130_8;
+
 /// `mean |accumulation - mask|`.
 pub fn mask(accumulation: Tensor<1>, mask: Tensor<1>) -> Tensor<1> {
     (accumulation - mask).abs().mean().reshape([1])
@@ -117,6 +142,34 @@ mod tests {
         let target = t2(&[0.0; 18], 3);
         let expected = 0.5 * 12.0 / 18.0;
         assert!((value(rgb_area(colour, target, mask, edge)) - expected).abs() < 1e-6);
+    }
+
+    #[test]
+    fn the_srgb_encoding_is_the_images_encoding() {
+        // Both sides of the toe, its end, the ends of the range and beyond them.
+        let linear = [0.0f32, 0.001, 0.003_130_8, 0.004, 0.02, 0.214_041, 0.5, 0.9, 1.0, 1.7, -0.2, 0.05];
+        let encoded = srgb(t2(&linear, 3)).into_data().try_to_vec::<f32>().unwrap();
+        for (v, e) in linear.iter().zip(&encoded) {
+            assert!((e - crate::imageio::linear_to_srgb(*v)).abs() < 1e-6, "{v}: {e} vs {}", crate::imageio::linear_to_srgb(*v));
+        }
+        // 0.214041 is code 0.5 (imageio's known point).
+        assert!((encoded[5] - 0.5).abs() < 1e-5);
+    }
+
+    #[test]
+    fn a_centre_sample_is_composited_as_its_image_stores_it() {
+        let colour = [0.3f32, 0.02, 0.0, 0.01, 0.5, 0.25, 0.6, 0.6, 0.6, 0.0, 0.0, 0.0];
+        let coverage = [1.0f32, 0.05, 0.5, 0.0];
+        let got = srgb_centre_sample(t2(&colour, 3), t1(&coverage)).into_data().try_to_vec::<f32>().unwrap();
+        for (k, &a) in coverage.iter().enumerate() {
+            let want = crate::imageio::composite_centre_sample([colour[3 * k], colour[3 * k + 1], colour[3 * k + 2]], a);
+            for c in 0..3 {
+                assert!((got[3 * k + c] - crate::imageio::linear_to_srgb(want[c])).abs() < 1e-5, "pixel {k}: {} vs {}", got[3 * k + c], want[c]);
+            }
+        }
+        // A faint fringe stays faint in the image's encoding: a twentieth of the surface's code.
+        let fringe = crate::imageio::linear_to_srgb(crate::imageio::composite_centre_sample([0.025; 3], 0.05)[0]);
+        assert!((fringe - 0.05 * crate::imageio::linear_to_srgb(0.5)).abs() < 1e-6);
     }
 
     fn close(a: f32, b: f64) {

@@ -1160,6 +1160,16 @@ impl Trainer {
                 }
                 None => albedo.clone(),
             };
+            // The loss in the images' sRGB encoding when asked (`Schedule::rgb_space`): after
+            // the pixel's rays are averaged, which is linear.
+            let (colour, target) = match self.schedule.rgb_space {
+                crate::schedule::RgbSpace::Linear => (colour, target),
+                // A centre sample is the surface or black: composited as the image stores it.
+                crate::schedule::RgbSpace::Srgb if self.footprint == crate::scene::Footprint::Centre => {
+                    (crate::losses::srgb_centre_sample(colour, accumulation.clone()), crate::losses::srgb(target))
+                }
+                crate::schedule::RgbSpace::Srgb => (crate::losses::srgb(colour), crate::losses::srgb(target)),
+            };
             let rgb = match &silhouette {
                 Some(edge) => crate::losses::rgb_area(colour, target, mask.clone(), edge.clone()),
                 None => crate::losses::rgb(colour, target),
