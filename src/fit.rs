@@ -318,7 +318,7 @@ pub fn fit(options: &FitOptions, mut on: impl FnMut(TrainMessage)) -> Result<ser
 
 /// The fitted field's kind and its VolSDF beta (m): how sharp its surface ended.
 fn field_report(trainer: &Trainer) -> serde_json::Value {
-    let Ok(model) = trainer.model() else { return serde_json::Value::Null };
+    let Ok(model) = trainer.fitted_model() else { return serde_json::Value::Null };
     let beta = model.field.beta().into_data().convert::<f32>().try_to_vec::<f32>().ok().and_then(|v| v.first().copied());
     // Where the training masks put body beyond every bone's grid box (loose clothing), the
     // root's grids reach it: how far from the root's segment, m (null: a body tight on its bones).
@@ -364,7 +364,7 @@ pub fn evaluate_split(trainer: &Trainer, dir: &Path, split: Split, on: &mut impl
     let dir = dir.to_path_buf();
     std::fs::create_dir_all(&dir).map_err(|e| io(&dir, e))?;
     // Inference on the plain backend: no autodiff graph is recorded (or held) for the renders.
-    let model = trainer.model()?.valid();
+    let model = trainer.fitted_model()?.valid();
     let device = trainer.device.clone().without_autodiff();
     let albedo_scale = albedo_scale(scene, &model);
     let mut rows = Vec::new();

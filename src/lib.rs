@@ -2,6 +2,7 @@
 //! shadows by a closed-form ray integral; a staged fit recovers light, ambient and albedo.
 
 pub mod ablate;
+pub mod averaging;
 pub mod basis;
 pub mod bench;
 pub mod cli;

@@ -50,7 +50,12 @@ pub fn save_checkpoint_until(trainer: &Trainer, out: &Path, history: &[(usize, S
     if step() {
         return Ok(false);
     }
-    trainer.model()?.clone().save_file(temp.join("model.bpk")).map_err(|e| io(&temp.join("model.bpk"), format!("{e}")))?;
+    // `model.bpk` is the fitted model (what renders and evaluations load); while the field's
+    // parameters are averaged, the last step's, which training resumes from, go beside it.
+    trainer.fitted_model()?.save_file(temp.join("model.bpk")).map_err(|e| io(&temp.join("model.bpk"), format!("{e}")))?;
+    if trainer.average.is_some() {
+        trainer.model()?.clone().save_file(temp.join(TRAINING_MODEL)).map_err(|e| io(&temp.join(TRAINING_MODEL), format!("{e}")))?;
+    }
     if step() {
         return Ok(false);
     }
@@ -119,9 +124,14 @@ pub fn save_checkpoint_until(trainer: &Trainer, out: &Path, history: &[(usize, S
     Ok(true)
 }
 
-/// The files of a checkpoint that hold parameters: the model and one per optimizer.
+/// The last step's parameters in a checkpoint whose `model.bpk` holds the field's average.
+const TRAINING_MODEL: &str = "training-model.bpk";
+
+/// The files of a checkpoint that hold parameters: the model (and the last step's, while the
+/// field is averaged) and one per optimizer.
 fn checkpoint_files(trainer: &Trainer) -> Vec<String> {
-    std::iter::once("model.bpk".to_string()).chain(trainer.optimizers.iter().map(|(name, _)| format!("optimizer-{name}.bpk"))).collect()
+    let training = trainer.average.is_some().then(|| TRAINING_MODEL.to_string());
+    std::iter::once("model.bpk".to_string()).chain(training).chain(trainer.optimizers.iter().map(|(name, _)| format!("optimizer-{name}.bpk"))).collect()
 }
 
 /// Reads a checkpoint's `state.json` and checks it against `scene` (the skeleton, and the
@@ -214,6 +224,15 @@ pub(crate) fn load_checkpoint(trainer: &mut Trainer, out: &Path) -> Result<Vec<(
     let iteration = state["iteration"].as_u64().ok_or_else(|| io(&state_path, "iteration: missing"))? as usize;
     let stream: u64 = state["stream"].as_str().and_then(|s| s.parse().ok()).ok_or_else(|| io(&state_path, "stream: missing"))?;
     load_model(trainer, &dir)?;
+    // A checkpoint taken while the field was averaged: `model.bpk` holds the average, the
+    // last step's parameters are beside it.
+    trainer.average = None;
+    if dir.join(TRAINING_MODEL).is_file() {
+        let fitted = trainer.model.take().ok_or_else(|| FitError::Input("no model".into()))?;
+        trainer.average = Some(crate::averaging::ParameterAverage::start(&fitted.field));
+        let path = dir.join(TRAINING_MODEL);
+        trainer.model = Some(fitted.try_load_file(&path).map_err(|e| io(&path, format!("cannot load the model being trained: {e}")))?);
+    }
     let mut optimizers = std::mem::take(&mut trainer.optimizers);
     for (name, optimizer) in optimizers.iter_mut() {
         let path = dir.join(format!("optimizer-{name}.bpk"));

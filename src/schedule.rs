@@ -170,6 +170,10 @@ pub struct Schedule {
     /// foreground novel pose 26.60 -> 26.81 dB at seed 0, 26.72 -> 26.80 at seed 1, within a
     /// fit's end-to-end wobble, so not the default.
     pub gaussians_lr_decay: f64,
+    /// From `field_lr_decay_from` on, what the fit shows (checkpoints, renders, evaluation) is an
+    /// exponential moving average of the field's parameters with this half-life in iterations
+    /// (`averaging`); training goes on from the last step's. 0: the last step's (off).
+    pub field_average_half_life: f64,
     /// Sun directions scored over the sphere when a sun starts to be fitted (`sun_search`); 0
     /// leaves the start to the initial direction and gradient descent alone.
     pub sun_search: usize,
@@ -381,6 +385,7 @@ impl Schedule {
             "field_lr_decay",
             "field_lr_decay_from",
             "gaussians_lr_decay",
+            "field_average_half_life",
             "sun_search",
             "rebind_every",
             "sample_masked_misses",
@@ -494,6 +499,11 @@ impl Schedule {
             field_lr_decay: fraction(file, &table, "field_lr_decay")?,
             field_lr_decay_from: count(file, &table, "field_lr_decay_from", 0, 0)?,
             gaussians_lr_decay: fraction(file, &table, "gaussians_lr_decay")?,
+            field_average_half_life: match number(file, &table, "field_average_half_life", "")? {
+                None => 0.0,
+                Some(v) if v >= 0.0 && v.is_finite() => v,
+                Some(v) => return Err(err(file, "field_average_half_life", format!("must be a non-negative number of iterations, found {v}"))),
+            },
             sun_search: count(file, &table, "sun_search", 0, 0)?,
             rebind_every: count(file, &table, "rebind_every", 0, 0)?,
             sample_masked_misses: boolean(file, &table, "sample_masked_misses", false)?,

@@ -338,6 +338,9 @@ pub struct Trainer {
     pub footprint: crate::scene::Footprint,
     /// Rays per training pixel: the schedule's `pixel_rays` for an area footprint, else one.
     pub pixel_rays: usize,
+    /// The moving average of the field's parameters, once the schedule's
+    /// `field_average_half_life` has started it (`fitted_model`).
+    pub average: Option<crate::averaging::ParameterAverage>,
 }
 
 /// A training batch: pixels of one frame's views under one training light.
@@ -755,6 +758,7 @@ impl Trainer {
             footprint_estimate,
             footprint,
             pixel_rays,
+            average: None,
         })
     }
 
@@ -772,8 +776,34 @@ impl Trainer {
         self.training_identity.get_or_init(|| self.scene.training_identity())
     }
 
+    /// The model being trained: the last step's parameters.
     pub fn model(&self) -> Result<&Avatar, FitError> {
         self.model.as_ref().ok_or_else(|| FitError::Input("the model was lost by an interrupted step".into()))
+    }
+
+    /// The model a fit shows (checkpoint, renders, evaluation): the last step's, its field's
+    /// parameters replaced by their moving average once that has started.
+    pub fn fitted_model(&self) -> Result<Avatar, FitError> {
+        let mut model = self.model()?.clone();
+        if let Some(average) = &self.average {
+            model.field =
+                average.applied(model.field).ok_or_else(|| FitError::Input("the field's parameter average does not match the field's layout".into()))?;
+        }
+        Ok(model)
+    }
+
+    /// Moves the field's average toward the parameters of the step just taken, or starts it at
+    /// them on the first step of the learning rates' decay (`field_average_half_life`).
+    fn update_average(&mut self) {
+        let half_life = self.schedule.field_average_half_life;
+        let Some(model) = self.model.as_ref() else { return };
+        if half_life <= 0.0 || self.iteration <= self.schedule.field_lr_decay_from {
+            return;
+        }
+        match &mut self.average {
+            Some(average) => average.update(&model.field, crate::averaging::ParameterAverage::keep_for_half_life(half_life)),
+            None => self.average = Some(crate::averaging::ParameterAverage::start(&model.field)),
+        }
     }
 
     /// Moves every Gaussian to the bone that keeps it inside the body. A Gaussian starts on a
@@ -1285,6 +1315,7 @@ impl Trainer {
             return Err(FitError::NonFinite { iteration: it, what: format!("the parameter {name} after the update"), checkpoint: String::new() });
         }
         self.iteration += 1;
+        self.update_average();
         clock.mark(9);
         stats.phases = clock.spans;
         stats.seconds = start.elapsed().as_secs_f64();

@@ -132,11 +132,13 @@ fn resume_continues_where_the_fit_stopped_bit_for_bit_with_either_field() {
         // Hierarchical sampling too, so the coarse pass and its draws are part of what resumes;
         // the Gaussians' rebinding at 5 and 10, so their bones are part of it too;
         // and the sun search at iteration 10 with a light rate that presses the direction
-        // against the search's cone, so the checkpoint at 20 must carry the cone.
+        // against the search's cone, so the checkpoint at 20 must carry the cone; and the
+        // field's average from 12, so the checkpoint at 20 holds the average and the last
+        // step's parameters apart.
         let text = std::fs::read_to_string(&schedule_path)
             .unwrap()
             .replace("samples_per_ray = 16", "samples_per_ray = 8\nfine_samples_per_ray = 8")
-            .replace("light_from = 0", "light_from = 10\nsun_search = 512\nrebind_every = 5")
+            .replace("light_from = 0", "light_from = 10\nsun_search = 512\nrebind_every = 5\nfield_lr_decay_from = 12\nfield_average_half_life = 4")
             .replace("light = 5e-2", "light = 2.0");
         std::fs::write(&schedule_path, format!("{text}\n[field]\nkind = \"{kind}\"\n")).unwrap();
         let options = |out: &str, iterations: usize, resume: bool| fit_options(&scene_path, dir.path().join(out), &schedule_path, Some(iterations), 3, resume);
@@ -160,10 +162,17 @@ fn resume_continues_where_the_fit_stopped_bit_for_bit_with_either_field() {
         let gaussians = |run: &str| std::fs::read(dir.path().join(run).join("gaussians.json")).unwrap();
         assert!(gaussians("straight") == gaussians("resumed"), "{kind}: the resumed fit's Gaussians differ");
         assert_eq!(straight["light"]["direction"], resumed["light"]["direction"], "{kind}");
-        // The run renders from its checkpoint and schedule copy, whatever the field.
+        // The checkpoint holds the field's average as the model and the last step's beside it.
+        let checkpoint = dir.path().join("resumed/checkpoint");
+        assert!(checkpoint.join("training-model.bpk").is_file(), "{kind}: no training model beside the average");
+        // The run renders from its checkpoint and schedule copy, whatever the field, and the
+        // resumed fit's average renders as the straight fit's does.
         let evaluation = umbra::fit::render_run(&dir.path().join("resumed"), None, Backend::Flex, |_| {}).unwrap();
         let psnr = evaluation["novel_pose_foreground_psnr"].as_f64().unwrap_or(f64::NAN);
         assert!(psnr.is_finite() && psnr > 5.0, "{kind}: {psnr}");
+        let straight_evaluation = umbra::fit::render_run(&dir.path().join("straight"), None, Backend::Flex, |_| {}).unwrap();
+        assert_eq!(straight_evaluation["novel_pose_foreground_psnr"], evaluation["novel_pose_foreground_psnr"], "{kind}");
+        assert_eq!(straight_evaluation["novel_pose_ssim"], evaluation["novel_pose_ssim"], "{kind}");
     }
 }
 

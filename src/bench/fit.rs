@@ -68,7 +68,7 @@ fn score(trainer: &Trainer, run: &str, kind: FieldKind, iteration: usize, train_
     if views.is_empty() {
         return Err(FitError::Input(format!("{}: no novel-pose test images to score", scene.root.join("scene.json").display())));
     }
-    let model = trainer.model()?.valid();
+    let model = trainer.fitted_model()?.valid();
     let device = trainer.device.clone().without_autodiff();
     let scale = albedo_scale(scene, &model);
     let scored: Vec<_> = views.iter().map(|v| score_view(&model, scene, v, &Lighting::Fitted(0), scale, &device)).collect();
@@ -116,8 +116,7 @@ pub fn fit_curves(options: &FitBenchOptions, mut on: impl FnMut(String)) -> Resu
     let seconds: Vec<(FieldKind, usize, f64)> = run_curves(fits, options, &mut points, &mut on)?;
     let time_of = |kind| seconds.iter().find(|(k, _, _)| *k == kind).map(|&(_, n, t)| (n, t));
     if let (true, Some((grid_iterations, grid_seconds)), Some((_, mlp_seconds))) = (options.equal_time, time_of(FieldKind::Grid), time_of(FieldKind::Mlp)) {
-        // The grid's iterations cost about the same all along, so its time scales with them.
-        let iterations = ((grid_iterations as f64 * mlp_seconds / grid_seconds.max(1e-9)).floor() as usize).max(grid_iterations);
+        let iterations = equal_time_iterations(&points, grid_iterations, grid_seconds, mlp_seconds);
         // The default schedule stretched to that length (as `schedules/detail.toml` is): the
         // field's rates fall over the same last share of the fit.
         let mut schedule = base.stretched(iterations);
@@ -128,6 +127,22 @@ pub fn fit_curves(options: &FitBenchOptions, mut on: impl FnMut(String)) -> Resu
         run_curves(vec![Curve::new(trainer, label, iterations, options.evaluations)], options, &mut points, &mut on)?;
     }
     write_outputs(&options.out, &options.scene, &points)
+}
+
+/// How many iterations of the grid fill the MLP's training time. The stretched schedule adds
+/// its iterations to the fit's last segment (light, RGB and the rates' decay), whose steps cost
+/// more than the silhouette stage's: the extra iterations are costed at the rate between the
+/// grid's last two scoring marks (the whole fit's mean rate, which overran the MLP's time by 1%,
+/// without them).
+fn equal_time_iterations(points: &[CurvePoint], grid_iterations: usize, grid_seconds: f64, mlp_seconds: f64) -> usize {
+    let mut marks: Vec<(usize, f64)> = points.iter().filter(|p| p.run == kind_name(FieldKind::Grid)).map(|p| (p.iteration, p.train_seconds)).collect();
+    marks.sort_by_key(|m| m.0);
+    let late = match marks.as_slice() {
+        [.., (i0, t0), (i1, t1)] if i1 > i0 && t1 > t0 => (t1 - t0) / (i1 - i0) as f64,
+        _ => grid_seconds / grid_iterations.max(1) as f64,
+    };
+    let extra = ((mlp_seconds - grid_seconds) / late.max(1e-9)).floor().max(0.0) as usize;
+    grid_iterations + extra
 }
 
 /// One fit of a benchmark: its trainer, name, length, scoring marks and training time so far.
@@ -361,6 +376,21 @@ mod tests {
             light_error_degrees: None,
             peak_rss_mib: None,
         }
+    }
+
+    #[test]
+    fn the_equal_time_fit_costs_its_extra_iterations_at_the_last_segments_rate() {
+        let points = vec![
+            point("mlp", FieldKind::Mlp, 300, 300.0, 20.0, 27.0),
+            point("grid", FieldKind::Grid, 100, 20.0, 18.0, 26.0),
+            point("grid", FieldKind::Grid, 300, 80.0, 24.0, 30.0),
+            point("grid", FieldKind::Grid, 200, 40.0, 22.0, 29.0),
+        ];
+        // The last marks cost 0.4 s an iteration (the mean 0.27): 220 s more is 550 iterations.
+        assert_eq!(equal_time_iterations(&points, 300, 80.0, 300.0), 850);
+        // With one mark, the whole fit's mean rate; never fewer than the grid's own.
+        assert_eq!(equal_time_iterations(&points[..2], 100, 20.0, 300.0), 1500);
+        assert_eq!(equal_time_iterations(&points, 300, 80.0, 50.0), 300);
     }
 
     #[test]
