@@ -95,7 +95,7 @@ mod tests {
     use burn::tensor::{Device, TensorData};
 
     fn values<M: Module>(module: &M) -> Vec<f32> {
-        flattened(module).into_iter().flat_map(|t| t.into_data().convert::<f32>().to_vec::<f32>().unwrap()).collect()
+        flattened(module).into_iter().flat_map(|t| t.into_data().convert::<f32>().try_to_vec::<f32>().unwrap()).collect()
     }
 
     fn linear_with(value: f32, device: &Device) -> Linear {
@@ -146,7 +146,7 @@ mod tests {
         let input = Tensor::<2>::from_data(TensorData::new(vec![1.0f32, 2.0], [1, 2]), &device);
         let grads = averaged.forward(input).sum().backward();
         let weight = averaged.weight.grad(&grads).expect("the averaged weight takes gradients");
-        assert_eq!(weight.into_data().convert::<f32>().to_vec::<f32>().unwrap(), vec![1.0, 1.0, 1.0, 2.0, 2.0, 2.0]);
+        assert_eq!(weight.into_data().convert::<f32>().try_to_vec::<f32>().unwrap(), vec![1.0, 1.0, 1.0, 2.0, 2.0, 2.0]);
     }
 
     #[test]

@@ -254,12 +254,16 @@ fn bench_fit_scores_both_fields_and_refits_the_grid_for_the_mlps_time() {
     let runs: Vec<&str> = rows.iter().map(|r| r[0]).collect();
     assert_eq!(&runs[..4], &["mlp", "mlp", "grid", "grid"], "{csv}");
     // The third fit is the grid again, for at least as many iterations as the first grid fit
-    // (the MLP's step costs more), scored twice, its last point at its last iteration.
-    assert_eq!(rows.len(), 6, "{csv}");
-    let equal_time = &rows[4..];
+    // (the MLP's step costs more), scored twice, its last point at its last iteration; it takes
+    // turns with the MLP's fit run again, scored once at its end, as the first run scored.
+    assert_eq!(rows.len(), 7, "{csv}");
+    let equal_time = &rows[4..6];
     assert!(equal_time.iter().all(|r| r[0].starts_with("grid at the MLP's time (")), "{csv}");
     let last: usize = equal_time[1][1].parse().unwrap();
     assert!(last >= 4 && equal_time[1][0].ends_with(&format!("({last} iterations)")), "{csv}");
+    let again = &rows[6];
+    assert!(again[0].starts_with("mlp again"), "{csv}");
+    assert_eq!((again[1], &again[3..9]), (rows[1][1], &rows[1][3..9]), "the MLP's second run scores as its first: {csv}");
     for file in ["fit-curves.md", "fit-foreground-psnr.png", "fit-albedo-psnr.png"] {
         assert!(out.join(file).is_file(), "{file}");
     }
