@@ -273,10 +273,9 @@ pub fn grid_against_mlp(points: &[CurvePoint]) -> Option<String> {
         None => "The grid never reaches it. ".to_string(),
     };
     // The default grid fit if it ends within the MLP's time, and the one whose length fills it
-    // (set by the two fits' times stepped in turn; fitted after them, alone, its own time can
-    // drift with the machine: it is stated beside it).
-    // The equal-time fit is timed against the MLP's second run, beside which it ran, when
-    // there is one.
+    // (set by the two fits' times stepped in turn). That one is timed against the MLP's second
+    // run, with which it took turns, when there is one: the first run's time, minutes earlier,
+    // carries another spell of the machine.
     let within = mlp.train_seconds * 1.02;
     let mlp_again = last(&|r| r == MLP_AGAIN, f64::INFINITY);
     let ends: Vec<&CurvePoint> = [last(&|r| r == "grid", within), last(&|r| r.starts_with("grid at"), f64::INFINITY)].into_iter().flatten().collect();
