@@ -726,6 +726,27 @@ fn an_anti_aliased_capture_is_fitted_with_several_rays_per_pixel() {
         let average = gaps.iter().sum::<f32>() / gaps.len() as f32;
         assert!(worst < 8.0 / 255.0 && average < 0.5 / 255.0, "worst {worst}, mean {average}");
     }
+    // The strata of its refined pixels interpolated inside the body and searched near their
+    // neighbours' depths along silhouettes, against every one traced: the same picture to
+    // within a quarter of an 8-bit step on average, and the silhouette within 1% of its pixels.
+    {
+        use umbra::eval::{render_view_with, Lighting, Strata, VIEW_SAMPLING};
+        let (model, scene, device) = (trainer.model().unwrap(), &trainer.scene, &trainer.device);
+        let view = scene.views.iter().find(|v| v.split == umbra::scene::Split::Test).unwrap();
+        let scale = Some(glam::DVec3::new(1.0, 0.9, 1.1));
+        let render = |strata| render_view_with(model, scene, view.camera, view.frame, VIEW_SAMPLING, device, &Lighting::Fitted(0), scale, strata);
+        let ((fast, fast_albedo), (traced, traced_albedo)) = (render(Strata::Shortcuts), render(Strata::Traced));
+        for (a, b) in [(&fast, &traced), (&fast_albedo.unwrap(), &traced_albedo.unwrap())] {
+            let drawn = |p: &[f32; 3]| p.iter().any(|&v| v > 0.0);
+            let gaps: Vec<f32> = a.pixels.iter().zip(&b.pixels).flat_map(|(p, q)| (0..3).map(move |c| (srgb(p[c]) - srgb(q[c])).abs())).collect();
+            let worst = gaps.iter().cloned().fold(0.0, f32::max);
+            let average = gaps.iter().sum::<f32>() / gaps.len() as f32;
+            let flipped = a.pixels.iter().zip(&b.pixels).filter(|(p, q)| drawn(p) != drawn(q)).count();
+            let covered = a.pixels.iter().filter(|p| drawn(p)).count();
+            // Measured: mean 0.07 and 0.04 of an 8-bit step, no pixel flipped of 462.
+            assert!(average < 0.25 / 255.0 && flipped * 100 <= covered, "worst {worst}, mean {average}, {flipped} of {covered} flipped");
+        }
+    }
     // The default schedule trains an area capture with one ray through each pixel's centre.
     let default = Schedule::parse(umbra::schedule::DEFAULT_TEXT, Path::new("default.toml")).unwrap();
     let trainer = Trainer::new(umbra::scene::Scene::load(&dir.path().join("area")).unwrap(), default, Backend::Flex, 1).unwrap();

@@ -4,7 +4,7 @@
 //! the evaluation's way, a batch of views one after another against several at once.
 
 use super::fit::peak_rss_mib;
-use crate::eval::{render_view, Lighting, VIEW_SAMPLING};
+use crate::eval::{render_view, render_view_with, Lighting, Strata, VIEW_SAMPLING};
 use crate::light::Light;
 use crate::plot::BarChart;
 use crate::train::{io, Backend, FitError};
@@ -75,6 +75,19 @@ pub fn render(run: &Path, out: &Path, quick: bool) -> Result<String, FitError> {
     });
     let together = start.elapsed().as_secs_f64() / views.len().max(1) as f64;
 
+    // An area capture's refined pixels with every stratum traced, against the shortcuts every
+    // render takes (`eval::Strata`), each view with its albedo as the evaluation renders it.
+    let area = scene.footprint().footprint == crate::scene::Footprint::Area;
+    let strata_views: Vec<(usize, usize)> = scene.views_in(crate::scene::Split::Test).map(|v| (v.camera, v.frame)).take(if quick { 2 } else { 8 }).collect();
+    let strata_times = area.then(|| {
+        [Strata::Traced, Strata::Shortcuts].map(|strata| {
+            let start = std::time::Instant::now();
+            strata_views.par_iter().for_each(|&(c, f)| {
+                render_view_with(&model, scene, c, f, VIEW_SAMPLING, &device, &fitted, Some(albedo_scale), strata);
+            });
+            start.elapsed().as_secs_f64() / strata_views.len().max(1) as f64
+        })
+    });
     let (w, h) = (scene.cameras[camera].width, scene.cameras[camera].height);
     let mut md = format!(
         "## Render time per view: {} ({w} x {h}, camera {camera}, frame {frame}; {threads} threads)\n\n| light | s per view, all threads | s per view, one thread | ratio |\n|---|---|---|---|\n",
@@ -93,6 +106,17 @@ pub fn render(run: &Path, out: &Path, quick: bool) -> Result<String, FitError> {
         peak_rss_mib().map_or("-".to_string(), |m| format!("{m:.0}"))
     );
     csv += &format!("views one after another,{sequential:.5},\nviews at once,{together:.5},\n");
+    match strata_times {
+        Some([traced, shortcuts]) => {
+            md += &format!(
+                "\nPixels rendered over their area (an area capture), {} test views with their albedos at once: {traced:.3} s per view with every stratum traced, {shortcuts:.3} s with the strata interpolated inside the body and searched near their neighbours' depths along silhouettes ({:.2}x).\n",
+                strata_views.len(),
+                shortcuts / traced
+            );
+            csv += &format!("views with albedo every stratum traced,{traced:.5},\nviews with albedo strata shortcuts,{shortcuts:.5},\n");
+        }
+        None => md += "\nThe capture's pixels are their centres: no pixel is rendered over its area.\n",
+    }
     std::fs::create_dir_all(out).map_err(|e| io(out, e))?;
     let write = |name: &str, text: &str| crate::imageio::write_atomic(&out.join(name), text.as_bytes()).map_err(|e| io(&out.join(name), e));
     write("render.md", &md)?;
