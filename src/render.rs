@@ -300,6 +300,31 @@ fn densities(still: &AvatarField, pose: &PoseTensors, origins: &Tensor<2>, direc
     still.density(still.sdf(points, pose)).into_data().convert::<f32>().try_to_vec::<f32>().unwrap_or_else(|_| vec![0.0; r * s])
 }
 
+/// `densities` of the rays `rays` (indices) only, their distances `t` (`[R * S]`); the other
+/// rays' samples get density 0.
+fn densities_of(still: &AvatarField, pose: &PoseTensors, all: &RaySet, t: &[f32], r: usize, rays: &[usize], device: &Device) -> Vec<f32> {
+    let s = t.len() / r.max(1);
+    let mut out = vec![0.0f32; r * s];
+    if rays.is_empty() {
+        return out;
+    }
+    let points: Vec<f32> = rays
+        .iter()
+        .flat_map(|&i| (i * s..(i + 1) * s).flat_map(move |k| (0..3).map(move |c| all.origins[3 * i + c] + all.directions[3 * i + c] * t[k])))
+        .collect();
+    let points = Tensor::<2>::from_data(TensorData::new(points, [rays.len() * s, 3]), device);
+    let values = still.density(still.sdf(points, pose)).into_data().convert::<f32>().try_to_vec::<f32>().unwrap_or_else(|_| vec![0.0; rays.len() * s]);
+    for (j, &i) in rays.iter().enumerate() {
+        out[i * s..(i + 1) * s].copy_from_slice(&values[j * s..(j + 1) * s]);
+    }
+    out
+}
+
+/// The optical depth `sigma delta` a view's ray must find at one of its coarse samples for its
+/// probe and fine samples to be evaluated (`locate`): below it the ray's coarse samples change
+/// its coverage by less than 1e-7 (as `CULL_OPTICAL_DEPTH` reasons), far below an 8-bit step.
+const EMPTY_OPTICAL_DEPTH: f32 = 1e-7;
+
 /// Compositing weights `T alpha` of every ray's samples from their densities, on the CPU (the
 /// same sums as `compositing_weights`).
 fn host_weights(samples: &Samples, density: &[f32], r: usize) -> Vec<f32> {
@@ -443,10 +468,19 @@ fn locate(
         let kept = (want == Want::Culled).then(|| culled(&coarse, &coarse_density, &transmittance_before(&coarse, &coarse_density, r)));
         return Located { samples: coarse, density: coarse_density, kept };
     }
+    // A view's rays (nothing is differentiated) whose coarse samples found no optical depth
+    // have no surface to refine: their probe and fine samples are not evaluated (density 0).
+    let found: Option<Vec<usize>> = (want == Want::Densities).then(|| {
+        (0..r).filter(|&i| (i * sc..(i + 1) * sc).any(|k| coarse_density[k] * coarse.delta[k] >= EMPTY_OPTICAL_DEPTH)).collect()
+    });
+    let evaluate = |t: &[f32]| match &found {
+        Some(found) => densities_of(&still, pose, rays, t, r, found, &o.device()),
+        None => densities(&still, pose, &o, &d, t, r),
+    };
     let (located, density) = if sp > 0 {
         let weights = host_weights(&coarse, &coarse_density, r);
         let probes = draw(rays, &coarse, &weights, sp, &jitter[r * sc..r * (sc + sp)]);
-        let probe_density = densities(&still, pose, &o, &d, &probes, r);
+        let probe_density = evaluate(&probes);
         merge(rays, &coarse.t, sc, &probes, sp, Some((&coarse_density, &probe_density)))
     } else {
         (coarse.clone(), coarse_density.clone())
@@ -455,7 +489,7 @@ fn locate(
     let fine = draw(rays, &located, &weights, sf, &jitter[r * (sc + sp)..r * (sc + sp + sf)]);
     match want {
         Want::Densities => {
-            let density = densities(&still, pose, &o, &d, &fine, r);
+            let density = evaluate(&fine);
             let (samples, density) = merge(rays, &coarse.t, sc, &fine, sf, Some((&coarse_density, &density)));
             Located { samples, density, kept: None }
         }
