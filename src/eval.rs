@@ -63,19 +63,19 @@ fn surface_window(pixels: &[Traced], w: usize, h: usize, p: usize, fx: f64) -> O
         let q = &pixels[q];
         (q.coverage >= 1.0 - 1.0 / 255.0 && q.depth.is_finite()).then_some(q.depth as f64)
     });
-    window_of(depths.collect::<Option<Vec<f64>>>()?, fx)
+    window_of(depths.collect::<Option<Vec<f64>>>()?, fx, WINDOW_SLOPE)
 }
 
 /// A window for a pixel along a silhouette (`surface_window` refuses it): where the centres
 /// around it that meet the body at all (coverage above an 8-bit step) meet it within
-/// `WINDOW_SLOPE` pixels' widths of each other, the surface any ray through the pixel can meet
+/// `SILHOUETTE_SLOPE` pixels' widths of each other, the surface any ray through the pixel can meet
 /// lies between their depths, as inside the body; the centres that miss it say only that a ray
 /// there may miss it too. `None` where none meets it or where they lie on surfaces at
 /// different depths (a limb before the body): those rays search their whole bound.
 fn silhouette_window(pixels: &[Traced], w: usize, h: usize, p: usize, fx: f64) -> Option<(f64, f64)> {
     let depths: Vec<f64> =
         neighbourhood(w, h, p).map(|q| &pixels[q]).filter(|q| q.coverage > 1.0 / 255.0 && q.depth.is_finite()).map(|q| q.depth as f64).collect();
-    window_of(depths, fx)
+    window_of(depths, fx, SILHOUETTE_SLOPE)
 }
 
 /// The pixels of `p`'s 3 x 3 neighbourhood inside the image, `p` among them.
@@ -90,14 +90,14 @@ fn neighbourhood(w: usize, h: usize, p: usize) -> impl Iterator<Item = usize> {
 /// The window of a neighbourhood's surface depths (`surface_window`): their span widened on each
 /// side by itself or one pixel's width (focal length `fx` in pixels), whichever is more, when it
 /// is at most `WINDOW_SLOPE` pixels' widths; `None` otherwise or without depths.
-fn window_of(depths: Vec<f64>, fx: f64) -> Option<(f64, f64)> {
+fn window_of(depths: Vec<f64>, fx: f64, slope: f64) -> Option<(f64, f64)> {
     let lo = depths.iter().copied().fold(f64::INFINITY, f64::min);
     let hi = depths.iter().copied().fold(f64::NEG_INFINITY, f64::max);
     if depths.is_empty() {
         return None;
     }
     let pixel = hi / fx.max(1e-9);
-    (hi - lo <= WINDOW_SLOPE * pixel).then(|| {
+    (hi - lo <= slope * pixel).then(|| {
         let margin = (hi - lo).max(pixel);
         (lo - margin, hi + margin)
     })
@@ -106,6 +106,16 @@ fn window_of(depths: Vec<f64>, fx: f64) -> Option<(f64, f64)> {
 /// The most a window's neighbourhood's depths may differ, in pixels' widths at that depth
 /// (`surface_window`): a surface tilted up to about 70 degrees from facing the camera.
 const WINDOW_SLOPE: f64 = 3.0;
+
+/// `WINDOW_SLOPE` for a silhouette's window (`silhouette_window`): there the centres that meet
+/// the body partly have their depth on its far, grazed side, so the depths around a pixel spread
+/// more than on a surface facing the camera (on the 148 images below, most silhouette pixels
+/// refused at 3 spread 3 to 16 pixels' widths). A window of 8 pixels' widths, widened by as
+/// much on each side, holds 24 at most, about 30 cm on a 2 m human at 128 x 128, which the
+/// window's 8 coarse samples then space no wider than a whole ray's 24 do over its bound.
+/// Measured on the 148 novel-pose images of an area capture: the same scores (27.43 / 22.89
+/// dB foreground image / albedo; each image within 0.3 dB), 61 s against 72 s with 3.
+const SILHOUETTE_SLOPE: f64 = 8.0;
 
 /// Rays a view traces through the field at once: a view's chunks go to every thread.
 const TRACE_CHUNK: usize = 1024;
@@ -236,7 +246,8 @@ pub enum Strata {
     /// along silhouettes the strata search the depths of the centres around them that meet the
     /// body (`silhouette_window`). The same pictures as `Traced` (the 148 novel-pose images of
     /// an area capture: foreground 27.43 / 22.90 dB image / albedo against 27.43 / 22.89) at
-    /// 0.47x its time. What every render does.
+    /// 0.47x its time, before silhouettes' windows widened to `SILHOUETTE_SLOPE`. What every
+    /// render does.
     Shortcuts,
 }
 

@@ -470,9 +470,8 @@ fn locate(
     }
     // A view's rays (nothing is differentiated) whose coarse samples found no optical depth
     // have no surface to refine: their probe and fine samples are not evaluated (density 0).
-    let found: Option<Vec<usize>> = (want == Want::Densities).then(|| {
-        (0..r).filter(|&i| (i * sc..(i + 1) * sc).any(|k| coarse_density[k] * coarse.delta[k] >= EMPTY_OPTICAL_DEPTH)).collect()
-    });
+    let found: Option<Vec<usize>> = (want == Want::Densities)
+        .then(|| (0..r).filter(|&i| (i * sc..(i + 1) * sc).any(|k| coarse_density[k] * coarse.delta[k] >= EMPTY_OPTICAL_DEPTH)).collect());
     let evaluate = |t: &[f32]| match &found {
         Some(found) => densities_of(&still, pose, rays, t, r, found, &o.device()),
         None => densities(&still, pose, &o, &d, t, r),
