@@ -46,9 +46,10 @@ pub enum Lighting<'a> {
 /// relit 24.54 / 24.55, albedo 21.91 / 21.92; 16 coarse (as training) lost 0.07-0.09 dB.
 pub const VIEW_SAMPLING: Sampling = Sampling { coarse: 24, probe: 8, fine: 16, albedo_floor: crate::render::ALBEDO_WEIGHT_FLOOR, cull: false };
 
-/// How the rays of a refined pixel inside the body are sampled within the window that holds
-/// its surface (`surface_window`): 8 coarse samples a few millimetres apart, 8 probes where
-/// they found density and 8 fine ones, half a whole ray's evaluations.
+/// How the rays of a refined pixel inside the body or on a silhouette are sampled within the
+/// window that holds its surface (`surface_window`, `silhouette_window`): 8 coarse samples
+/// (a few millimetres apart inside the body, at most about 4 cm along a silhouette), 8 probes
+/// where they found density and 8 fine ones, half a whole ray's evaluations.
 pub const WINDOW_SAMPLING: Sampling = Sampling { coarse: 8, probe: 8, fine: 8, albedo_floor: crate::render::ALBEDO_WEIGHT_FLOOR, cull: false };
 
 /// The distances along the rays within pixel `p` that hold the surface, from the centre rays
@@ -89,7 +90,7 @@ fn neighbourhood(w: usize, h: usize, p: usize) -> impl Iterator<Item = usize> {
 
 /// The window of a neighbourhood's surface depths (`surface_window`): their span widened on each
 /// side by itself or one pixel's width (focal length `fx` in pixels), whichever is more, when it
-/// is at most `WINDOW_SLOPE` pixels' widths; `None` otherwise or without depths.
+/// is at most `slope` pixels' widths; `None` otherwise or without depths.
 fn window_of(depths: Vec<f64>, fx: f64, slope: f64) -> Option<(f64, f64)> {
     let lo = depths.iter().copied().fold(f64::INFINITY, f64::min);
     let hi = depths.iter().copied().fold(f64::NEG_INFINITY, f64::max);
@@ -375,8 +376,8 @@ pub fn render_view_with(
         let refine: Vec<usize> =
             (0..w * h).filter(|&p| needs_area(&colours, &coverage, w, h, p) || albedos.as_ref().is_some_and(|a| needs_area(a, &coverage, w, h, p))).collect();
         // Inside the body the surface a pixel's rays meet lies within its neighbours' depths:
-        // those rays are sampled there, at half the cost; along a silhouette or a depth step the
-        // rays search their whole bound as the centres did.
+        // those rays are sampled there, at half the cost (where they are traced at all: below);
+        // at a depth step the rays search their whole bound as the centres did.
         let windows: Vec<Option<(f64, f64)>> = refine.iter().map(|&p| surface_window(&pixels, w, h, p, camera.fx)).collect();
         // Along silhouettes too, where the centres around a pixel that meet the body agree on
         // its depth (`silhouette_window`).
@@ -388,7 +389,7 @@ pub fn render_view_with(
         // The rays of strata `strata` of the refined pixels `which` (indices into `refine`),
         // `strata.len()` a pixel in that order.
         let trace_strata = |which: &[usize], strata: &[usize]| -> Vec<Traced> {
-            let (inside, edge): (Vec<usize>, Vec<usize>) = (0..which.len()).partition(|&k| search[which[k]].is_some());
+            let (windowed, searched): (Vec<usize>, Vec<usize>) = (0..which.len()).partition(|&k| search[which[k]].is_some());
             let targets = |part: &[usize]| -> Vec<([f64; 2], u64)> {
                 part.iter()
                     .flat_map(|&k| {
@@ -400,9 +401,10 @@ pub fn render_view_with(
                     })
                     .collect()
             };
-            let inside_windows: Vec<Option<(f64, f64)>> = inside.iter().flat_map(|&k| std::iter::repeat_n(search[which[k]], strata.len())).collect();
+            let windows_of: Vec<Option<(f64, f64)>> = windowed.iter().flat_map(|&k| std::iter::repeat_n(search[which[k]], strata.len())).collect();
             let mut out = vec![Traced::default(); which.len() * strata.len()];
-            for (part, traced) in [(&inside, trace(&targets(&inside), &inside_windows, WINDOW_SAMPLING)), (&edge, trace(&targets(&edge), &[], samples))] {
+            for (part, traced) in [(&windowed, trace(&targets(&windowed), &windows_of, WINDOW_SAMPLING)), (&searched, trace(&targets(&searched), &[], samples))]
+            {
                 for (&k, rays) in part.iter().zip(traced.chunks(strata.len())) {
                     out[k * strata.len()..(k + 1) * strata.len()].clone_from_slice(rays);
                 }
