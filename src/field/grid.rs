@@ -443,8 +443,10 @@ struct BoneDistance {
 /// Buffers one thread reuses from point to point (a point's plan allocates nothing).
 #[derive(Default)]
 struct Scratch {
-    /// Every bone's distance to the point.
+    /// The chosen bones' distances to the point, ascending by bone.
     all: Vec<BoneDistance>,
+    /// The nearest bones so far while choosing: (skinning's squared distance, bone), ascending.
+    nearest: Vec<(f32, usize)>,
     /// A softmax's weights and their world gradients.
     weights: Vec<(f32, [f32; 3])>,
 }
@@ -561,10 +563,28 @@ fn plan_point(
 /// `scratch.all`), their logits, the capsule prior and the root's preference corners, with
 /// their world gradients when `tangents` says.
 fn skin_point(config: &GridConfig, frames: &[BoneFrame], skinning: Skinning, point: [f32; 3], scratch: &mut Scratch, tangents: bool) -> PointSkin {
-    // Squared distance to every bone segment and its world gradient 2 R offset.
+    // The skinning's squared distance to every bone segment first, and only then, for the `top`
+    // nearest (a point is looked up in 3 of a human's 20 bones), the offset, its true distance and
+    // their world gradients: the full record for every bone was a quarter of a render's lookups.
+    let top = config.top().min(frames.len());
+    let nearest = &mut scratch.nearest;
+    nearest.clear();
+    for (b, f) in frames.iter().enumerate() {
+        let skinning_d2 = skinning.distance_squared(b, f.distance_squared(point)).0;
+        // Kept ascending by (distance, bone): a new bone slides in from the back.
+        if nearest.len() < top || nearest.last().is_some_and(|&(d, _)| skinning_d2 < d) {
+            if nearest.len() == top {
+                nearest.pop();
+            }
+            let at = nearest.partition_point(|&(d, _)| d <= skinning_d2);
+            nearest.insert(at, (skinning_d2, b));
+        }
+    }
+    nearest.sort_unstable_by_key(|&(_, b)| b);
     let all = &mut scratch.all;
     all.clear();
-    all.extend(frames.iter().enumerate().map(|(b, f)| {
+    all.extend(nearest.iter().map(|&(_, b)| {
+        let f = &frames[b];
         let local = f.to_local(point);
         let offset = [local[0], local[1] - local[1].clamp(0.0, f.length), local[2]];
         let d2 = offset[0] * offset[0] + offset[1] * offset[1] + offset[2] * offset[2];
@@ -572,12 +592,7 @@ fn skin_point(config: &GridConfig, frames: &[BoneFrame], skinning: Skinning, poi
         let (skinning_d2, moves) = skinning.distance_squared(b, d2);
         BoneDistance { bone: b, d2, gradient, skinning_d2, skinning_gradient: if moves { gradient } else { [0.0; 3] }, local }
     }));
-    let top = config.top().min(all.len());
-    if top < all.len() {
-        all.select_nth_unstable_by(top - 1, |a, b| a.skinning_d2.total_cmp(&b.skinning_d2));
-    }
-    let chosen = &mut all[..top];
-    chosen.sort_unstable_by_key(|a| a.bone);
+    let chosen = &mut all[..];
     let mut skin = PointSkin::default();
     // The skinning's logits from distance, shifted so the largest is 0 (a softmax's weights
     // do not change), with their gradients.

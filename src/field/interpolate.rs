@@ -47,6 +47,18 @@ pub struct Plan {
 /// planned) reads NaN, so it cannot pass unseen.
 #[inline]
 pub(super) fn add_row(table: &[f32], row: usize, coefficient: f32, sums: &mut [f32]) {
+    // Two features per entry (the default grid, as instant-NGP's) on a path of its own: the
+    // general one's loop and slice cost as much as the sum itself there.
+    if let [s0, s1] = sums {
+        match table.get(2 * row..2 * row + 2) {
+            Some(&[t0, t1]) => {
+                *s0 += coefficient * t0;
+                *s1 += coefficient * t1;
+            }
+            _ => (*s0, *s1) = (f32::NAN, f32::NAN),
+        }
+        return;
+    }
     let start = row * sums.len();
     match table.get(start..start + sums.len()) {
         Some(entry) => sums.iter_mut().zip(entry).for_each(|(o, t)| *o += coefficient * t),
