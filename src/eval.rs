@@ -269,8 +269,8 @@ pub enum Strata {
     /// Inside the body, where the centres around a pixel lie on one smooth surface, its strata
     /// are interpolated from them and only their albedo is looked up (`strata_from_centres`),
     /// and so are a silhouette's strata whose quadrant's centres lie wholly on the body
-    /// (`quadrant_interpolates`); along silhouettes the other strata search the depths of the centres around them that meet the
-    /// body (`silhouette_window`). The same pictures as `Traced` (the 148 novel-pose images of
+    /// (`quadrant_interpolates`); along silhouettes the other strata search the depths of the
+    /// centres around them that meet the body (`silhouette_window`). The same pictures as `Traced` (the 148 novel-pose images of
     /// an area capture: foreground 27.43 / 22.90 dB image / albedo against 27.43 / 22.89) at
     /// 0.47x its time, before silhouettes' windows widened to `SILHOUETTE_SLOPE`. What every
     /// render does.

@@ -445,7 +445,7 @@ struct BoneDistance {
 struct Scratch {
     /// The chosen bones' distances to the point, ascending by bone.
     all: Vec<BoneDistance>,
-    /// The nearest bones so far while choosing: (skinning's squared distance, bone), ascending.
+    /// Every bone's skinning's squared distance while choosing: (distance, bone).
     nearest: Vec<(f32, usize)>,
     /// A softmax's weights and their world gradients.
     weights: Vec<(f32, [f32; 3])>,
@@ -566,19 +566,16 @@ fn skin_point(config: &GridConfig, frames: &[BoneFrame], skinning: Skinning, poi
     // The skinning's squared distance to every bone segment first, and only then, for the `top`
     // nearest (a point is looked up in 3 of a human's 20 bones), the offset, its true distance and
     // their world gradients: the full record for every bone was a quarter of a render's lookups.
+    // The selection compares the same distances in the same order as when every record was
+    // built first, so a bone tied for the last place is the one it was and a fit is the same
+    // to the bit.
     let top = config.top().min(frames.len());
     let nearest = &mut scratch.nearest;
     nearest.clear();
-    for (b, f) in frames.iter().enumerate() {
-        let skinning_d2 = skinning.distance_squared(b, f.distance_squared(point)).0;
-        // Kept ascending by (distance, bone): a new bone slides in from the back.
-        if nearest.len() < top || nearest.last().is_some_and(|&(d, _)| skinning_d2 < d) {
-            if nearest.len() == top {
-                nearest.pop();
-            }
-            let at = nearest.partition_point(|&(d, _)| d <= skinning_d2);
-            nearest.insert(at, (skinning_d2, b));
-        }
+    nearest.extend(frames.iter().enumerate().map(|(b, f)| (skinning.distance_squared(b, f.distance_squared(point)).0, b)));
+    if top < nearest.len() {
+        nearest.select_nth_unstable_by(top - 1, |a, b| a.0.total_cmp(&b.0));
+        nearest.truncate(top);
     }
     nearest.sort_unstable_by_key(|&(_, b)| b);
     let all = &mut scratch.all;
