@@ -183,18 +183,25 @@ fn strata_agree(centre: &Traced, corners: &[Traced], albedo: bool) -> bool {
 }
 
 /// A refined pixel as the mean of its 3 x 3 strata: the centre, the corners and the sides'
-/// middles, or where the sides were not traced (`strata_agree`) each side as its two corners'
-/// mean, so every corner counts twice. The depth stays the centre's.
+/// middles, or where the sides were not found (`strata_agree`) each side as its two corners'
+/// mean (`midway`), so every corner counts twice. The depth stays the centre's.
 fn strata_mean(centre: &Traced, corners: &[Traced], sides: Option<&[Traced]>) -> Traced {
+    let midways: Vec<Traced>;
+    let sides = match sides {
+        Some(sides) => sides,
+        None => {
+            midways = SIDE_CORNERS.iter().map(|&(a, b)| midway(&corners[a], &corners[b])).collect();
+            &midways
+        }
+    };
     let ninth = 1.0 / 9.0;
-    let corner_weight = if sides.is_some() { ninth } else { 2.0 * ninth };
-    let weighted = std::iter::once((centre, ninth)).chain(corners.iter().map(|t| (t, corner_weight))).chain(sides.into_iter().flatten().map(|t| (t, ninth)));
-    let mean = |of: fn(&Traced) -> [f32; 3]| weighted.clone().fold([0.0f32; 3], |a, (t, k)| [a[0] + of(t)[0] * k, a[1] + of(t)[1] * k, a[2] + of(t)[2] * k]);
+    let strata = || std::iter::once(centre).chain(corners).chain(sides);
+    let mean = |of: fn(&Traced) -> [f32; 3]| strata().fold([0.0f32; 3], |a, t| [a[0] + of(t)[0] * ninth, a[1] + of(t)[1] * ninth, a[2] + of(t)[2] * ninth]);
     Traced {
         colour: mean(|t| t.colour),
         albedo: mean(|t| t.albedo),
         raw: mean(|t| t.raw),
-        coverage: weighted.clone().map(|(t, k)| t.coverage * k).sum(),
+        coverage: strata().map(|t| t.coverage * ninth).sum(),
         depth: centre.depth,
     }
 }
@@ -239,24 +246,7 @@ const REFINE_CURVATURE: f32 = 4.5 / 255.0;
 
 /// Renders the scene's `camera` in `frame`, sampled as `samples` says, under `lighting`.
 pub fn render_view(model: &Avatar, scene: &Scene, camera: usize, frame: usize, samples: Sampling, device: &Device, lighting: &Lighting) -> RgbImage {
-    render_view_and_albedo(model, scene, camera, frame, samples, device, lighting, None).0
-}
-
-/// `render_view`, and with `albedo_scale` also the view's albedo (as `Lighting::Albedo` renders
-/// it) from the same rays: the field is traced once for both. Over an area capture's pixels
-/// the two share the pixels rendered over their area, those either needs (`needs_area`).
-#[allow(clippy::too_many_arguments)]
-pub fn render_view_and_albedo(
-    model: &Avatar,
-    scene: &Scene,
-    camera: usize,
-    frame: usize,
-    samples: Sampling,
-    device: &Device,
-    lighting: &Lighting,
-    albedo_scale: Option<DVec3>,
-) -> (RgbImage, Option<RgbImage>) {
-    render_view_with(model, scene, camera, frame, samples, device, lighting, albedo_scale, Strata::Shortcuts)
+    render_view_and_albedo(model, scene, camera, frame, samples, device, lighting, None, Strata::Shortcuts).0
 }
 
 /// How a view of a capture whose pixels average their area finds the 3 x 3 strata of the pixels
@@ -270,17 +260,20 @@ pub enum Strata {
     /// are interpolated from them and only their albedo is looked up (`strata_from_centres`),
     /// and so are a silhouette's strata whose quadrant's centres lie wholly on the body
     /// (`quadrant_interpolates`); along silhouettes the other strata search the depths of the
-    /// centres around them that meet the body (`silhouette_window`). The same pictures as `Traced` (the 148 novel-pose images of
-    /// an area capture: foreground 27.43 / 22.90 dB image / albedo against 27.43 / 22.89) at
-    /// 0.47x its time, before silhouettes' windows widened to `SILHOUETTE_SLOPE`. What every
-    /// render does.
+    /// centres around them that meet the body (`silhouette_window`). The same pictures as
+    /// `Traced` (the 148 novel-pose images of an area capture: foreground 27.43 / 22.90 dB image
+    /// / albedo against 27.43 / 22.89) at 0.47x its time, before silhouettes' windows widened
+    /// to `SILHOUETTE_SLOPE` and strata were read off their quadrants. What every render does.
     Shortcuts,
 }
 
-/// `render_view_and_albedo` with the strata of an area capture's refined pixels found as
-/// `strata` says (`bench render` times both ways; a test pins one to the other).
+/// `render_view`, and with `albedo_scale` also the view's albedo (as `Lighting::Albedo` renders
+/// it) from the same rays: the field is traced once for both. Over an area capture's pixels
+/// the two share the pixels rendered over their area, those either needs (`needs_area`), whose
+/// strata are found as `strata` says (`bench render` times both ways; a test pins one to the
+/// other).
 #[allow(clippy::too_many_arguments)]
-pub fn render_view_with(
+pub fn render_view_and_albedo(
     model: &Avatar,
     scene: &Scene,
     camera: usize,

@@ -533,7 +533,17 @@ pub fn score_view(
 ) -> ScoredView {
     // The image and its albedo from one trace of the field.
     let wants_albedo = view.albedo.is_some().then_some(albedo_scale);
-    let (image, albedo) = render_view_and_albedo(model, scene, view.camera, view.frame, crate::eval::VIEW_SAMPLING, device, lighting, wants_albedo);
+    let (image, albedo) = render_view_and_albedo(
+        model,
+        scene,
+        view.camera,
+        view.frame,
+        crate::eval::VIEW_SAMPLING,
+        device,
+        lighting,
+        wants_albedo,
+        crate::eval::Strata::Shortcuts,
+    );
     let scores = score(&image, &view.colour, view.mask.as_ref());
     let albedo = view.albedo.as_ref().zip(albedo).map(|(truth, albedo)| {
         let s = score(&albedo, truth, view.mask.as_ref());

@@ -95,7 +95,7 @@ fn render_parts(scene: &Scene, schedule: &Schedule, repeats: usize) -> Result<Ve
     let apart = start.elapsed().as_secs_f64() / repeats as f64 * 1e3;
     let start = Instant::now();
     for _ in 0..repeats {
-        render_view_and_albedo(&model, scene, view.camera, view.frame, VIEW_SAMPLING, &device, &sun, Some(scale));
+        render_view_and_albedo(&model, scene, view.camera, view.frame, VIEW_SAMPLING, &device, &sun, Some(scale), crate::eval::Strata::Shortcuts);
     }
     let together = start.elapsed().as_secs_f64() / repeats as f64 * 1e3;
     for (part, ms) in [("sun-lit image and its albedo, two renders", apart), ("sun-lit image and its albedo, one trace (as the evaluation does)", together)] {

@@ -4,7 +4,7 @@
 //! the evaluation's way, a batch of views one after another against several at once.
 
 use super::fit::peak_rss_mib;
-use crate::eval::{render_view, render_view_with, Lighting, Strata, VIEW_SAMPLING};
+use crate::eval::{render_view, render_view_and_albedo, Lighting, Strata, VIEW_SAMPLING};
 use crate::light::Light;
 use crate::plot::BarChart;
 use crate::train::{io, Backend, FitError};
@@ -83,7 +83,7 @@ pub fn render(run: &Path, out: &Path, quick: bool) -> Result<String, FitError> {
         [Strata::Traced, Strata::Shortcuts].map(|strata| {
             let start = std::time::Instant::now();
             strata_views.par_iter().for_each(|&(c, f)| {
-                render_view_with(&model, scene, c, f, VIEW_SAMPLING, &device, &fitted, Some(albedo_scale), strata);
+                render_view_and_albedo(&model, scene, c, f, VIEW_SAMPLING, &device, &fitted, Some(albedo_scale), strata);
             });
             start.elapsed().as_secs_f64() / strata_views.len().max(1) as f64
         })
