@@ -535,7 +535,7 @@ fn quadrant_interpolates(pixels: &[Traced], w: usize, h: usize, p: usize, offset
             return false;
         }
         let q = &pixels[j as usize * w + i as usize];
-        if q.coverage < 1.0 - 1.0 / 255.0 || !q.depth.is_finite() || q.raw.iter().any(|&a| !(a > SHADING_ALBEDO_FLOOR)) {
+        if q.coverage < 1.0 - 1.0 / 255.0 || !q.depth.is_finite() || !q.raw.iter().all(|&a| a > SHADING_ALBEDO_FLOOR) {
             return false;
         }
         depths.push(q.depth as f64);
