@@ -207,6 +207,31 @@ mod tests {
         let shift = moved.pose(&other)[on_b].mean - moved.pose(&pose)[on_b].mean;
         assert!(shift.length() > 0.1);
     }
+
+    #[test]
+    fn posed_values_are_the_posed_gaussians_off_the_graph() {
+        let skeleton = Skeleton { bones: vec![Bone { name: "a".into(), parent: None, length: 0.5 }, Bone { name: "b".into(), parent: Some(0), length: 0.4 }] };
+        let mut set = GaussianSet::along_bones(&skeleton, 2, 0.05, 10.0);
+        set.gaussians[1].rotation = DQuat::from_rotation_x(0.6).to_array();
+        let pose = Pose {
+            bone_to_world: vec![
+                glam::DMat4::from_rotation_translation(DQuat::from_rotation_y(0.8), DVec3::new(0.1, 1.0, -0.2)),
+                glam::DMat4::from_rotation_translation(DQuat::from_rotation_z(1.1), DVec3::new(0.3, 0.6, 0.1)),
+            ],
+        };
+        let device = burn::tensor::Device::flex().autodiff();
+        let params = GaussianParams::from_set(&set, 0.9, &device);
+        let pose = crate::skeleton::PoseTensors::new(&pose, &skeleton, &device);
+        let (tracked, values) = (params.posed(&pose), params.posed_values(&pose));
+        let flat = |t: burn::tensor::Tensor<3>| t.into_data().convert::<f32>().to_vec::<f32>().unwrap();
+        assert_eq!(flat(tracked.whiten.clone()), flat(values.whiten.clone()));
+        assert_eq!(flat(tracked.means.clone().unsqueeze()), flat(values.means.clone().unsqueeze()));
+        // The parameters get a gradient through the tracked means, none through the values
+        // (whose whitening would give the log scales one).
+        let grads = (tracked.means.sum() + values.whiten.sum() + values.amplitudes.sum()).backward();
+        assert!(params.means.val().grad(&grads).is_some());
+        assert!(params.log_scales.val().grad(&grads).is_none() && params.log_amplitudes.val().grad(&grads).is_none());
+    }
 }
 
 /// Learnable Gaussians (burn module): bone-local means `[G, 3]` in body units, quaternions
@@ -297,6 +322,24 @@ mod learnable {
 
         fn bone_index(&self, device: &Device) -> Tensor<1, Int> {
             Tensor::from_data(TensorData::new(self.bones.iter().map(|&b| b as i64).collect::<Vec<i64>>(), [self.len()]), device)
+        }
+
+        /// World-space Gaussians in a pose, as values off the autodiff graph: the parameters
+        /// read as fresh leaves, since posing them and detaching the result would leave the
+        /// posing's operations in their graph until some backward reached them.
+        pub fn posed_values(&self, pose: &PoseTensors) -> GaussianTensors {
+            fn leaf<const D: usize>(p: &Param<Tensor<D>>) -> Param<Tensor<D>> {
+                Param::from_tensor(p.val().without_autodiff().autodiff()).set_require_grad(false)
+            }
+            let values = Self {
+                means: leaf(&self.means),
+                rotations: leaf(&self.rotations),
+                log_scales: leaf(&self.log_scales),
+                log_amplitudes: leaf(&self.log_amplitudes),
+                bones: self.bones.clone(),
+                unit: self.unit,
+            };
+            values.posed(pose)
         }
 
         /// World-space Gaussians in a pose, differentiable in every parameter.

@@ -15,7 +15,6 @@ use crate::render::{box_bounds, ray_bounds, render, render_in_parts, sum_gradien
 use crate::scene::{Scene, Split};
 use crate::schedule::Schedule;
 use crate::shading::{FittedLight, LightKind};
-use crate::shadow::tensor::GaussianTensors;
 use burn::module::Module;
 use burn::optim::{AdamConfig, GradientsParams, ModuleOptimizer};
 use burn::tensor::{Device, Int, Tensor, TensorData};
@@ -562,11 +561,6 @@ fn keep_in_cone(mut light: FittedLight, axis: glam::DVec3, angle: f64, device: &
     let device = device.clone();
     light.vector = light.vector.map(|_| Tensor::from_data(TensorData::new(clamped.as_vec3().to_array().to_vec(), [3]), &device).require_grad());
     light
-}
-
-/// Gaussians detached from the graph, for the shadow pass (they learn only from their fit).
-fn detached(g: &GaussianTensors) -> GaussianTensors {
-    GaussianTensors { means: g.means.clone().detach(), whiten: g.whiten.clone().detach(), amplitudes: g.amplitudes.clone().detach() }
 }
 
 fn scalar(t: &Tensor<1>) -> f64 {
@@ -1181,13 +1175,23 @@ impl Trainer {
         // background say is only which side of half covered a pixel is (`losses::mask_area`).
         let silhouette = gather.as_ref().map(|_| Tensor::<1>::from_data(TensorData::new(silhouette, [pixels]), &device));
         let mask: Tensor<1> = Tensor::from_data(TensorData::new(masks, [pixels]), &device);
-        let posed = model.gaussians.posed(&pose);
+        // The Gaussians posed in the graph only when a loss reaches them: burn registers every
+        // operation on a parameter in the parameter's graph, and what no backward consumes stays
+        // there, swept at every backward (300 steps of an unused posing piled up 18,000 nodes
+        // and took 0.17 s a step to sweep).
+        let density = w("density") > 0.0 && self.schedule.density_points > 0;
+        let posed = density.then(|| model.gaussians.posed(&pose));
         let mut terms: Vec<(&str, f64, Tensor<1>)> = Vec::new();
         if w("rgb") > 0.0 {
             let colour = match &deferred.normal {
-                Some(normal) => {
-                    average(background(model.light_at(light_index).shade(deferred.albedo.clone(), deferred.surface.clone(), normal.clone(), &detached(&posed))))
-                }
+                // The shadows cast by the Gaussians' values: they learn only from their fit to
+                // the field's density.
+                Some(normal) => average(background(model.light_at(light_index).shade(
+                    deferred.albedo.clone(),
+                    deferred.surface.clone(),
+                    normal.clone(),
+                    &model.gaussians.posed_values(&pose),
+                ))),
                 None => albedo.clone(),
             };
             // The loss in the images' sRGB encoding when asked (`Schedule::rgb_space`): after
@@ -1215,12 +1219,12 @@ impl Trainer {
         if w("grey") > 0.0 {
             terms.push(("grey", w("grey"), crate::losses::grey(albedo, mask)));
         }
-        if w("density") > 0.0 && self.schedule.density_points > 0 {
+        if let Some(posed) = &posed {
             let idx = self.random_indices(self.schedule.density_points, rendered * s);
             let points = deferred.sample_points.clone().detach().select(0, idx.clone());
             // The Gaussians' amplitudes are optical density per body unit.
             let field_density = deferred.sample_density.clone().detach().select(0, idx) * model.light.unit;
-            let mixture = GaussianParams::mixture_density(&posed, points);
+            let mixture = GaussianParams::mixture_density(posed, points);
             terms.push(("density", w("density"), crate::losses::density(mixture, field_density)));
         }
         if w("sigma") > 0.0 {
