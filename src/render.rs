@@ -265,14 +265,14 @@ fn draw(rays: &RaySet, samples: &Samples, weights: &[f32], count: usize, jitter:
 /// Merges two sets of ascending distances per ray (`[R * na]` and `[R * nb]`), carrying a value
 /// per distance (the density) when given; each merged sample stands for the interval between
 /// the midpoints to its neighbours.
-fn merge(rays: &RaySet, a: &[f32], na: usize, b: &[f32], nb: usize, values: Option<(&[f32], &[f32])>) -> (Samples, Vec<f32>) {
+fn merge<V: Copy + Default>(rays: &RaySet, a: &[f32], na: usize, b: &[f32], nb: usize, values: Option<(&[V], &[V])>) -> (Samples, Vec<V>) {
     let r = rays.len();
     let n = r * (na + nb);
     let mut out = Samples { t: Vec::with_capacity(n), lo: Vec::with_capacity(n), delta: Vec::with_capacity(n) };
     let mut merged_values = Vec::with_capacity(if values.is_some() { n } else { 0 });
-    let mut merged: Vec<(f32, f32)> = Vec::with_capacity(na + nb);
+    let mut merged: Vec<(f32, V)> = Vec::with_capacity(na + nb);
     let mut t: Vec<f32> = Vec::with_capacity(na + nb);
-    let value = |v: Option<&[f32]>, k: usize| v.map_or(0.0, |v| v[k]);
+    let value = |v: Option<&[V]>, k: usize| v.map_or(V::default(), |v| v[k]);
     for i in 0..r {
         merged.clear();
         merged.extend((i * na..(i + 1) * na).map(|k| (a[k], value(values.map(|v| v.0), k))));
@@ -292,32 +292,38 @@ fn merge(rays: &RaySet, a: &[f32], na: usize, b: &[f32], nb: usize, values: Opti
     (out, merged_values)
 }
 
-/// The field's density at every sample of every ray (`[R * S]`), without gradients.
-fn densities(still: &AvatarField, pose: &PoseTensors, origins: &Tensor<2>, directions: &Tensor<2>, t: &[f32], r: usize) -> Vec<f32> {
+/// The field's density at every sample of every ray (`[R * S]`), without gradients, and the
+/// field's decoding of those points (row `k` is sample `k`), from which their albedo is read
+/// without looking them up again.
+fn densities(still: &AvatarField, pose: &PoseTensors, origins: &Tensor<2>, directions: &Tensor<2>, t: &[f32], r: usize) -> (Vec<f32>, Decoded) {
     let s = t.len() / r.max(1);
     let t = Tensor::<2>::from_data(TensorData::new(t.to_vec(), [r, s]), &origins.device());
     let points = sample_points(origins, directions, &t);
-    still.density(still.sdf(points, pose)).into_data().convert::<f32>().try_to_vec::<f32>().unwrap_or_else(|_| vec![0.0; r * s])
+    let decoded = still.decode(points, pose);
+    let density = still.density(decoded.sdf.clone()).into_data().convert::<f32>().try_to_vec::<f32>().unwrap_or_else(|_| vec![0.0; r * s]);
+    (density, decoded)
 }
 
 /// `densities` of the rays `rays` (indices) only, their distances `t` (`[R * S]`); the other
-/// rays' samples get density 0.
-fn densities_of(still: &AvatarField, pose: &PoseTensors, all: &RaySet, t: &[f32], r: usize, rays: &[usize], device: &Device) -> Vec<f32> {
+/// rays' samples get density 0. The decoding holds the evaluated samples only, ray by ray in
+/// the order of `rays` (none when `rays` is empty).
+fn densities_of(still: &AvatarField, pose: &PoseTensors, all: &RaySet, t: &[f32], r: usize, rays: &[usize], device: &Device) -> (Vec<f32>, Option<Decoded>) {
     let s = t.len() / r.max(1);
     let mut out = vec![0.0f32; r * s];
     if rays.is_empty() {
-        return out;
+        return (out, None);
     }
     let points: Vec<f32> = rays
         .iter()
         .flat_map(|&i| (i * s..(i + 1) * s).flat_map(move |k| (0..3).map(move |c| all.origins[3 * i + c] + all.directions[3 * i + c] * t[k])))
         .collect();
     let points = Tensor::<2>::from_data(TensorData::new(points, [rays.len() * s, 3]), device);
-    let values = still.density(still.sdf(points, pose)).into_data().convert::<f32>().try_to_vec::<f32>().unwrap_or_else(|_| vec![0.0; rays.len() * s]);
+    let decoded = still.decode(points, pose);
+    let values = still.density(decoded.sdf.clone()).into_data().convert::<f32>().try_to_vec::<f32>().unwrap_or_else(|_| vec![0.0; rays.len() * s]);
     for (j, &i) in rays.iter().enumerate() {
         out[i * s..(i + 1) * s].copy_from_slice(&values[j * s..(j + 1) * s]);
     }
-    out
+    (out, Some(decoded))
 }
 
 /// The optical depth `sigma delta` a view's ray must find at one of its coarse samples for its
@@ -459,14 +465,14 @@ fn locate(
     let (sc, sp, sf) = (sampling.coarse, sampling.probe, sampling.fine);
     let coarse = stratified(rays, sc, &jitter[..r * sc]);
     if sf == 0 && want == Want::Samples {
-        return Located { samples: coarse, density: Vec::new(), kept: None };
+        return Located { samples: coarse, density: Vec::new(), kept: None, decoding: None };
     }
     let still = field.valid();
     let (o, d) = (origins.clone().without_autodiff(), directions.clone().without_autodiff());
-    let coarse_density = densities(&still, pose, &o, &d, &coarse.t, r);
+    let (coarse_density, coarse_decoded) = densities(&still, pose, &o, &d, &coarse.t, r);
     if sf == 0 {
         let kept = (want == Want::Culled).then(|| culled(&coarse, &coarse_density, &transmittance_before(&coarse, &coarse_density, r)));
-        return Located { samples: coarse, density: coarse_density, kept };
+        return Located { samples: coarse, density: coarse_density, kept, decoding: None };
     }
     // A view's rays (nothing is differentiated) whose coarse samples found no optical depth
     // have no surface to refine: their probe and fine samples are not evaluated (density 0).
@@ -474,12 +480,15 @@ fn locate(
         .then(|| (0..r).filter(|&i| (i * sc..(i + 1) * sc).any(|k| coarse_density[k] * coarse.delta[k] >= EMPTY_OPTICAL_DEPTH)).collect());
     let evaluate = |t: &[f32]| match &found {
         Some(found) => densities_of(&still, pose, rays, t, r, found, &o.device()),
-        None => densities(&still, pose, &o, &d, t, r),
+        None => {
+            let (density, decoded) = densities(&still, pose, &o, &d, t, r);
+            (density, Some(decoded))
+        }
     };
     let (located, density) = if sp > 0 {
         let weights = host_weights(&coarse, &coarse_density, r);
         let probes = draw(rays, &coarse, &weights, sp, &jitter[r * sc..r * (sc + sp)]);
-        let probe_density = evaluate(&probes);
+        let (probe_density, _) = evaluate(&probes);
         merge(rays, &coarse.t, sc, &probes, sp, Some((&coarse_density, &probe_density)))
     } else {
         (coarse.clone(), coarse_density.clone())
@@ -488,11 +497,26 @@ fn locate(
     let fine = draw(rays, &located, &weights, sf, &jitter[r * (sc + sp)..r * (sc + sp + sf)]);
     match want {
         Want::Densities => {
-            let density = evaluate(&fine);
-            let (samples, density) = merge(rays, &coarse.t, sc, &fine, sf, Some((&coarse_density, &density)));
-            Located { samples, density, kept: None }
+            let (fine_density, fine_decoded) = evaluate(&fine);
+            // Each sample carries its density and its row among the decoded points: the
+            // coarse samples' rows first, then the fine samples' of the evaluated rays.
+            let mut evaluated = vec![None; r];
+            match &found {
+                Some(found) => found.iter().enumerate().for_each(|(j, &i)| evaluated[i] = Some(j)),
+                None => evaluated.iter_mut().enumerate().for_each(|(i, e)| *e = Some(i)),
+            }
+            let coarse_rows: Vec<(f32, u32)> = coarse_density.iter().enumerate().map(|(k, &v)| (v, k as u32)).collect();
+            let fine_rows: Vec<(f32, u32)> =
+                (0..r * sf).map(|k| (fine_density[k], evaluated[k / sf].map_or(NOT_DECODED, |j| (r * sc + j * sf + k % sf) as u32))).collect();
+            let (samples, merged) = merge(rays, &coarse.t, sc, &fine, sf, Some((&coarse_rows, &fine_rows)));
+            let decoded = match fine_decoded {
+                Some(fine) => Decoded::cat(vec![coarse_decoded, fine]),
+                None => coarse_decoded,
+            };
+            let decoding = SampleDecoding { decoded, rows: merged.iter().map(|m| m.1).collect() };
+            Located { samples, density: merged.iter().map(|m| m.0).collect(), kept: None, decoding: Some(decoding) }
         }
-        Want::Samples => Located { samples: merge(rays, &coarse.t, sc, &fine, sf, None).0, density: Vec::new(), kept: None },
+        Want::Samples => Located { samples: merge::<f32>(rays, &coarse.t, sc, &fine, sf, None).0, density: Vec::new(), kept: None, decoding: None },
         Want::Culled => {
             // Fine samples carry density +infinity: never culled, and left out of the optical
             // depth below, which is then the coarse samples' alone over their intervals among
@@ -503,9 +527,19 @@ fn locate(
             let coarse_only: Vec<f32> = density.iter().map(|&d| if d.is_finite() { d } else { 0.0 }).collect();
             let before = transmittance_before(&samples, &coarse_only, r);
             let kept = culled(&samples, &density, &before);
-            Located { samples, density, kept: Some(kept) }
+            Located { samples, density, kept: Some(kept), decoding: None }
         }
     }
+}
+
+/// The row of a sample whose point was not decoded (a fine sample of a ray found empty).
+const NOT_DECODED: u32 = u32::MAX;
+
+/// The field's decoding of a still pass's samples: `rows[k]` is merged sample `k`'s row in
+/// `decoded` (`NOT_DECODED` for none).
+struct SampleDecoding {
+    decoded: Decoded,
+    rows: Vec<u32>,
 }
 
 /// What `locate` returns besides the samples.
@@ -523,6 +557,8 @@ struct Located {
     density: Vec<f32>,
     /// `Want::Culled`: the merged samples the differentiable pass evaluates, ascending.
     kept: Option<Vec<usize>>,
+    /// `Want::Densities` with fine samples: the decoded points, for their albedo.
+    decoding: Option<SampleDecoding>,
 }
 
 /// The samples a culled pass keeps (`CULL_OPTICAL_DEPTH`, `CULL_TRANSMITTANCE`), from their
@@ -548,7 +584,7 @@ pub fn render_still(
     let start = std::time::Instant::now();
     let r = rays.len();
     let (origins, directions) = ray_tensors(rays, device);
-    let Located { samples, density, .. } = locate(field, pose, rays, &origins, &directions, sampling, jitter, Want::Densities);
+    let Located { samples, density, decoding, .. } = locate(field, pose, rays, &origins, &directions, sampling, jitter, Want::Densities);
     let located = start.elapsed().as_secs_f64();
     let s = sampling.total();
     let weights = host_weights(&samples, &density, r);
@@ -567,8 +603,15 @@ pub fn render_still(
     let rows: Vec<usize> = (0..r * s).filter(|&k| weights[k] >= sampling.albedo_floor).collect();
     let mut albedo = vec![0.0f32; 3 * r];
     if !rows.is_empty() {
-        let decoded = field.decode(points_at(rays, &samples.t, s, &rows, device), pose);
-        let values = field.albedo_at(&decoded, None).into_data().convert::<f32>().try_to_vec::<f32>().unwrap_or_default();
+        // Read off the points the search decoded; looked up again only if one of them was not.
+        let albedo_rows = match &decoding {
+            Some(d) if rows.iter().all(|&k| d.rows[k] != NOT_DECODED) => {
+                let index = Tensor::<1, Int>::from_data(TensorData::new(rows.iter().map(|&k| d.rows[k] as i64).collect::<Vec<i64>>(), [rows.len()]), device);
+                field.valid().albedo_at(&d.decoded, Some(index))
+            }
+            _ => field.albedo_at(&field.decode(points_at(rays, &samples.t, s, &rows, device), pose), None),
+        };
+        let values = albedo_rows.into_data().convert::<f32>().try_to_vec::<f32>().unwrap_or_default();
         for (j, &k) in rows.iter().enumerate() {
             for c in 0..3 {
                 albedo[3 * (k / s) + c] += weights[k] * values.get(3 * j + c).copied().unwrap_or(0.0);
@@ -617,7 +660,7 @@ pub fn render(
     let r = rays.len();
     let (origins, directions) = ray_tensors(rays, device);
     let want = if sampling.cull { Want::Culled } else { Want::Samples };
-    let Located { samples, density: searched, kept } = locate(field, pose, rays, &origins, &directions, sampling, jitter, want);
+    let Located { samples, density: searched, kept, .. } = locate(field, pose, rays, &origins, &directions, sampling, jitter, want);
     let located = start.elapsed().as_secs_f64();
     let s = sampling.total();
     let t = Tensor::<2>::from_data(TensorData::new(samples.t.clone(), [r, s]), device);

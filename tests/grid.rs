@@ -767,69 +767,73 @@ fn rays_through_the_body(s: &Setup, count: usize, stream: &mut Stream) -> umbra:
 fn a_still_render_is_the_training_render_without_its_gradients() {
     let s = setup();
     let device = Device::flex();
-    let mut separate = FieldConfig { albedo_layers: 2, ..s.config.clone() };
-    // The prior uncapped: the busy field's random residual on a capped prior leaves no empty
-    // space for rays to miss, and the comparison needs both.
-    let grid = separate.grid.as_mut().unwrap();
-    grid.root = grid.root.map(|r| RootSkinning { prior_capped: false, ..r });
-    let field = busy_field(&separate, &device, false);
-    let pose = PoseTensors::new(&s.pose, &s.character.skeleton, &device);
-    let mut stream = Stream::new(8, 1, 0);
-    let rays = rays_through_the_body(&s, 96, &mut stream);
-    for sampling in [
-        umbra::render::Sampling { coarse: 16, probe: 16, fine: 16, albedo_floor: umbra::render::ALBEDO_WEIGHT_FLOOR, cull: false },
-        umbra::render::Sampling { coarse: 24, probe: 0, fine: 0, albedo_floor: 0.0, cull: false },
-    ] {
-        let jitter: Vec<f32> = (0..rays.len() * sampling.draws()).map(|_| stream.uniform() as f32).collect();
-        let normals = Some(umbra::field::GRADIENT);
-        let trained = umbra::render::render(&field, &pose, &rays, sampling, &jitter, normals, &device);
-        let still = umbra::render::render_still(&field, &pose, &rays, sampling, &jitter, normals, &device);
-        let accumulation = values(trained.accumulation.clone());
-        assert!(
-            accumulation.iter().filter(|&&a| a > 0.5).count() > 10 && accumulation.iter().filter(|&&a| a < 0.5).count() > 10,
-            "rays both hit and miss: {accumulation:?}"
-        );
-        let close = |x: f32, y: f32| (x - y).abs() <= 1e-3 * (1.0 + x.abs());
-        let pairs = [
-            ("accumulation", accumulation, values(still.accumulation)),
-            ("depth", values(trained.depth), values(still.depth)),
-            ("albedo", values(trained.albedo), values(still.albedo)),
-            ("surface", values(trained.surface.clone()), values(still.surface)),
-        ];
-        for (what, a, b) in pairs {
-            assert_eq!(a.len(), b.len());
-            for (k, (x, y)) in a.iter().zip(&b).enumerate() {
-                assert!(close(*x, *y), "{what}[{k}] ({sampling:?}): training {x}, still {y}");
+    // The albedo from a decoder of its own and from the SDF's (its albedo read off the decoded
+    // points the search kept, or looked up again).
+    for albedo_layers in [2, 0] {
+        let mut config = FieldConfig { albedo_layers, ..s.config.clone() };
+        // The prior uncapped: the busy field's random residual on a capped prior leaves no empty
+        // space for rays to miss, and the comparison needs both.
+        let grid = config.grid.as_mut().unwrap();
+        grid.root = grid.root.map(|r| RootSkinning { prior_capped: false, ..r });
+        let field = busy_field(&config, &device, false);
+        let pose = PoseTensors::new(&s.pose, &s.character.skeleton, &device);
+        let mut stream = Stream::new(8, 1, 0);
+        let rays = rays_through_the_body(&s, 96, &mut stream);
+        for sampling in [
+            umbra::render::Sampling { coarse: 16, probe: 16, fine: 16, albedo_floor: umbra::render::ALBEDO_WEIGHT_FLOOR, cull: false },
+            umbra::render::Sampling { coarse: 24, probe: 0, fine: 0, albedo_floor: 0.0, cull: false },
+        ] {
+            let jitter: Vec<f32> = (0..rays.len() * sampling.draws()).map(|_| stream.uniform() as f32).collect();
+            let normals = Some(umbra::field::GRADIENT);
+            let trained = umbra::render::render(&field, &pose, &rays, sampling, &jitter, normals, &device);
+            let still = umbra::render::render_still(&field, &pose, &rays, sampling, &jitter, normals, &device);
+            let accumulation = values(trained.accumulation.clone());
+            assert!(
+                accumulation.iter().filter(|&&a| a > 0.5).count() > 10 && accumulation.iter().filter(|&&a| a < 0.5).count() > 10,
+                "rays both hit and miss: {accumulation:?}"
+            );
+            let close = |x: f32, y: f32| (x - y).abs() <= 1e-3 * (1.0 + x.abs());
+            let pairs = [
+                ("accumulation", accumulation, values(still.accumulation)),
+                ("depth", values(trained.depth), values(still.depth)),
+                ("albedo", values(trained.albedo), values(still.albedo)),
+                ("surface", values(trained.surface.clone()), values(still.surface)),
+            ];
+            for (what, a, b) in pairs {
+                assert_eq!(a.len(), b.len());
+                for (k, (x, y)) in a.iter().zip(&b).enumerate() {
+                    assert!(close(*x, *y), "{what}[{k}] ({sampling:?}): training {x}, still {y}");
+                }
             }
+            // Normals: the same SDF gradient at surface points that agree to rounding. A trilinear
+            // grid's gradient jumps across a cell's face, so where a surface point lies within
+            // rounding of one the two normals may be its two sides: then each must be the normal
+            // just before or just after the point along the ray, and such rays must be rare.
+            let (trained_normal, still_normal) = (values(trained.normal.unwrap()), values(still.normal.unwrap()));
+            let surface = values(trained.surface);
+            let mut on_a_face = 0;
+            for ray in 0..rays.len() {
+                let agree = |a: &[f32], b: &[f32]| (0..3).all(|c| close(a[3 * ray + c], b[3 * ray + c]));
+                if agree(&trained_normal, &still_normal) {
+                    continue;
+                }
+                let side = |step: f32| {
+                    let p: Vec<f32> = (0..3).map(|c| surface[3 * ray + c] + step * rays.directions[3 * ray + c]).collect();
+                    let g = values(field.sdf_gradient(Tensor::from_data(TensorData::new(p, [1, 3]), &device), &pose, umbra::field::GRADIENT));
+                    let norm = g.iter().map(|x| x * x).sum::<f32>().sqrt();
+                    let mut n = vec![0.0; 3 * rays.len()];
+                    n[3 * ray..3 * ray + 3].copy_from_slice(&[g[0] / norm, g[1] / norm, g[2] / norm]);
+                    n
+                };
+                let (before, after) = (side(-1e-5), side(1e-5));
+                assert!(!agree(&before, &after), "ray {ray} ({sampling:?}): normals differ where the gradient is continuous");
+                for (what, n) in [("training", &trained_normal), ("still", &still_normal)] {
+                    assert!(agree(n, &before) || agree(n, &after), "ray {ray} ({sampling:?}): the {what} normal is neither side's");
+                }
+                on_a_face += 1;
+            }
+            assert!(on_a_face <= 2, "{on_a_face} of {} rays' normals differ ({sampling:?})", rays.len());
         }
-        // Normals: the same SDF gradient at surface points that agree to rounding. A trilinear
-        // grid's gradient jumps across a cell's face, so where a surface point lies within
-        // rounding of one the two normals may be its two sides: then each must be the normal
-        // just before or just after the point along the ray, and such rays must be rare.
-        let (trained_normal, still_normal) = (values(trained.normal.unwrap()), values(still.normal.unwrap()));
-        let surface = values(trained.surface);
-        let mut on_a_face = 0;
-        for ray in 0..rays.len() {
-            let agree = |a: &[f32], b: &[f32]| (0..3).all(|c| close(a[3 * ray + c], b[3 * ray + c]));
-            if agree(&trained_normal, &still_normal) {
-                continue;
-            }
-            let side = |step: f32| {
-                let p: Vec<f32> = (0..3).map(|c| surface[3 * ray + c] + step * rays.directions[3 * ray + c]).collect();
-                let g = values(field.sdf_gradient(Tensor::from_data(TensorData::new(p, [1, 3]), &device), &pose, umbra::field::GRADIENT));
-                let norm = g.iter().map(|x| x * x).sum::<f32>().sqrt();
-                let mut n = vec![0.0; 3 * rays.len()];
-                n[3 * ray..3 * ray + 3].copy_from_slice(&[g[0] / norm, g[1] / norm, g[2] / norm]);
-                n
-            };
-            let (before, after) = (side(-1e-5), side(1e-5));
-            assert!(!agree(&before, &after), "ray {ray} ({sampling:?}): normals differ where the gradient is continuous");
-            for (what, n) in [("training", &trained_normal), ("still", &still_normal)] {
-                assert!(agree(n, &before) || agree(n, &after), "ray {ray} ({sampling:?}): the {what} normal is neither side's");
-            }
-            on_a_face += 1;
-        }
-        assert!(on_a_face <= 2, "{on_a_face} of {} rays' normals differ ({sampling:?})", rays.len());
     }
 }
 

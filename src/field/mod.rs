@@ -222,6 +222,19 @@ pub struct Decoded {
     shared: Tensor<2>,
 }
 
+impl Decoded {
+    /// Several batches' decodings as one, in order.
+    pub fn cat(parts: Vec<Decoded>) -> Decoded {
+        let (mut sdf, mut features, mut shared) = (Vec::new(), Vec::new(), Vec::new());
+        for part in parts {
+            sdf.push(part.sdf);
+            features.push(part.features);
+            shared.push(part.shared);
+        }
+        Decoded { sdf: Tensor::cat(sdf, 0), features: Tensor::cat(features, 0), shared: Tensor::cat(shared, 0) }
+    }
+}
+
 /// What the field says at a batch of points.
 pub struct FieldOutput {
     pub sdf: Tensor<1>,
