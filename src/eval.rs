@@ -17,7 +17,7 @@ use crate::shading::{shade_lambertian, Emitter, LightKind};
 use crate::shadow::PosedGaussian;
 use crate::skeleton::PoseTensors;
 use crate::train::{Avatar, FitError};
-use burn::tensor::{Device, Tensor, TensorData};
+use burn::tensor::{Device, Int, Tensor, TensorData};
 use glam::DVec3;
 use rayon::prelude::*;
 
@@ -318,7 +318,7 @@ pub fn render_view_and_albedo(
     // The colour `[N * 3]` of surface points of (premultiplied) fitted albedo `albedo` and unit
     // normals `normal` (when the light needs them) in the light asked for, each with its own
     // stream id for the sky's samples.
-    let shade = |albedo: Tensor<2>, surface: Tensor<2>, normal: Option<Tensor<2>>, ids: &[u64]| -> Vec<f32> {
+    let shade_all = |albedo: Tensor<2>, surface: Tensor<2>, normal: Option<Tensor<2>>, ids: &[u64]| -> Vec<f32> {
         match (lighting, normal) {
             (Lighting::Fitted(_), Some(normal)) => values(fitted.shade(albedo, surface, normal, &gaussians)),
             (Lighting::Albedo { albedo_scale }, _) => values(scaled(albedo, albedo_scale)),
@@ -337,6 +337,27 @@ pub fn render_view_and_albedo(
             },
             (_, _) => values(albedo),
         }
+    };
+    // Every light's colour is the albedo times the light it receives: a ray that carries no
+    // albedo (no sample of weight `albedo_floor` or more, `render_still`) is black under any
+    // light, so only the others are shaded (on a view, half its bounded rays miss the body).
+    let shade = |albedo: Tensor<2>, surface: Tensor<2>, normal: Option<Tensor<2>>, ids: &[u64]| -> Vec<f32> {
+        let raw = values(albedo.clone());
+        let lit: Vec<usize> = (0..ids.len()).filter(|&i| raw[3 * i..3 * i + 3].iter().any(|&a| a != 0.0)).collect();
+        if lit.len() == ids.len() {
+            return shade_all(albedo, surface, normal, ids);
+        }
+        let mut colour = vec![0.0f32; 3 * ids.len()];
+        if !lit.is_empty() {
+            let index = Tensor::<1, Int>::from_data(TensorData::new(lit.iter().map(|&i| i as i64).collect::<Vec<i64>>(), [lit.len()]), device);
+            let pick = |t: Tensor<2>| t.select(0, index.clone());
+            let lit_ids: Vec<u64> = lit.iter().map(|&i| ids[i]).collect();
+            let shaded = shade_all(pick(albedo), pick(surface), normal.map(pick), &lit_ids);
+            for (j, &i) in lit.iter().enumerate() {
+                colour[3 * i..3 * i + 3].copy_from_slice(shaded.get(3 * j..3 * j + 3).unwrap_or(&[f32::NAN; 3]));
+            }
+        }
+        colour
     };
     // The colour, albedo (when asked) and coverage of rays through continuous pixel
     // positions, each with its own stream id for the sky's samples.

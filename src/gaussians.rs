@@ -223,7 +223,7 @@ mod tests {
         let params = GaussianParams::from_set(&set, 0.9, &device);
         let pose = crate::skeleton::PoseTensors::new(&pose, &skeleton, &device);
         let (tracked, values) = (params.posed(&pose), params.posed_values(&pose));
-        let flat = |t: burn::tensor::Tensor<3>| t.into_data().convert::<f32>().to_vec::<f32>().unwrap();
+        let flat = |t: burn::tensor::Tensor<3>| t.into_data().convert::<f32>().try_to_vec::<f32>().unwrap();
         assert_eq!(flat(tracked.whiten.clone()), flat(values.whiten.clone()));
         assert_eq!(flat(tracked.means.clone().unsqueeze()), flat(values.means.clone().unsqueeze()));
         // The parameters get a gradient through the tracked means, none through the values

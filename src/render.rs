@@ -621,11 +621,28 @@ pub fn render_still(
     let forward = start.elapsed().as_secs_f64();
     let tensor1 = |v: Vec<f32>| Tensor::<1>::from_data(TensorData::new(v, [r]), device);
     let tensor2 = |v: Vec<f32>, width: usize| Tensor::<2>::from_data(TensorData::new(v, [r, width]), device);
-    let surface = tensor2(surface, 3);
+    // A normal where the ray carries albedo: elsewhere (no sample of weight `albedo_floor` or
+    // more) the albedo is zero, so is its shaded colour whatever the normal, and the ray's
+    // reverse direction stands in for it.
+    let mut has_albedo = vec![false; r];
+    rows.iter().for_each(|&k| has_albedo[k / s] = true);
+    let carried: Vec<usize> = (0..r).filter(|&i| has_albedo[i]).collect();
     let normal = normals.map(|method| {
-        let gradient = field.sdf_gradient(surface.clone(), pose, method);
-        unit_rows(gradient)
+        if carried.len() == r {
+            return unit_rows(field.sdf_gradient(tensor2(surface.clone(), 3), pose, method));
+        }
+        let mut normal: Vec<f32> = rays.directions.iter().map(|d| -d).collect();
+        if !carried.is_empty() {
+            let points: Vec<f32> = carried.iter().flat_map(|&i| surface[3 * i..3 * i + 3].to_vec()).collect();
+            let points = Tensor::<2>::from_data(TensorData::new(points, [carried.len(), 3]), device);
+            let unit = unit_rows(field.sdf_gradient(points, pose, method)).into_data().convert::<f32>().try_to_vec::<f32>().unwrap_or_default();
+            for (j, &i) in carried.iter().enumerate() {
+                normal[3 * i..3 * i + 3].copy_from_slice(unit.get(3 * j..3 * j + 3).unwrap_or(&[f32::NAN; 3]));
+            }
+        }
+        tensor2(normal, 3)
     });
+    let surface = tensor2(surface, 3);
     let t = Tensor::<2>::from_data(TensorData::new(samples.t, [r, s]), device);
     let seconds = [located, forward - located, start.elapsed().as_secs_f64() - forward];
     Deferred {
@@ -885,7 +902,7 @@ mod tests {
         let fine_probed = draw(&rays, &probed, &host_weights(&probed, &merged_density, 1), 16, &[0.5; 16]);
         let near = |draws: &[f32]| draws.iter().filter(|&&t| (t - 2.05).abs() < 0.02).count();
         assert!(near(&fine_probed) >= 12 && near(&fine_probed) > 3 * near(&fine_coarse), "{} vs {}", near(&fine_probed), near(&fine_coarse));
-        let (fine, _) = merge(&rays, &coarse.t, 8, &fine_probed, 16, None);
+        let (fine, _) = merge::<f32>(&rays, &coarse.t, 8, &fine_probed, 16, None);
         assert_eq!(fine.t.len(), 24, "the rendered set holds the coarse samples and the fine draws");
     }
 
