@@ -469,7 +469,14 @@ fn locate(
     }
     let still = field.valid();
     let (o, d) = (origins.clone().without_autodiff(), directions.clone().without_autodiff());
-    let (coarse_density, coarse_decoded) = densities(&still, pose, &o, &d, &coarse.t, r);
+    // A view's coarse pass (nothing differentiated, probes and fine samples to follow) skips
+    // what the SDF shows to be empty (`coarse_densities`); training's evaluates every sample.
+    let (coarse_density, coarse_decoded, coarse_row) = if want == Want::Densities && sf > 0 {
+        coarse_densities(&still, pose, rays, &coarse, sc, &o.device())
+    } else {
+        let (density, decoded) = densities(&still, pose, &o, &d, &coarse.t, r);
+        (density, decoded, (0..(r * sc) as u32).collect())
+    };
     if sf == 0 {
         let kept = (want == Want::Culled).then(|| culled(&coarse, &coarse_density, &transmittance_before(&coarse, &coarse_density, r)));
         return Located { samples: coarse, density: coarse_density, kept, decoding: None };
@@ -505,9 +512,10 @@ fn locate(
                 Some(found) => found.iter().enumerate().for_each(|(j, &i)| evaluated[i] = Some(j)),
                 None => evaluated.iter_mut().enumerate().for_each(|(i, e)| *e = Some(i)),
             }
-            let coarse_rows: Vec<(f32, u32)> = coarse_density.iter().enumerate().map(|(k, &v)| (v, k as u32)).collect();
+            let decoded_coarse = coarse_decoded.sdf.dims()[0];
+            let coarse_rows: Vec<(f32, u32)> = coarse_density.iter().zip(&coarse_row).map(|(&v, &row)| (v, row)).collect();
             let fine_rows: Vec<(f32, u32)> =
-                (0..r * sf).map(|k| (fine_density[k], evaluated[k / sf].map_or(NOT_DECODED, |j| (r * sc + j * sf + k % sf) as u32))).collect();
+                (0..r * sf).map(|k| (fine_density[k], evaluated[k / sf].map_or(NOT_DECODED, |j| (decoded_coarse + j * sf + k % sf) as u32))).collect();
             let (samples, merged) = merge(rays, &coarse.t, sc, &fine, sf, Some((&coarse_rows, &fine_rows)));
             let decoded = match fine_decoded {
                 Some(fine) => Decoded::cat(vec![coarse_decoded, fine]),
@@ -530,6 +538,68 @@ fn locate(
             Located { samples, density, kept: Some(kept), decoding: None }
         }
     }
+}
+
+/// How steep the fitted SDF may be between two coarse samples for `coarse_densities` to take
+/// its value at one as a bound at the next (an exact SDF's gradient has length 1; the Eikonal
+/// loss holds the fitted one near it).
+const SDF_SLOPE_BOUND: f32 = 2.0;
+
+/// The coarse pass of a view's rays in two rounds. First every other sample: a ray whose
+/// samples there show no optical depth, and whose SDF there keeps every sample between them
+/// outside the body (its value minus `SDF_SLOPE_BOUND` times the distance to the skipped
+/// sample) with an optical depth under a thousandth of `EMPTY_OPTICAL_DEPTH`, is empty: its
+/// other samples are not evaluated (density 0), and it is left alone as a ray found empty is.
+/// Every other ray's remaining samples are evaluated in the second round, so its densities are
+/// those of one pass. Returns the densities (`[R * S]`), the decoded points and each sample's
+/// row among them (`NOT_DECODED` for a skipped one).
+fn coarse_densities(still: &AvatarField, pose: &PoseTensors, rays: &RaySet, coarse: &Samples, s: usize, device: &Device) -> (Vec<f32>, Decoded, Vec<u32>) {
+    let r = rays.len();
+    let t = &coarse.t;
+    let decode = |samples: &[usize]| {
+        let points: Vec<f32> =
+            samples.iter().flat_map(|&k| (0..3).map(move |c| rays.origins[3 * (k / s) + c] + rays.directions[3 * (k / s) + c] * t[k])).collect();
+        let decoded = still.decode(Tensor::<2>::from_data(TensorData::new(points, [samples.len(), 3]), device), pose);
+        let host = |v: Tensor<1>| v.into_data().convert::<f32>().try_to_vec::<f32>().unwrap_or_else(|_| vec![f32::NAN; samples.len()]);
+        let (sdf, density) = (host(decoded.sdf.clone()), host(still.density(decoded.sdf.clone())));
+        (decoded, sdf, density)
+    };
+    let mut density = vec![0.0f32; r * s];
+    let mut row = vec![NOT_DECODED; r * s];
+    let first: Vec<usize> = (0..r * s).filter(|k| (k % s) % 2 == 0).collect();
+    let (decoded, sdf, first_density) = decode(&first);
+    let mut value = vec![f32::NAN; r * s];
+    for (j, &k) in first.iter().enumerate() {
+        (density[k], value[k], row[k]) = (first_density[j], sdf[j], j as u32);
+    }
+    let beta = still.beta().into_data().convert::<f32>().try_to_vec::<f32>().ok().and_then(|b| b.first().copied()).unwrap_or(f32::NAN);
+    // The most a skipped sample's optical depth can be, from a neighbour's SDF value `v` at
+    // distance `gap` (VolSDF: density exp(-sdf / beta) / (2 beta) outside the body).
+    let bound = |v: f32, gap: f32, delta: f32| {
+        let outside = v - SDF_SLOPE_BOUND * gap;
+        if outside > 0.0 {
+            delta * (-outside / beta).exp() * 0.5 / beta
+        } else {
+            f32::INFINITY
+        }
+    };
+    let empty = |i: usize| {
+        (i * s..(i + 1) * s).all(|k| match (k % s) % 2 {
+            0 => density[k] * coarse.delta[k] < EMPTY_OPTICAL_DEPTH,
+            _ => {
+                [k - 1, k + 1].iter().filter(|&&n| n < (i + 1) * s).all(|&n| bound(value[n], (t[k] - t[n]).abs(), coarse.delta[k]) < EMPTY_OPTICAL_DEPTH * 1e-3)
+            }
+        })
+    };
+    let second: Vec<usize> = (0..r).filter(|&i| !empty(i)).flat_map(|i| (i * s..(i + 1) * s).filter(|k| (k % s) % 2 == 1)).collect();
+    if second.is_empty() {
+        return (density, decoded, row);
+    }
+    let (more, _, second_density) = decode(&second);
+    for (j, &k) in second.iter().enumerate() {
+        (density[k], row[k]) = (second_density[j], (first.len() + j) as u32);
+    }
+    (density, Decoded::cat(vec![decoded, more]), row)
 }
 
 /// The row of a sample whose point was not decoded (a fine sample of a ray found empty).
@@ -855,6 +925,52 @@ mod tests {
         assert!(box_bounds(DVec3::new(0.0, 1.0, -5.0), DVec3::new(1.0, 0.0, 0.3).normalize(), lo, hi).is_none());
         // Exactly on a face's plane, parallel to it: the slab's arithmetic gives NaN; still in.
         assert!(box_bounds(DVec3::new(1.0, 1.0, -5.0), DVec3::Z, lo, hi).is_some());
+    }
+
+    #[test]
+    fn a_views_coarse_pass_skips_only_samples_the_sdf_shows_empty() {
+        use crate::skeleton::{Bone, Pose, Skeleton};
+        use glam::{DMat4, DQuat};
+        let skeleton =
+            Skeleton { bones: vec![Bone { name: "spine".into(), parent: None, length: 0.5 }, Bone { name: "arm".into(), parent: Some(0), length: 0.3 }] };
+        let pose = Pose { bone_to_world: vec![DMat4::IDENTITY, DMat4::from_rotation_translation(DQuat::from_rotation_z(1.2), DVec3::new(0.0, 0.4, 0.0))] };
+        let device = Device::flex();
+        let mut field = crate::field::FieldConfig::with_grid(vec![0.5, 0.3], 1.0).init(&device, 3);
+        // A fitted field's sharp surface (beta at its floor), not a fresh field's haze.
+        field.beta_raw = burn::module::Param::from_tensor(Tensor::from_data(TensorData::new(vec![-1e3f32], [1]), &device));
+        let tensors = PoseTensors::new(&pose, &skeleton, &device);
+        // Rays from 2 m away toward a lattice around the bones: through the body and beside it.
+        let eye = DVec3::new(0.1, 0.3, 2.0);
+        let mut rays = RaySet::default();
+        // Each ray four times, its bounds shifted by a quarter of a sample's spacing each time, so
+        // that some rays cross the body between two samples of the first round.
+        for k in 0..256 {
+            let target = DVec3::new(-0.5 + (k % 8) as f64 / 7.0, -0.2 + (k / 8 % 8) as f64 / 7.0, 0.0);
+            let shift = (k / 64) as f64 * 0.02;
+            rays.push(eye, (target - eye).normalize(), Some((1.0 + shift, 3.0 + shift)));
+        }
+        let (r, s) = (rays.len(), 24);
+        let coarse = stratified(&rays, s, &vec![0.5; r * s]);
+        let (density, decoded, row) = coarse_densities(&field, &tensors, &rays, &coarse, s, &device);
+        let (origins, directions) = ray_tensors(&rays, &device);
+        let (full, _) = densities(&field, &tensors, &origins, &directions, &coarse.t, r);
+        let (mut skipped, mut kept) = (0, 0);
+        for i in 0..r {
+            let samples = i * s..(i + 1) * s;
+            if samples.clone().any(|k| row[k] == NOT_DECODED) {
+                // Skipped: every other sample, and the whole ray is empty in one full pass.
+                skipped += 1;
+                assert!(samples.clone().all(|k| ((k % s) % 2 == 1) == (row[k] == NOT_DECODED)), "ray {i}");
+                assert!(samples.clone().all(|k| full[k] * coarse.delta[k] < EMPTY_OPTICAL_DEPTH), "ray {i} skipped, not empty");
+            } else {
+                kept += 1;
+                for k in samples {
+                    assert!((density[k] - full[k]).abs() <= 1e-5 * full[k].abs().max(1e-3), "sample {k}: {} against {}", density[k], full[k]);
+                }
+            }
+        }
+        assert!(skipped > 0 && kept > 0, "{skipped} rays skipped, {kept} kept");
+        assert_eq!(decoded.sdf.dims()[0], row.iter().filter(|&&k| k != NOT_DECODED).count());
     }
 
     fn one_ray(near: f32, far: f32) -> RaySet {
