@@ -1177,8 +1177,8 @@ impl Trainer {
         let mask: Tensor<1> = Tensor::from_data(TensorData::new(masks, [pixels]), &device);
         // The Gaussians posed in the graph only when a loss reaches them: burn registers every
         // operation on a parameter in the parameter's graph, and what no backward consumes stays
-        // there, swept at every backward (300 steps of an unused posing piled up 18,000 nodes
-        // and took 0.17 s a step to sweep).
+        // there, swept at every backward: 300 steps of an unused posing piled up 18,000 nodes,
+        // and the first stage's steps took up to twice as long.
         let density = w("density") > 0.0 && self.schedule.density_points > 0;
         let posed = density.then(|| model.gaussians.posed(&pose));
         let mut terms: Vec<(&str, f64, Tensor<1>)> = Vec::new();
