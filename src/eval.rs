@@ -341,8 +341,8 @@ pub fn render_view_and_albedo(
     // Every light's colour is the albedo times the light it receives: a ray that carries no
     // albedo (no sample of weight `albedo_floor` or more, `render_still`) is black under any
     // light, so only the others are shaded (on a view, half its bounded rays miss the body).
-    let shade = |albedo: Tensor<2>, surface: Tensor<2>, normal: Option<Tensor<2>>, ids: &[u64]| -> Vec<f32> {
-        let raw = values(albedo.clone());
+    // `raw`: the albedo's values, `[N * 3]`.
+    let shade = |albedo: Tensor<2>, raw: &[f32], surface: Tensor<2>, normal: Option<Tensor<2>>, ids: &[u64]| -> Vec<f32> {
         let lit: Vec<usize> = (0..ids.len()).filter(|&i| raw[3 * i..3 * i + 3].iter().any(|&a| a != 0.0)).collect();
         if lit.len() == ids.len() {
             return shade_all(albedo, surface, normal, ids);
@@ -379,11 +379,11 @@ pub fn render_view_and_albedo(
                 };
                 let hit: Vec<usize> = hit.into_iter().map(|k| first + k).collect();
                 let ids: Vec<u64> = hit.iter().map(|&k| targets[k].1).collect();
-                let colour = shade(deferred.albedo.clone(), deferred.surface.clone(), deferred.normal.clone(), &ids);
+                let raw = values(deferred.albedo.clone());
+                let colour = shade(deferred.albedo.clone(), &raw, deferred.surface.clone(), deferred.normal.clone(), &ids);
                 let coverage = values(deferred.accumulation.clone());
                 let depth = values(deferred.depth.clone());
                 let albedo = albedo_scale.as_ref().map(|scale| values(scaled(deferred.albedo.clone(), scale)));
-                let raw = values(deferred.albedo.clone());
                 for (j, &k) in hit.iter().enumerate() {
                     let albedo = albedo.as_ref().map_or([0.0; 3], |a| [a[j * 3], a[j * 3 + 1], a[j * 3 + 2]]);
                     let three = |v: &[f32]| [v[j * 3], v[j * 3 + 1], v[j * 3 + 2]];

@@ -313,12 +313,8 @@ fn densities_of(still: &AvatarField, pose: &PoseTensors, all: &RaySet, t: &[f32]
     if rays.is_empty() {
         return (out, None);
     }
-    let points: Vec<f32> = rays
-        .iter()
-        .flat_map(|&i| (i * s..(i + 1) * s).flat_map(move |k| (0..3).map(move |c| all.origins[3 * i + c] + all.directions[3 * i + c] * t[k])))
-        .collect();
-    let points = Tensor::<2>::from_data(TensorData::new(points, [rays.len() * s, 3]), device);
-    let decoded = still.decode(points, pose);
+    let samples: Vec<usize> = rays.iter().flat_map(|&i| i * s..(i + 1) * s).collect();
+    let decoded = still.decode(points_at(all, t, s, &samples, device), pose);
     let values = still.density(decoded.sdf.clone()).into_data().convert::<f32>().try_to_vec::<f32>().unwrap_or_else(|_| vec![0.0; rays.len() * s]);
     for (j, &i) in rays.iter().enumerate() {
         out[i * s..(i + 1) * s].copy_from_slice(&values[j * s..(j + 1) * s]);
@@ -557,9 +553,7 @@ fn coarse_densities(still: &AvatarField, pose: &PoseTensors, rays: &RaySet, coar
     let r = rays.len();
     let t = &coarse.t;
     let decode = |samples: &[usize]| {
-        let points: Vec<f32> =
-            samples.iter().flat_map(|&k| (0..3).map(move |c| rays.origins[3 * (k / s) + c] + rays.directions[3 * (k / s) + c] * t[k])).collect();
-        let decoded = still.decode(Tensor::<2>::from_data(TensorData::new(points, [samples.len(), 3]), device), pose);
+        let decoded = still.decode(points_at(rays, t, s, samples, device), pose);
         let host = |v: Tensor<1>| v.into_data().convert::<f32>().try_to_vec::<f32>().unwrap_or_else(|_| vec![f32::NAN; samples.len()]);
         let (sdf, density) = (host(decoded.sdf.clone()), host(still.density(decoded.sdf.clone())));
         (decoded, sdf, density)
