@@ -376,12 +376,9 @@ pub fn evaluate_split(trainer: &Trainer, dir: &Path, split: Split, on: &mut impl
         false => Lighting::Fitted(kinds.training_light(view)),
         true => Lighting::Known { light: &scene.lights[&view.light], albedo_scale, samples: SKY_SAMPLES },
     };
-    let at_once = rayon::current_num_threads().max(1);
-    let rendered = tests.chunks(at_once).flat_map(|batch| {
-        use rayon::prelude::*;
-        batch.par_iter().map(|view| score_view(&model, scene, view, &lighting_of(view), albedo_scale, &device)).collect::<Vec<_>>()
-    });
-    for ((done, view), scored) in tests.iter().enumerate().zip(rendered) {
+    let render = |k: usize| score_view(&model, scene, tests[k], &lighting_of(tests[k]), albedo_scale, &device);
+    in_order_while_rendering(tests.len(), render, |done, scored| {
+        let view = tests[done];
         let TestKind { novel_pose, novel_view, relit, group } = kinds.of(view);
         let name = render_name(scene, view);
         save_png(&dir.join(&name), &scored.image)?;
@@ -403,7 +400,8 @@ pub fn evaluate_split(trainer: &Trainer, dir: &Path, split: Split, on: &mut impl
         let (scores, albedo) = (scored.scores, scored.albedo.map(|a| a.1));
         on(TrainMessage::Rendered { done: done + 1, total: tests.len(), name: name.clone(), psnr: Some(scores.psnr) });
         rows.push(ImageScore { image: name, light: view.light.clone(), group, scores, albedo, relit_scaled, albedo_scaled, novel_pose, novel_view, relit });
-    }
+        Ok::<(), FitError>(())
+    })?;
     let cells: Vec<Vec<&RgbImage>> = compare.iter().map(|row| row.iter().collect()).collect();
     save_png(&dir.join("compare.png"), &RgbImage::tiled(&cells))?;
     let groups = group_means(&rows);
@@ -449,6 +447,43 @@ pub fn evaluate_split(trainer: &Trainer, dir: &Path, split: Split, on: &mut impl
     let evaluation = serde_json::Value::Object(evaluation);
     write_text(&dir.join("metrics.json"), &serde_json::to_string_pretty(&evaluation).unwrap_or_default())?;
     Ok(evaluation)
+}
+
+/// Renders items `0..count` on rayon's threads in about their order (`par_bridge` hands each
+/// free thread the next) while this thread `take`s each result in order, as soon as it and
+/// every earlier one are done: writing and scoring one view overlaps rendering the next, and no
+/// thread waits for a batch's slowest view (each view's samples are seeded by its own camera and
+/// frame, so the results do not depend on the order). After `take` fails, items not yet started
+/// are skipped and its error returned.
+fn in_order_while_rendering<T: Send, E>(count: usize, render: impl Fn(usize) -> T + Sync, mut take: impl FnMut(usize, T) -> Result<(), E>) -> Result<(), E> {
+    use rayon::prelude::*;
+    use std::sync::atomic::{AtomicBool, Ordering};
+    let (sender, receiver) = std::sync::mpsc::channel();
+    let failed = AtomicBool::new(false);
+    std::thread::scope(|scope| {
+        scope.spawn(|| {
+            (0..count).par_bridge().for_each_with(sender, |sender, k| {
+                if !failed.load(Ordering::Relaxed) {
+                    // The receiver lives until every sender is gone.
+                    let _ = sender.send((k, render(k)));
+                }
+            })
+        });
+        let mut waiting = BTreeMap::new();
+        let mut next = 0;
+        let mut outcome = Ok(());
+        for (k, value) in receiver {
+            waiting.insert(k, value);
+            while let Some(value) = waiting.remove(&next) {
+                if outcome.is_ok() {
+                    outcome = take(next, value);
+                    failed.store(outcome.is_err(), Ordering::Relaxed);
+                }
+                next += 1;
+            }
+        }
+        outcome
+    })
 }
 
 /// Samples per surface for the geometry error.
@@ -659,5 +694,49 @@ pub fn light_error(trainer: &Trainer, k: usize, light: &serde_json::Value) -> se
             None => json!(null),
         },
         _ => json!(null),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::in_order_while_rendering;
+    use std::sync::atomic::{AtomicUsize, Ordering};
+
+    #[test]
+    fn results_are_taken_in_order_however_the_renders_finish() {
+        // Early items take longest, so later ones finish first on the other thread.
+        let render = |k: usize| {
+            std::thread::sleep(std::time::Duration::from_millis(((40 - k) % 7) as u64));
+            k * k
+        };
+        let mut taken = Vec::new();
+        let outcome: Result<(), ()> = in_order_while_rendering(40, render, |k, value| {
+            taken.push((k, value));
+            Ok(())
+        });
+        assert_eq!(outcome, Ok(()));
+        assert_eq!(taken, (0..40).map(|k| (k, k * k)).collect::<Vec<_>>());
+    }
+
+    #[test]
+    fn a_failed_take_stops_the_rest_and_is_returned() {
+        let started = AtomicUsize::new(0);
+        let render = |k: usize| {
+            started.fetch_add(1, Ordering::Relaxed);
+            std::thread::sleep(std::time::Duration::from_millis(5));
+            k
+        };
+        let mut taken = Vec::new();
+        let outcome = in_order_while_rendering(200, render, |k, _| {
+            taken.push(k);
+            if k == 3 {
+                Err(format!("item {k}"))
+            } else {
+                Ok(())
+            }
+        });
+        assert_eq!(outcome, Err("item 3".to_string()));
+        assert_eq!(taken, vec![0, 1, 2, 3], "nothing is taken after the failure");
+        assert!(started.load(Ordering::Relaxed) < 200, "items not yet started are skipped");
     }
 }
