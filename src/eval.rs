@@ -17,7 +17,7 @@ use crate::shading::{shade_lambertian, Emitter, LightKind};
 use crate::shadow::PosedGaussian;
 use crate::skeleton::PoseTensors;
 use crate::train::{Avatar, FitError};
-use burn::tensor::{Device, Int, Tensor, TensorData};
+use burn::tensor::{Device, Tensor, TensorData};
 use glam::DVec3;
 use rayon::prelude::*;
 
@@ -349,7 +349,7 @@ pub fn render_view_and_albedo(
         }
         let mut colour = vec![0.0f32; 3 * ids.len()];
         if !lit.is_empty() {
-            let index = Tensor::<1, Int>::from_data(TensorData::new(lit.iter().map(|&i| i as i64).collect::<Vec<i64>>(), [lit.len()]), device);
+            let index = crate::render::row_index(lit.iter().copied(), device);
             let pick = |t: Tensor<2>| t.select(0, index.clone());
             let lit_ids: Vec<u64> = lit.iter().map(|&i| ids[i]).collect();
             let shaded = shade_all(pick(albedo), pick(surface), normal.map(pick), &lit_ids);

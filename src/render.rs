@@ -404,7 +404,7 @@ pub fn composite_albedo(field: &AvatarField, decoded: &Decoded, weights: &Tensor
     if rows.is_empty() {
         return Tensor::zeros([r, 3], &device);
     }
-    let picked = Tensor::<1, Int>::from_data(TensorData::new(rows.iter().map(|&k| k as i64).collect::<Vec<_>>(), [rows.len()]), &device);
+    let picked = row_index(rows.iter().copied(), &device);
     weighted_per_ray(field.albedo_at(decoded, Some(picked)), weights, &rows)
 }
 
@@ -596,6 +596,12 @@ fn coarse_densities(still: &AvatarField, pose: &PoseTensors, rays: &RaySet, coar
     (density, Decoded::cat(vec![decoded, more]), row)
 }
 
+/// Rows `rows` as an index tensor, for `select` and `select_assign`.
+pub fn row_index(rows: impl ExactSizeIterator<Item = usize>, device: &Device) -> Tensor<1, Int> {
+    let n = rows.len();
+    Tensor::<1, Int>::from_data(TensorData::new(rows.map(|k| k as i64).collect::<Vec<i64>>(), [n]), device)
+}
+
 /// The row of a sample whose point was not decoded (a fine sample of a ray found empty).
 const NOT_DECODED: u32 = u32::MAX;
 
@@ -670,8 +676,7 @@ pub fn render_still(
         // Read off the points the search decoded; looked up again only if one of them was not.
         let albedo_rows = match &decoding {
             Some(d) if rows.iter().all(|&k| d.rows[k] != NOT_DECODED) => {
-                let index = Tensor::<1, Int>::from_data(TensorData::new(rows.iter().map(|&k| d.rows[k] as i64).collect::<Vec<i64>>(), [rows.len()]), device);
-                field.valid().albedo_at(&d.decoded, Some(index))
+                field.valid().albedo_at(&d.decoded, Some(row_index(rows.iter().map(|&k| d.rows[k] as usize), device)))
             }
             _ => field.albedo_at(&field.decode(points_at(rays, &samples.t, s, &rows, device), pose), None),
         };
@@ -797,7 +802,7 @@ fn culled_pass(
         return (Tensor::zeros([r, s], device), Tensor::zeros([r, 3], device), Tensor::zeros([r * s], device));
     }
     let decoded = field.decode(points_at(rays, t, s, kept, device), pose);
-    let rows = Tensor::<1, Int>::from_data(TensorData::new(kept.iter().map(|&j| j as i64).collect::<Vec<_>>(), [kept.len()]), device);
+    let rows = row_index(kept.iter().copied(), device);
     let density = Tensor::<1>::zeros([r * s], device).select_assign(0, rows, field.density(decoded.sdf.clone()), IndexingUpdateOp::Add);
     let weights = compositing_weights(density.clone().reshape([r, s]), delta);
     let albedo = weighted_per_ray(field.albedo_at(&decoded, None), &weights, kept);
