@@ -308,12 +308,40 @@ pub fn fit(options: &FitOptions, mut on: impl FnMut(TrainMessage)) -> Result<ser
         "light_errors_against_scene": by_name(errors),
         "sun_search": searches.first().cloned().unwrap_or(json!(null)),
         "light_searches": by_name(searches),
+        "light_path": light_path(&trainer, &history),
         "capture": capture,
         "field": field_report(&trainer),
     });
     write_text(&out.join("fit.json"), &serde_json::to_string_pretty(&report).unwrap_or_default())?;
     on(TrainMessage::Done);
     Ok(report)
+}
+
+/// Points of `light_path` over a whole fit (about).
+const LIGHT_PATH_POINTS: usize = 50;
+
+/// The first training light about `LIGHT_PATH_POINTS` times over the fit and after its last step (a
+/// sun's direction or a point light's position, with its error against the scene's light when
+/// the scene states it): where the light went, e.g. whether it settled or passed the truth on
+/// its way to a biased rest. Empty when no light is fitted.
+fn light_path(trainer: &Trainer, history: &[(usize, StepStats)]) -> serde_json::Value {
+    let key = if trainer.light_kind == LightKind::Point { "position" } else { "direction" };
+    let last = history.last().map(|(it, _)| *it);
+    let every = (trainer.schedule.iterations / LIGHT_PATH_POINTS).max(1);
+    let points: Vec<serde_json::Value> = history
+        .iter()
+        .filter(|(it, _)| (it + 1) % every == 0 || Some(*it) == last)
+        .filter_map(|(it, stats)| {
+            let location = json!({ key: stats.light? });
+            let mut point = json!({"after_iteration": it + 1, key: location[key]});
+            let error = light_error(trainer, 0, &location);
+            if !error.is_null() {
+                point["error_against_scene"] = error;
+            }
+            Some(point)
+        })
+        .collect();
+    json!(points)
 }
 
 /// The fitted field's kind and its VolSDF beta (m): how sharp its surface ended.

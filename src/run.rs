@@ -341,11 +341,16 @@ pub fn albedo_scale(scene: &Scene, model: &Avatar) -> glam::DVec3 {
     scene.training_lights().first().map(|name| crate::light::albedo_scale(&scene.lights[*name], fitted_intensity)).unwrap_or(glam::DVec3::ONE)
 }
 
+/// The columns of `losses.csv` after the loss terms: the first training light's direction or
+/// position (`StepStats::light`), empty when none is fitted.
+const LIGHT_COLUMNS: [&str; 3] = ["light_x", "light_y", "light_z"];
+
 pub(crate) fn losses_csv(history: &[(usize, StepStats)]) -> String {
-    let mut out = format!("iteration,total,seconds,{}\n", crate::schedule::TERMS.join(","));
+    let mut out = format!("iteration,total,seconds,{},{}\n", crate::schedule::TERMS.join(","), LIGHT_COLUMNS.join(","));
     for (it, s) in history {
         let terms: Vec<String> = crate::schedule::TERMS.iter().map(|t| s.terms.get(*t).map(|v| format!("{v:.6e}")).unwrap_or_default()).collect();
-        out += &format!("{it},{:.6e},{:.4},{}\n", s.total, s.seconds, terms.join(","));
+        let light: Vec<String> = (0..3).map(|k| s.light.map(|v| format!("{:.7}", v[k])).unwrap_or_default()).collect();
+        out += &format!("{it},{:.6e},{:.4},{},{}\n", s.total, s.seconds, terms.join(","), light.join(","));
     }
     out
 }
@@ -361,7 +366,13 @@ fn parse_losses_csv(text: &str) -> Vec<(usize, StepStats)> {
         };
         let terms =
             crate::schedule::TERMS.iter().enumerate().filter_map(|(k, t)| cells.get(3 + k).and_then(|c| c.parse().ok()).map(|v| (t.to_string(), v))).collect();
-        rows.push((it, StepStats { total, terms, seconds, phases: Vec::new() }));
+        // Runs before the light's columns have none: their rows read back without it.
+        let light_cell = |k: usize| cells.get(3 + crate::schedule::TERMS.len() + k).and_then(|c| c.parse::<f64>().ok());
+        let light = match (light_cell(0), light_cell(1), light_cell(2)) {
+            (Some(x), Some(y), Some(z)) => Some([x, y, z]),
+            _ => None,
+        };
+        rows.push((it, StepStats { total, terms, seconds, phases: Vec::new(), light }));
     }
     rows
 }

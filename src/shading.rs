@@ -162,6 +162,18 @@ impl FittedLight {
         softplus(self.ambient_raw.val(), 1.0)
     }
 
+    /// Where the light is, as plain numbers: a sun's unit direction, a point light's position
+    /// (m); none for uniform light.
+    pub fn location(&self) -> Option<[f64; 3]> {
+        let vector = match self.kind {
+            LightKind::Directional => self.direction(),
+            LightKind::Point => self.position(),
+            LightKind::Uniform => return None,
+        };
+        let values = vector.into_data().convert::<f64>().try_to_vec::<f64>().ok()?;
+        Some([*values.first()?, *values.get(1)?, *values.get(2)?])
+    }
+
     pub fn direction(&self) -> Tensor<1> {
         let v = self.vector.val();
         v.clone() / (v.clone() * v).sum().sqrt().clamp_min(1e-8)

@@ -143,6 +143,10 @@ pub struct StepStats {
     /// burn's CPU backends run eagerly, so each part's tensor work is done within its span.
     #[serde(skip)]
     pub phases: Vec<(&'static str, f64)>,
+    /// The first training light after the step (`FittedLight::location`): a sun's unit
+    /// direction or a point light's position (m); none when no light is fitted. Kept in
+    /// `losses.csv`, so a run's path of the light survives `--resume` (`fit.json`: `light_path`).
+    pub light: Option<[f64; 3]>,
 }
 
 /// The parts of a training step `StepStats::phases` times.
@@ -1313,6 +1317,9 @@ impl Trainer {
             light = std::mem::replace(&mut other_lights[light_index - 1], light);
         }
         let model = Avatar { field, gaussians, light, other_lights };
+        if self.fit_light {
+            stats.light = model.light.location();
+        }
         let poisoned = first_non_finite(&model);
         self.model = Some(model);
         if let Some(name) = poisoned {

@@ -162,6 +162,22 @@ fn resume_continues_where_the_fit_stopped_bit_for_bit_with_either_field() {
         let gaussians = |run: &str| std::fs::read(dir.path().join(run).join("gaussians.json")).unwrap();
         assert!(gaussians("straight") == gaussians("resumed"), "{kind}: the resumed fit's Gaussians differ");
         assert_eq!(straight["light"]["direction"], resumed["light"]["direction"], "{kind}");
+        // The light's path: a point after every step of a 40-step fit, the resumed run's first
+        // half read back from its losses.csv (7 decimals), ending where the light ended.
+        let path = |report: &serde_json::Value| report["light_path"].as_array().cloned().unwrap_or_default();
+        let (pa, pb) = (path(&straight), path(&resumed));
+        assert_eq!(pa.len(), 40, "{kind}");
+        assert_eq!(pb.len(), 40, "{kind}");
+        for (p, q) in pa.iter().zip(&pb) {
+            assert_eq!(p["after_iteration"], q["after_iteration"], "{kind}");
+            for k in 0..3 {
+                let (x, y) = (p["direction"][k].as_f64().unwrap(), q["direction"][k].as_f64().unwrap());
+                assert!((x - y).abs() < 1e-6, "{kind}: {p} vs {q}");
+            }
+            assert!(p["error_against_scene"]["direction_degrees"].as_f64().is_some_and(|d| (0.0..=180.0).contains(&d)), "{kind}: {p}");
+        }
+        assert_eq!(pa[39]["direction"], straight["light"]["direction"], "{kind}: the path ends at the fitted light");
+        assert_ne!(pa[9]["direction"], pa[10]["direction"], "{kind}: the search moved the light after step 10");
         // The checkpoint holds the field's average as the model and the last step's beside it.
         let checkpoint = dir.path().join("resumed/checkpoint");
         assert!(checkpoint.join("training-model.bpk").is_file(), "{kind}: no training model beside the average");
