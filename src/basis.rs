@@ -89,12 +89,13 @@ impl TransferBasis {
             .flat_map_iter(|(_, s)| {
                 let origin = (s.point + s.normal * shadow_start as f64).as_vec3().to_array();
                 let caster = &caster;
+                let shares = caster.shares_at(s.point.as_vec3().to_array());
                 directions.iter().map(move |d| {
                     if s.normal.dot(*d) <= 0.0 {
                         return 0.0;
                     }
                     let ray = ShadowRay { origin, direction: d.as_vec3().to_array(), t0: shadow_start, t1: f32::INFINITY };
-                    caster.transmittance(&ray, true)
+                    caster.transmittance_from(&shares, &ray, true)
                 })
             })
             .collect();
@@ -285,6 +286,12 @@ mod tests {
         vec![DVec3::Y, DVec3::new(0.5, 0.55, -0.67).normalize(), DVec3::new(-0.7, 0.2, 0.3).normalize(), DVec3::new(0.1, -0.9, 0.2).normalize()]
     }
 
+    /// The body the test points lie on: a 5 cm Gaussian just under the origin, whose share of
+    /// the density there is all but 1, so it shadows none of them (`shadow::own_shares`).
+    fn surface() -> PosedGaussian {
+        PosedGaussian { mean: DVec3::new(0.0, -0.05, 0.0), axes: DMat3::IDENTITY, scales: DVec3::splat(0.05), amplitude: 20.0 }
+    }
+
     fn blob() -> PosedGaussian {
         PosedGaussian { mean: DVec3::new(0.1, 0.6, -0.2), axes: DMat3::IDENTITY, scales: DVec3::new(0.3, 0.1, 0.3), amplitude: 20.0 }
     }
@@ -298,7 +305,8 @@ mod tests {
         assert!((a - b).abs().max_element() <= tolerance * b.abs().max_element().max(1e-3), "{a} vs {b}");
     }
 
-    /// `(1/pi) sum L max(0, n.d) T dOmega` over every texel, T by the f64 closed form.
+    /// `(1/pi) sum L max(0, n.d) T dOmega` over every texel, T by the f64 closed form (from the
+    /// point at the origin, less its own Gaussians' shares).
     fn quadrature(map: &EnvironmentMap, n: DVec3, casters: &[PosedGaussian]) -> DVec3 {
         let (w, h) = (map.image.width, map.image.height);
         let mut sum = DVec3::ZERO;
@@ -315,7 +323,10 @@ mod tests {
                     t1: f32::INFINITY,
                 };
                 let [r, g, b] = map.image.get(x, y);
-                sum += DVec3::new(r as f64, g as f64, b as f64) * n.dot(d) * crate::shadow::transmittance_f64(casters, &ray) * map.texel_solid_angle(y);
+                sum += DVec3::new(r as f64, g as f64, b as f64)
+                    * n.dot(d)
+                    * crate::shadow::transmittance_f64_from(casters, DVec3::ZERO, &ray)
+                    * map.texel_solid_angle(y);
             }
         }
         sum / PI
@@ -346,7 +357,7 @@ mod tests {
         let map = crate::synth::synthetic_sky(64, 32);
         let light = Light::Environment { path: "sky.exr".into(), scale: 1.0, map: map.clone() };
         let surfels: Vec<Option<Surfel>> = normals().into_iter().map(surfel).collect();
-        for casters in [vec![], vec![blob()]] {
+        for casters in [vec![surface()], vec![surface(), blob()]] {
             let image = TransferBasis::new(&surfels, 4, 1, &casters, SHADOW_START, DIRECTIONS).relight(&light);
             for (p, n) in normals().into_iter().enumerate() {
                 let expected = quadrature(&map, n, &casters) * DVec3::new(0.9, 0.5, 0.2);
@@ -355,14 +366,14 @@ mod tests {
         }
         // The occluder must matter, or the second pass tested nothing.
         let open = TransferBasis::new(&surfels[..1], 1, 1, &[], SHADOW_START, DIRECTIONS).relight(&light);
-        let shaded = TransferBasis::new(&surfels[..1], 1, 1, &[blob()], SHADOW_START, DIRECTIONS).relight(&light);
+        let shaded = TransferBasis::new(&surfels[..1], 1, 1, &[surface(), blob()], SHADOW_START, DIRECTIONS).relight(&light);
         assert!(pixel(&shaded, 0).x < 0.7 * pixel(&open, 0).x);
     }
 
     #[test]
     fn a_sun_or_lamp_through_the_basis_matches_its_own_shadow_ray_away_from_the_shadows_edge() {
         let surfels: Vec<Option<Surfel>> = normals().into_iter().map(surfel).collect();
-        let basis = TransferBasis::new(&surfels, 4, 1, &[blob()], SHADOW_START, DIRECTIONS);
+        let basis = TransferBasis::new(&surfels, 4, 1, &[surface(), blob()], SHADOW_START, DIRECTIONS);
         let reflectance = DVec3::new(0.9, 0.5, 0.2);
         let ambient = DVec3::splat(0.1);
         // Straight through the blob's middle (dark), and well clear of it (lit).
@@ -378,7 +389,7 @@ mod tests {
                         t0: SHADOW_START,
                         t1: f32::INFINITY,
                     };
-                    let t = crate::shadow::transmittance_f64(&[blob()], &ray);
+                    let t = crate::shadow::transmittance_f64_from(&[surface(), blob()], DVec3::ZERO, &ray);
                     let expected = reflectance * (ambient + DVec3::splat(2.0) * n.dot(direction).max(0.0) * t);
                     close(pixel(&image, p), expected, 0.03);
                 }
@@ -405,7 +416,7 @@ mod tests {
 
     #[test]
     fn a_sun_blends_the_nearest_directions_continuously() {
-        let basis = TransferBasis::new(&[surfel(DVec3::Y)], 1, 1, &[blob()], SHADOW_START, 256);
+        let basis = TransferBasis::new(&[surfel(DVec3::Y)], 1, 1, &[surface(), blob()], SHADOW_START, 256);
         let mut last: Option<f64> = None;
         // Sweep the sun across the blob's shadow in steps much finer than the lattice.
         for step in 0..200 {

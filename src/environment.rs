@@ -161,9 +161,10 @@ impl<'a> MisEstimator<'a> {
         };
         let cosine_count = self.samples - light_count;
         let origin = (x + n * self.shadow_start as f64).as_vec3().to_array();
+        let shares = caster.shares_at(x.as_vec3().to_array());
         let visible = |d: DVec3| {
             let ray = ShadowRay { origin, direction: d.as_vec3().to_array(), t0: self.shadow_start, t1: f32::INFINITY };
-            caster.transmittance(&ray, true) as f64
+            caster.transmittance_from(&shares, &ray, true) as f64
         };
         let (nl, nc) = (light_count as f64, cosine_count as f64);
         let mut sum = DVec3::ZERO;

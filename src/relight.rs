@@ -90,6 +90,7 @@ impl EnvironmentSampler {
             .zip(normals)
             .map(|(&x, &n)| {
                 let origin = (x + n * SHADOW_START as f64).as_vec3().to_array();
+                let shares = caster.shares_at(x.as_vec3().to_array());
                 let mut sum = DVec3::ZERO;
                 for (d, weight) in self.directions.iter().zip(&self.weights) {
                     let cosine = n.dot(*d);
@@ -97,7 +98,7 @@ impl EnvironmentSampler {
                         continue;
                     }
                     let ray = ShadowRay { origin, direction: d.as_vec3().to_array(), t0: SHADOW_START, t1: f32::INFINITY };
-                    sum += *weight * cosine * caster.transmittance(&ray, true) as f64;
+                    sum += *weight * cosine * caster.transmittance_from(&shares, &ray, true) as f64;
                 }
                 sum / (PI * self.len().max(1) as f64)
             })
@@ -397,7 +398,8 @@ mod tests {
     }
 
     /// Dense quadrature over every texel of `(1/pi) sum L max(0, n.d) T(d) dOmega`, T by the f64
-    /// closed form: the reference the sampled estimate must approach.
+    /// closed form from `x` (less its own Gaussians' shares): the reference the sampled estimate
+    /// must approach.
     fn quadrature(map: &EnvironmentMap, scale: f64, x: DVec3, n: DVec3, casters: &[PosedGaussian]) -> DVec3 {
         let (w, h) = (map.image.width, map.image.height);
         let mut sum = DVec3::ZERO;
@@ -410,7 +412,7 @@ mod tests {
                 }
                 let origin = (x + n * SHADOW_START as f64).as_vec3().to_array();
                 let ray = ShadowRay { origin, direction: d.as_vec3().to_array(), t0: SHADOW_START, t1: f32::INFINITY };
-                let t = crate::shadow::transmittance_f64(casters, &ray);
+                let t = crate::shadow::transmittance_f64_from(casters, x, &ray);
                 let p = map.image.get(column, y);
                 sum += DVec3::new(p[0] as f64, p[1] as f64, p[2] as f64) * cosine * t * map.texel_solid_angle(y);
             }
@@ -434,6 +436,12 @@ mod tests {
         }
     }
 
+    /// The body the test points lie on: a 5 cm Gaussian just under the origin, whose share of
+    /// the density there is all but 1, so it shadows none of them (`shadow::own_shares`).
+    fn surface() -> PosedGaussian {
+        PosedGaussian { mean: DVec3::new(0.0, -0.05, 0.0), axes: DMat3::IDENTITY, scales: DVec3::splat(0.05), amplitude: 20.0 }
+    }
+
     #[test]
     fn sampled_sky_matches_dense_quadrature_with_and_without_an_occluder() {
         let map = crate::synth::synthetic_sky(64, 32);
@@ -441,7 +449,7 @@ mod tests {
         let blob = PosedGaussian { mean: DVec3::new(0.1, 0.6, -0.2), axes: DMat3::IDENTITY, scales: DVec3::new(0.3, 0.1, 0.3), amplitude: 20.0 };
         let normals = [DVec3::Y, DVec3::new(0.5, 0.55, -0.67).normalize(), DVec3::new(-0.7, 0.2, 0.3).normalize()];
         let points = [DVec3::ZERO; 3];
-        for casters in [vec![], vec![blob]] {
+        for casters in [vec![surface()], vec![surface(), blob]] {
             let sampled = sampler.shade(&points, &normals, &casters);
             for (k, n) in normals.iter().enumerate() {
                 close(sampled[k], quadrature(&map, 1.5, points[k], *n, &casters), 0.05);
@@ -449,8 +457,11 @@ mod tests {
         }
         // The occluder must matter, or the second pass tested nothing.
         let open = sampler.shade(&points[..1], &normals[..1], &[])[0];
-        let shaded = sampler.shade(&points[..1], &normals[..1], &[blob])[0];
+        let shaded = sampler.shade(&points[..1], &normals[..1], &[surface(), blob])[0];
         assert!(shaded.x < 0.7 * open.x, "{shaded} vs {open}");
+        // And the body the point lies on does not shadow it.
+        let on_body = sampler.shade(&points[..1], &normals[..1], &[surface()])[0];
+        close(on_body, open, 1e-6);
     }
 
     #[test]
@@ -461,7 +472,7 @@ mod tests {
         let pixels = 256;
         let ids: Vec<u64> = (0..pixels as u64).collect();
         let (points, normals) = (vec![DVec3::ZERO; pixels], vec![n; pixels]);
-        for casters in [vec![], vec![blob]] {
+        for casters in [vec![surface()], vec![surface(), blob]] {
             let exact = quadrature(&map, 1.5, DVec3::ZERO, n, &casters);
             let mut errors = Vec::new();
             for spp in [16, 64, 256] {

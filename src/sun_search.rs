@@ -144,7 +144,7 @@ pub fn score(samples: &[SurfaceSample], casters: &[ShadowCaster], light: Toward,
             }
             let origin = [0, 1, 2].map(|a| s.point[a] + s.normal[a] * start);
             let ray = ShadowRay { origin, direction: l, t0: start, t1 };
-            let visibility = casters.get(s.frame).map(|c| c.transmittance(&ray, true)).unwrap_or(1.0);
+            let visibility = casters.get(s.frame).map(|c| c.transmittance_from(&c.shares_at(s.point), &ray, true)).unwrap_or(1.0);
             (cosine * visibility) as f64 * falloff
         })
         .collect();

@@ -7,7 +7,7 @@ use burn::tensor::{Device, Tensor, TensorData};
 use glam::{DMat3, DQuat, DVec3};
 use umbra::gaussians::PosedGaussian;
 use umbra::random::Stream;
-use umbra::shadow::tensor::{erfc_nonnegative, optical_depth as tensor_depth, transmittance, GaussianTensors, RaySegments};
+use umbra::shadow::tensor::{erfc_nonnegative, optical_depth as tensor_depth, transmittance, transmittance_from, GaussianTensors, RaySegments};
 use umbra::shadow::{optical_depth, ShadowCaster, ShadowRay};
 
 fn device() -> Device {
@@ -227,4 +227,56 @@ fn gradients_match_finite_differences_of_the_f64_path() {
     check("origins", values(origins.grad(&grads).unwrap()), |x| &mut x.origins);
     check("directions", values(directions.grad(&grads).unwrap()), |x| &mut x.directions);
     check("t1", values(t1.grad(&grads).unwrap()), |x| &mut x.t1);
+}
+
+#[test]
+fn own_shares_agree_on_every_path() {
+    // Shadow rays from surface points: each Gaussian's optical depth weighted by one less its
+    // share of the density at the point, by the tensor path (training, still renders), the CPU
+    // kernel with and without culling (sky light, visibility basis, sun search) and in f64.
+    let d = device();
+    let gaussians = body_like_gaussians(40, 11);
+    let caster = ShadowCaster::new(&gaussians, 1e-7);
+    let g = GaussianTensors::from_posed(&gaussians, &d);
+    for finite in [false, true] {
+        let rays = shadow_rays(300, 12 + finite as u64, finite);
+        let points: Vec<f32> = rays.iter().flat_map(|r| r.origin).collect();
+        let t = values(transmittance_from(&g, &segments(&rays, finite, &d), tensor2(points, 3, &d)));
+        let mut owned = 0;
+        for (ray, tensor_value) in rays.iter().zip(t) {
+            let x = DVec3::from_array(ray.origin.map(f64::from));
+            let exact = umbra::shadow::transmittance_f64_from(&gaussians, x, ray);
+            let shares = caster.shares_at(ray.origin);
+            let cpu = caster.transmittance_from(&shares, ray, false);
+            let culled = caster.transmittance_from(&shares, ray, true);
+            assert!((exact - cpu as f64).abs() < 1e-6, "cpu vs f64: {cpu} vs {exact}");
+            assert!((exact - culled as f64).abs() < 1e-6, "culled cpu vs f64: {culled} vs {exact}");
+            assert!((exact - tensor_value as f64).abs() < 2e-6, "tensor vs f64: {tensor_value} vs {exact}");
+            // Never darker than the plain transmittance: shares only take optical depth away.
+            assert!(exact >= umbra::shadow::transmittance_f64(&gaussians, ray) - 1e-12);
+            owned += (exact > umbra::shadow::transmittance_f64(&gaussians, ray) + 1e-3) as usize;
+        }
+        assert!(owned > 30, "finite={finite}: the shares change {owned} of 300 rays");
+    }
+}
+
+#[test]
+fn a_body_part_does_not_shadow_the_surface_it_makes_but_a_part_near_it_does() {
+    // A torso Gaussian (10 cm) and a point on top of it at 1.5 sigma, the sun straight above.
+    let torso = PosedGaussian { mean: DVec3::ZERO, axes: DMat3::IDENTITY, scales: DVec3::splat(0.1), amplitude: 50.0 };
+    let x = DVec3::new(0.0, 0.15, 0.0);
+    let ray = ShadowRay { origin: x.as_vec3().to_array(), direction: [0.0, 1.0, 0.0], t0: 0.005, t1: f32::INFINITY };
+    // Its own blob would darken the point by itself; it lights it fully once its share is taken.
+    let plain = umbra::shadow::transmittance_f64(&[torso], &ray);
+    let own = umbra::shadow::transmittance_f64_from(&[torso], x, &ray);
+    assert!(plain < 0.7, "the torso's blur shadows its own top: {plain}");
+    assert!(own > 0.999, "not once its share is taken: {own}");
+    // An arm 9 cm above the point (3 cm wide) casts its contact shadow all the same: a shadow
+    // ray starting as far off the surface as before (7.5 cm, a sweep's choice) would have lost it.
+    let arm = PosedGaussian { mean: DVec3::new(0.0, 0.24, 0.0), axes: DMat3::IDENTITY, scales: DVec3::splat(0.03), amplitude: 50.0 };
+    let shaded = umbra::shadow::transmittance_f64_from(&[torso, arm], x, &ray);
+    assert!(shaded < 0.05, "the arm's contact shadow: {shaded}");
+    let caster = ShadowCaster::new(&[torso, arm], 1e-6);
+    let cpu = caster.transmittance_from(&caster.shares_at(ray.origin), &ray, true);
+    assert!((cpu as f64 - shaded).abs() < 1e-5, "{cpu} vs {shaded}");
 }

@@ -85,8 +85,13 @@ impl Research {
             .enumerate()
             .map(|(k, (&x, &n))| {
                 let origin = (x + n * SHADOW_START as f64).as_vec3().to_array();
-                let visible =
-                    |d: DVec3| caster.transmittance(&ShadowRay { origin, direction: d.as_vec3().to_array(), t0: SHADOW_START, t1: f32::INFINITY }, true) as f64;
+                // The same visibility as umbra's estimator (the point's own Gaussians left out):
+                // only the sampling differs.
+                let shares = caster.shares_at(x.as_vec3().to_array());
+                let visible = |d: DVec3| {
+                    caster.transmittance_from(&shares, &ShadowRay { origin, direction: d.as_vec3().to_array(), t0: SHADOW_START, t1: f32::INFINITY }, true)
+                        as f64
+                };
                 let mut sum = self.sun_irradiance * n.dot(self.sun).max(0.0) / PI * visible(self.sun);
                 let rays = samples.saturating_sub(1).max(1);
                 let mut stream = Stream::new(seed, k as u64, 0x7E5);

@@ -122,6 +122,23 @@ impl ShadowCaster {
         (-self.optical_depth(ray, cull).0).exp()
     }
 
+    /// The Gaussians that make the density at a surface point `x`, each with its share of the
+    /// mixture's density there (shares below `OWN_SHARE_FLOOR` left out): what
+    /// `transmittance_from` does not let shadow `x` (`own_shares`).
+    pub fn shares_at(&self, x: [f32; 3]) -> Vec<(usize, f32)> {
+        own_shares(self.gaussians.iter().map(|g| g.log_density(x) as f64)).into_iter().map(|(g, s)| (g, s as f32)).collect()
+    }
+
+    /// Transmittance along a shadow ray from the surface point whose `shares_at` are `shares`:
+    /// each Gaussian's optical depth weighted by one less its share there, so a body part does
+    /// not shadow the surface it makes (`own_shares`). The kernel's sum (culled when `cull`)
+    /// less the owners' weighted integrals, which the scalar integral takes exactly.
+    pub fn transmittance_from(&self, shares: &[(usize, f32)], ray: &ShadowRay, cull: bool) -> f32 {
+        let depth = self.optical_depth(ray, cull).0;
+        let own: f32 = shares.iter().map(|&(g, share)| share * optical_depth_whitened(&self.gaussians[g], ray.origin, ray.direction, ray.t0, ray.t1)).sum();
+        (-(depth - own).max(0.0)).exp()
+    }
+
     /// Transmittance along every ray, in parallel.
     pub fn transmittance_all(&self, rays: &[ShadowRay], cull: bool) -> Vec<f32> {
         rays.par_iter().with_min_len(64).map(|r| self.transmittance(r, cull)).collect()
@@ -170,6 +187,49 @@ pub(super) fn segment_within(centre: [f32; 3], ray: &ShadowRay, radius2: f32) ->
     let along = (v[0] * ray.direction[0] + v[1] * ray.direction[1] + v[2] * ray.direction[2]).clamp(ray.t0, ray.t1);
     let d = [v[0] - along * ray.direction[0], v[1] - along * ray.direction[1], v[2] - along * ray.direction[2]];
     d[0] * d[0] + d[1] * d[1] + d[2] * d[2] <= radius2
+}
+
+/// Shares below this are left out of `own_shares`: they would change an optical depth by
+/// less than a millionth of the owner's.
+pub const OWN_SHARE_FLOOR: f64 = 1e-6;
+
+/// Each Gaussian's share of the mixture's density at a surface point, from the logarithms of
+/// their densities there (a softmax, so that no share is lost to underflow far from every
+/// Gaussian): (index, share), shares below `OWN_SHARE_FLOOR` left out. A Gaussian is a convex
+/// blob: a ray leaving the surface it makes toward a light in front of that surface leaves it
+/// and never re-enters, so whatever optical depth it still adds is the blur of a soft
+/// occupancy, not a shadow. Weighting each Gaussian's depth by one less its share lets the
+/// other body parts shadow the point (an arm on the torso, however close) and not the part it
+/// lies on, which is what the shadow ray's start off the surface did before, at the cost of
+/// every contact shadow nearer than it.
+pub fn own_shares(log_densities: impl Iterator<Item = f64>) -> Vec<(usize, f64)> {
+    let logs: Vec<f64> = log_densities.collect();
+    let top = logs.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+    if !top.is_finite() {
+        return Vec::new();
+    }
+    let weights: Vec<f64> = logs.iter().map(|l| (l - top).exp()).collect();
+    let total: f64 = weights.iter().sum();
+    weights.iter().enumerate().map(|(g, &w)| (g, w / total)).filter(|&(_, share)| share >= OWN_SHARE_FLOOR).collect()
+}
+
+/// `transmittance_f64` from a surface point `x`: each Gaussian's optical depth weighted by one
+/// less its share of the density at `x` (`own_shares`), every integral in f64, no culling.
+pub fn transmittance_f64_from(gaussians: &[PosedGaussian], x: glam::DVec3, ray: &ShadowRay) -> f64 {
+    let origin = ray.origin.map(f64::from);
+    let direction = ray.direction.map(f64::from);
+    let mut weights = vec![1.0; gaussians.len()];
+    for (g, share) in own_shares(gaussians.iter().map(|g| g.log_density(x))) {
+        weights[g] -= share;
+    }
+    let tau: f64 = gaussians
+        .iter()
+        .zip(&weights)
+        .map(|(g, w)| {
+            w * super::optical_depth(g.mean.to_array(), g.rotation_columns(), g.scales.to_array(), g.amplitude, origin, direction, ray.t0 as f64, ray.t1 as f64)
+        })
+        .sum();
+    (-tau).exp()
 }
 
 /// Transmittance of a ray through posed Gaussians with every integral in f64 and no culling:

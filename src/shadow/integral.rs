@@ -47,14 +47,23 @@ impl WhitenedGaussian<f32> {
     /// The density at a world point, all in f32: what a ray marcher at the closed form's
     /// precision evaluates (the shadow benchmark's comparison).
     pub fn density(&self, x: [f32; 3]) -> f32 {
+        self.amplitude * (-0.5 * self.mahalanobis_squared(x)).exp()
+    }
+
+    /// The squared Mahalanobis distance of a world point from the mean.
+    fn mahalanobis_squared(&self, x: [f32; 3]) -> f32 {
         let r = [x[0] - self.mean[0], x[1] - self.mean[1], x[2] - self.mean[2]];
-        let q: f32 = (0..3)
+        (0..3)
             .map(|k| {
                 let u = (self.axes[k][0] * r[0] + self.axes[k][1] * r[1] + self.axes[k][2] * r[2]) * self.inverse_scales[k];
                 u * u
             })
-            .sum();
-        self.amplitude * (-0.5 * q).exp()
+            .sum()
+    }
+
+    /// The logarithm of `density`, finite however far `x` lies.
+    pub fn log_density(&self, x: [f32; 3]) -> f32 {
+        self.amplitude.ln() - 0.5 * self.mahalanobis_squared(x)
     }
 }
 

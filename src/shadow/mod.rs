@@ -10,7 +10,7 @@ pub mod lanes;
 pub mod real;
 pub mod tensor;
 
-pub use cpu::{transmittance_f64, ShadowCaster, ShadowRay};
+pub use cpu::{own_shares, transmittance_f64, transmittance_f64_from, ShadowCaster, ShadowRay, OWN_SHARE_FLOOR};
 use glam::{DMat3, DVec3};
 
 pub use integral::{erf_difference, optical_depth, optical_depth_f32, optical_depth_whitened, WhitenedGaussian, MIN_SCALE};
@@ -33,8 +33,13 @@ impl PosedGaussian {
 
     /// The density at a world point.
     pub fn density(&self, x: DVec3) -> f64 {
+        self.log_density(x).exp()
+    }
+
+    /// The logarithm of the density at a world point, finite however far it lies.
+    pub fn log_density(&self, x: DVec3) -> f64 {
         let local = self.axes.transpose() * (x - self.mean);
         let whitened = local / self.scales.max(DVec3::splat(MIN_SCALE));
-        self.amplitude * (-0.5 * whitened.length_squared()).exp()
+        self.amplitude.ln() - 0.5 * whitened.length_squared()
     }
 }

@@ -111,6 +111,31 @@ pub fn optical_depth(g: &GaussianTensors, rays: &RaySegments) -> Tensor<2> {
     (peak * difference * ((PI / 2.0).sqrt() as f32) / length).reshape([r, n])
 }
 
+/// Each Gaussian's share of the mixture's density at surface points `[R, 3]`: `[R, G]`, a
+/// softmax of the log densities with shares below `OWN_SHARE_FLOOR` zeroed, no gradients
+/// (`cpu::own_shares`, which a test pins it to).
+pub fn own_shares(g: &GaussianTensors, points: Tensor<2>) -> Tensor<2> {
+    let r = points.dims()[0];
+    let n = g.len();
+    let whiten = g.whiten.clone().detach();
+    let rows = whiten.clone().reshape([n * 3, 3]).transpose();
+    let whitened = points.detach().matmul(rows).reshape([r, n, 3]);
+    let whitened_mean = (whiten * g.means.clone().detach().unsqueeze_dim::<3>(1)).sum_dim(2).reshape([1, n, 3]);
+    let offset = whitened - whitened_mean;
+    let mahalanobis_squared = (offset.clone() * offset).sum_dim(2).reshape([r, n]);
+    let log_density = g.amplitudes.clone().detach().clamp_min(1e-30).log().reshape([1, n]) - mahalanobis_squared * 0.5;
+    let shares = burn::tensor::activation::softmax(log_density, 1);
+    shares.clone().mask_fill(shares.lower_elem(super::OWN_SHARE_FLOOR as f32), 0.0)
+}
+
+/// Transmittance of shadow rays from surface points `[R, 3]`: each Gaussian's optical depth
+/// weighted by one less its share of the density at the ray's point (`own_shares`), `[R]`.
+pub fn transmittance_from(g: &GaussianTensors, rays: &RaySegments, points: Tensor<2>) -> Tensor<1> {
+    let r = rays.origins.dims()[0];
+    let unowned = own_shares(g, points).neg() + 1.0;
+    (optical_depth(g, rays) * unowned).sum_dim(1).neg().exp().reshape([r])
+}
+
 /// Transmittance `exp(-sum_g tau_g)` of every ray: `[R]`.
 pub fn transmittance(g: &GaussianTensors, rays: &RaySegments) -> Tensor<1> {
     let r = rays.origins.dims()[0];
