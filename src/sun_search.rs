@@ -121,14 +121,21 @@ fn residual(triples: impl Iterator<Item = (f64, f64, f64)>) -> (f64, f64) {
     }
 }
 
-/// The residual of a candidate light on `samples`, shadowed by `casters[frame]`, and the
-/// light's least-squares strength; `start` is the shadow ray's offset off the surface (as in
-/// training).
-pub fn score(samples: &[SurfaceSample], casters: &[ShadowCaster], light: Toward, start: f32) -> (f64, f64) {
+/// Each sample's Gaussians and their shares of the density at it (`ShadowCaster::shares_at`
+/// in its frame's caster): the same for every candidate light, so found once per search.
+fn shares_of(samples: &[SurfaceSample], casters: &[ShadowCaster]) -> Vec<Vec<(usize, f32)>> {
+    samples.par_iter().with_min_len(64).map(|s| casters.get(s.frame).map(|c| c.shares_at(s.point)).unwrap_or_default()).collect()
+}
+
+/// The residual of a candidate light on `samples`, shadowed by `casters[frame]` less each
+/// sample's own Gaussians (`shares`, from `shares_of`), and the light's least-squares
+/// strength; `start` is the shadow ray's offset off the surface (as in training).
+fn score(samples: &[SurfaceSample], shares: &[Vec<(usize, f32)>], casters: &[ShadowCaster], light: Toward, start: f32) -> (f64, f64) {
     let shading: Vec<f64> = samples
         .par_iter()
+        .zip(shares)
         .with_min_len(64)
-        .map(|s| {
+        .map(|(s, shares)| {
             let point = DVec3::from_array(s.point.map(|c| c as f64));
             let (l, t1, falloff) = match light {
                 Toward::Sun(d) => (d.normalize(), f32::INFINITY, 1.0),
@@ -144,7 +151,7 @@ pub fn score(samples: &[SurfaceSample], casters: &[ShadowCaster], light: Toward,
             }
             let origin = [0, 1, 2].map(|a| s.point[a] + s.normal[a] * start);
             let ray = ShadowRay { origin, direction: l, t0: start, t1 };
-            let visibility = casters.get(s.frame).map(|c| c.transmittance_from(&c.shares_at(s.point), &ray, true)).unwrap_or(1.0);
+            let visibility = casters.get(s.frame).map(|c| c.transmittance_from(shares, &ray, true)).unwrap_or(1.0);
             (cosine * visibility) as f64 * falloff
         })
         .collect();
@@ -159,12 +166,18 @@ pub fn score(samples: &[SurfaceSample], casters: &[ShadowCaster], light: Toward,
 
 /// Scores candidates; a non-finite score (a NaN sample) ranks last and stays representable
 /// in JSON.
-fn scored(samples: &[SurfaceSample], casters: &[ShadowCaster], start: f32, lights: Vec<(DVec3, Option<DVec3>)>) -> Vec<Candidate> {
+fn scored(
+    samples: &[SurfaceSample],
+    shares: &[Vec<(usize, f32)>],
+    casters: &[ShadowCaster],
+    start: f32,
+    lights: Vec<(DVec3, Option<DVec3>)>,
+) -> Vec<Candidate> {
     lights
         .into_iter()
         .map(|(direction, position)| {
             let toward = position.map_or(Toward::Sun(direction), Toward::Point);
-            let (residual, strength) = score(samples, casters, toward, start);
+            let (residual, strength) = score(samples, shares, casters, toward, start);
             let residual = Some(residual).filter(|r| r.is_finite()).unwrap_or(f64::MAX);
             Candidate { direction: direction.to_array(), position: position.map(|p| p.to_array()), residual, strength }
         })
@@ -179,12 +192,13 @@ fn best_of(candidates: &[Candidate]) -> Option<Candidate> {
 /// coarse set's spacing), and returns the best of all.
 pub fn search(samples: &[SurfaceSample], casters: &[ShadowCaster], coarse: usize, fine: usize, start: f32) -> SearchReport {
     let suns = |directions: Vec<DVec3>| directions.into_iter().map(|d| (d, None)).collect();
-    let first = scored(samples, casters, start, suns(sphere(coarse.max(1))));
+    let shares = shares_of(samples, casters);
+    let first = scored(samples, &shares, casters, start, suns(sphere(coarse.max(1))));
     let fallback = Candidate { direction: [0.0, 1.0, 0.0], position: None, residual: f64::MAX, strength: 0.0 };
     let coarse_best = best_of(&first).unwrap_or(fallback);
     // The coarse set's spacing: each direction covers 4 pi / n steradians.
     let spacing = (4.0 / coarse.max(1) as f64).sqrt();
-    let second = scored(samples, casters, start, suns(cap(DVec3::from_array(coarse_best.direction), spacing, fine)));
+    let second = scored(samples, &shares, casters, start, suns(cap(DVec3::from_array(coarse_best.direction), spacing, fine)));
     let best = best_of(&second).filter(|b| b.residual < coarse_best.residual).unwrap_or(coarse_best);
     SearchReport { best, coarse_best, candidates: first.len() + second.len(), samples: samples.len() }
 }
@@ -212,13 +226,14 @@ pub fn search_point(
         dirs.iter().flat_map(|&d| distances.iter().map(move |&r| (d, Some(centre + d * r)))).collect()
     };
     let ladder: Vec<f64> = (0..RUNGS).map(|k| extent * NEAREST_RUNG * RUNG_RATIO.powi(k as i32)).collect();
-    let first = scored(samples, casters, start, at(sphere(directions.max(1)), &ladder));
+    let shares = shares_of(samples, casters);
+    let first = scored(samples, &shares, casters, start, at(sphere(directions.max(1)), &ladder));
     let fallback = Candidate { direction: [0.0, 1.0, 0.0], position: Some((centre + DVec3::Y * extent).to_array()), residual: f64::MAX, strength: 0.0 };
     let coarse_best = best_of(&first).unwrap_or(fallback);
     let distance = coarse_best.position.map_or(extent, |p| (DVec3::from_array(p) - centre).length());
     let finer: Vec<f64> = (-2..=2).map(|j| distance * RUNG_RATIO.powf(j as f64 / 4.0)).collect();
     let spacing = (4.0 / directions.max(1) as f64).sqrt();
-    let second = scored(samples, casters, start, at(cap(DVec3::from_array(coarse_best.direction), spacing, fine), &finer));
+    let second = scored(samples, &shares, casters, start, at(cap(DVec3::from_array(coarse_best.direction), spacing, fine), &finer));
     let best = best_of(&second).filter(|b| b.residual < coarse_best.residual).unwrap_or(coarse_best);
     SearchReport { best, coarse_best, candidates: first.len() + second.len(), samples: samples.len() }
 }
