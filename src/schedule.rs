@@ -189,6 +189,12 @@ pub struct Schedule {
     /// contrast (`train::contrast_weights`: a clothing pattern's or a shadow's edges) instead
     /// of uniformly over the foreground; 0 draws them all uniformly.
     pub contrast_rays: f64,
+    /// Cauchy weights on what each training pixel tells the light (`losses::cauchy_weights`):
+    /// a pixel's pull on the light's direction or position, irradiance and ambient is scaled by
+    /// `1 / (1 + (e / c)^2)`, `e` its error and `c` this many robust standard deviations of the
+    /// batch's foreground errors (1.4826 x their median), while the field, the albedo and the
+    /// Gaussians learn from every pixel as before. 0: every pixel pulls the light alike.
+    pub light_robustness: f64,
     /// Where the RGB loss compares colours: linear radiance, or sRGB-encoded values (the images'
     /// own encoding, in which a dark stripe's or a shadow's error counts as much as a bright
     /// one's, as it does to the eye and to the 8-bit PSNR and SSIM a fit is scored by; a
@@ -390,6 +396,7 @@ impl Schedule {
             "rebind_every",
             "sample_masked_misses",
             "contrast_rays",
+            "light_robustness",
             "rgb_space",
             "footprint",
             "pixel_rays",
@@ -511,6 +518,11 @@ impl Schedule {
                 None => 0.0,
                 Some(v) if (0.0..=1.0).contains(&v) => v,
                 Some(v) => return Err(err(file, "contrast_rays", format!("must be within [0, 1], found {v}"))),
+            },
+            light_robustness: match number(file, &table, "light_robustness", "")? {
+                None => 0.0,
+                Some(v) if v >= 0.0 && v.is_finite() => v,
+                Some(v) => return Err(err(file, "light_robustness", format!("must be a non-negative number of standard deviations (0: off), found {v}"))),
             },
             rgb_space: match table.get("rgb_space") {
                 None => RgbSpace::Linear,
@@ -683,6 +695,7 @@ mod tests {
         assert_eq!(parsed("[losses]\nmask = 1.0"), Some(true), "culling is on unless a schedule turns it off");
         assert_eq!(parsed("cull_samples = false\n[losses]\nmask = 1.0"), Some(false));
         assert_eq!(error_of("contrast_rays = 1.5\n[losses]\nmask = 1.0").key, "contrast_rays");
+        assert_eq!(error_of("light_robustness = -1\n[losses]\nmask = 1.0").key, "light_robustness");
         assert_eq!(error_of("contrast_rays = \"half\"\n[losses]\nmask = 1.0").key, "contrast_rays");
         assert_eq!(error_of("rgb_space = \"gamma\"\n[losses]\nmask = 1.0").key, "rgb_space");
         assert_eq!(error_of("[field]\nkind = \"grid\"\nfeatures = 0\n[losses]\nmask = 1.0").key, "field.features");

@@ -86,21 +86,56 @@ pub fn shade_lambertian(
     emitter: &Emitter,
     start: f32,
 ) -> Tensor<2> {
+    shade_lambertian_weighted(albedo, points, normals, casters, ambient, emitter, start, None)
+}
+
+/// `value` `[3]` as `[1, 3]` (to broadcast) or, with `weights` `[r]`, as `r` rows whose
+/// gradient is scaled row by row by them (the forward values are unchanged).
+fn rows_scaled(value: Tensor<1>, r: usize, weights: Option<&Tensor<1>>) -> Tensor<2> {
+    match weights {
+        None => value.reshape([1, 3]),
+        Some(w) => {
+            let rows = value.reshape([1, 3]).repeat_dim(0, r);
+            rows.clone().detach() + (rows.clone() - rows.detach()) * w.clone().reshape([r, 1])
+        }
+    }
+}
+
+/// `shade_lambertian` with the light's gradient (direction or position, irradiance, ambient)
+/// scaled ray by ray by `weights` `[R]`: the same colours.
+#[allow(clippy::too_many_arguments)]
+pub fn shade_lambertian_weighted(
+    albedo: Tensor<2>,
+    points: Tensor<2>,
+    normals: Tensor<2>,
+    casters: &GaussianTensors,
+    ambient: Tensor<1>,
+    emitter: &Emitter,
+    start: f32,
+    weights: Option<&Tensor<1>>,
+) -> Tensor<2> {
     let [r, _] = points.dims();
     let device = points.device();
     let (direction, irradiance, t1) = match emitter {
-        Emitter::Sun { direction, irradiance } => (direction.clone().reshape([1, 3]).repeat_dim(0, r), irradiance.clone().reshape([1, 3]), None),
+        Emitter::Sun { direction, irradiance } => {
+            let direction = match weights {
+                None => direction.clone().reshape([1, 3]).repeat_dim(0, r),
+                Some(_) => rows_scaled(direction.clone(), r, weights),
+            };
+            (direction, rows_scaled(irradiance.clone(), r, weights), None)
+        }
         Emitter::Point { position, intensity } => {
-            let to_light = position.clone().reshape([1, 3]) - points.clone();
+            let to_light = rows_scaled(position.clone(), r, weights) - points.clone();
             let distance = (to_light.clone() * to_light.clone()).sum_dim(1).sqrt().clamp_min(1e-3);
-            let irradiance = intensity.clone().reshape([1, 3]) / (distance.clone() * distance.clone());
+            let irradiance = rows_scaled(intensity.clone(), r, weights) / (distance.clone() * distance.clone());
             (to_light / distance.clone(), irradiance, Some(distance.reshape([r])))
         }
     };
+    let ambient = rows_scaled(ambient, r, weights);
     let cosine = (normals.clone() * direction.clone()).sum_dim(1).clamp_min(0.0);
     let segments = RaySegments { origins: points.clone() + normals * start, directions: direction, t0: Tensor::full([r], start, &device), t1 };
     let visibility = transmittance_from(casters, &segments, points).reshape([r, 1]);
-    albedo * (ambient.reshape([1, 3]) + irradiance * cosine * visibility)
+    albedo * (ambient + irradiance * cosine * visibility)
 }
 
 fn inverse_softplus(v: f32) -> f32 {
@@ -185,12 +220,42 @@ impl FittedLight {
     /// Shaded colour `[R, 3]` of surface points `[R, 3]` with normals `[R, 3]` and albedo `[R, 3]`.
     /// `gaussians` should be detached when the Gaussians must learn only from their own fit.
     pub fn shade(&self, albedo: Tensor<2>, points: Tensor<2>, normals: Tensor<2>, gaussians: &GaussianTensors) -> Tensor<2> {
-        let emitter = match self.kind {
-            LightKind::Uniform => return albedo,
-            LightKind::Directional => Emitter::Sun { direction: self.direction(), irradiance: self.irradiance() },
-            LightKind::Point => Emitter::Point { position: self.position(), intensity: self.intensity().repeat_dim(0, 3) },
+        self.shade_weighted(albedo, points, normals, gaussians, None)
+    }
+
+    /// `shade` with the light's gradient scaled ray by ray by `weights` `[R]` (none: `shade`).
+    pub fn shade_weighted(
+        &self,
+        albedo: Tensor<2>,
+        points: Tensor<2>,
+        normals: Tensor<2>,
+        gaussians: &GaussianTensors,
+        weights: Option<&Tensor<1>>,
+    ) -> Tensor<2> {
+        let Some(emitter) = self.emitter() else { return albedo };
+        shade_lambertian_weighted(albedo, points, normals, &self.shadow_casters(gaussians), self.ambient(), &emitter, self.shadow_start, weights)
+    }
+
+    /// The shaded colour with nothing tracked (the light's values and the inputs detached): what
+    /// the batch's errors are measured on before the tracked shading is weighted by them.
+    pub fn shade_untracked(&self, albedo: Tensor<2>, points: Tensor<2>, normals: Tensor<2>, gaussians: &GaussianTensors) -> Tensor<2> {
+        let Some(emitter) = self.emitter() else { return albedo.detach() };
+        let emitter = match emitter {
+            Emitter::Sun { direction, irradiance } => Emitter::Sun { direction: direction.detach(), irradiance: irradiance.detach() },
+            Emitter::Point { position, intensity } => Emitter::Point { position: position.detach(), intensity: intensity.detach() },
         };
-        shade_lambertian(albedo, points, normals, &self.shadow_casters(gaussians), self.ambient(), &emitter, self.shadow_start)
+        let casters = self.shadow_casters(gaussians);
+        let casters = GaussianTensors { means: casters.means.detach(), whiten: casters.whiten.detach(), amplitudes: casters.amplitudes.detach() };
+        shade_lambertian(albedo.detach(), points.detach(), normals.detach(), &casters, self.ambient().detach(), &emitter, self.shadow_start)
+    }
+
+    /// The light as an emitter of the image formation; none for uniform light.
+    fn emitter(&self) -> Option<Emitter> {
+        match self.kind {
+            LightKind::Uniform => None,
+            LightKind::Directional => Some(Emitter::Sun { direction: self.direction(), irradiance: self.irradiance() }),
+            LightKind::Point => Some(Emitter::Point { position: self.position(), intensity: self.intensity().repeat_dim(0, 3) }),
+        }
     }
 
     /// The Gaussians as shadow casters: their optical depth times the fitted density scale,

@@ -346,6 +346,24 @@ pub struct Trainer {
     pub average: Option<crate::averaging::ParameterAverage>,
 }
 
+/// A value per ray from one per pixel: with one ray a pixel, the pixel's; with several
+/// (`gather`, the rays' indices pixel after pixel), each ray takes its pixel's.
+fn ray_values(per_pixel: &[f32], gather: Option<&[i64]>, rays: usize) -> Vec<f32> {
+    match gather {
+        None => (0..rays).map(|k| per_pixel.get(k).copied().unwrap_or(1.0)).collect(),
+        Some(g) => {
+            let per = g.len() / per_pixel.len().max(1);
+            let mut out = vec![1.0; rays];
+            for (slot, ray) in g.iter().enumerate() {
+                if let (Some(o), Some(v)) = (out.get_mut(*ray as usize), per_pixel.get(slot / per.max(1))) {
+                    *o = *v;
+                }
+            }
+            out
+        }
+    }
+}
+
 /// A training batch: pixels of one frame's views under one training light.
 struct Batch {
     frame: usize,
@@ -1164,6 +1182,7 @@ impl Trainer {
         // Several rays per pixel: each pixel's rays averaged, in the targets' order.
         let pixels = masks.len();
         let per_pixel = r / pixels.max(1);
+        let gather_rows = gather.clone();
         let gather = gather.map(|g| Tensor::<1, Int>::from_data(TensorData::new(g, [r]), &device));
         let average = |t: Tensor<2>| match &gather {
             Some(g) => t.select(0, g.clone()).reshape([pixels, per_pixel, 3]).mean_dim(1).reshape([pixels, 3]),
@@ -1178,7 +1197,7 @@ impl Trainer {
         // Pixels averaging their area: along the silhouette what the mask and a black
         // background say is only which side of half covered a pixel is (`losses::mask_area`).
         let silhouette = gather.as_ref().map(|_| Tensor::<1>::from_data(TensorData::new(silhouette, [pixels]), &device));
-        let mask: Tensor<1> = Tensor::from_data(TensorData::new(masks, [pixels]), &device);
+        let mask: Tensor<1> = Tensor::from_data(TensorData::new(masks.clone(), [pixels]), &device);
         // The Gaussians posed in the graph only when a loss reaches them: burn registers every
         // operation on a parameter in the parameter's graph, and what no backward consumes stays
         // there, swept at every backward: 300 steps of an unused posing piled up 18,000 nodes,
@@ -1190,12 +1209,31 @@ impl Trainer {
             let colour = match &deferred.normal {
                 // The shadows cast by the Gaussians' values: they learn only from their fit to
                 // the field's density.
-                Some(normal) => average(background(model.light_at(light_index).shade(
-                    deferred.albedo.clone(),
-                    deferred.surface.clone(),
-                    normal.clone(),
-                    &model.gaussians.posed_values(&pose),
-                ))),
+                Some(normal) => {
+                    let casters = model.gaussians.posed_values(&pose);
+                    let batch_light = model.light_at(light_index);
+                    // What each pixel tells the light, weighted by how well the model explains
+                    // it (`Schedule::light_robustness`): the batch shaded once untracked for
+                    // the errors.
+                    let robust = self.schedule.light_robustness > 0.0 && it >= self.schedule.light_from;
+                    let weights = robust.then(|| {
+                        let untracked =
+                            average(background(batch_light.shade_untracked(deferred.albedo.clone(), deferred.surface.clone(), normal.clone(), &casters)));
+                        let errors = (untracked - target.clone()).abs().mean_dim(1).reshape([pixels]);
+                        let errors = errors.into_data().convert::<f32>().try_to_vec::<f32>().unwrap_or_default();
+                        let foreground: Vec<bool> = masks.iter().map(|m| *m > 0.5).collect();
+                        let per_pixel_weight = crate::losses::cauchy_weights(&errors, &foreground, self.schedule.light_robustness as f32);
+                        let ray_weights = ray_values(&per_pixel_weight, gather_rows.as_deref(), r);
+                        Tensor::<1>::from_data(TensorData::new(ray_weights[..rendered].to_vec(), [rendered]), &device)
+                    });
+                    average(background(batch_light.shade_weighted(
+                        deferred.albedo.clone(),
+                        deferred.surface.clone(),
+                        normal.clone(),
+                        &casters,
+                        weights.as_ref(),
+                    )))
+                }
                 None => albedo.clone(),
             };
             // The loss in the images' sRGB encoding when asked (`Schedule::rgb_space`): after
@@ -1351,6 +1389,13 @@ mod tests {
         let mut foreground = vec![true; 24];
         foreground[23] = false;
         (image, Mask { width: 6, height: 4, foreground })
+    }
+
+    #[test]
+    fn each_ray_takes_its_pixels_value() {
+        assert_eq!(ray_values(&[0.5, 0.25], None, 3), vec![0.5, 0.25, 1.0]);
+        // Two rays a pixel: pixel 0's rays are 3 and 0, pixel 1's 1 and 2.
+        assert_eq!(ray_values(&[0.5, 0.25], Some(&[3, 0, 1, 2]), 4), vec![0.5, 0.25, 0.25, 0.5]);
     }
 
     #[test]

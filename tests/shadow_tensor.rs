@@ -280,3 +280,72 @@ fn a_body_part_does_not_shadow_the_surface_it_makes_but_a_part_near_it_does() {
     let cpu = caster.transmittance_from(&caster.shares_at(ray.origin), &ray, true);
     assert!((cpu as f64 - shaded).abs() < 1e-5, "{cpu} vs {shaded}");
 }
+
+#[test]
+fn weights_scale_only_what_each_ray_tells_the_light() {
+    // Shading with per-ray weights on the light's gradient (`Schedule::light_robustness`): the
+    // same colours; the light's gradient (sun direction, irradiance, ambient; point position and
+    // intensity) the weighted sum of the rays' own, the albedo's and normals' untouched.
+    use umbra::shading::{shade_lambertian, shade_lambertian_weighted, Emitter};
+    let d = device();
+    let gaussians = body_like_gaussians(12, 5);
+    let g = GaussianTensors::from_posed(&gaussians, &d);
+    let mut s = Stream::new(9, 1, 2);
+    let n = 24;
+    let points: Vec<f32> = (0..n * 3).map(|_| (s.uniform() as f32 - 0.5) * 0.8 + 0.4).collect();
+    let normals: Vec<f32> = (0..n).flat_map(|_| random_unit(&mut s).as_vec3().to_array()).collect();
+    let albedo: Vec<f32> = (0..n * 3).map(|_| 0.2 + 0.7 * s.uniform() as f32).collect();
+    let weights: Vec<f32> = (0..n).map(|_| s.uniform() as f32).collect();
+    for point_light in [false, true] {
+        // Every ray's colour and the gradients of their sum, with `w` (or none).
+        let run = |w: Option<&[f32]>, only: Option<usize>| {
+            let light = tensor1(if point_light { vec![0.6, 2.2, 0.8] } else { vec![0.45, 0.8, 0.4] }, &d).require_grad();
+            let strength = tensor1(vec![0.9, 0.8, 0.7], &d).require_grad();
+            let ambient = tensor1(vec![0.2, 0.21, 0.24], &d).require_grad();
+            let a = tensor2(albedo.clone(), 3, &d).require_grad();
+            let nrm = tensor2(normals.clone(), 3, &d).require_grad();
+            let emitter = if point_light {
+                Emitter::Point { position: light.clone(), intensity: strength.clone() * 4.0 }
+            } else {
+                Emitter::Sun { direction: light.clone(), irradiance: strength.clone() }
+            };
+            let p = tensor2(points.clone(), 3, &d);
+            let wt = w.map(|w| tensor1(w.to_vec(), &d));
+            let colour = match &wt {
+                None => shade_lambertian(a.clone(), p, nrm.clone(), &g, ambient.clone(), &emitter, 0.02),
+                Some(wt) => shade_lambertian_weighted(a.clone(), p, nrm.clone(), &g, ambient.clone(), &emitter, 0.02, Some(wt)),
+            };
+            let picked = match only {
+                Some(k) => colour.clone().slice([k..k + 1, 0..3]).sum(),
+                None => colour.clone().sum(),
+            };
+            let grads = picked.backward();
+            let grad = |t: &Tensor<1>| values(t.grad(&grads).unwrap());
+            (values(colour), [grad(&light), grad(&strength), grad(&ambient)], values(a.grad(&grads).unwrap()), values(nrm.grad(&grads).unwrap()))
+        };
+        let (plain, _, plain_albedo, plain_normals) = run(None, None);
+        let (weighted, light_grads, albedo_grad, normal_grad) = run(Some(&weights), None);
+        assert_eq!(plain, weighted, "point light {point_light}: the colours do not change");
+        assert_eq!(plain_albedo, albedo_grad);
+        for (a, b) in plain_normals.iter().zip(&normal_grad) {
+            assert!((a - b).abs() < 1e-6, "the normals' gradient: {a} vs {b}");
+        }
+        // The weighted sum of each ray's own gradient.
+        let mut expected = [vec![0.0f64; 3], vec![0.0; 3], vec![0.0; 3]];
+        for (k, w) in weights.iter().enumerate() {
+            let (_, own, _, _) = run(None, Some(k));
+            for (e, o) in expected.iter_mut().zip(&own) {
+                for (e, o) in e.iter_mut().zip(o) {
+                    *e += *w as f64 * *o as f64;
+                }
+            }
+        }
+        let lit = light_grads[0].iter().any(|v| v.abs() > 1e-3);
+        assert!(lit, "the light takes a gradient: {:?}", light_grads[0]);
+        for (got, want) in light_grads.iter().zip(&expected) {
+            for (g, e) in got.iter().zip(want) {
+                assert!((*g as f64 - e).abs() < 1e-4 * (1.0 + e.abs()), "point light {point_light}: {got:?} vs {want:?}");
+            }
+        }
+    }
+}
