@@ -324,7 +324,7 @@ pub fn render_view_and_albedo(
             (Lighting::Albedo { albedo_scale }, _) => values(scaled(albedo, albedo_scale)),
             (Lighting::Known { light, albedo_scale, .. }, Some(normal)) => match (emitter(light, device), &sampler) {
                 (Some((emitter, ambient)), _) => {
-                    values(shade_lambertian(scaled(albedo, albedo_scale), surface, normal, &casters, ambient, &emitter, model.light.shadow_start))
+                    values(shade_lambertian(scaled(albedo, albedo_scale), surface, normal, &casters, ambient, &emitter, model.light.shadow_start, None))
                 }
                 (None, Some(sampler)) => {
                     let points = vectors(values(surface));

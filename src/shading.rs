@@ -72,23 +72,6 @@ pub enum Emitter {
     Point { position: Tensor<1>, intensity: Tensor<1> },
 }
 
-/// The image formation of the scene format, for training and relighting alike:
-/// `albedo x (ambient + E max(0, n.l) T)`, T the transmittance of `casters` along the shadow
-/// ray that starts `start` (m) off the surface, each Gaussian weighted by one less its share
-/// of the density at the point (`shadow::own_shares`: a body part does not shadow the surface
-/// it makes); a point light's E falls off as 1 / r^2 and its shadow ray ends at the light.
-pub fn shade_lambertian(
-    albedo: Tensor<2>,
-    points: Tensor<2>,
-    normals: Tensor<2>,
-    casters: &GaussianTensors,
-    ambient: Tensor<1>,
-    emitter: &Emitter,
-    start: f32,
-) -> Tensor<2> {
-    shade_lambertian_weighted(albedo, points, normals, casters, ambient, emitter, start, None)
-}
-
 /// `value` `[3]` as `[1, 3]` (to broadcast) or, with `weights` `[r]`, as `r` rows whose
 /// gradient is scaled row by row by them (the forward values are unchanged).
 fn rows_scaled(value: Tensor<1>, r: usize, weights: Option<&Tensor<1>>) -> Tensor<2> {
@@ -101,10 +84,15 @@ fn rows_scaled(value: Tensor<1>, r: usize, weights: Option<&Tensor<1>>) -> Tenso
     }
 }
 
-/// `shade_lambertian` with the light's gradient (direction or position, irradiance, ambient)
-/// scaled ray by ray by `weights` `[R]`: the same colours.
+/// The image formation of the scene format, for training and relighting alike:
+/// `albedo x (ambient + E max(0, n.l) T)`, T the transmittance of `casters` along the shadow
+/// ray that starts `start` (m) off the surface, each Gaussian weighted by one less its share
+/// of the density at the point (`shadow::own_shares`: a body part does not shadow the surface
+/// it makes); a point light's E falls off as 1 / r^2 and its shadow ray ends at the light.
+/// With `weights` `[R]`, the light's gradient (direction or position, irradiance, ambient) is
+/// scaled ray by ray by them (`Schedule::light_robustness`); the colours are the same.
 #[allow(clippy::too_many_arguments)]
-pub fn shade_lambertian_weighted(
+pub fn shade_lambertian(
     albedo: Tensor<2>,
     points: Tensor<2>,
     normals: Tensor<2>,
@@ -233,7 +221,7 @@ impl FittedLight {
         weights: Option<&Tensor<1>>,
     ) -> Tensor<2> {
         let Some(emitter) = self.emitter() else { return albedo };
-        shade_lambertian_weighted(albedo, points, normals, &self.shadow_casters(gaussians), self.ambient(), &emitter, self.shadow_start, weights)
+        shade_lambertian(albedo, points, normals, &self.shadow_casters(gaussians), self.ambient(), &emitter, self.shadow_start, weights)
     }
 
     /// The shaded colour with nothing tracked (the light's values and the inputs detached): what
@@ -246,7 +234,7 @@ impl FittedLight {
         };
         let casters = self.shadow_casters(gaussians);
         let casters = GaussianTensors { means: casters.means.detach(), whiten: casters.whiten.detach(), amplitudes: casters.amplitudes.detach() };
-        shade_lambertian(albedo.detach(), points.detach(), normals.detach(), &casters, self.ambient().detach(), &emitter, self.shadow_start)
+        shade_lambertian(albedo.detach(), points.detach(), normals.detach(), &casters, self.ambient().detach(), &emitter, self.shadow_start, None)
     }
 
     /// The light as an emitter of the image formation; none for uniform light.

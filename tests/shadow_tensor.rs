@@ -286,7 +286,7 @@ fn weights_scale_only_what_each_ray_tells_the_light() {
     // Shading with per-ray weights on the light's gradient (`Schedule::light_robustness`): the
     // same colours; the light's gradient (sun direction, irradiance, ambient; point position and
     // intensity) the weighted sum of the rays' own, the albedo's and normals' untouched.
-    use umbra::shading::{shade_lambertian, shade_lambertian_weighted, Emitter};
+    use umbra::shading::{shade_lambertian, Emitter};
     let d = device();
     let gaussians = body_like_gaussians(12, 5);
     let g = GaussianTensors::from_posed(&gaussians, &d);
@@ -311,10 +311,7 @@ fn weights_scale_only_what_each_ray_tells_the_light() {
             };
             let p = tensor2(points.clone(), 3, &d);
             let wt = w.map(|w| tensor1(w.to_vec(), &d));
-            let colour = match &wt {
-                None => shade_lambertian(a.clone(), p, nrm.clone(), &g, ambient.clone(), &emitter, 0.02),
-                Some(wt) => shade_lambertian_weighted(a.clone(), p, nrm.clone(), &g, ambient.clone(), &emitter, 0.02, Some(wt)),
-            };
+            let colour = shade_lambertian(a.clone(), p, nrm.clone(), &g, ambient.clone(), &emitter, 0.02, wt.as_ref());
             let picked = match only {
                 Some(k) => colour.clone().slice([k..k + 1, 0..3]).sum(),
                 None => colour.clone().sum(),
