@@ -5,7 +5,7 @@
 
 use crate::eval::{render_view_and_albedo, Lighting};
 use crate::imageio::RgbImage;
-use crate::metrics::{score, ImageScores};
+use crate::metrics::{score, ErrorRegions, ImageScores};
 use crate::plot::{Chart, Series};
 pub use crate::run::{albedo_scale, existing_checkpoint, restore, resume_checkpoint, save_checkpoint_until, save_png, CHECKPOINT, SCHEDULE_COPY};
 use crate::run::{apply_recorded_field, load_checkpoint, losses_csv, save_checkpoint, write_text, OLD_CHECKPOINT};
@@ -427,7 +427,22 @@ pub fn evaluate_split(trainer: &Trainer, dir: &Path, split: Split, on: &mut impl
         };
         let (scores, albedo) = (scored.scores, scored.albedo.map(|a| a.1));
         on(TrainMessage::Rendered { done: done + 1, total: tests.len(), name: name.clone(), psnr: Some(scores.psnr) });
-        rows.push(ImageScore { image: name, light: view.light.clone(), group, scores, albedo, relit_scaled, albedo_scaled, novel_pose, novel_view, relit });
+        let error_sums = view.mask.as_ref().map(|mask| crate::metrics::error_regions(&scored.image, &view.colour, mask));
+        let error_share = error_sums.map(|e| e.shares());
+        rows.push(ImageScore {
+            image: name,
+            light: view.light.clone(),
+            group,
+            scores,
+            albedo,
+            relit_scaled,
+            albedo_scaled,
+            error_share,
+            error_sums,
+            novel_pose,
+            novel_view,
+            relit,
+        });
         Ok::<(), FitError>(())
     })?;
     let cells: Vec<Vec<&RgbImage>> = compare.iter().map(|row| row.iter().collect()).collect();
@@ -634,6 +649,11 @@ struct ImageScore {
     relit_scaled: Option<ImageScores>,
     /// The albedo's scores after its per-channel least-squares scale.
     albedo_scaled: Option<ImageScores>,
+    /// Where the image's error lies, as shares (`metrics::ErrorRegions`; with a mask only).
+    error_share: Option<ErrorRegions>,
+    /// The same as squared-error sums, for the group's shares.
+    #[serde(skip)]
+    error_sums: Option<ErrorRegions>,
     novel_pose: bool,
     novel_view: bool,
     relit: bool,
@@ -646,24 +666,29 @@ struct GroupScores {
     images: usize,
     #[serde(flatten)]
     scores: ImageScores,
+    /// Where the group's error lies: its images' squared errors summed by region, as shares.
+    error_share: Option<ErrorRegions>,
 }
 
 /// Mean scores per group, in a fixed order; albedo renders form a group of their own.
 fn group_means(rows: &[ImageScore]) -> Vec<GroupScores> {
-    let mean = |group: &'static str, scores: Vec<ImageScores>| {
+    let mean = |group: &'static str, scores: Vec<ImageScores>, errors: Option<ErrorRegions>| {
         let n = scores.len() as f64;
         let avg = |pick: fn(&ImageScores) -> f64| scores.iter().map(pick).sum::<f64>() / n;
         GroupScores {
             group,
             images: scores.len(),
             scores: ImageScores { psnr: avg(|s| s.psnr), foreground_psnr: avg(|s| s.foreground_psnr), ssim: avg(|s| s.ssim) },
+            error_share: errors.map(|e| e.shares()),
         }
     };
     let mut out = Vec::new();
     for group in ["novel pose", "novel view", "relit", "training pose and view"] {
-        let scores: Vec<ImageScores> = rows.iter().filter(|r| r.group == group).map(|r| r.scores).collect();
-        if !scores.is_empty() {
-            out.push(mean(group, scores));
+        let members: Vec<&ImageScore> = rows.iter().filter(|r| r.group == group).collect();
+        if !members.is_empty() {
+            // Summed over the group's images when every one has a mask.
+            let errors = members.iter().try_fold(ErrorRegions::default(), |sum, r| r.error_sums.map(|e| sum.add(&e)));
+            out.push(mean(group, members.iter().map(|r| r.scores).collect(), errors));
         }
     }
     for (group, pick) in [
@@ -673,7 +698,7 @@ fn group_means(rows: &[ImageScore]) -> Vec<GroupScores> {
     ] {
         let scores: Vec<ImageScores> = rows.iter().filter_map(pick).collect();
         if !scores.is_empty() {
-            out.push(mean(group, scores));
+            out.push(mean(group, scores, None));
         }
     }
     out
@@ -684,12 +709,20 @@ fn cells(s: &ImageScores, digits: usize) -> [String; 3] {
 }
 
 fn metrics_csv(rows: &[ImageScore]) -> String {
-    let mut csv = String::from("image,light,group,psnr,foreground_psnr,ssim,albedo_psnr,albedo_foreground_psnr,albedo_ssim\n");
+    let mut csv = String::from(
+        "image,light,group,psnr,foreground_psnr,ssim,albedo_psnr,albedo_foreground_psnr,albedo_ssim,error_outside_mask,error_along_silhouette,error_inside\n",
+    );
     for r in rows {
         let albedo = r.albedo.map(|a| cells(&a, 3)).unwrap_or_else(|| [String::new(), String::new(), String::new()]);
-        csv += &format!("{},{},{},{},{}\n", r.image, r.light, r.group, cells(&r.scores, 3).join(","), albedo.join(","));
+        let shares = r.error_share.map(|e| share_cells(&e, 4)).unwrap_or_default();
+        csv += &format!("{},{},{},{},{},{}\n", r.image, r.light, r.group, cells(&r.scores, 3).join(","), albedo.join(","), shares.join(","));
     }
     csv
+}
+
+/// An `ErrorRegions` of shares as three cells: outside the mask, along the silhouette, inside.
+fn share_cells(e: &ErrorRegions, digits: usize) -> [String; 3] {
+    [e.outside, e.silhouette, e.inside].map(|v| format!("{v:.digits$}"))
 }
 
 fn metrics_markdown(rows: &[ImageScore], groups: &[GroupScores]) -> String {
@@ -698,6 +731,14 @@ fn metrics_markdown(rows: &[ImageScore], groups: &[GroupScores]) -> String {
     );
     for g in groups {
         md += &format!("| {} | {} | {} |\n", g.group, g.images, cells(&g.scores, 2).join(" | "));
+    }
+    if groups.iter().any(|g| g.error_share.is_some()) {
+        md += "\n## Where the error lies (share of each group's squared error, sRGB 8-bit)\n\nOutside the mask: the render draws body (or a halo) where the truth has none; along the silhouette: mask pixels beside the background; inside: the rest of the body. Most of it outside and along the silhouette is a shape error, most of it inside a colour or shading error.\n\n| group | outside the mask | along the silhouette | inside |\n|---|---|---|---|\n";
+        for g in groups {
+            if let Some(e) = &g.error_share {
+                md += &format!("| {} | {} |\n", g.group, [e.outside, e.silhouette, e.inside].map(|v| format!("{:.0}%", 100.0 * v)).join(" | "));
+            }
+        }
     }
     md += "\n| image | light | group | PSNR (dB) | foreground PSNR (dB) | SSIM | albedo PSNR (dB) | albedo foreground PSNR (dB) | albedo SSIM |\n|---|---|---|---|---|---|---|---|---|\n";
     for r in rows {
@@ -766,5 +807,36 @@ mod tests {
         assert_eq!(outcome, Err("item 3".to_string()));
         assert_eq!(taken, vec![0, 1, 2, 3], "nothing is taken after the failure");
         assert!(started.load(Ordering::Relaxed) < 200, "items not yet started are skipped");
+    }
+
+    #[test]
+    fn a_groups_error_shares_sum_its_images_errors_and_need_every_mask() {
+        use super::{group_means, ErrorRegions, ImageScore, ImageScores};
+        let scores = ImageScores { psnr: 30.0, foreground_psnr: 20.0, ssim: 0.9 };
+        let row = |group: &'static str, sums: Option<ErrorRegions>| ImageScore {
+            image: String::new(),
+            light: "sun".into(),
+            group,
+            scores,
+            albedo: None,
+            relit_scaled: None,
+            albedo_scaled: None,
+            error_share: sums.map(|e| e.shares()),
+            error_sums: sums,
+            novel_pose: group == "novel pose",
+            novel_view: false,
+            relit: false,
+        };
+        // Shares of the sums, not means of the shares: (30 + 0) / 40 outside, (0 + 10) / 40 inside.
+        let rows = [
+            row("novel pose", Some(ErrorRegions { outside: 30.0, silhouette: 0.0, inside: 0.0 })),
+            row("novel pose", Some(ErrorRegions { outside: 0.0, silhouette: 0.0, inside: 10.0 })),
+            row("novel view", Some(ErrorRegions { outside: 1.0, silhouette: 1.0, inside: 2.0 })),
+            row("novel view", None),
+        ];
+        let groups = group_means(&rows);
+        assert_eq!(groups[0].error_share, Some(ErrorRegions { outside: 0.75, silhouette: 0.0, inside: 0.25 }));
+        assert_eq!(groups[1].group, "novel view");
+        assert_eq!(groups[1].error_share, None, "an image without a mask leaves its group without shares");
     }
 }

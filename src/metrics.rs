@@ -51,6 +51,54 @@ fn srgb8(image: &RgbImage) -> Vec<[f64; 3]> {
     image.pixels.iter().map(|p| [0, 1, 2].map(|c| linear_to_srgb8(p[c]) as f64)).collect()
 }
 
+/// Where an image's error lies: the squared error (8-bit sRGB, summed over pixels and
+/// channels) outside the ground-truth mask (the render draws body where the truth has none,
+/// or a halo), along the silhouette (mask pixels with a background pixel beside them, the
+/// four neighbours; a pixel on the image's border does not count as beside background), and
+/// inside. A fit whose error is mostly outside and along the silhouette has the wrong shape;
+/// one whose error is inside has the wrong colours or shading.
+#[derive(Clone, Copy, Debug, Default, PartialEq, serde::Serialize)]
+pub struct ErrorRegions {
+    pub outside: f64,
+    pub silhouette: f64,
+    pub inside: f64,
+}
+
+impl ErrorRegions {
+    /// The three as shares of their sum (zeros for a perfect render).
+    pub fn shares(&self) -> ErrorRegions {
+        let total = self.outside + self.silhouette + self.inside;
+        match total > 0.0 {
+            true => ErrorRegions { outside: self.outside / total, silhouette: self.silhouette / total, inside: self.inside / total },
+            false => ErrorRegions::default(),
+        }
+    }
+
+    pub fn add(&self, other: &ErrorRegions) -> ErrorRegions {
+        ErrorRegions { outside: self.outside + other.outside, silhouette: self.silhouette + other.silhouette, inside: self.inside + other.inside }
+    }
+}
+
+/// `ErrorRegions` of `rendered` against `truth` with its ground-truth `mask`.
+pub fn error_regions(rendered: &RgbImage, truth: &RgbImage, mask: &Mask) -> ErrorRegions {
+    let (a, b) = (srgb8(rendered), srgb8(truth));
+    let (w, h) = (mask.width, mask.height);
+    let background = |x: isize, y: isize| x >= 0 && y >= 0 && (x as usize) < w && (y as usize) < h && !mask.foreground[y as usize * w + x as usize];
+    let mut regions = ErrorRegions::default();
+    for k in 0..a.len().min(b.len()).min(w * h) {
+        let error: f64 = (0..3).map(|c| (a[k][c] - b[k][c]).powi(2)).sum();
+        let (x, y) = ((k % w) as isize, (k / w) as isize);
+        if !mask.foreground[k] {
+            regions.outside += error;
+        } else if background(x - 1, y) || background(x + 1, y) || background(x, y - 1) || background(x, y + 1) {
+            regions.silhouette += error;
+        } else {
+            regions.inside += error;
+        }
+    }
+    regions
+}
+
 /// The pixels that count as foreground: the ground-truth mask (or, without one, every pixel the
 /// truth does not leave black) together with every pixel the render does not leave black, so
 /// that a render is penalised both for missing the figure and for drawing outside it.
@@ -203,6 +251,35 @@ mod tests {
         let expected = 10.0 * (255.0f64 * 255.0 / (100.0 / 3.0)).log10();
         assert!((psnr_srgb8_where(&a, &b, &only) - expected).abs() < 1e-9);
         assert_eq!(psnr_srgb8(&a, &a), f64::INFINITY);
+    }
+
+    #[test]
+    fn error_regions_by_hand() {
+        // A 4x3 mask with a 2x2 body whose left column touches the image's border:
+        //   . X X .
+        //   . X X .      X = foreground
+        //   . . . .
+        // Each foreground pixel has background to its left or right, so all four lie along the
+        // silhouette (the border above the top row does not count). Errors: pixel (0, 0)
+        // (outside) 10 in one channel, pixel (1, 0) (silhouette) 3 in two channels.
+        let mask = Mask { width: 4, height: 3, foreground: (0..12).map(|k| matches!(k, 1 | 2 | 5 | 6)).collect() };
+        let truth = image(4, 3, |_, _, _| 100);
+        let rendered = image(4, 3, |x, y, c| match (x, y, c) {
+            (0, 0, 0) => 110,
+            (1, 0, 0) | (1, 0, 2) => 103,
+            _ => 100,
+        });
+        let regions = error_regions(&rendered, &truth, &mask);
+        assert_eq!(regions, ErrorRegions { outside: 100.0, silhouette: 18.0, inside: 0.0 });
+        let shares = regions.shares();
+        assert!((shares.outside - 100.0 / 118.0).abs() < 1e-12 && (shares.silhouette - 18.0 / 118.0).abs() < 1e-12);
+        // A body away from every edge has an inside: a 5x5 mask with a 3x3 body, the centre
+        // pixel off by 4 in every channel.
+        let mask = Mask { width: 5, height: 5, foreground: (0..25).map(|k| (1..4).contains(&(k % 5)) && (1..4).contains(&(k / 5))).collect() };
+        let truth = image(5, 5, |_, _, _| 60);
+        let rendered = image(5, 5, |x, y, _| if (x, y) == (2, 2) { 64 } else { 60 });
+        assert_eq!(error_regions(&rendered, &truth, &mask), ErrorRegions { outside: 0.0, silhouette: 0.0, inside: 48.0 });
+        assert_eq!(error_regions(&truth, &truth, &mask).shares(), ErrorRegions::default());
     }
 
     #[test]

@@ -124,8 +124,9 @@ fn summary_rows(fit: &Value, truth: Option<&Light>) -> Vec<(String, String)> {
     rows
 }
 
-/// The evaluation's groups: (group, images, PSNR, foreground PSNR, SSIM).
-fn group_rows(fit: &Value) -> Vec<[String; 5]> {
+/// The evaluation's groups: (group, images, PSNR, foreground PSNR, SSIM, where the error lies:
+/// its shares outside the mask / along the silhouette / inside, `metrics::ErrorRegions`).
+fn group_rows(fit: &Value) -> Vec<[String; 6]> {
     let number = |v: &Value, digits: usize| v.as_f64().map_or("-".to_string(), |x| format!("{x:.digits$}"));
     fit["evaluation"]["groups"]
         .as_array()
@@ -138,12 +139,16 @@ fn group_rows(fit: &Value) -> Vec<[String; 5]> {
                 number(&g["psnr"], 2),
                 number(&g["foreground_psnr"], 2),
                 number(&g["ssim"], 4),
+                match ["outside", "silhouette", "inside"].map(|k| g["error_share"][k].as_f64()) {
+                    [Some(o), Some(s), Some(i)] => format!("{:.0}% / {:.0}% / {:.0}%", 100.0 * o, 100.0 * s, 100.0 * i),
+                    _ => "-".to_string(),
+                },
             ]
         })
         .collect()
 }
 
-const GROUP_HEADER: [&str; 5] = ["group", "images", "PSNR (dB)", "foreground PSNR (dB)", "SSIM"];
+const GROUP_HEADER: [&str; 6] = ["group", "images", "PSNR (dB)", "foreground PSNR (dB)", "SSIM", "error outside the mask / along the silhouette / inside"];
 
 fn markdown_page(name: &str, summary: &[(String, String)], fit: &Value, images: &[(&str, Option<String>, &str)]) -> String {
     let mut md = format!("# Fit report: {name}\n\n| | |\n|---|---|\n");
@@ -152,7 +157,7 @@ fn markdown_page(name: &str, summary: &[(String, String)], fit: &Value, images: 
     }
     let groups = group_rows(fit);
     if !groups.is_empty() {
-        md += &format!("\n## Test images\n\n| {} |\n|---|---|---|---|---|\n", GROUP_HEADER.join(" | "));
+        md += &format!("\n## Test images\n\n| {} |\n|---|---|---|---|---|---|\n", GROUP_HEADER.join(" | "));
         for row in groups {
             md += &format!("| {} |\n", row.join(" | "));
         }
