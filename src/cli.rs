@@ -447,12 +447,16 @@ fn eval(run: &Path, scene: Option<&Path>, split: EvalSplit, backend: crate::trai
     bar.finish_and_clear();
     for group in evaluation["groups"].as_array().into_iter().flatten() {
         let f = |k: &str| group[k].as_f64().unwrap_or(f64::NAN);
-        let share = &group["error_share"];
-        let regions = match (share["outside"].as_f64(), share["silhouette"].as_f64(), share["inside"].as_f64()) {
-            (Some(o), Some(s), Some(i)) => format!("; error {:.0}% outside the mask, {:.0}% along the silhouette, {:.0}% inside", 100.0 * o, 100.0 * s, 100.0 * i),
-            _ => String::new(),
-        };
-        println!("{}: PSNR {:.2} dB, foreground {:.2} dB, SSIM {:.4}{regions}", group["group"].as_str().unwrap_or("?"), f("psnr"), f("foreground_psnr"), f("ssim"));
+        let regions = crate::metrics::ErrorRegions::from_json(&group["error_share"])
+            .map(|e| e.percentages())
+            .map_or(String::new(), |[o, s, i]| format!("; error {o} outside the mask, {s} along the silhouette, {i} inside"));
+        println!(
+            "{}: PSNR {:.2} dB, foreground {:.2} dB, SSIM {:.4}{regions}",
+            group["group"].as_str().unwrap_or("?"),
+            f("psnr"),
+            f("foreground_psnr"),
+            f("ssim")
+        );
     }
     if let Some(d) = evaluation["light_error"]["direction_degrees"].as_f64() {
         println!("light direction error: {d:.2} degrees");

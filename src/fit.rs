@@ -736,7 +736,7 @@ fn metrics_markdown(rows: &[ImageScore], groups: &[GroupScores]) -> String {
         md += "\n## Where the error lies (share of each group's squared error, sRGB 8-bit)\n\nOutside the mask: the render draws body (or a halo) where the truth has none; along the silhouette: mask pixels beside the background; inside: the rest of the body. Most of it outside and along the silhouette is a shape error, most of it inside a colour or shading error.\n\n| group | outside the mask | along the silhouette | inside |\n|---|---|---|---|\n";
         for g in groups {
             if let Some(e) = &g.error_share {
-                md += &format!("| {} | {} |\n", g.group, [e.outside, e.silhouette, e.inside].map(|v| format!("{:.0}%", 100.0 * v)).join(" | "));
+                md += &format!("| {} | {} |\n", g.group, e.percentages().join(" | "));
             }
         }
     }

@@ -74,6 +74,16 @@ impl ErrorRegions {
         }
     }
 
+    /// Shares as whole percentages: outside the mask, along the silhouette, inside.
+    pub fn percentages(&self) -> [String; 3] {
+        [self.outside, self.silhouette, self.inside].map(|v| format!("{:.0}%", 100.0 * v))
+    }
+
+    /// The `error_share` an evaluation wrote (`metrics.json`, `fit.json`), if it has one.
+    pub fn from_json(value: &serde_json::Value) -> Option<ErrorRegions> {
+        Some(ErrorRegions { outside: value["outside"].as_f64()?, silhouette: value["silhouette"].as_f64()?, inside: value["inside"].as_f64()? })
+    }
+
     pub fn add(&self, other: &ErrorRegions) -> ErrorRegions {
         ErrorRegions { outside: self.outside + other.outside, silhouette: self.silhouette + other.silhouette, inside: self.inside + other.inside }
     }
@@ -255,7 +265,7 @@ mod tests {
 
     #[test]
     fn error_regions_by_hand() {
-        // A 4x3 mask with a 2x2 body whose left column touches the image's border:
+        // A 4x3 mask with a 2x2 body whose top row touches the image's border:
         //   . X X .
         //   . X X .      X = foreground
         //   . . . .
@@ -273,6 +283,10 @@ mod tests {
         assert_eq!(regions, ErrorRegions { outside: 100.0, silhouette: 18.0, inside: 0.0 });
         let shares = regions.shares();
         assert!((shares.outside - 100.0 / 118.0).abs() < 1e-12 && (shares.silhouette - 18.0 / 118.0).abs() < 1e-12);
+        assert_eq!(shares.percentages(), ["85%", "15%", "0%"]);
+        // As an evaluation writes it and the report and the CLI read it back.
+        assert_eq!(ErrorRegions::from_json(&serde_json::to_value(shares).unwrap()), Some(shares));
+        assert_eq!(ErrorRegions::from_json(&serde_json::json!(null)), None);
         // A body away from every edge has an inside: a 5x5 mask with a 3x3 body, the centre
         // pixel off by 4 in every channel.
         let mask = Mask { width: 5, height: 5, foreground: (0..25).map(|k| (1..4).contains(&(k % 5)) && (1..4).contains(&(k / 5))).collect() };

@@ -139,10 +139,7 @@ fn group_rows(fit: &Value) -> Vec<[String; 6]> {
                 number(&g["psnr"], 2),
                 number(&g["foreground_psnr"], 2),
                 number(&g["ssim"], 4),
-                match ["outside", "silhouette", "inside"].map(|k| g["error_share"][k].as_f64()) {
-                    [Some(o), Some(s), Some(i)] => format!("{:.0}% / {:.0}% / {:.0}%", 100.0 * o, 100.0 * s, 100.0 * i),
-                    _ => "-".to_string(),
-                },
+                crate::metrics::ErrorRegions::from_json(&g["error_share"]).map_or("-".to_string(), |e| e.percentages().join(" / ")),
             ]
         })
         .collect()
