@@ -7,6 +7,7 @@ pub mod basis;
 pub mod bench;
 pub mod cli;
 pub mod environment;
+pub mod error_map;
 pub mod eval;
 pub mod export;
 pub mod field;

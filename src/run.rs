@@ -89,6 +89,7 @@ pub fn save_checkpoint_until(trainer: &Trainer, out: &Path, history: &[(usize, S
         "albedo_layers": trainer.model()?.field.config.albedo_layers,
         "field": trainer.model()?.field.config,
         "gaussian_bones": trainer.model()?.gaussians.bones,
+        "error_maps": trainer.error_maps().into_iter().map(|(view, errors)| json!({"view": view, "errors": errors})).collect::<Vec<_>>(),
     });
     write_text(&temp.join("state.json"), &state.to_string())?;
     if step() {
@@ -268,6 +269,14 @@ pub(crate) fn load_checkpoint(trainer: &mut Trainer, out: &Path) -> Result<Vec<(
     }
     trainer.searches = searches;
     trainer.cones = cones;
+    // Checkpoints from before the error maps, or of fits without them, have none.
+    let mut maps = Vec::new();
+    for (k, entry) in state["error_maps"].as_array().cloned().unwrap_or_default().into_iter().enumerate() {
+        let view = entry["view"].as_u64().ok_or_else(|| io(&state_path, format!("error_maps[{k}].view: missing")))? as usize;
+        let errors: Vec<f32> = serde_json::from_value(entry["errors"].clone()).map_err(|e| io(&state_path, format!("error_maps[{k}].errors: {e}")))?;
+        maps.push((view, errors));
+    }
+    trainer.set_error_maps(maps).map_err(|e| io(&state_path, format!("error_maps: {e}")))?;
     let csv = std::fs::read_to_string(dir.join("losses.csv")).map_err(|e| io(&dir.join("losses.csv"), e))?;
     Ok(parse_losses_csv(&csv))
 }

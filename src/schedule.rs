@@ -189,6 +189,11 @@ pub struct Schedule {
     /// contrast (`train::contrast_weights`: a clothing pattern's or a shadow's edges) instead
     /// of uniformly over the foreground; 0 draws them all uniformly.
     pub contrast_rays: f64,
+    /// The share of the batch's third drawn anywhere in a view that is drawn instead where the
+    /// fit is still wrong (`error_map`: tiles in proportion to their recent error). These rays
+    /// teach the field, the albedo and the Gaussians but not the light, which learns from the
+    /// same pixels as without them. 0: the third is drawn uniformly.
+    pub error_rays: f64,
     /// Cauchy weights on what each training pixel tells the light (`losses::cauchy_weights`):
     /// a pixel's pull on the light's direction or position, irradiance and ambient is scaled by
     /// `1 / (1 + (e / c)^2)`, `e` its error and `c` this many robust standard deviations of the
@@ -396,6 +401,7 @@ impl Schedule {
             "rebind_every",
             "sample_masked_misses",
             "contrast_rays",
+            "error_rays",
             "light_robustness",
             "rgb_space",
             "footprint",
@@ -518,6 +524,11 @@ impl Schedule {
                 None => 0.0,
                 Some(v) if (0.0..=1.0).contains(&v) => v,
                 Some(v) => return Err(err(file, "contrast_rays", format!("must be within [0, 1], found {v}"))),
+            },
+            error_rays: match number(file, &table, "error_rays", "")? {
+                None => 0.0,
+                Some(v) if (0.0..=1.0).contains(&v) => v,
+                Some(v) => return Err(err(file, "error_rays", format!("must be within [0, 1], found {v}"))),
             },
             light_robustness: match number(file, &table, "light_robustness", "")? {
                 None => 0.0,
@@ -695,6 +706,7 @@ mod tests {
         assert_eq!(parsed("[losses]\nmask = 1.0"), Some(true), "culling is on unless a schedule turns it off");
         assert_eq!(parsed("cull_samples = false\n[losses]\nmask = 1.0"), Some(false));
         assert_eq!(error_of("contrast_rays = 1.5\n[losses]\nmask = 1.0").key, "contrast_rays");
+        assert_eq!(error_of("error_rays = -0.5\n[losses]\nmask = 1.0").key, "error_rays");
         assert_eq!(error_of("light_robustness = -1\n[losses]\nmask = 1.0").key, "light_robustness");
         assert_eq!(error_of("contrast_rays = \"half\"\n[losses]\nmask = 1.0").key, "contrast_rays");
         assert_eq!(error_of("rgb_space = \"gamma\"\n[losses]\nmask = 1.0").key, "rgb_space");

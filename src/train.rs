@@ -227,6 +227,9 @@ struct ViewData {
     /// (`contrast_weights`), to draw a pixel in proportion to its contrast.
     contrast: Vec<usize>,
     contrast_cumulative: Vec<f64>,
+    /// Where the fit is still wrong in this view, when the schedule draws rays by it
+    /// (`Schedule::error_rays`; training views with a mask only).
+    error_map: Option<crate::error_map::ErrorMap>,
 }
 
 impl ViewData {
@@ -380,6 +383,9 @@ struct Batch {
     /// With several rays per pixel, where each pixel's rays are in `rays`, pixel after pixel;
     /// none when each pixel is one ray, in `rays`' order.
     gather: Option<Vec<i64>>,
+    /// Per pixel, its view, its index in the view, and whether it was drawn by the view's
+    /// error map (`Schedule::error_rays`).
+    sources: Vec<(usize, usize, bool)>,
 }
 
 /// The field the schedule asks for: the Fourier `mlp` field, or feature grids shaped by the
@@ -698,6 +704,10 @@ impl Trainer {
                             flags
                         })
                         .unwrap_or_default(),
+                    error_map: match (&v.mask, v.split) {
+                        (Some(mask), Split::Train) if schedule.error_rays > 0.0 => Some(crate::error_map::ErrorMap::new(mask.width, mask.height)),
+                        _ => None,
+                    },
                     contrast: weighted.iter().map(|w| w.0).collect(),
                     contrast_cumulative: weighted
                         .iter()
@@ -776,6 +786,21 @@ impl Trainer {
             pixel_rays,
             average: None,
         })
+    }
+
+    /// Each training view's error map (`Schedule::error_rays`) by the view's index: what a
+    /// checkpoint keeps so that a resumed fit draws its rays as the uninterrupted one does.
+    pub fn error_maps(&self) -> Vec<(usize, Vec<f32>)> {
+        self.views.iter().enumerate().filter_map(|(v, d)| d.error_map.as_ref().map(|m| (v, m.errors().to_vec()))).collect()
+    }
+
+    /// Restores `error_maps`' output; refused when a view has no map or a map's size differs.
+    pub fn set_error_maps(&mut self, maps: Vec<(usize, Vec<f32>)>) -> Result<(), String> {
+        for (v, errors) in maps {
+            let map = self.views.get_mut(v).and_then(|d| d.error_map.as_mut()).ok_or_else(|| format!("view {v} has no error map in this fit"))?;
+            map.set_errors(errors).map_err(|e| format!("view {v}: {e}"))?;
+        }
+        Ok(())
     }
 
     /// Runs the grid's lookup as the composite of tensor ops instead of the fused op (for the
@@ -917,6 +942,7 @@ impl Trainer {
         let mut colours = Vec::with_capacity(pixel_count * 3);
         let mut masks = Vec::with_capacity(pixel_count);
         let mut silhouette = Vec::with_capacity(pixel_count);
+        let mut sources = Vec::with_capacity(pixel_count);
         // The body's box, for foreground rays that miss every bound (when asked): once a batch.
         let body_box = self.schedule.sample_masked_misses.then(|| {
             let (lo, hi) = pose.bounds(&self.scene.skeleton);
@@ -939,7 +965,14 @@ impl Trainer {
             let f = self.schedule.contrast_rays;
             let by_contrast = k % 3 == 0 && (j * f).floor() != ((j + 1.0) * f).floor();
             let contrasted = if by_contrast { self.views[v].by_contrast(self.stream.uniform()) } else { None };
-            let pixel = match contrasted {
+            // Of the third drawn anywhere, every (1 / error_rays)-th where the fit is wrong.
+            let e = self.schedule.error_rays;
+            let by_error = k % 3 == 2 && (j * e).floor() != ((j + 1.0) * e).floor();
+            let wrong = match &self.views[v].error_map {
+                Some(map) if by_error => Some(map.draw(self.stream.uniform(), self.stream.uniform())),
+                _ => None,
+            };
+            let pixel = match contrasted.or(wrong) {
                 Some(p) => p,
                 None if pool.is_empty() => self.stream.below(pixels),
                 None => pool[self.stream.below(pool.len())],
@@ -963,6 +996,7 @@ impl Trainer {
                 drawn.push((ray, bounds, view.colour.pixels[pixel], mask));
             }
             silhouette.push(self.views[v].silhouette.get(pixel).copied().unwrap_or(false) as u8 as f32);
+            sources.push((v, pixel, wrong.is_some()));
         }
         // A stable partition: hits first, in the order drawn.
         let hits = drawn.iter().filter(|d| d.1.is_some()).count();
@@ -979,6 +1013,7 @@ impl Trainer {
                 colours.extend(drawn[d].2);
                 masks.push(drawn[d].3);
             }
+            sources = order.iter().map(|&d| sources[d]).collect();
             None
         } else {
             for pixel in drawn.chunks(per_pixel) {
@@ -991,7 +1026,7 @@ impl Trainer {
             }
             Some(position)
         };
-        Batch { frame, light, rays, hits, colours, masks, silhouette, gather }
+        Batch { frame, light, rays, hits, colours, masks, silhouette, gather, sources }
     }
 
     /// The body's length unit: `skeleton::body_length(1, extent)`.
@@ -1150,7 +1185,7 @@ impl Trainer {
             self.rebind_gaussians()?;
         }
         let set = self.model()?.gaussians.to_set();
-        let Batch { frame, light: light_index, rays, hits, colours, masks, silhouette, gather } = self.batch(&set);
+        let Batch { frame, light: light_index, rays, hits, colours, masks, silhouette, gather, sources } = self.batch(&set);
         clock.mark(1);
         let r = rays.len();
         // Only rays that meet a bound are rendered (at least one, so the graph is never empty);
@@ -1205,6 +1240,7 @@ impl Trainer {
         let density = w("density") > 0.0 && self.schedule.density_points > 0;
         let posed = density.then(|| model.gaussians.posed(&pose));
         let mut terms: Vec<(&str, f64, Tensor<1>)> = Vec::new();
+        let mut colour_error: Option<Tensor<1>> = None;
         if w("rgb") > 0.0 {
             let colour = match &deferred.normal {
                 // The shadows cast by the Gaussians' values: they learn only from their fit to
@@ -1215,14 +1251,26 @@ impl Trainer {
                     // What each pixel tells the light, weighted by how well the model explains
                     // it (`Schedule::light_robustness`): the batch shaded once untracked for
                     // the errors.
+                    // The pixels drawn where the fit is wrong teach the light nothing: it learns
+                    // from the same pixels as a batch without them.
                     let robust = self.schedule.light_robustness > 0.0 && it >= self.schedule.light_from;
-                    let weights = robust.then(|| {
-                        let untracked =
-                            average(background(batch_light.shade_untracked(deferred.albedo.clone(), deferred.surface.clone(), normal.clone(), &casters)));
-                        let errors = (untracked - target.clone()).abs().mean_dim(1).reshape([pixels]);
-                        let errors = errors.into_data().convert::<f32>().try_to_vec::<f32>().unwrap_or_default();
-                        let foreground: Vec<bool> = masks.iter().map(|m| *m > 0.5).collect();
-                        let per_pixel_weight = crate::losses::cauchy_weights(&errors, &foreground, self.schedule.light_robustness as f32);
+                    let error_drawn = sources.iter().any(|s| s.2);
+                    let weights = (robust || error_drawn).then(|| {
+                        let mut per_pixel_weight = if robust {
+                            let untracked =
+                                average(background(batch_light.shade_untracked(deferred.albedo.clone(), deferred.surface.clone(), normal.clone(), &casters)));
+                            let errors = (untracked - target.clone()).abs().mean_dim(1).reshape([pixels]);
+                            let errors = errors.into_data().convert::<f32>().try_to_vec::<f32>().unwrap_or_default();
+                            let foreground: Vec<bool> = masks.iter().map(|m| *m > 0.5).collect();
+                            crate::losses::cauchy_weights(&errors, &foreground, self.schedule.light_robustness as f32)
+                        } else {
+                            vec![1.0; pixels]
+                        };
+                        for (weight, source) in per_pixel_weight.iter_mut().zip(&sources) {
+                            if source.2 {
+                                *weight = 0.0;
+                            }
+                        }
                         let ray_weights = ray_values(&per_pixel_weight, gather_rows.as_deref(), r);
                         Tensor::<1>::from_data(TensorData::new(ray_weights[..rendered].to_vec(), [rendered]), &device)
                     });
@@ -1246,6 +1294,9 @@ impl Trainer {
                 }
                 crate::schedule::RgbSpace::Srgb => (crate::losses::srgb(colour), crate::losses::srgb(target)),
             };
+            if self.schedule.error_rays > 0.0 {
+                colour_error = Some((colour.clone().detach() - target.clone()).abs().mean_dim(1).reshape([pixels]));
+            }
             let rgb = match &silhouette {
                 Some(edge) => crate::losses::rgb_area(colour, target, mask.clone(), edge.clone()),
                 None => crate::losses::rgb(colour, target),
@@ -1253,6 +1304,20 @@ impl Trainer {
             terms.push(("rgb", w("rgb"), rgb));
         }
         clock.mark(5);
+        if self.schedule.error_rays > 0.0 {
+            // Each pixel's error (coverage, and colour once it is fitted) into its view's map.
+            let coverage = (accumulation.clone().detach() - mask.clone()).abs();
+            let error = match colour_error {
+                Some(c) => coverage + c,
+                None => coverage,
+            };
+            let error = error.into_data().convert::<f32>().try_to_vec::<f32>().unwrap_or_default();
+            for (&(v, pixel, _), e) in sources.iter().zip(error) {
+                if let Some(map) = self.views.get_mut(v).and_then(|d| d.error_map.as_mut()) {
+                    map.record(pixel, e);
+                }
+            }
+        }
         let mask_loss = match &silhouette {
             Some(edge) => crate::losses::mask_area(accumulation, mask.clone(), edge.clone()),
             None => crate::losses::mask(accumulation, mask.clone()),
@@ -1423,6 +1488,7 @@ mod tests {
             silhouette: Vec::new(),
             contrast: vec![4, 9, 30],
             contrast_cumulative: vec![1.0, 1.0 + 3.0, 1.0 + 3.0 + 0.5],
+            error_map: None,
         };
         let mut counts = [0usize; 3];
         let n = 9000;

@@ -134,10 +134,11 @@ fn resume_continues_where_the_fit_stopped_bit_for_bit_with_either_field() {
         // and the sun search at iteration 10 with a light rate that presses the direction
         // against the search's cone, so the checkpoint at 20 must carry the cone; and the
         // field's average from 12, so the checkpoint at 20 holds the average and the last
-        // step's parameters apart.
+        // step's parameters apart; and a third of the rays drawn by the error maps, so the
+        // checkpoint must carry them.
         let text = std::fs::read_to_string(&schedule_path)
             .unwrap()
-            .replace("samples_per_ray = 16", "samples_per_ray = 8\nfine_samples_per_ray = 8")
+            .replace("samples_per_ray = 16", "samples_per_ray = 8\nfine_samples_per_ray = 8\nerror_rays = 1.0")
             .replace("light_from = 0", "light_from = 10\nsun_search = 512\nrebind_every = 5\nfield_lr_decay_from = 12\nfield_average_half_life = 4")
             .replace("light = 5e-2", "light = 2.0");
         std::fs::write(&schedule_path, format!("{text}\n[field]\nkind = \"{kind}\"\n")).unwrap();
