@@ -93,7 +93,9 @@ pub fn grey(albedo: Tensor<2>, foreground: Tensor<1>) -> Tensor<1> {
 }
 
 /// Squared difference of the Gaussian mixture and the field's density, both squashed by tanh
-/// (the field's side should be detached so only the Gaussians learn from it).
+/// (the field's side should be detached so only the Gaussians learn from it). Both come in the
+/// units the caller wants the saturation at: optical density per body unit, or that times the
+/// shadows' density scale (`Schedule::density_at_shadow_scale`).
 pub fn density(mixture: Tensor<1>, field_density: Tensor<1>) -> Tensor<1> {
     let d = mixture.tanh() - field_density.tanh();
     (d.clone() * d).mean().reshape([1])

@@ -185,6 +185,15 @@ pub struct Schedule {
     /// the body's box (the posed bones' box widened by the grid's reach) instead of skipped, so
     /// the field can grow where the masks say the body is and the Gaussians follow it there.
     pub sample_masked_misses: bool,
+    /// Whether the Gaussians also fit the field's density as their shadows use it: a second
+    /// density term with both densities times the light's fitted shadow density scale before
+    /// the loss's `tanh` (`losses::density`). The first term saturates at an optical depth of
+    /// about one per body unit, so a Gaussian's faint tail outside the body costs it almost
+    /// nothing there while the shadows see it ten to thirty times denser (false shadows: the
+    /// legs under `human-dressed`'s skirt); the second saturates where a shadow turns opaque
+    /// and fits those tails away, the first still keeping the body opaque. Schedules from
+    /// before it: false.
+    pub density_at_shadow_scale: bool,
     /// The share of the batch's foreground rays drawn in proportion to their pixel's local
     /// contrast (`train::contrast_weights`: a clothing pattern's or a shadow's edges) instead
     /// of uniformly over the foreground; 0 draws them all uniformly.
@@ -400,6 +409,7 @@ impl Schedule {
             "sun_search",
             "rebind_every",
             "sample_masked_misses",
+            "density_at_shadow_scale",
             "contrast_rays",
             "error_rays",
             "light_robustness",
@@ -520,6 +530,7 @@ impl Schedule {
             sun_search: count(file, &table, "sun_search", 0, 0)?,
             rebind_every: count(file, &table, "rebind_every", 0, 0)?,
             sample_masked_misses: boolean(file, &table, "sample_masked_misses", false)?,
+            density_at_shadow_scale: boolean(file, &table, "density_at_shadow_scale", false)?,
             contrast_rays: match number(file, &table, "contrast_rays", "")? {
                 None => 0.0,
                 Some(v) if (0.0..=1.0).contains(&v) => v,
@@ -701,6 +712,10 @@ mod tests {
         assert_eq!(error_of("[field]\nkind = \"grid\"\nreach_per_extent = 0\n[losses]\nmask = 1.0").key, "field.reach_per_extent");
         assert_eq!(error_of("[field]\nreach_per_extent = 0.2\n[losses]\nmask = 1.0").key, "field.reach_per_extent");
         assert_eq!(error_of("sample_masked_misses = 1\n[losses]\nmask = 1.0").key, "sample_masked_misses");
+        assert_eq!(error_of("density_at_shadow_scale = \"yes\"\n[losses]\nmask = 1.0").key, "density_at_shadow_scale");
+        let shadow_scale = |text: &str| Schedule::parse(text, Path::new("s.toml")).map(|s| (s.density_at_shadow_scale, s.error_rays)).ok();
+        assert_eq!(shadow_scale("[losses]\nmask = 1.0"), Some((false, 0.0)), "both off unless a schedule asks");
+        assert_eq!(shadow_scale("density_at_shadow_scale = true\nerror_rays = 0.5\n[losses]\nmask = 1.0"), Some((true, 0.5)));
         assert_eq!(error_of("cull_samples = \"yes\"\n[losses]\nmask = 1.0").key, "cull_samples");
         let parsed = |text: &str| Schedule::parse(text, Path::new("s.toml")).map(|s| s.cull_samples).ok();
         assert_eq!(parsed("[losses]\nmask = 1.0"), Some(true), "culling is on unless a schedule turns it off");

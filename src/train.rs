@@ -1332,7 +1332,16 @@ impl Trainer {
             // The Gaussians' amplitudes are optical density per body unit.
             let field_density = deferred.sample_density.clone().detach().select(0, idx) * model.light.unit;
             let mixture = GaussianParams::mixture_density(posed, points);
-            terms.push(("density", w("density"), crate::losses::density(mixture, field_density)));
+            let mut fit = crate::losses::density(mixture.clone(), field_density.clone());
+            // Also at the density the shadows are cast with, when asked (the first light's
+            // scale, detached: the light does not learn from how well the Gaussians fit): the
+            // first term keeps the body opaque to them, this one fits away the faint tails
+            // outside it that a shadow sees at the light's scale.
+            if self.schedule.density_at_shadow_scale {
+                let scale = model.light.density_scale().detach();
+                fit = fit + crate::losses::density(mixture * scale.clone(), field_density * scale);
+            }
+            terms.push(("density", w("density"), fit));
         }
         if w("sigma") > 0.0 {
             terms.push(("sigma", w("sigma"), crate::losses::sigma(model.gaussians.scales() / model.light.unit)));
