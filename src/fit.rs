@@ -280,6 +280,9 @@ pub fn fit(options: &FitOptions, mut on: impl FnMut(TrainMessage)) -> Result<ser
             "rays_per_training_pixel": trainer.pixel_rays,
             "read_off_the_images": trainer.footprint_estimate,
         },
+        // Rays drawn where the fit is wrong: the share of each batch's anywhere-third
+        // (`Schedule::error_rays`; under `auto`, half for a loose body, none for a tight one).
+        "error_rays": trainer.error_rays,
         "training_cameras": training_cameras.len(),
         "monocular": training_cameras.len() == 1,
         "light_start": match trainer.searches.first().and_then(|s| s.as_ref()) {

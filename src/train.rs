@@ -347,6 +347,9 @@ pub struct Trainer {
     /// The moving average of the field's parameters, once the schedule's
     /// `field_average_half_life` has started it (`fitted_model`).
     pub average: Option<crate::averaging::ParameterAverage>,
+    /// The share of the anywhere-third drawn by the error maps: the schedule's, or under
+    /// `auto` what the body's looseness asks (`ErrorRays::share`).
+    pub error_rays: f64,
 }
 
 /// A value per ray from one per pixel: with one ray a pixel, the pixel's; with several
@@ -704,10 +707,7 @@ impl Trainer {
                             flags
                         })
                         .unwrap_or_default(),
-                    error_map: match (&v.mask, v.split) {
-                        (Some(mask), Split::Train) if schedule.error_rays > 0.0 => Some(crate::error_map::ErrorMap::new(mask.width, mask.height)),
-                        _ => None,
-                    },
+                    error_map: None,
                     contrast: weighted.iter().map(|w| w.0).collect(),
                     contrast_cumulative: weighted
                         .iter()
@@ -737,6 +737,18 @@ impl Trainer {
         let field_config = field_config(&schedule.field, &scene.skeleton, extent as f32, |reach, root| {
             masked_reach_beyond_bones(&scene, reach as f64, root).map(|r| r as f32)
         });
+        // A loose body (the root's grids reach body beyond every bone's) draws rays by error
+        // under `auto`; each training view with a mask then keeps an error map.
+        let loose = field_config.grid.as_ref().and_then(|g| g.root).is_some_and(|r| r.features_reach_body);
+        let error_rays = schedule.error_rays.share(loose);
+        let mut views: Vec<ViewData> = views;
+        if error_rays > 0.0 {
+            for (data, view) in views.iter_mut().zip(&scene.views) {
+                if let (Some(mask), Split::Train) = (&view.mask, view.split) {
+                    data.error_map = Some(crate::error_map::ErrorMap::new(mask.width, mask.height));
+                }
+            }
+        }
         let model = Avatar {
             field: field_config.init(&device, seed),
             gaussians: GaussianParams::from_set(&set, unit as f32, &device),
@@ -785,6 +797,7 @@ impl Trainer {
             footprint,
             pixel_rays,
             average: None,
+            error_rays,
         })
     }
 
@@ -966,7 +979,7 @@ impl Trainer {
             let by_contrast = k % 3 == 0 && (j * f).floor() != ((j + 1.0) * f).floor();
             let contrasted = if by_contrast { self.views[v].by_contrast(self.stream.uniform()) } else { None };
             // Of the third drawn anywhere, every (1 / error_rays)-th where the fit is wrong.
-            let e = self.schedule.error_rays;
+            let e = self.error_rays;
             let by_error = k % 3 == 2 && (j * e).floor() != ((j + 1.0) * e).floor();
             let wrong = match &self.views[v].error_map {
                 Some(map) if by_error => Some(map.draw(self.stream.uniform(), self.stream.uniform())),
@@ -1294,7 +1307,7 @@ impl Trainer {
                 }
                 crate::schedule::RgbSpace::Srgb => (crate::losses::srgb(colour), crate::losses::srgb(target)),
             };
-            if self.schedule.error_rays > 0.0 {
+            if self.error_rays > 0.0 {
                 colour_error = Some((colour.clone().detach() - target.clone()).abs().mean_dim(1).reshape([pixels]));
             }
             let rgb = match &silhouette {
@@ -1304,7 +1317,7 @@ impl Trainer {
             terms.push(("rgb", w("rgb"), rgb));
         }
         clock.mark(5);
-        if self.schedule.error_rays > 0.0 {
+        if self.error_rays > 0.0 {
             // Each pixel's error (coverage, and colour once it is fitted) into its view's map.
             let coverage = (accumulation.clone().detach() - mask.clone()).abs();
             let error = match colour_error {
