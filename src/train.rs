@@ -686,7 +686,7 @@ impl Trainer {
                 None => frames.push(FrameData { position: f, pose_tensors: PoseTensors::new(&scene.frames[f].pose, &scene.skeleton, &device), views: vec![v] }),
             }
         }
-        let views = scene
+        let mut views: Vec<ViewData> = scene
             .views
             .iter()
             .map(|v| {
@@ -741,7 +741,6 @@ impl Trainer {
         // under `auto`; each training view with a mask then keeps an error map.
         let loose = field_config.grid.as_ref().and_then(|g| g.root).is_some_and(|r| r.features_reach_body);
         let error_rays = schedule.error_rays.share(loose);
-        let mut views: Vec<ViewData> = views;
         if error_rays > 0.0 {
             for (data, view) in views.iter_mut().zip(&scene.views) {
                 if let (Some(mask), Split::Train) = (&view.mask, view.split) {
