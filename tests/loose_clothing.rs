@@ -30,3 +30,20 @@ fn the_masks_show_a_skirts_hem_beyond_the_bones_and_nothing_beyond_a_tight_body_
     let hem = reach_beyond_bones("human-dressed").expect("the skirt lies beyond the bones' boxes");
     assert!((0.5..0.7).contains(&hem), "{hem}");
 }
+
+#[test]
+fn under_the_default_schedule_a_loose_body_draws_rays_by_error_and_a_tight_one_does_not() {
+    use umbra::schedule::{ErrorRays, Schedule, LOOSE_ERROR_RAYS};
+    let schedule = Schedule::parse(umbra::schedule::DEFAULT_TEXT, Path::new("default.toml")).expect("the default schedule parses");
+    assert_eq!(schedule.error_rays, ErrorRays::Auto);
+    for (name, share) in [("human-dressed", LOOSE_ERROR_RAYS), ("human-sun", 0.0)] {
+        let scene = Scene::load(&Path::new("datasets-synthetic").join(name)).expect("a shipped scene");
+        let masked_training_views = scene.views.iter().filter(|v| v.split == umbra::scene::Split::Train && v.mask.is_some()).count();
+        let trainer = umbra::train::Trainer::new(scene, schedule.clone(), umbra::train::Backend::Flex, 0).expect("a trainer");
+        assert_eq!(trainer.error_rays, share, "{name}");
+        // An error map for every masked training view when rays are drawn by error, else none.
+        let maps = trainer.error_maps();
+        assert_eq!(maps.len(), if share > 0.0 { masked_training_views } else { 0 }, "{name}");
+        assert!(maps.iter().all(|(_, errors)| errors.iter().all(|&e| e == umbra::error_map::UNSEEN)), "{name}: fresh maps start unseen");
+    }
+}
