@@ -20,7 +20,8 @@ const LAYERS: &[&[&str]] = &[
     &["render"],
     // the image formation and light searches (know nothing of the network's insides)
     &["shading", "environment", "sun_search"],
-    &["losses", "schedule"],
+    // and the per-view maps of where the fit is still wrong that a batch draws from
+    &["losses", "schedule", "error_map"],
     // step(batch, state) -> (state, stats)
     &["train"],
     // the run folder: checkpoints, restore, its lock
