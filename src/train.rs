@@ -370,6 +370,13 @@ fn ray_values(per_pixel: &[f32], gather: Option<&[i64]>, rays: usize) -> Vec<f32
     }
 }
 
+/// Whether the `j`-th draw of a part of the batch is one of the evenly spread `share` of its
+/// draws (every (1 / share)-th: 0 takes none, 1 every one).
+fn takes_share(j: usize, share: f64) -> bool {
+    let j = j as f64;
+    (j * share).floor() != ((j + 1.0) * share).floor()
+}
+
 /// A training batch: pixels of one frame's views under one training light.
 struct Batch {
     frame: usize,
@@ -973,13 +980,11 @@ impl Trainer {
                 1 => &self.views[v].boundary,
                 _ => &Vec::new(),
             };
-            let j = (k / 3) as f64;
-            let f = self.schedule.contrast_rays;
-            let by_contrast = k % 3 == 0 && (j * f).floor() != ((j + 1.0) * f).floor();
+            let j = k / 3;
+            let by_contrast = k % 3 == 0 && takes_share(j, self.schedule.contrast_rays);
             let contrasted = if by_contrast { self.views[v].by_contrast(self.stream.uniform()) } else { None };
             // Of the third drawn anywhere, every (1 / error_rays)-th where the fit is wrong.
-            let e = self.error_rays;
-            let by_error = k % 3 == 2 && (j * e).floor() != ((j + 1.0) * e).floor();
+            let by_error = k % 3 == 2 && takes_share(j, self.error_rays);
             let wrong = match &self.views[v].error_map {
                 Some(map) if by_error => Some(map.draw(self.stream.uniform(), self.stream.uniform())),
                 _ => None,
@@ -1344,15 +1349,16 @@ impl Trainer {
             // The Gaussians' amplitudes are optical density per body unit.
             let field_density = deferred.sample_density.clone().detach().select(0, idx) * model.light.unit;
             let mixture = GaussianParams::mixture_density(posed, points);
-            let mut fit = crate::losses::density(mixture.clone(), field_density.clone());
             // Also at the density the shadows are cast with, when asked (the first light's
             // scale, detached: the light does not learn from how well the Gaussians fit): the
-            // first term keeps the body opaque to them, this one fits away the faint tails
+            // first term keeps the body opaque to them, the second fits away the faint tails
             // outside it that a shadow sees at the light's scale.
-            if self.schedule.density_at_shadow_scale {
+            let fit = if self.schedule.density_at_shadow_scale {
                 let scale = model.light.density_scale().detach();
-                fit = fit + crate::losses::density(mixture * scale.clone(), field_density * scale);
-            }
+                crate::losses::density(mixture.clone(), field_density.clone()) + crate::losses::density(mixture * scale.clone(), field_density * scale)
+            } else {
+                crate::losses::density(mixture, field_density)
+            };
             terms.push(("density", w("density"), fit));
         }
         if w("sigma") > 0.0 {
@@ -1499,6 +1505,18 @@ mod tests {
         dim.pixels.iter_mut().for_each(|c| *c = if c[0] > 0.5 { [0.02; 3] } else { [0.01; 3] });
         let step = crate::imageio::linear_to_srgb(0.02) - crate::imageio::linear_to_srgb(0.01);
         assert!(contrast_weights(&dim, &mask).iter().all(|w| (w.1 - step as f64).abs() < 1e-6));
+    }
+
+    #[test]
+    fn a_share_of_draws_is_spread_evenly() {
+        for (share, expected) in [(0.0, 0), (0.25, 25), (0.5, 50), (1.0, 100)] {
+            let taken: Vec<usize> = (0..100).filter(|&j| takes_share(j, share)).collect();
+            assert_eq!(taken.len(), expected, "{share}");
+            // Evenly: no two taken draws closer than 1 / share - 1 apart.
+            if share > 0.0 {
+                assert!(taken.windows(2).all(|w| (w[1] - w[0]) as f64 >= (1.0 / share).floor()), "{share}: {taken:?}");
+            }
+        }
     }
 
     #[test]
