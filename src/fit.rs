@@ -283,6 +283,8 @@ pub fn fit(options: &FitOptions, mut on: impl FnMut(TrainMessage)) -> Result<ser
         // Rays drawn where the fit is wrong: the share of each batch's anywhere-third
         // (`Schedule::error_rays`; under `auto`, half for a loose body, none for a tight one).
         "error_rays": trainer.error_rays,
+        // Gaussians seeded on the body the masks show beyond every bone (a loose body's root).
+        "gaussians_on_loose_body": trainer.loose_gaussians(),
         "training_cameras": training_cameras.len(),
         "monocular": training_cameras.len() == 1,
         "light_start": match trainer.searches.first().and_then(|s| s.as_ref()) {

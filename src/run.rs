@@ -303,13 +303,19 @@ fn parse_cone(cone: &serde_json::Value, state_path: &Path, key: &str) -> Result<
 
 /// Replaces the trainer's model by the one saved in checkpoint folder `dir`.
 fn load_model(trainer: &mut Trainer, dir: &Path) -> Result<(), FitError> {
+    let state_path = dir.join("state.json");
+    let state: serde_json::Value = std::fs::read_to_string(&state_path).ok().and_then(|t| serde_json::from_str(&t).ok()).unwrap_or_default();
+    // A loose body fitted before Gaussians were seeded on it has only the bones' Gaussians.
+    let recorded = state.get("gaussian_bones").and_then(|b| b.as_array()).map(|b| b.len());
+    let starts = trainer.model()?.gaussians.len();
+    if let Some(count) = recorded.filter(|&n| trainer.loose_gaussians() > 0 && n < starts) {
+        trainer.without_loose_gaussians(count).map_err(|e| io(&state_path, format!("gaussian_bones: {e}")))?;
+    }
     let model = trainer.model.take().ok_or_else(|| FitError::Input("no model".into()))?;
     let model = model.try_load_file(dir.join("model.bpk")).map_err(|e| io(&dir.join("model.bpk"), format!("cannot load the fitted model: {e}")))?;
     trainer.model = Some(model);
     // The Gaussians' bones, when the fit moved them (`Trainer::rebind_gaussians`); before they
     // were recorded, each stayed on the bone it started on.
-    let state_path = dir.join("state.json");
-    let state: serde_json::Value = std::fs::read_to_string(&state_path).ok().and_then(|t| serde_json::from_str(&t).ok()).unwrap_or_default();
     if let Some(bones) = state.get("gaussian_bones") {
         let bones: Vec<usize> = serde_json::from_value(bones.clone()).map_err(|e| io(&state_path, format!("gaussian_bones: {e}")))?;
         trainer.set_gaussian_bones(&bones).map_err(|e| io(&state_path, format!("gaussian_bones: {e}")))?;

@@ -327,6 +327,11 @@ pub struct Trainer {
     body_centre: glam::DVec3,
     body_extent: f64,
     bone_centres: Tensor<2>,
+    /// Per Gaussian, where the mean regulariser pulls it while it is on `loose_root` when not
+    /// its bone's centre: the Gaussians seeded on loose body (`seeds_on_loose_body`).
+    anchors: Vec<Option<glam::DVec3>>,
+    /// The root bone when the body is loose (its grids reach body beyond every bone's).
+    loose_root: Option<usize>,
     /// What the light search found for each training light, once it has run (`sun_search`).
     pub searches: Vec<Option<crate::sun_search::SearchReport>>,
     /// Per training light, the cone (axis, half-angle in radians) a sun's direction stays in
@@ -454,9 +459,9 @@ pub fn field_config(
 /// a tenth of what a box reaches beyond its bone.
 const HULL_STEPS_PER_EXTENT: f64 = 64.0;
 
-/// How far from the `root` bone's segment the body reaches where it lies farther than `reach`
-/// from every bone, as the training masks show it, plus a quarter of `reach` so the surface is
-/// inside the grid; `None` when nowhere (a body tight on its bones: the grids hold it already).
+/// The points of the `root` bone's frame (root-local, m, one per lattice cell) where the body
+/// lies farther than `reach` from every bone, as the training masks show it; none for a body
+/// tight on its bones.
 ///
 /// Each training frame's visual hull (a lattice over the frame's bones widened by twice
 /// `reach`; a point is in it when every masked training view of the frame sees it inside its
@@ -470,7 +475,7 @@ const HULL_STEPS_PER_EXTENT: f64 = 64.0;
 /// clothing the root carries stays put in the root's frame: a proposal counts only when, in the
 /// root's frame, the hull holds it in at least half of the frames where it lies beyond every
 /// bone (`LOOSE_CONSENSUS`).
-pub fn masked_reach_beyond_bones(scene: &Scene, reach: f64, root: usize) -> Option<f64> {
+pub fn masked_body_beyond_bones(scene: &Scene, reach: f64, root: usize) -> Vec<glam::DVec3> {
     use rayon::prelude::*;
     let skeleton = &scene.skeleton;
     let distance = crate::skeleton::distance_to_segment;
@@ -539,7 +544,6 @@ pub fn masked_reach_beyond_bones(scene: &Scene, reach: f64, root: usize) -> Opti
     let proposals: Vec<glam::DVec3> =
         proposals.into_iter().map(|p| ((p / cell).round().as_i64vec3().to_array(), p)).collect::<std::collections::HashMap<_, _>>().into_values().collect();
     // The consensus over frames, in the root's frame.
-    let root_length = skeleton.bones[root].length;
     let held = |local: &glam::DVec3| {
         let (mut beyond, mut inside) = (0usize, 0usize);
         for (frame, segments, views) in &frames {
@@ -551,8 +555,27 @@ pub fn masked_reach_beyond_bones(scene: &Scene, reach: f64, root: usize) -> Opti
         }
         inside as f64 >= LOOSE_CONSENSUS * beyond as f64
     };
-    let segment = (glam::DVec3::ZERO, glam::DVec3::new(0.0, root_length, 0.0));
-    proposals.par_iter().filter(|p| held(p)).map(|p| distance(*p, segment)).reduce_with(f64::max).map(|d| d + 0.25 * reach)
+    let mut held: Vec<glam::DVec3> = proposals.into_par_iter().filter(|p| held(p)).collect();
+    // The map's order is arbitrary: sorted, so whatever is seeded from the points is the same
+    // in every run (a resumed fit rebuilds it).
+    held.sort_by(|a, b| a.to_array().partial_cmp(&b.to_array()).unwrap_or(std::cmp::Ordering::Equal));
+    held
+}
+
+/// How far from the `root` bone's segment the body reaches where it lies farther than `reach`
+/// from every bone, as the training masks show it (`masked_body_beyond_bones`), plus a quarter
+/// of `reach` so the surface is inside the grid; `None` when nowhere (a body tight on its
+/// bones: the grids hold it already).
+pub fn masked_reach_beyond_bones(scene: &Scene, reach: f64, root: usize) -> Option<f64> {
+    let points = masked_body_beyond_bones(scene, reach, root);
+    reach_of(&points, scene.skeleton.bones[root].length, reach)
+}
+
+/// The farthest of `points` (root-local) from the root's segment of `length`, plus a quarter
+/// of `reach`.
+fn reach_of(points: &[glam::DVec3], length: f64, reach: f64) -> Option<f64> {
+    let segment = (glam::DVec3::ZERO, glam::DVec3::new(0.0, length, 0.0));
+    points.iter().map(|&p| crate::skeleton::distance_to_segment(p, segment)).reduce(f64::max).map(|d| d + 0.25 * reach)
 }
 
 /// The share of the frames (where a point lies beyond every bone) whose visual hull must hold
@@ -565,10 +588,56 @@ const LOOSE_CONSENSUS: f64 = 0.5;
 /// bones that carry it equally well (spine and chest for a point of the back) do not trade it.
 const REBIND_TOLERANCE: f64 = 0.005;
 
-/// Each Gaussian's bone's centre, bone-local (m): where the mean regulariser pulls it.
-fn bone_centres(bones: &[usize], skeleton: &crate::skeleton::Skeleton, device: &Device) -> Tensor<2> {
-    let centres: Vec<f32> = bones.iter().flat_map(|&b| [0.0, skeleton.bones[b].length as f32 / 2.0, 0.0]).collect();
+/// Where the mean regulariser pulls each Gaussian, bone-local (m): its anchor while it is on
+/// the loose body's `root` (a Gaussian seeded there, `seeds_on_loose_body`), else its bone's
+/// centre. A rule of the Gaussian's index and bone alone, so a resumed fit pulls as the
+/// straight one does.
+fn bone_centres(bones: &[usize], anchors: &[Option<glam::DVec3>], root: Option<usize>, skeleton: &crate::skeleton::Skeleton, device: &Device) -> Tensor<2> {
+    let centres: Vec<f32> = bones
+        .iter()
+        .enumerate()
+        .flat_map(|(g, &b)| match anchors.get(g).copied().flatten() {
+            Some(anchor) if Some(b) == root => anchor.as_vec3().to_array(),
+            _ => [0.0, skeleton.bones[b].length as f32 / 2.0, 0.0],
+        })
+        .collect();
     Tensor::from_data(TensorData::new(centres, [bones.len(), 3]), device)
+}
+
+/// The Gaussians' starting width (m on the reference human).
+const GAUSSIAN_START_WIDTH: f64 = 0.05;
+
+/// Spacing (m on the reference human) of the Gaussians seeded on loose body, and how many at
+/// most per bone of the skeleton. A bone's Gaussians regularised toward its centre cannot
+/// reach a skirt's hem half a metre from the pelvis: the pelvis's grew to cover it (13 cm
+/// wide) and their tails shadowed the legs below the hem (human-dressed: 92% of the fitted
+/// Gaussians' false shadow on the lit legs came from the pelvis's).
+const LOOSE_SEED_SPACING: f64 = 0.15;
+const LOOSE_SEEDS_PER_BONE: usize = 2;
+
+/// Farthest-point samples of `points` (the loose body, root-local) until every point lies
+/// within `spacing` of a sample or there are `most`: Gaussians' means that cover it evenly.
+/// The first is the point farthest from the others' centre, so the spread is the same for
+/// the same points.
+pub fn seeds_on_loose_body(points: &[glam::DVec3], spacing: f64, most: usize) -> Vec<glam::DVec3> {
+    if points.is_empty() || most == 0 {
+        return Vec::new();
+    }
+    let centre = points.iter().copied().sum::<glam::DVec3>() / points.len() as f64;
+    let first = (0..points.len()).max_by(|&a, &b| points[a].distance_squared(centre).total_cmp(&points[b].distance_squared(centre))).unwrap_or(0);
+    let mut seeds = vec![points[first]];
+    let mut nearest: Vec<f64> = points.iter().map(|p| p.distance(points[first])).collect();
+    while seeds.len() < most {
+        let Some((next, &gap)) = nearest.iter().enumerate().max_by(|a, b| a.1.total_cmp(b.1)) else { break };
+        if gap <= spacing {
+            break;
+        }
+        seeds.push(points[next]);
+        for (d, p) in nearest.iter_mut().zip(points) {
+            *d = d.min(p.distance(points[next]));
+        }
+    }
+    seeds
 }
 
 /// How far (in the search lattice's spacings, 7.2 degrees at 256 directions) gradient descent
@@ -729,7 +798,7 @@ impl Trainer {
         let extent = scene.body_extent();
         let unit = crate::skeleton::body_length(1.0, extent);
         // Four Gaussians per bone, 5 cm wide on the reference human.
-        let set = GaussianSet::along_bones(&scene.skeleton, 4, 0.05 * unit, 10.0);
+        let mut set = GaussianSet::along_bones(&scene.skeleton, 4, GAUSSIAN_START_WIDTH * unit, 10.0);
         let (lo, hi) = scene
             .frames
             .iter()
@@ -741,13 +810,39 @@ impl Trainer {
             LightKind::Point => (centre + glam::DVec3::Y * (LAMP_START_PER_EXTENT * extent)).as_vec3().to_array(),
             _ => [0.0, 1.0, 0.0],
         };
+        // Where the masks show body beyond every bone (root-local points): the root's grids
+        // reach it, and Gaussians are seeded on it.
+        let loose_body = std::cell::RefCell::new(Vec::new());
         let field_config = field_config(&schedule.field, &scene.skeleton, extent as f32, |reach, root| {
-            masked_reach_beyond_bones(&scene, reach as f64, root).map(|r| r as f32)
+            let points = masked_body_beyond_bones(&scene, reach as f64, root);
+            let far = reach_of(&points, scene.skeleton.bones[root].length, reach as f64).map(|r| r as f32);
+            *loose_body.borrow_mut() = points;
+            far
         });
+        let grid = field_config.grid.as_ref();
+        let root = grid.and_then(|g| g.root).filter(|r| r.features_reach_body).map(|r| r.bone);
+        let mut anchors = vec![None; set.len()];
+        if let (Some(root), Some(grid)) = (root, grid) {
+            // A run rebuilt from its checkpoint records its field, so the masks were not searched.
+            let mut points = loose_body.take();
+            if points.is_empty() {
+                points = masked_body_beyond_bones(&scene, grid.reach as f64, root);
+            }
+            let seeds = seeds_on_loose_body(&points, LOOSE_SEED_SPACING * unit, LOOSE_SEEDS_PER_BONE * scene.skeleton.len());
+            for seed in seeds {
+                set.gaussians.push(crate::gaussians::Gaussian {
+                    bone: root,
+                    mean: seed.to_array(),
+                    rotation: [0.0, 0.0, 0.0, 1.0],
+                    scales: [GAUSSIAN_START_WIDTH * unit; 3],
+                    amplitude: 10.0,
+                });
+                anchors.push(Some(seed));
+            }
+        }
         // A loose body (the root's grids reach body beyond every bone's) draws rays by error
         // under `auto`; each training view with a mask then keeps an error map.
-        let loose = field_config.grid.as_ref().and_then(|g| g.root).is_some_and(|r| r.features_reach_body);
-        let error_rays = schedule.error_rays.share(loose);
+        let error_rays = schedule.error_rays.share(root.is_some());
         if error_rays > 0.0 {
             for (data, view) in views.iter_mut().zip(&scene.views) {
                 if let (Some(mask), Split::Train) = (&view.mask, view.split) {
@@ -766,7 +861,7 @@ impl Trainer {
                 .map(|_| FittedLight::new(light_kind, initial, centre.as_vec3().to_array(), extent, 0.3, &device).with_learned_strength())
                 .collect(),
         };
-        let bone_centres = bone_centres(&set.gaussians.iter().map(|g| g.bone).collect::<Vec<_>>(), &scene.skeleton, &device);
+        let bone_centres = bone_centres(&set.gaussians.iter().map(|g| g.bone).collect::<Vec<_>>(), &anchors, root, &scene.skeleton, &device);
         // Feature tables get tiny, sparse gradients: Adam's epsilon must not swamp them
         // (instant-NGP uses 1e-15).
         let optimizers = crate::schedule::GROUPS
@@ -799,6 +894,8 @@ impl Trainer {
             view_light,
             training_identity: std::sync::OnceLock::new(),
             bone_centres,
+            anchors,
+            loose_root: root,
             footprint_estimate,
             footprint,
             pixel_rays,
@@ -917,7 +1014,7 @@ impl Trainer {
             if let Some(model) = self.model.as_mut() {
                 model.gaussians.rebind(&bones, &reference);
             }
-            self.bone_centres = bone_centres(&bones, &self.scene.skeleton, &self.device);
+            self.bone_centres = bone_centres(&bones, &self.anchors, self.loose_root, &self.scene.skeleton, &self.device);
         }
         Ok(moved)
     }
@@ -934,7 +1031,7 @@ impl Trainer {
             return Err(format!("bone {b} is not in the skeleton's {bone_count}"));
         }
         model.gaussians.bones = bones.to_vec();
-        self.bone_centres = bone_centres(bones, &self.scene.skeleton, &self.device);
+        self.bone_centres = bone_centres(bones, &self.anchors, self.loose_root, &self.scene.skeleton, &self.device);
         Ok(())
     }
 
@@ -1049,6 +1146,27 @@ impl Trainer {
     /// The body's length unit: `skeleton::body_length(1, extent)`.
     fn body_unit(&self) -> f64 {
         crate::skeleton::body_length(1.0, self.body_extent)
+    }
+
+    /// How many Gaussians were seeded on loose body (`seeds_on_loose_body`).
+    pub fn loose_gaussians(&self) -> usize {
+        self.anchors.iter().filter(|a| a.is_some()).count()
+    }
+
+    /// Drops the Gaussians seeded on loose body: a run fitted before they were seeded has
+    /// only the bones' (`count` of them).
+    pub fn without_loose_gaussians(&mut self, count: usize) -> Result<(), String> {
+        let seeded = self.loose_gaussians();
+        let model = self.model.as_mut().ok_or("no model")?;
+        if count + seeded != model.gaussians.len() {
+            return Err(format!("{count} Gaussians recorded, this scene starts {} ({seeded} on loose body)", model.gaussians.len()));
+        }
+        let mut set = model.gaussians.to_set();
+        set.gaussians.truncate(count);
+        model.gaussians = GaussianParams::from_set(&set, model.gaussians.unit, &self.device);
+        self.anchors.truncate(count);
+        self.bone_centres = bone_centres(&model.gaussians.bones, &self.anchors, self.loose_root, &self.scene.skeleton, &self.device);
+        Ok(())
     }
 
     /// The least radius of a Gaussian's bound on this body.
@@ -1517,6 +1635,24 @@ mod tests {
                 assert!(taken.windows(2).all(|w| (w[1] - w[0]) as f64 >= (1.0 / share).floor()), "{share}: {taken:?}");
             }
         }
+    }
+
+    #[test]
+    fn seeds_cover_the_loose_body_within_their_spacing_or_stop_at_the_most() {
+        // A shell of lattice points, like a skirt's hem beyond the bones.
+        let points: Vec<glam::DVec3> = (0..40)
+            .flat_map(|a| (0..8).map(move |h| glam::DVec3::new((a as f64 * 0.157).cos() * 0.4, -0.1 - 0.04 * h as f64, (a as f64 * 0.157).sin() * 0.4)))
+            .collect();
+        let spacing = 0.15;
+        let seeds = seeds_on_loose_body(&points, spacing, 100);
+        let gap = |p: &glam::DVec3| seeds.iter().map(|s| s.distance(*p)).fold(f64::INFINITY, f64::min);
+        assert!(points.iter().all(|p| gap(p) <= spacing), "every point within the spacing of a seed");
+        // No two seeds nearer than the spacing: each was the farthest point left.
+        assert!(seeds.iter().enumerate().all(|(i, a)| seeds[..i].iter().all(|b| a.distance(*b) > spacing)));
+        assert!(seeds.len() > 5 && seeds.iter().all(|s| points.contains(s)));
+        // Capped, and the same points give the same seeds.
+        assert_eq!(seeds_on_loose_body(&points, spacing, 3), seeds[..3].to_vec());
+        assert!(seeds_on_loose_body(&[], spacing, 10).is_empty());
     }
 
     #[test]

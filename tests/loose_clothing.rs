@@ -45,5 +45,67 @@ fn under_the_default_schedule_a_loose_body_draws_rays_by_error_and_a_tight_one_d
         let maps = trainer.error_maps();
         assert_eq!(maps.len(), if share > 0.0 { masked_training_views } else { 0 }, "{name}");
         assert!(maps.iter().all(|(_, errors)| errors.iter().all(|&e| e == umbra::error_map::UNSEEN)), "{name}: fresh maps start unseen");
+        // Gaussians seeded where the masks show body beyond the bones (the skirt, the
+        // backpack), on the root, beside the bones' four each; none on a tight body.
+        let loose = trainer.loose_gaussians();
+        let bones = trainer.scene.skeleton.len();
+        assert_eq!(trainer.model().expect("a model").gaussians.len(), 4 * bones + loose, "{name}");
+        if share > 0.0 {
+            assert!(loose >= 8, "{name}: {loose} Gaussians on the skirt and backpack");
+        } else {
+            assert_eq!(loose, 0, "{name}");
+        }
     }
+}
+
+#[test]
+fn a_loose_fit_resumes_bit_for_bit_with_its_seeded_gaussians_and_renders_from_its_run() {
+    // A few steps of the shipped human-dressed: the Gaussians seeded on its skirt and backpack
+    // are rebuilt from the masks when the run is resumed (and when it is restored to render),
+    // their anchors with them, and rebinding every 4 steps may move them.
+    let dir = std::env::temp_dir().join(format!("umbra-test-loose-resume-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).expect("a temp folder");
+    let schedule = dir.join("quick.toml");
+    std::fs::write(
+        &schedule,
+        "iterations = 12\nrays_per_batch = 256\nsamples_per_ray = 16\ndensity_points = 64\nregulariser_points = 32\ncheckpoint_every = 6\nlight_from = 0\nrebind_every = 4\n\
+         [learning_rates]\nfield = 3e-3\ngaussians = 5e-3\nlight = 5e-2\n[losses]\nmask = 1.0\nrgb = 1.0\neikonal = 0.05\ndensity = 0.5\nmean = 0.5\n[field]\nkind = \"grid\"\n",
+    )
+    .expect("a schedule");
+    let options = |out: &str, iterations: usize, resume: bool| umbra::train::FitOptions {
+        scene: Path::new("datasets-synthetic/human-dressed").to_path_buf(),
+        out: dir.join(out),
+        schedule: schedule.clone(),
+        iterations: Some(iterations),
+        seed: 2,
+        resume,
+        force: false,
+        force_schedule: resume,
+        backend: umbra::train::Backend::Flex,
+        evaluate: false,
+    };
+    let straight = umbra::fit::fit(&options("straight", 12, false), |_| {}).expect("a straight fit");
+    umbra::fit::fit(&options("resumed", 6, false), |_| {}).expect("half a fit");
+    umbra::fit::fit(&options("resumed", 12, true), |_| {}).expect("the resumed half");
+    assert!(straight["capture"]["gaussians_on_loose_body"].as_u64().is_some_and(|n| n >= 8), "{}", straight["capture"]);
+    let read = |run: &str, file: &str| std::fs::read(dir.join(run).join(file)).expect("a run's file");
+    assert!(
+        read("straight", "losses.csv") == read("resumed", "losses.csv").iter().copied().collect::<Vec<_>>() || {
+            // The seconds column differs; every loss must not.
+            let losses = |run: &str| {
+                String::from_utf8_lossy(&read(run, "losses.csv"))
+                    .lines()
+                    .map(|l| l.split(',').enumerate().filter(|(k, _)| *k != 2).map(|(_, v)| v.to_string()).collect::<Vec<_>>())
+                    .collect::<Vec<_>>()
+            };
+            losses("straight") == losses("resumed")
+        }
+    );
+    assert!(read("straight", "gaussians.json") == read("resumed", "gaussians.json"), "the resumed fit's Gaussians differ");
+    // Restored to render: the seeded Gaussians are part of the model again.
+    let trainer = umbra::run::restore(&dir.join("resumed"), None, umbra::train::Backend::Flex).expect("the run restores");
+    let bones = trainer.scene.skeleton.len();
+    assert_eq!(trainer.model().expect("a model").gaussians.len(), 4 * bones + trainer.loose_gaussians());
+    let _ = std::fs::remove_dir_all(&dir);
 }
