@@ -283,6 +283,9 @@ pub fn fit(options: &FitOptions, mut on: impl FnMut(TrainMessage)) -> Result<ser
         // Rays drawn where the fit is wrong: the share of each batch's anywhere-third
         // (`Schedule::error_rays`; under `auto`, half for a loose body, none for a tight one).
         "error_rays": trainer.error_rays,
+        // The Gaussians' density also fitted at the shadows' scale (`Schedule::density_at_shadow_scale`;
+        // under `auto`, for a loose body alone).
+        "density_at_shadow_scale": trainer.density_at_shadow_scale,
         // Gaussians seeded on the body the masks show beyond every bone (a loose body's root).
         "gaussians_on_loose_body": trainer.loose_gaussians(),
         "training_cameras": training_cameras.len(),

@@ -144,6 +144,25 @@ impl ErrorRays {
     }
 }
 
+/// A schedule switch that is on, off, or on for a loose body alone (`"auto"`: the training
+/// masks show body beyond every bone's reach, `train::masked_reach_beyond_bones`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Switch {
+    Fixed(bool),
+    Auto,
+}
+
+impl Switch {
+    /// Whether it is on for a body that is loose or not.
+    pub fn on(self, loose: bool) -> bool {
+        match self {
+            Switch::Fixed(on) => on,
+            Switch::Auto => loose,
+        }
+    }
+}
+
 /// Whether the light (direction or position, and ambient) is fitted.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize)]
 #[serde(rename_all = "lowercase")]
@@ -224,9 +243,10 @@ pub struct Schedule {
     /// about one per body unit, so a Gaussian's faint tail outside the body costs it almost
     /// nothing there while the shadows see it ten to thirty times denser (false shadows: the
     /// legs under `human-dressed`'s skirt); the second saturates where a shadow turns opaque
-    /// and fits those tails away, the first still keeping the body opaque. Schedules from
-    /// before it: false.
-    pub density_at_shadow_scale: bool,
+    /// and fits those tails away, the first still keeping the body opaque. `"auto"`: for a
+    /// loose body alone (the default's choice; the measurements are in the default schedule).
+    /// Schedules from before it: false.
+    pub density_at_shadow_scale: Switch,
     /// The share of the batch's foreground rays drawn in proportion to their pixel's local
     /// contrast (`train::contrast_weights`: a clothing pattern's or a shadow's edges) instead
     /// of uniformly over the foreground; 0 draws them all uniformly.
@@ -564,7 +584,11 @@ impl Schedule {
             sun_search: count(file, &table, "sun_search", 0, 0)?,
             rebind_every: count(file, &table, "rebind_every", 0, 0)?,
             sample_masked_misses: boolean(file, &table, "sample_masked_misses", false)?,
-            density_at_shadow_scale: boolean(file, &table, "density_at_shadow_scale", false)?,
+            density_at_shadow_scale: match table.get("density_at_shadow_scale") {
+                Some(toml::Value::String(s)) if s == "auto" => Switch::Auto,
+                Some(toml::Value::String(s)) => return Err(err(file, "density_at_shadow_scale", format!("must be true, false or \"auto\", found \"{s}\""))),
+                _ => Switch::Fixed(boolean(file, &table, "density_at_shadow_scale", false)?),
+            },
             contrast_rays: match number(file, &table, "contrast_rays", "")? {
                 None => 0.0,
                 Some(v) if (0.0..=1.0).contains(&v) => v,
@@ -752,9 +776,10 @@ mod tests {
         assert_eq!(error_of("sample_masked_misses = 1\n[losses]\nmask = 1.0").key, "sample_masked_misses");
         assert_eq!(error_of("density_at_shadow_scale = \"yes\"\n[losses]\nmask = 1.0").key, "density_at_shadow_scale");
         let shadow_scale = |text: &str| Schedule::parse(text, Path::new("s.toml")).map(|s| (s.density_at_shadow_scale, s.error_rays)).ok();
-        assert_eq!(shadow_scale("[losses]\nmask = 1.0"), Some((false, ErrorRays::Share(0.0))), "both off unless a schedule asks");
-        assert_eq!(shadow_scale("density_at_shadow_scale = true\nerror_rays = 0.5\n[losses]\nmask = 1.0"), Some((true, ErrorRays::Share(0.5))));
-        assert_eq!(shadow_scale("error_rays = \"auto\"\n[losses]\nmask = 1.0"), Some((false, ErrorRays::Auto)));
+        assert_eq!(shadow_scale("[losses]\nmask = 1.0"), Some((Switch::Fixed(false), ErrorRays::Share(0.0))), "both off unless a schedule asks");
+        assert_eq!(shadow_scale("density_at_shadow_scale = true\nerror_rays = 0.5\n[losses]\nmask = 1.0"), Some((Switch::Fixed(true), ErrorRays::Share(0.5))));
+        assert_eq!(shadow_scale("density_at_shadow_scale = \"auto\"\nerror_rays = \"auto\"\n[losses]\nmask = 1.0"), Some((Switch::Auto, ErrorRays::Auto)));
+        assert_eq!((Switch::Auto.on(true), Switch::Auto.on(false), Switch::Fixed(true).on(false), Switch::Fixed(false).on(true)), (true, false, true, false));
         assert_eq!(error_of("error_rays = \"many\"\n[losses]\nmask = 1.0").key, "error_rays");
         assert_eq!((ErrorRays::Auto.share(true), ErrorRays::Auto.share(false), ErrorRays::Share(0.2).share(true)), (LOOSE_ERROR_RAYS, 0.0, 0.2));
         assert_eq!(error_of("cull_samples = \"yes\"\n[losses]\nmask = 1.0").key, "cull_samples");

@@ -32,7 +32,7 @@ fn the_masks_show_a_skirts_hem_beyond_the_bones_and_nothing_beyond_a_tight_body_
 }
 
 #[test]
-fn under_the_default_schedule_a_loose_body_draws_rays_by_error_and_a_tight_one_does_not() {
+fn under_the_default_schedule_a_loose_body_draws_rays_by_error_seeds_gaussians_on_it_and_fits_them_at_the_shadows_scale() {
     use umbra::schedule::{ErrorRays, Schedule, LOOSE_ERROR_RAYS};
     let schedule = Schedule::parse(umbra::schedule::DEFAULT_TEXT, Path::new("default.toml")).expect("the default schedule parses");
     assert_eq!(schedule.error_rays, ErrorRays::Auto);
@@ -41,6 +41,8 @@ fn under_the_default_schedule_a_loose_body_draws_rays_by_error_and_a_tight_one_d
         let masked_training_views = scene.views.iter().filter(|v| v.split == umbra::scene::Split::Train && v.mask.is_some()).count();
         let trainer = umbra::train::Trainer::new(scene, schedule.clone(), umbra::train::Backend::Flex, 0).expect("a trainer");
         assert_eq!(trainer.error_rays, share, "{name}");
+        // And fits its Gaussians' density at the shadows' scale too when loose.
+        assert_eq!(trainer.density_at_shadow_scale, share > 0.0, "{name}");
         // An error map for every masked training view when rays are drawn by error, else none.
         let maps = trainer.error_maps();
         assert_eq!(maps.len(), if share > 0.0 { masked_training_views } else { 0 }, "{name}");
