@@ -591,16 +591,26 @@ const LOOSE_CONSENSUS: f64 = 0.5;
 /// bones that carry it equally well (spine and chest for a point of the back) do not trade it.
 const REBIND_TOLERANCE: f64 = 0.005;
 
-/// Where the mean regulariser pulls each Gaussian, bone-local (m): its anchor while it is on
-/// the loose body's `root` (a Gaussian seeded there, `seeds_on_loose_body`), else its bone's
-/// centre. A rule of the Gaussian's index and bone alone, so a resumed fit pulls as the
-/// straight one does.
-fn bone_centres(bones: &[usize], anchors: &[Option<glam::DVec3>], root: Option<usize>, skeleton: &crate::skeleton::Skeleton, device: &Device) -> Tensor<2> {
+/// Where the mean regulariser pulls each Gaussian, bone-local (m): a Gaussian seeded on loose
+/// body (`seeds_on_loose_body`) toward its seed, the `root`-local `anchors[g]`, also after
+/// rebinding moved it to another bone (the seed re-expressed in that bone's frame in the
+/// rebinding's `reference` pose, where the move kept the Gaussian in place); any other toward
+/// its bone's centre. A rule of the Gaussian's index and bone alone, so a resumed fit pulls as
+/// the straight one does.
+fn bone_centres(
+    bones: &[usize],
+    anchors: &[Option<glam::DVec3>],
+    root: Option<usize>,
+    reference: Option<&crate::skeleton::Pose>,
+    skeleton: &crate::skeleton::Skeleton,
+    device: &Device,
+) -> Tensor<2> {
     let centres: Vec<f32> = bones
         .iter()
         .enumerate()
-        .flat_map(|(g, &b)| match anchors.get(g).copied().flatten() {
-            Some(anchor) if Some(b) == root => anchor.as_vec3().to_array(),
+        .flat_map(|(g, &b)| match (anchors.get(g).copied().flatten(), root, reference) {
+            (Some(anchor), Some(root), _) if b == root => anchor.as_vec3().to_array(),
+            (Some(anchor), Some(root), Some(pose)) => pose.to_local(b, pose.to_world(root, anchor)).as_vec3().to_array(),
             _ => [0.0, skeleton.bones[b].length as f32 / 2.0, 0.0],
         })
         .collect();
@@ -869,7 +879,8 @@ impl Trainer {
                 .map(|_| FittedLight::new(light_kind, initial, centre.as_vec3().to_array(), extent, 0.3, &device).with_learned_strength())
                 .collect(),
         };
-        let bone_centres = bone_centres(&set.gaussians.iter().map(|g| g.bone).collect::<Vec<_>>(), &anchors, root, &scene.skeleton, &device);
+        let reference = frames.first().map(|f| &scene.frames[f.position].pose);
+        let bone_centres = bone_centres(&set.gaussians.iter().map(|g| g.bone).collect::<Vec<_>>(), &anchors, root, reference, &scene.skeleton, &device);
         // Feature tables get tiny, sparse gradients: Adam's epsilon must not swamp them
         // (instant-NGP uses 1e-15).
         let optimizers = crate::schedule::GROUPS
@@ -986,7 +997,7 @@ impl Trainer {
         let set = model.gaussians.to_set();
         let bone_count = self.scene.skeleton.len();
         let count = self.frames.len().clamp(1, Self::SEARCH_FRAMES);
-        let reference = self.scene.frames[self.frames[0].position].pose.clone();
+        let reference = self.rebinding_reference().cloned().ok_or_else(|| FitError::Input("no training frame to rebind the Gaussians in".into()))?;
         let placed: Vec<glam::DVec3> = set.pose(&reference).iter().map(|g| g.mean).collect();
         // outside[g][b]: the mean distance outside the surface of Gaussian g carried by bone b.
         let mut outside = vec![vec![0.0f64; bone_count]; set.len()];
@@ -1023,7 +1034,7 @@ impl Trainer {
             if let Some(model) = self.model.as_mut() {
                 model.gaussians.rebind(&bones, &reference);
             }
-            self.bone_centres = bone_centres(&bones, &self.anchors, self.loose_root, &self.scene.skeleton, &self.device);
+            self.bone_centres = bone_centres(&bones, &self.anchors, self.loose_root, self.rebinding_reference(), &self.scene.skeleton, &self.device);
         }
         Ok(moved)
     }
@@ -1040,7 +1051,7 @@ impl Trainer {
             return Err(format!("bone {b} is not in the skeleton's {bone_count}"));
         }
         model.gaussians.bones = bones.to_vec();
-        self.bone_centres = bone_centres(bones, &self.anchors, self.loose_root, &self.scene.skeleton, &self.device);
+        self.bone_centres = bone_centres(bones, &self.anchors, self.loose_root, self.rebinding_reference(), &self.scene.skeleton, &self.device);
         Ok(())
     }
 
@@ -1157,6 +1168,11 @@ impl Trainer {
         crate::skeleton::body_length(1.0, self.body_extent)
     }
 
+    /// The pose the Gaussians are rebound in (`rebind_gaussians`): the first training frame's.
+    fn rebinding_reference(&self) -> Option<&crate::skeleton::Pose> {
+        self.frames.first().map(|f| &self.scene.frames[f.position].pose)
+    }
+
     /// How many Gaussians were seeded on loose body (`seeds_on_loose_body`).
     pub fn loose_gaussians(&self) -> usize {
         self.anchors.iter().filter(|a| a.is_some()).count()
@@ -1174,7 +1190,8 @@ impl Trainer {
         set.gaussians.truncate(count);
         model.gaussians = GaussianParams::from_set(&set, model.gaussians.unit, &self.device);
         self.anchors.truncate(count);
-        self.bone_centres = bone_centres(&model.gaussians.bones, &self.anchors, self.loose_root, &self.scene.skeleton, &self.device);
+        let bones = model.gaussians.bones.clone();
+        self.bone_centres = bone_centres(&bones, &self.anchors, self.loose_root, self.rebinding_reference(), &self.scene.skeleton, &self.device);
         Ok(())
     }
 
@@ -1662,6 +1679,33 @@ mod tests {
         // Capped, and the same points give the same seeds.
         assert_eq!(seeds_on_loose_body(&points, spacing, 3), seeds[..3].to_vec());
         assert!(seeds_on_loose_body(&[], spacing, 10).is_empty());
+    }
+
+    #[test]
+    fn a_seeded_gaussian_is_pulled_toward_its_seed_on_whatever_bone_carries_it() {
+        let schedule = crate::schedule::Schedule::parse(crate::schedule::DEFAULT_TEXT, std::path::Path::new("default.toml")).unwrap();
+        let scene = Scene::load(std::path::Path::new("datasets-synthetic/human-dressed")).unwrap();
+        let mut trainer = Trainer::new(scene, schedule, Backend::Flex, 0).unwrap();
+        let root = trainer.loose_root.unwrap();
+        let seeded = trainer.anchors.iter().position(|a| a.is_some()).unwrap();
+        let anchor = trainer.anchors[seeded].unwrap();
+        let target = |trainer: &Trainer, g: usize| {
+            let rows = trainer.bone_centres.clone().into_data().convert::<f32>().to_vec::<f32>().unwrap();
+            glam::DVec3::new(rows[3 * g] as f64, rows[3 * g + 1] as f64, rows[3 * g + 2] as f64)
+        };
+        assert!(target(&trainer, seeded).distance(anchor) < 1e-6, "on the root: its seed");
+        // Moved to the chest: the same point of space in the rebinding's pose, chest-local.
+        let chest = trainer.scene.skeleton.bones.iter().position(|b| b.name == "chest").unwrap();
+        let mut bones = trainer.model().unwrap().gaussians.bones.clone();
+        bones[seeded] = chest;
+        trainer.set_gaussian_bones(&bones).unwrap();
+        let pose = trainer.rebinding_reference().unwrap().clone();
+        let moved = target(&trainer, seeded);
+        assert!(pose.to_world(chest, moved).distance(pose.to_world(root, anchor)) < 1e-5, "the seed's place, now on the chest");
+        assert!(moved.distance(glam::DVec3::new(0.0, trainer.scene.skeleton.bones[chest].length / 2.0, 0.0)) > 0.05, "not the chest's centre");
+        // A bone's own Gaussian: its bone's centre.
+        let own = (0..bones.len()).find(|&g| trainer.anchors[g].is_none() && bones[g] == chest).unwrap();
+        assert!(target(&trainer, own).distance(glam::DVec3::new(0.0, trainer.scene.skeleton.bones[chest].length / 2.0, 0.0)) < 1e-6);
     }
 
     #[test]
