@@ -326,9 +326,10 @@ pub struct Trainer {
     /// and at what distances a point light is searched.
     body_centre: glam::DVec3,
     body_extent: f64,
-    bone_centres: Tensor<2>,
-    /// Per Gaussian, where the mean regulariser pulls it while it is on `loose_root` when not
-    /// its bone's centre: the Gaussians seeded on loose body (`seeds_on_loose_body`).
+    /// Where the mean regulariser pulls each Gaussian, bone-local (`mean_targets`).
+    mean_targets: Tensor<2>,
+    /// Per Gaussian, its seed (root-local) when it was seeded on loose body
+    /// (`seeds_on_loose_body`): the mean regulariser pulls it there, not to its bone's centre.
     anchors: Vec<Option<glam::DVec3>>,
     /// The root bone when the body is loose (its grids reach body beyond every bone's).
     loose_root: Option<usize>,
@@ -597,7 +598,7 @@ const REBIND_TOLERANCE: f64 = 0.005;
 /// rebinding's `reference` pose, where the move kept the Gaussian in place); any other toward
 /// its bone's centre. A rule of the Gaussian's index and bone alone, so a resumed fit pulls as
 /// the straight one does.
-fn bone_centres(
+fn mean_targets(
     bones: &[usize],
     anchors: &[Option<glam::DVec3>],
     root: Option<usize>,
@@ -880,7 +881,7 @@ impl Trainer {
                 .collect(),
         };
         let reference = frames.first().map(|f| &scene.frames[f.position].pose);
-        let bone_centres = bone_centres(&set.gaussians.iter().map(|g| g.bone).collect::<Vec<_>>(), &anchors, root, reference, &scene.skeleton, &device);
+        let mean_targets = mean_targets(&set.gaussians.iter().map(|g| g.bone).collect::<Vec<_>>(), &anchors, root, reference, &scene.skeleton, &device);
         // Feature tables get tiny, sparse gradients: Adam's epsilon must not swamp them
         // (instant-NGP uses 1e-15).
         let optimizers = crate::schedule::GROUPS
@@ -912,7 +913,7 @@ impl Trainer {
             cones: vec![None; light_count],
             view_light,
             training_identity: std::sync::OnceLock::new(),
-            bone_centres,
+            mean_targets,
             anchors,
             loose_root: root,
             footprint_estimate,
@@ -1034,7 +1035,7 @@ impl Trainer {
             if let Some(model) = self.model.as_mut() {
                 model.gaussians.rebind(&bones, &reference);
             }
-            self.bone_centres = bone_centres(&bones, &self.anchors, self.loose_root, self.rebinding_reference(), &self.scene.skeleton, &self.device);
+            self.mean_targets = mean_targets(&bones, &self.anchors, self.loose_root, self.rebinding_reference(), &self.scene.skeleton, &self.device);
         }
         Ok(moved)
     }
@@ -1051,7 +1052,7 @@ impl Trainer {
             return Err(format!("bone {b} is not in the skeleton's {bone_count}"));
         }
         model.gaussians.bones = bones.to_vec();
-        self.bone_centres = bone_centres(bones, &self.anchors, self.loose_root, self.rebinding_reference(), &self.scene.skeleton, &self.device);
+        self.mean_targets = mean_targets(bones, &self.anchors, self.loose_root, self.rebinding_reference(), &self.scene.skeleton, &self.device);
         Ok(())
     }
 
@@ -1191,7 +1192,7 @@ impl Trainer {
         model.gaussians = GaussianParams::from_set(&set, model.gaussians.unit, &self.device);
         self.anchors.truncate(count);
         let bones = model.gaussians.bones.clone();
-        self.bone_centres = bone_centres(&bones, &self.anchors, self.loose_root, self.rebinding_reference(), &self.scene.skeleton, &self.device);
+        self.mean_targets = mean_targets(&bones, &self.anchors, self.loose_root, self.rebinding_reference(), &self.scene.skeleton, &self.device);
         Ok(())
     }
 
@@ -1509,7 +1510,7 @@ impl Trainer {
             terms.push(("sigma", w("sigma"), crate::losses::sigma(model.gaussians.scales() / model.light.unit)));
         }
         if w("mean") > 0.0 {
-            terms.push(("mean", w("mean"), crate::losses::mean(model.gaussians.means.val(), self.bone_centres.clone() / model.light.unit)));
+            terms.push(("mean", w("mean"), crate::losses::mean(model.gaussians.means.val(), self.mean_targets.clone() / model.light.unit)));
         }
         if w("ambient") > 0.0 && self.fit_light {
             // The ambient target is a fraction of the batch light's irradiance: for the first
@@ -1690,7 +1691,7 @@ mod tests {
         let seeded = trainer.anchors.iter().position(|a| a.is_some()).unwrap();
         let anchor = trainer.anchors[seeded].unwrap();
         let target = |trainer: &Trainer, g: usize| {
-            let rows = trainer.bone_centres.clone().into_data().convert::<f32>().to_vec::<f32>().unwrap();
+            let rows = trainer.mean_targets.clone().into_data().convert::<f32>().to_vec::<f32>().unwrap();
             glam::DVec3::new(rows[3 * g] as f64, rows[3 * g + 1] as f64, rows[3 * g + 2] as f64)
         };
         assert!(target(&trainer, seeded).distance(anchor) < 1e-6, "on the root: its seed");
