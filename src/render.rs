@@ -541,31 +541,64 @@ fn locate(
 /// loss holds the fitted one near it).
 const SDF_SLOPE_BOUND: f32 = 2.0;
 
-/// The coarse pass of a view's rays in two rounds. First every other sample: a ray whose
+/// The coarse pass of a view's rays in rounds. First every other sample (every fourth, then
+/// the other even ones but those hidden, below): a ray whose
 /// samples there show no optical depth, and whose SDF there keeps every sample between them
 /// outside the body (its value minus `SDF_SLOPE_BOUND` times the distance to the skipped
 /// sample) with an optical depth under a thousandth of `EMPTY_OPTICAL_DEPTH`, is empty: its
 /// other samples are not evaluated (density 0), and it is left alone as a ray found empty is.
-/// Every other ray's remaining samples are evaluated in the second round, so its densities are
-/// those of one pass. Returns the densities (`[R * S]`), the decoded points and each sample's
+/// Every other ray's remaining samples are evaluated in the last round, but those the samples
+/// before them show hidden behind the surface, so its densities are those of one pass wherever
+/// they can change the ray (`CULL_TRANSMITTANCE`). Returns the densities (`[R * S]`), the decoded points and each sample's
 /// row among them (`NOT_DECODED` for a skipped one).
 fn coarse_densities(still: &AvatarField, pose: &PoseTensors, rays: &RaySet, coarse: &Samples, s: usize, device: &Device) -> (Vec<f32>, Decoded, Vec<u32>) {
     let r = rays.len();
     let t = &coarse.t;
-    let decode = |samples: &[usize]| {
+    let mut density = vec![0.0f32; r * s];
+    let mut value = vec![f32::NAN; r * s];
+    let mut row = vec![NOT_DECODED; r * s];
+    let mut parts: Vec<Decoded> = Vec::new();
+    let mut decoded_rows = 0u32;
+    // Decodes `samples`, records their densities, SDF values and rows.
+    let mut evaluate = |samples: &[usize], density: &mut [f32], value: &mut [f32], row: &mut [u32]| {
+        // (The first round is decoded even when empty, so there is always a decoding to return.)
+        if samples.is_empty() && !parts.is_empty() {
+            return;
+        }
         let decoded = still.decode(points_at(rays, t, s, samples, device), pose);
         let host = |v: Tensor<1>| v.into_data().convert::<f32>().try_to_vec::<f32>().unwrap_or_else(|_| vec![f32::NAN; samples.len()]);
-        let (sdf, density) = (host(decoded.sdf.clone()), host(still.density(decoded.sdf.clone())));
-        (decoded, sdf, density)
+        let (sdf, sigma) = (host(decoded.sdf.clone()), host(still.density(decoded.sdf.clone())));
+        for (j, &k) in samples.iter().enumerate() {
+            (density[k], value[k], row[k]) = (sigma[j], sdf[j], decoded_rows + j as u32);
+        }
+        decoded_rows += samples.len() as u32;
+        parts.push(decoded);
     };
-    let mut density = vec![0.0f32; r * s];
-    let mut row = vec![NOT_DECODED; r * s];
-    let first: Vec<usize> = (0..r * s).filter(|k| (k % s) % 2 == 0).collect();
-    let (decoded, sdf, first_density) = decode(&first);
-    let mut value = vec![f32::NAN; r * s];
-    for (j, &k) in first.iter().enumerate() {
-        (density[k], value[k], row[k]) = (first_density[j], sdf[j], j as u32);
-    }
+    // Where ray `i`'s samples not yet evaluated start to be hidden: the evaluated samples'
+    // optical depth before one, each over its own interval, is a lower bound on the ray's (the
+    // rest only add to it), so its transmittance is an upper bound, and from the first sample
+    // it puts under `CULL_TRANSMITTANCE` on, the ray is hidden at least that well (as a culled
+    // pass reasons). Such samples are not evaluated (density 0: their weights, and every later
+    // one's, move by at most that much). A fitted body is opaque within one sample of its
+    // surface, so this leaves out most samples behind it.
+    let hidden_from = |i: usize, density: &[f32], row: &[u32]| {
+        let mut depth = 0.0f32;
+        (i * s..(i + 1) * s)
+            .find(|&k| {
+                if row[k] != NOT_DECODED {
+                    depth += density[k] * coarse.delta[k];
+                    false
+                } else {
+                    (-depth).exp() < CULL_TRANSMITTANCE
+                }
+            })
+            .unwrap_or((i + 1) * s)
+    };
+    // Every fourth sample, then the other even ones in front of what those show hidden.
+    let first: Vec<usize> = (0..r * s).filter(|k| (k % s) % 4 == 0).collect();
+    evaluate(&first, &mut density, &mut value, &mut row);
+    let even: Vec<usize> = (0..r).flat_map(|i| (i * s..hidden_from(i, &density, &row)).filter(|k| (k % s) % 4 == 2)).collect();
+    evaluate(&even, &mut density, &mut value, &mut row);
     let beta = still.beta().into_data().convert::<f32>().try_to_vec::<f32>().ok().and_then(|b| b.first().copied()).unwrap_or(f32::NAN);
     // The most a skipped sample's optical depth can be, from a neighbour's SDF value `v` at
     // distance `gap` (VolSDF: density exp(-sdf / beta) / (2 beta) outside the body).
@@ -577,23 +610,19 @@ fn coarse_densities(still: &AvatarField, pose: &PoseTensors, rays: &RaySet, coar
             f32::INFINITY
         }
     };
+    // A ray with a hidden even sample has optical depth and is not empty (a hidden sample's
+    // SDF value is NaN, which bounds nothing).
     let empty = |i: usize| {
         (i * s..(i + 1) * s).all(|k| match (k % s) % 2 {
-            0 => density[k] * coarse.delta[k] < EMPTY_OPTICAL_DEPTH,
+            0 => row[k] != NOT_DECODED && density[k] * coarse.delta[k] < EMPTY_OPTICAL_DEPTH,
             _ => {
                 [k - 1, k + 1].iter().filter(|&&n| n < (i + 1) * s).all(|&n| bound(value[n], (t[k] - t[n]).abs(), coarse.delta[k]) < EMPTY_OPTICAL_DEPTH * 1e-3)
             }
         })
     };
-    let second: Vec<usize> = (0..r).filter(|&i| !empty(i)).flat_map(|i| (i * s..(i + 1) * s).filter(|k| (k % s) % 2 == 1)).collect();
-    if second.is_empty() {
-        return (density, decoded, row);
-    }
-    let (more, _, second_density) = decode(&second);
-    for (j, &k) in second.iter().enumerate() {
-        (density[k], row[k]) = (second_density[j], (first.len() + j) as u32);
-    }
-    (density, Decoded::cat(vec![decoded, more]), row)
+    let odd: Vec<usize> = (0..r).filter(|&i| !empty(i)).flat_map(|i| (i * s..hidden_from(i, &density, &row)).filter(|k| (k % s) % 2 == 1)).collect();
+    evaluate(&odd, &mut density, &mut value, &mut row);
+    (density, Decoded::cat(parts), row)
 }
 
 /// Rows `rows` as an index tensor, for `select` and `select_assign`.
@@ -927,7 +956,7 @@ mod tests {
     }
 
     #[test]
-    fn a_views_coarse_pass_skips_only_samples_the_sdf_shows_empty() {
+    fn a_views_coarse_pass_skips_only_samples_the_sdf_shows_empty_or_the_rounds_before_show_hidden() {
         use crate::skeleton::{Bone, Pose, Skeleton};
         use glam::{DMat4, DQuat};
         let skeleton =
@@ -953,22 +982,34 @@ mod tests {
         let (density, decoded, row) = coarse_densities(&field, &tensors, &rays, &coarse, s, &device);
         let (origins, directions) = ray_tensors(&rays, &device);
         let (full, _) = densities(&field, &tensors, &origins, &directions, &coarse.t, r);
-        let (mut skipped, mut kept) = (0, 0);
+        let before = transmittance_before(&coarse, &full, r);
+        let (mut skipped, mut kept, mut hidden, mut hidden_even) = (0, 0, 0, 0);
         for i in 0..r {
             let samples = i * s..(i + 1) * s;
-            if samples.clone().any(|k| row[k] == NOT_DECODED) {
-                // Skipped: every other sample, and the whole ray is empty in one full pass.
+            let empty = full[samples.clone()].iter().zip(&coarse.delta[samples.clone()]).all(|(d, delta)| d * delta < EMPTY_OPTICAL_DEPTH);
+            if empty && samples.clone().any(|k| row[k] == NOT_DECODED) {
+                // Skipped: every other sample (the whole ray is empty in one full pass).
                 skipped += 1;
                 assert!(samples.clone().all(|k| ((k % s) % 2 == 1) == (row[k] == NOT_DECODED)), "ray {i}");
-                assert!(samples.clone().all(|k| full[k] * coarse.delta[k] < EMPTY_OPTICAL_DEPTH), "ray {i} skipped, not empty");
-            } else {
-                kept += 1;
-                for k in samples {
+                continue;
+            }
+            kept += 1;
+            for k in samples {
+                if row[k] == NOT_DECODED {
+                    // Hidden: a later round's sample the full pass puts behind the surface.
+                    hidden += 1;
+                    hidden_even += usize::from((k % s) % 2 == 0);
+                    assert!((k % s) % 4 != 0 && density[k] == 0.0, "sample {k}");
+                    assert!(before[k] < CULL_TRANSMITTANCE, "sample {k} left out, {} of the ray passes it", before[k]);
+                } else {
                     assert!((density[k] - full[k]).abs() <= 1e-5 * full[k].abs().max(1e-3), "sample {k}: {} against {}", density[k], full[k]);
                 }
             }
         }
-        assert!(skipped > 0 && kept > 0, "{skipped} rays skipped, {kept} kept");
+        assert!(
+            skipped > 0 && kept > 0 && hidden_even > 0 && hidden > hidden_even,
+            "{skipped} rays skipped, {kept} kept, {hidden} samples hidden ({hidden_even} even)"
+        );
         assert_eq!(decoded.sdf.dims()[0], row.iter().filter(|&&k| k != NOT_DECODED).count());
     }
 
