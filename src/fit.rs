@@ -286,6 +286,9 @@ pub fn fit(options: &FitOptions, mut on: impl FnMut(TrainMessage)) -> Result<ser
         // The Gaussians' density also fitted at the shadows' scale (`Schedule::density_at_shadow_scale`;
         // under `auto`, for a loose body alone).
         "density_at_shadow_scale": trainer.density_at_shadow_scale,
+        // The share of the curvature term's weight (`Schedule::loose_body_curvature` for a loose
+        // body, 1 for a tight one).
+        "curvature_share": trainer.curvature_share,
         // Gaussians seeded on the body the masks show beyond every bone (a loose body's root).
         "gaussians_on_loose_body": trainer.loose_gaussians(),
         "training_cameras": training_cameras.len(),

@@ -247,6 +247,10 @@ pub struct Schedule {
     /// loose body alone (the default's choice; the measurements are in the default schedule).
     /// Schedules from before it: false.
     pub density_at_shadow_scale: Switch,
+    /// The curvature term's weight on a loose body, as a share of `[losses] curvature` (a tight
+    /// body keeps the whole): loose clothing has sharp rims (a skirt's hem, a backpack's edges)
+    /// that the term rounds, where a body of capsules has none. Schedules from before it: 1.
+    pub loose_body_curvature: f64,
     /// The share of the batch's foreground rays drawn in proportion to their pixel's local
     /// contrast (`train::contrast_weights`: a clothing pattern's or a shadow's edges) instead
     /// of uniformly over the foreground; 0 draws them all uniformly.
@@ -464,6 +468,7 @@ impl Schedule {
             "rebind_every",
             "sample_masked_misses",
             "density_at_shadow_scale",
+            "loose_body_curvature",
             "contrast_rays",
             "error_rays",
             "light_robustness",
@@ -588,6 +593,11 @@ impl Schedule {
                 Some(toml::Value::String(s)) if s == "auto" => Switch::Auto,
                 Some(toml::Value::String(s)) => return Err(err(file, "density_at_shadow_scale", format!("must be true, false or \"auto\", found \"{s}\""))),
                 _ => Switch::Fixed(boolean(file, &table, "density_at_shadow_scale", false)?),
+            },
+            loose_body_curvature: match number(file, &table, "loose_body_curvature", "")? {
+                None => 1.0,
+                Some(v) if (0.0..=1.0).contains(&v) => v,
+                Some(v) => return Err(err(file, "loose_body_curvature", format!("must be within [0, 1] (a share of [losses] curvature), found {v}"))),
             },
             contrast_rays: match number(file, &table, "contrast_rays", "")? {
                 None => 0.0,
@@ -775,6 +785,11 @@ mod tests {
         assert_eq!(error_of("[field]\nreach_per_extent = 0.2\n[losses]\nmask = 1.0").key, "field.reach_per_extent");
         assert_eq!(error_of("sample_masked_misses = 1\n[losses]\nmask = 1.0").key, "sample_masked_misses");
         assert_eq!(error_of("density_at_shadow_scale = \"yes\"\n[losses]\nmask = 1.0").key, "density_at_shadow_scale");
+        assert_eq!(error_of("loose_body_curvature = 1.5\n[losses]\nmask = 1.0").key, "loose_body_curvature");
+        assert_eq!(error_of("loose_body_curvature = \"half\"\n[losses]\nmask = 1.0").key, "loose_body_curvature");
+        let loose_curvature = |text: &str| Schedule::parse(text, Path::new("s.toml")).map(|s| s.loose_body_curvature).ok();
+        assert_eq!(loose_curvature("[losses]\nmask = 1.0"), Some(1.0), "the whole term unless a schedule asks");
+        assert_eq!(loose_curvature("loose_body_curvature = 0.5\n[losses]\nmask = 1.0"), Some(0.5));
         let shadow_scale = |text: &str| Schedule::parse(text, Path::new("s.toml")).map(|s| (s.density_at_shadow_scale, s.error_rays)).ok();
         assert_eq!(shadow_scale("[losses]\nmask = 1.0"), Some((Switch::Fixed(false), ErrorRays::Share(0.0))), "both off unless a schedule asks");
         assert_eq!(shadow_scale("density_at_shadow_scale = true\nerror_rays = 0.5\n[losses]\nmask = 1.0"), Some((Switch::Fixed(true), ErrorRays::Share(0.5))));

@@ -359,6 +359,9 @@ pub struct Trainer {
     /// Whether the Gaussians also fit the density at the shadows' scale (the schedule's
     /// `density_at_shadow_scale`, `auto` resolved by the body's looseness).
     pub density_at_shadow_scale: bool,
+    /// The share of the curvature term's weight this body gets (the schedule's
+    /// `loose_body_curvature` on a loose body, 1 on a tight one).
+    pub curvature_share: f64,
 }
 
 /// A value per ray from one per pixel: with one ray a pixel, the pixel's; with several
@@ -862,6 +865,7 @@ impl Trainer {
         // under `auto`; each training view with a mask then keeps an error map.
         let error_rays = schedule.error_rays.share(root.is_some());
         let density_at_shadow_scale = schedule.density_at_shadow_scale.on(root.is_some());
+        let curvature_share = if root.is_some() { schedule.loose_body_curvature } else { 1.0 };
         if error_rays > 0.0 {
             for (data, view) in views.iter_mut().zip(&scene.views) {
                 if let (Some(mask), Split::Train) = (&view.mask, view.split) {
@@ -922,6 +926,7 @@ impl Trainer {
             average: None,
             error_rays,
             density_at_shadow_scale,
+            curvature_share,
         })
     }
 
@@ -1539,7 +1544,7 @@ impl Trainer {
                 let perturbed = points + Tensor::<2>::from_data(TensorData::new(noise, [q, 3]), &device);
                 let g2 = model.field.sdf_gradient(perturbed, &pose, self.gradient);
                 let unit = crate::render::unit_rows;
-                terms.push(("curvature", w("curvature"), crate::losses::curvature(unit(gradient), unit(g2))));
+                terms.push(("curvature", w("curvature") * self.curvature_share, crate::losses::curvature(unit(gradient), unit(g2))));
             }
         }
         let mut total = terms[0].2.clone() * terms[0].1;
