@@ -248,8 +248,10 @@ pub struct Schedule {
     /// Schedules from before it: false.
     pub density_at_shadow_scale: Switch,
     /// The curvature term's weight on a loose body, as a share of `[losses] curvature` (a tight
-    /// body keeps the whole): loose clothing has sharp rims (a skirt's hem, a backpack's edges)
-    /// that the term rounds, where a body of capsules has none. Schedules from before it: 1.
+    /// body keeps the whole), meant for loose clothing's sharp rims (a skirt's hem), which the
+    /// term rounds. At 0.5 the hem hardly sharpened and what `human-dressed` gained did not
+    /// carry to a capture it was not tuned on (default.toml), so the default is 1, as for
+    /// schedules from before it.
     pub loose_body_curvature: f64,
     /// The share of the batch's foreground rays drawn in proportion to their pixel's local
     /// contrast (`train::contrast_weights`: a clothing pattern's or a shadow's edges) instead

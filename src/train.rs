@@ -1530,7 +1530,9 @@ impl Trainer {
             terms.push(("ambient", w("ambient"), crate::losses::ambient(ambient, self.schedule.ambient_target)));
         }
         clock.mark(6);
-        if (w("eikonal") > 0.0 || w("curvature") > 0.0) && self.schedule.regulariser_points > 0 {
+        // The curvature term's weight on this body (a loose body's share of it, `curvature_share`).
+        let curvature = w("curvature") * self.curvature_share;
+        if (w("eikonal") > 0.0 || curvature > 0.0) && self.schedule.regulariser_points > 0 {
             let q = self.schedule.regulariser_points;
             let idx = self.random_indices(q, rendered * s);
             let points = deferred.sample_points.clone().detach().select(0, idx);
@@ -1538,13 +1540,13 @@ impl Trainer {
             if w("eikonal") > 0.0 {
                 terms.push(("eikonal", w("eikonal"), crate::losses::eikonal(gradient.clone())));
             }
-            if w("curvature") > 0.0 {
+            if curvature > 0.0 {
                 let noise: Vec<f32> =
                     (0..q * 3).map(|_| ((self.stream.uniform() - 0.5) * 2.0 * self.schedule.curvature_epsilon * self.body_unit()) as f32).collect();
                 let perturbed = points + Tensor::<2>::from_data(TensorData::new(noise, [q, 3]), &device);
                 let g2 = model.field.sdf_gradient(perturbed, &pose, self.gradient);
                 let unit = crate::render::unit_rows;
-                terms.push(("curvature", w("curvature") * self.curvature_share, crate::losses::curvature(unit(gradient), unit(g2))));
+                terms.push(("curvature", curvature, crate::losses::curvature(unit(gradient), unit(g2))));
             }
         }
         let mut total = terms[0].2.clone() * terms[0].1;
