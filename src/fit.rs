@@ -363,9 +363,11 @@ fn field_report(trainer: &Trainer) -> serde_json::Value {
     // root's grids reach it: how far from the root's segment, m (null: a body tight on its bones).
     let root = model.field.grid.as_ref().and_then(|g| g.config.root);
     let loose = root.filter(|r| r.features_reach_body).map(|r| r.reach);
-    // And the capsule prior stops at the root's cap (m, null: uncapped).
-    let prior_cap = model.field.config.skinning().prior_cap;
-    json!({"kind": if model.field.grid.is_some() { "grid" } else { "mlp" }, "beta": beta, "root_grids_reach_loose_body": loose, "prior_capped_at": prior_cap})
+    // And the capsule prior stops at the root's cap (m, null: uncapped), bending into it over a
+    // knee of this half width (m; 0: a corner, as runs before the knee).
+    let skinning = model.field.config.skinning();
+    let knee = skinning.prior_cap.map(|_| skinning.prior_knee);
+    json!({"kind": if model.field.grid.is_some() { "grid" } else { "mlp" }, "beta": beta, "root_grids_reach_loose_body": loose, "prior_capped_at": skinning.prior_cap, "prior_knee_half_width": knee})
 }
 
 /// How much `compare.png` amplifies the difference between a render and its truth.

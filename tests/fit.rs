@@ -307,6 +307,7 @@ fn evaluation_renders_and_scores_every_test_image_and_umbra_render_repeats_it() 
     let field = &report["field"];
     assert!(field.as_object().is_some_and(|f| f.contains_key("prior_capped_at") && f.contains_key("root_grids_reach_loose_body")), "{field}");
     assert_eq!(field["prior_capped_at"].is_null(), field["root_grids_reach_loose_body"].is_null(), "{field}");
+    assert_eq!(field["prior_capped_at"].is_null(), field["prior_knee_half_width"].is_null(), "{field}");
     let evaluation = &report["evaluation"];
     for group in ["novel_pose", "novel_view", "relit", "albedo"] {
         let psnr = evaluation[format!("{group}_psnr")].as_f64().unwrap_or(f64::NAN);

@@ -45,6 +45,12 @@ fn under_the_default_schedule_a_loose_body_draws_rays_by_error_seeds_gaussians_o
         assert_eq!(trainer.density_at_shadow_scale, share > 0.0, "{name}");
         // The curvature term whole (`loose_body_curvature` is off by default).
         assert_eq!(trainer.curvature_share, 1.0, "{name}");
+        // The capsule prior capped, bending into its cap from the capsule's surface, when loose.
+        let skinning = trainer.model().expect("a model").field.config.skinning();
+        match skinning.prior_cap {
+            Some(cap) => assert!(share > 0.0 && cap > 0.0 && skinning.prior_knee == cap, "{name}: {skinning:?}"),
+            None => assert!(share == 0.0 && skinning.prior_knee == 0.0, "{name}: {skinning:?}"),
+        }
         // An error map for every masked training view when rays are drawn by error, else none.
         let maps = trainer.error_maps();
         assert_eq!(maps.len(), if share > 0.0 { masked_training_views } else { 0 }, "{name}");

@@ -90,6 +90,12 @@ impl FieldConfig {
             prior_radius: self.prior_radius,
             root: self.grid.as_ref().and_then(|g| g.root).map(|root| (root.bone, root.cap)),
             prior_cap: self.grid.as_ref().and_then(|g| g.root).filter(|root| root.prior_capped).map(|root| root.cap - self.prior_radius),
+            prior_knee: self
+                .grid
+                .as_ref()
+                .and_then(|g| g.root)
+                .filter(|root| root.prior_capped && root.prior_knee)
+                .map_or(0.0, |root| root.cap - self.prior_radius),
         }
     }
 
