@@ -45,6 +45,9 @@ pub struct FieldSettings {
     /// Whether a grid's skinning lets points far from every bone follow the root
     /// (`FieldConfig::root_bone`; none: the field's default, yes).
     pub root_skinning: Option<bool>,
+    /// Whether a loose body's capped capsule prior bends into its cap (`grid::saturate`) rather
+    /// than stopping dead at it (false, the default: a corner; session 37 in the README).
+    pub prior_knee: bool,
     /// The whole field a run's checkpoint was fitted with (from its `state.json`, never from a
     /// schedule file): when set, it is the field, whatever the settings above and the defaults.
     #[serde(skip)]
@@ -65,6 +68,7 @@ impl FieldSettings {
             reach_per_extent: None,
             fine_levels: None,
             root_skinning: None,
+            prior_knee: false,
             recorded: None,
         }
     }
@@ -357,6 +361,7 @@ fn parse_field(file: &Path, table: &toml::Table) -> Result<FieldSettings, Schedu
         "fine_levels_from",
         "fine_levels_until",
         "root_skinning",
+        "prior_knee",
     ];
     for key in field.keys() {
         if !known.contains(&key.as_str()) {
@@ -400,13 +405,28 @@ fn parse_field(file: &Path, table: &toml::Table) -> Result<FieldSettings, Schedu
             Some(toml::Value::Boolean(b)) => Some(*b),
             Some(other) => return Err(err(file, "field.root_skinning", format!("expected true or false, found {other}"))),
         },
+        prior_knee: match field.get("prior_knee") {
+            None => false,
+            Some(toml::Value::Boolean(b)) => *b,
+            Some(other) => return Err(err(file, "field.prior_knee", format!("expected true or false, found {other}"))),
+        },
         recorded: None,
     };
     if kind == FieldKind::Mlp {
-        if let Some(key) =
-            ["levels", "table_log2", "top_bones", "features", "finest_per_extent", "reach_per_extent", "fine_levels_from", "fine_levels_until", "root_skinning"]
-                .into_iter()
-                .find(|k| field.contains_key(*k))
+        if let Some(key) = [
+            "levels",
+            "table_log2",
+            "top_bones",
+            "features",
+            "finest_per_extent",
+            "reach_per_extent",
+            "fine_levels_from",
+            "fine_levels_until",
+            "root_skinning",
+            "prior_knee",
+        ]
+        .into_iter()
+        .find(|k| field.contains_key(*k))
         {
             return Err(err(file, &format!("field.{key}"), "applies to kind = \"grid\" only"));
         }
@@ -837,6 +857,12 @@ mod tests {
         assert_eq!(all.active_levels(8, 0), 8.0);
         assert_eq!(error_of("[field]\nkind = \"grid\"\nfine_levels_from = 100\n[losses]\nmask = 1.0").key, "field.fine_levels_from");
         assert_eq!(error_of("[field]\nkind = \"grid\"\nfine_levels_from = 100\nfine_levels_until = 50\n[losses]\nmask = 1.0").key, "field.fine_levels_until");
+        // The prior's knee: a grid's, true or false.
+        assert!(!all.field.prior_knee);
+        let knee = Schedule::parse("[field]\nkind = \"grid\"\nprior_knee = true\n[losses]\nmask = 1.0", Path::new("k.toml")).unwrap();
+        assert!(knee.field.prior_knee);
+        assert_eq!(error_of("[field]\nkind = \"grid\"\nprior_knee = 1\n[losses]\nmask = 1.0").key, "field.prior_knee");
+        assert_eq!(error_of("[field]\nprior_knee = true\n[losses]\nmask = 1.0").key, "field.prior_knee");
     }
 
     #[test]

@@ -45,12 +45,10 @@ fn under_the_default_schedule_a_loose_body_draws_rays_by_error_seeds_gaussians_o
         assert_eq!(trainer.density_at_shadow_scale, share > 0.0, "{name}");
         // The curvature term whole (`loose_body_curvature` is off by default).
         assert_eq!(trainer.curvature_share, 1.0, "{name}");
-        // The capsule prior capped, bending into its cap from the capsule's surface, when loose.
+        // The capsule prior capped when loose, at a corner (`[field] prior_knee` is off by default).
         let skinning = trainer.model().expect("a model").field.config.skinning();
-        match skinning.prior_cap {
-            Some(cap) => assert!(share > 0.0 && cap > 0.0 && skinning.prior_knee == cap, "{name}: {skinning:?}"),
-            None => assert!(share == 0.0 && skinning.prior_knee == 0.0, "{name}: {skinning:?}"),
-        }
+        assert_eq!(skinning.prior_cap.is_some(), share > 0.0, "{name}: {skinning:?}");
+        assert_eq!(skinning.prior_knee, 0.0, "{name}: {skinning:?}");
         // An error map for every masked training view when rays are drawn by error, else none.
         let maps = trainer.error_maps();
         assert_eq!(maps.len(), if share > 0.0 { masked_training_views } else { 0 }, "{name}");
@@ -132,5 +130,25 @@ fn a_loose_body_curvature_share_applies_to_the_loose_body_alone() {
         let scene = Scene::load(&Path::new("datasets-synthetic").join(name)).expect("a shipped scene");
         let trainer = umbra::train::Trainer::new(scene, schedule.clone(), umbra::train::Backend::Flex, 0).expect("a trainer");
         assert_eq!(trainer.curvature_share, share, "{name}");
+    }
+}
+
+/// `[field] prior_knee = true` bends a loose body's capped prior into its cap from the capsule's
+/// surface (the knee's half width is the cap) and leaves a tight body uncapped.
+#[test]
+fn the_prior_knee_option_bends_a_loose_bodys_capped_prior_alone() {
+    use umbra::schedule::Schedule;
+    let text = umbra::schedule::DEFAULT_TEXT.replace("prior_knee = false", "prior_knee = true");
+    let schedule = Schedule::parse(&text, Path::new("knee.toml")).expect("the default with the knee parses");
+    assert!(schedule.field.prior_knee);
+    assert!(!Schedule::parse(umbra::schedule::DEFAULT_TEXT, Path::new("default.toml")).expect("the default").field.prior_knee);
+    for (name, loose) in [("human-dressed", true), ("human-sun", false)] {
+        let scene = Scene::load(&Path::new("datasets-synthetic").join(name)).expect("a shipped scene");
+        let trainer = umbra::train::Trainer::new(scene, schedule.clone(), umbra::train::Backend::Flex, 0).expect("a trainer");
+        let skinning = trainer.model().expect("a model").field.config.skinning();
+        match skinning.prior_cap {
+            Some(cap) => assert!(loose && cap > 0.0 && skinning.prior_knee == cap, "{name}: {skinning:?}"),
+            None => assert!(!loose && skinning.prior_knee == 0.0, "{name}: {skinning:?}"),
+        }
     }
 }

@@ -78,7 +78,9 @@ pub struct RootSkinning {
     /// the residual must turn its own slope from 0 to 1 at once wherever the surface crosses the
     /// cap (a skirt below the hips, a backpack's sides), which the Eikonal and curvature terms
     /// resist: on human-dressed the fitted SDF's gradient length there strayed twice as far from
-    /// 1 as elsewhere on the skirt (0.26 against 0.11-0.12). Runs before it: false.
+    /// 1 as elsewhere on the skirt (0.26 against 0.11-0.12; 0.15 with the knee). Measured, not
+    /// the default (`[field] prior_knee`): it gained on human-dressed and lost on the 128x128
+    /// dressed capture, whose skirt it left faceted in a novel view. Runs before it: false.
     #[serde(default)]
     pub prior_knee: bool,
 }
@@ -99,7 +101,7 @@ impl RootSkinning {
     pub fn for_body(bone: usize, cap: f32, reach: f32, loose: Option<f32>, extent: f32) -> Self {
         let cell = extent / ROOT_CELLS_PER_EXTENT;
         match loose {
-            Some(far) => Self { bone, cap, cell, reach: far.max(2.0 * reach), features_reach_body: true, prior_capped: true, prior_knee: true },
+            Some(far) => Self { bone, cap, cell, reach: far.max(2.0 * reach), features_reach_body: true, prior_capped: true, prior_knee: false },
             None => Self { bone, cap, cell, reach: 2.0 * reach, features_reach_body: false, prior_capped: false, prior_knee: false },
         }
     }
@@ -915,4 +917,3 @@ impl FeatureGrid {
         (features, feature_tangents)
     }
 }
-
