@@ -542,15 +542,15 @@ fn locate(
 const SDF_SLOPE_BOUND: f32 = 2.0;
 
 /// The coarse pass of a view's rays in rounds. First every other sample (every fourth, then
-/// the other even ones but those hidden, below): a ray whose
-/// samples there show no optical depth, and whose SDF there keeps every sample between them
-/// outside the body (its value minus `SDF_SLOPE_BOUND` times the distance to the skipped
-/// sample) with an optical depth under a thousandth of `EMPTY_OPTICAL_DEPTH`, is empty: its
-/// other samples are not evaluated (density 0), and it is left alone as a ray found empty is.
-/// Every other ray's remaining samples are evaluated in the last round, but those the samples
-/// before them show hidden behind the surface, so its densities are those of one pass wherever
-/// they can change the ray (`CULL_TRANSMITTANCE`). Returns the densities (`[R * S]`), the decoded points and each sample's
-/// row among them (`NOT_DECODED` for a skipped one).
+/// the other even ones but those hidden, below): a ray whose samples there show no optical
+/// depth, and whose SDF there keeps every sample between them outside the body (its value
+/// minus `SDF_SLOPE_BOUND` times the distance to the skipped sample) with an optical depth
+/// under a thousandth of `EMPTY_OPTICAL_DEPTH`, is empty: its other samples are not evaluated
+/// (density 0), and it is left alone as a ray found empty is. Every other ray's remaining
+/// samples are evaluated in the last round, but those the samples before them show hidden
+/// behind the surface, so its densities are those of one pass wherever they can change the ray
+/// (`CULL_TRANSMITTANCE`). Returns the densities (`[R * S]`), the decoded points and each
+/// sample's row among them (`NOT_DECODED` for a skipped one).
 fn coarse_densities(still: &AvatarField, pose: &PoseTensors, rays: &RaySet, coarse: &Samples, s: usize, device: &Device) -> (Vec<f32>, Decoded, Vec<u32>) {
     let r = rays.len();
     let t = &coarse.t;
