@@ -220,6 +220,11 @@ pub enum Command {
         iterations: Option<usize>,
         #[arg(long, default_value_t = 0)]
         seed: u64,
+        /// `scenes`: fit every scene once per seed (instead of `--seed`) and add a table of each
+        /// scene's mean and standard deviation over them: one seed's figure of a fit varies by
+        /// about half a dB, so a difference between scenes is read off their means.
+        #[arg(long, value_delimiter = ',')]
+        seeds: Vec<u64>,
         /// `fit`: then fit the grid again for as many iterations as fill the MLP's training
         /// time, so the two fields are also compared at equal cost.
         #[arg(long)]
@@ -306,8 +311,9 @@ pub fn main() -> i32 {
             let scene = scene.unwrap_or_else(|| PathBuf::from("datasets-synthetic/human-sun-128"));
             crate::bench::breakdown(&scene, &schedule, &out, quick, run.as_deref()).map(|table| print!("{table}")).map_err(|e| e.to_string())
         }
-        Command::Bench { which: BenchKind::Scenes, out, scenes, schedule, iterations, seed, .. } => {
-            let options = crate::bench::ScenesBenchOptions { scenes, schedule, iterations, seed, out };
+        Command::Bench { which: BenchKind::Scenes, out, scenes, schedule, iterations, seed, seeds, .. } => {
+            let seeds = if seeds.is_empty() { vec![seed] } else { seeds };
+            let options = crate::bench::ScenesBenchOptions { scenes, schedule, iterations, seeds, out };
             crate::bench::scenes(&options, |line| eprintln!("{line}")).map(|table| print!("{table}")).map_err(|e| e.to_string())
         }
         Command::Bench { which: BenchKind::Gradients, out, quick, scene, .. } => {

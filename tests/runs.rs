@@ -296,6 +296,50 @@ fn bench_scenes_fits_every_scene_into_one_table() {
     assert!(!missing.status.success() && String::from_utf8_lossy(&missing.stderr).contains("nowhere"));
 }
 
+/// `bench scenes --seeds` fits every scene once per seed into `OUT/NAME-seedS`, one row each,
+/// and a summary of each scene's mean and standard deviation over them that the rows give back;
+/// a seed named twice is refused before anything is fitted.
+#[test]
+fn bench_scenes_at_several_seeds_adds_each_scenes_mean_and_spread() {
+    let dir = TempDir::new("bench-seeds");
+    let sun = common::tiny_synth(&dir.path().join("sunlit"), TrainingLight::Sun, 24, 2, vec![TestKind::Poses], 3);
+    let out = dir.path().join("bench");
+    let root = std::env::current_dir().unwrap();
+    let args = |seeds: &str| {
+        vec![
+            "bench".to_string(),
+            "scenes".into(),
+            "--scenes".into(),
+            sun.display().to_string(),
+            "--out".into(),
+            out.display().to_string(),
+            "--iterations".into(),
+            "4".into(),
+            "--seeds".into(),
+            seeds.into(),
+        ]
+    };
+    let twice = umbra(&root, &args("1,1").iter().map(String::as_str).collect::<Vec<_>>());
+    assert!(!twice.status.success() && String::from_utf8_lossy(&twice.stderr).contains("seed 1 is named twice"));
+    assert!(!out.join("scene-seed1").exists());
+    succeeds(&root, &args("0,1").iter().map(String::as_str).collect::<Vec<_>>());
+    let csv = std::fs::read_to_string(out.join("scenes.csv")).unwrap();
+    let rows: Vec<Vec<&str>> = csv.lines().skip(1).map(|l| l.split(',').collect()).collect();
+    assert_eq!(rows.iter().map(|r| (r[0], r[8])).collect::<Vec<_>>(), vec![("scene", "0"), ("scene", "1")], "{csv}");
+    assert!(out.join("scene-seed0/fit.json").is_file() && out.join("scene-seed1/fit.json").is_file());
+    // The two seeds fit differently, and the summary is their mean and sample spread.
+    let pose: Vec<f64> = rows.iter().map(|r| r[4].parse().unwrap()).collect();
+    assert_ne!(pose[0], pose[1], "{csv}");
+    let summary = std::fs::read_to_string(out.join("scenes-summary.csv")).unwrap();
+    let header: Vec<&str> = summary.lines().next().unwrap().split(',').collect();
+    let line: Vec<&str> = summary.lines().nth(1).unwrap().split(',').collect();
+    let column = |name: &str| line[header.iter().position(|h| *h == name).unwrap()].parse::<f64>().unwrap();
+    assert_eq!(column("fits"), 2.0, "{summary}");
+    let (mean, sd) = ((pose[0] + pose[1]) / 2.0, (pose[0] - pose[1]).abs() / 2f64.sqrt());
+    assert!((column("novel_pose_foreground_psnr_mean") - mean).abs() < 1e-3 && (column("novel_pose_foreground_psnr_sd") - sd).abs() < 1e-3, "{summary}");
+    assert!(std::fs::read_to_string(out.join("scenes.md")).unwrap().contains("Mean +- standard deviation over seeds 0, 1"));
+}
+
 /// Whether a triangle mesh is closed and consistently oriented: every directed
 /// edge appears once and its reverse once.
 fn closed_and_oriented(indices: &[u32]) -> bool {

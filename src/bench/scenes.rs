@@ -1,7 +1,10 @@
-//! `umbra bench scenes`: every shipped scene fitted once with the default schedule, one after
+//! `umbra bench scenes`: every shipped scene fitted with the default schedule, one after
 //! another, and one table of what each fit recovers (light error, foreground PSNR and SSIM of
 //! its novel poses and views, albedo) and what it costs (wall time), written as `scenes.md` and
-//! `scenes.csv`: the README's measured table made by one command.
+//! `scenes.csv`: the README's measured table made by one command. Fitted at several seeds, each
+//! scene also gets its mean and standard deviation over them (`scenes-summary.csv`, and a
+//! second table in `scenes.md`): one seed's figures vary by about half a dB, so two scenes are
+//! compared by their means.
 
 use crate::train::{Backend, FitError, FitOptions};
 use std::path::{Path, PathBuf};
@@ -13,7 +16,8 @@ pub struct ScenesBenchOptions {
     pub scenes: Vec<PathBuf>,
     pub schedule: PathBuf,
     pub iterations: Option<usize>,
-    pub seed: u64,
+    /// One fit of every scene per seed, in this order (at least one, none twice).
+    pub seeds: Vec<u64>,
     /// Each fit goes to `out/NAME`; the tables to `out`.
     pub out: PathBuf,
 }
@@ -31,15 +35,23 @@ pub fn shipped_scenes() -> Vec<PathBuf> {
     scenes
 }
 
-/// Fits every scene and returns the Markdown table (also written with its CSV).
+/// Fits every scene at every seed and returns the Markdown table(s) (also written with the CSV).
 pub fn scenes(options: &ScenesBenchOptions, mut on: impl FnMut(String)) -> Result<String, FitError> {
     let scenes = if options.scenes.is_empty() { shipped_scenes() } else { options.scenes.clone() };
     if scenes.is_empty() {
         return Err(FitError::Input("bench scenes: no scene to fit (none named, and no datasets-synthetic/*/scene.json here)".into()));
     }
+    if options.seeds.is_empty() {
+        return Err(FitError::Input("bench scenes: no seed to fit with".into()));
+    }
+    if let Some(seed) = options.seeds.iter().enumerate().find_map(|(k, s)| options.seeds[..k].contains(s).then_some(s)) {
+        return Err(FitError::Input(format!("bench scenes: seed {seed} is named twice: each seed is one fit of every scene")));
+    }
     std::fs::create_dir_all(&options.out).map_err(|e| crate::train::io(&options.out, e))?;
+    let several = options.seeds.len() > 1;
     let header = [
         "scene",
+        "seed",
         "wall time (s)",
         "light error",
         "novel pose foreground PSNR (dB)",
@@ -49,9 +61,11 @@ pub fn scenes(options: &ScenesBenchOptions, mut on: impl FnMut(String)) -> Resul
     ];
     let mut md = format!("| {} |\n|{}\n", header.join(" | "), "---|".repeat(header.len()));
     let mut csv =
-        "scene,wall_seconds,light_error,light_error_unit,novel_pose_foreground_psnr,novel_pose_ssim,novel_view_foreground_psnr,albedo_foreground_psnr\n"
+        "scene,wall_seconds,light_error,light_error_unit,novel_pose_foreground_psnr,novel_pose_ssim,novel_view_foreground_psnr,albedo_foreground_psnr,seed\n"
             .to_string();
     let mut names: Vec<String> = Vec::new();
+    let mut rows: Vec<Row> = Vec::new();
+    let fits = scenes.len() * options.seeds.len();
     for (k, scene) in scenes.iter().enumerate() {
         // Two scenes in folders of the same name get their own run folders.
         let mut name = scene_name(scene);
@@ -59,31 +73,102 @@ pub fn scenes(options: &ScenesBenchOptions, mut on: impl FnMut(String)) -> Resul
             name = format!("{name}-{}", k + 1);
         }
         names.push(name.clone());
-        on(format!("bench scenes: {}/{}: fitting {name}", k + 1, scenes.len()));
-        let fit = FitOptions {
-            scene: scene.clone(),
-            out: options.out.join(&name),
-            schedule: options.schedule.clone(),
-            iterations: options.iterations,
-            seed: options.seed,
-            resume: false,
-            force: true,
-            force_schedule: false,
-            backend: Backend::Flex,
-            evaluate: true,
-        };
-        let report = crate::fit::fit(&fit, |_| {})?;
-        let row = Row::of(&name, &report);
-        on(format!("bench scenes: {name}: {}", row.cells().join(", ")));
-        md += &format!("| {} |\n", row.cells().join(" | "));
-        csv += &row.csv();
+        for (j, &seed) in options.seeds.iter().enumerate() {
+            // One seed: the run is `OUT/NAME`, as before seeds; several: `OUT/NAME-seedS`.
+            let run = if several { format!("{name}-seed{seed}") } else { name.clone() };
+            on(format!("bench scenes: {}/{fits}: fitting {run}", k * options.seeds.len() + j + 1));
+            let fit = FitOptions {
+                scene: scene.clone(),
+                out: options.out.join(&run),
+                schedule: options.schedule.clone(),
+                iterations: options.iterations,
+                seed,
+                resume: false,
+                force: true,
+                force_schedule: false,
+                backend: Backend::Flex,
+                evaluate: true,
+            };
+            let report = crate::fit::fit(&fit, |_| {})?;
+            let row = Row::of(&name, seed, &report);
+            on(format!("bench scenes: {run}: {}", row.cells().join(", ")));
+            md += &format!("| {} |\n", row.cells().join(" | "));
+            csv += &row.csv();
+            rows.push(row);
+        }
     }
     let write = |file: &str, text: &str| {
         crate::imageio::write_atomic(&options.out.join(file), text.as_bytes()).map_err(|e| crate::train::io(&options.out.join(file), e))
     };
+    if several {
+        let (summary_md, summary_csv) = summary(&names, &rows);
+        md = format!(
+            "{md}\nMean +- standard deviation over seeds {}:\n\n{summary_md}",
+            options.seeds.iter().map(|s| s.to_string()).collect::<Vec<_>>().join(", ")
+        );
+        write("scenes-summary.csv", &summary_csv)?;
+    }
     write("scenes.md", &md)?;
     write("scenes.csv", &csv)?;
     Ok(md)
+}
+
+/// Each scene's mean and sample standard deviation over its fits, as a Markdown table and a CSV.
+fn summary(names: &[String], rows: &[Row]) -> (String, String) {
+    let header = [
+        "scene",
+        "fits",
+        "wall time (s)",
+        "light error",
+        "novel pose foreground PSNR (dB)",
+        "novel pose SSIM",
+        "novel view foreground PSNR (dB)",
+        "albedo foreground PSNR (dB)",
+    ];
+    let mut md = format!("| {} |\n|{}\n", header.join(" | "), "---|".repeat(header.len()));
+    let mut csv = "scene,fits,wall_seconds_mean,wall_seconds_sd,light_error_mean,light_error_sd,light_error_unit,novel_pose_foreground_psnr_mean,novel_pose_foreground_psnr_sd,novel_pose_ssim_mean,novel_pose_ssim_sd,novel_view_foreground_psnr_mean,novel_view_foreground_psnr_sd,albedo_foreground_psnr_mean,albedo_foreground_psnr_sd\n".to_string();
+    for name in names {
+        let fits: Vec<&Row> = rows.iter().filter(|r| &r.name == name).collect();
+        let stats = |value: &dyn Fn(&Row) -> Option<f64>| MeanSd::of(fits.iter().filter_map(|r| value(r)));
+        let wall = stats(&|r| Some(r.wall));
+        let light = stats(&|r| r.light.map(|(v, _)| v));
+        let unit = fits.iter().find_map(|r| r.light.map(|(_, u)| u)).unwrap_or("");
+        let columns = [stats(&|r| r.pose), stats(&|r| r.pose_ssim), stats(&|r| r.view), stats(&|r| r.albedo)];
+        let light_cell = match (light, unit) {
+            (None, _) => "(no light to fit)".to_string(),
+            (Some(l), "m") => format!("{:.1} +- {:.1} cm", l.mean * 100.0, l.sd * 100.0),
+            (Some(l), unit) => format!("{:.2} +- {:.2} {unit}", l.mean, l.sd),
+        };
+        let cell = |s: Option<MeanSd>, digits: usize| s.map(|s| format!("{:.digits$} +- {:.digits$}", s.mean, s.sd)).unwrap_or_else(|| "-".into());
+        let digits = [2, 3, 2, 2];
+        let mut cells = vec![name.clone(), fits.len().to_string(), cell(wall, 0), light_cell];
+        cells.extend(columns.iter().zip(digits).map(|(s, d)| cell(*s, d)));
+        md += &format!("| {} |\n", cells.join(" | "));
+        let pair = |s: Option<MeanSd>| s.map(|s| format!("{:.4},{:.4}", s.mean, s.sd)).unwrap_or_else(|| ",".into());
+        csv += &format!("{name},{},{},{},{unit},{}\n", fits.len(), pair(wall), pair(light), columns.iter().map(|s| pair(*s)).collect::<Vec<_>>().join(","));
+    }
+    (md, csv)
+}
+
+/// The mean and sample standard deviation (n - 1; 0 for one value) of some values.
+#[derive(Clone, Copy, Debug, PartialEq)]
+struct MeanSd {
+    mean: f64,
+    sd: f64,
+}
+
+impl MeanSd {
+    /// `None` when there is no value.
+    fn of(values: impl Iterator<Item = f64>) -> Option<Self> {
+        let values: Vec<f64> = values.collect();
+        let n = values.len();
+        if n == 0 {
+            return None;
+        }
+        let mean = values.iter().sum::<f64>() / n as f64;
+        let sd = if n > 1 { (values.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / (n - 1) as f64).sqrt() } else { 0.0 };
+        Some(Self { mean, sd })
+    }
 }
 
 fn scene_name(scene: &Path) -> String {
@@ -94,6 +179,7 @@ fn scene_name(scene: &Path) -> String {
 /// One fit's figures, read back from its `fit.json` report.
 struct Row {
     name: String,
+    seed: u64,
     wall: f64,
     /// The value and its unit ("degrees" for a sun, "m" for a point light's position).
     light: Option<(f64, &'static str)>,
@@ -104,12 +190,13 @@ struct Row {
 }
 
 impl Row {
-    fn of(name: &str, report: &serde_json::Value) -> Self {
+    fn of(name: &str, seed: u64, report: &serde_json::Value) -> Self {
         let error = &report["light_error_against_scene"];
         let light = error["direction_degrees"].as_f64().map(|v| (v, "degrees")).or_else(|| error["position_metres"].as_f64().map(|v| (v, "m")));
         let e = &report["evaluation"];
         Self {
             name: name.to_string(),
+            seed,
             wall: report["wall_seconds"].as_f64().unwrap_or(f64::NAN),
             light,
             pose: e["novel_pose_foreground_psnr"].as_f64(),
@@ -126,12 +213,34 @@ impl Row {
             Some((v, unit)) => format!("{v:.2} {unit}"),
             None => "(no light to fit)".into(),
         };
-        vec![self.name.clone(), format!("{:.0}", self.wall), light, f(self.pose, 2), f(self.pose_ssim, 3), f(self.view, 2), f(self.albedo, 2)]
+        vec![
+            self.name.clone(),
+            self.seed.to_string(),
+            format!("{:.0}", self.wall),
+            light,
+            f(self.pose, 2),
+            f(self.pose_ssim, 3),
+            f(self.view, 2),
+            f(self.albedo, 2),
+        ]
     }
 
     fn csv(&self) -> String {
         let f = |v: Option<f64>| v.map(|v| format!("{v:.4}")).unwrap_or_default();
         let (light, unit) = self.light.map(|(v, u)| (format!("{v:.4}"), u)).unwrap_or_default();
-        format!("{},{:.1},{light},{unit},{},{},{},{}\n", self.name, self.wall, f(self.pose), f(self.pose_ssim), f(self.view), f(self.albedo))
+        format!("{},{:.1},{light},{unit},{},{},{},{},{}\n", self.name, self.wall, f(self.pose), f(self.pose_ssim), f(self.view), f(self.albedo), self.seed)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::MeanSd;
+
+    #[test]
+    fn mean_and_sample_standard_deviation() {
+        let s = MeanSd::of([26.0, 27.0, 28.0].into_iter()).unwrap();
+        assert!((s.mean - 27.0).abs() < 1e-12 && (s.sd - 1.0).abs() < 1e-12, "{s:?}");
+        assert_eq!(MeanSd::of([5.0].into_iter()), Some(MeanSd { mean: 5.0, sd: 0.0 }));
+        assert_eq!(MeanSd::of(std::iter::empty()), None);
     }
 }
