@@ -592,6 +592,25 @@ fn reach_of(points: &[glam::DVec3], length: f64, reach: f64) -> Option<f64> {
 /// a point of the root's frame for it to count as loose body (`masked_reach_beyond_bones`).
 const LOOSE_CONSENSUS: f64 = 0.5;
 
+/// The bones `chosen` for Gaussians now on bones `current`, except that every bone that has a
+/// Gaussian keeps one: of a bone all of whose Gaussians would leave, the one its own motion
+/// carries best (least `outside[g][bone]`, the mean distance outside the surface) stays. The
+/// density fit pulls the Gaussians of a hand hanging beside a skirt into the skirt, and
+/// rebinding them all to the pelvis or a thigh left the hand with none, casting no shadow in
+/// any pose (human-dressed seed 2: the right hand); the one kept is pulled back by the mean
+/// regulariser toward its bone. A Gaussian sent back stays, so this ends.
+fn keep_every_bone(mut chosen: Vec<usize>, current: &[usize], outside: &[Vec<f64>]) -> Vec<usize> {
+    loop {
+        let emptied = current.iter().copied().find(|&b| !chosen.contains(&b));
+        let Some(bone) = emptied else { return chosen };
+        let best = (0..current.len()).filter(|&g| current[g] == bone).min_by(|&x, &y| outside[x][bone].total_cmp(&outside[y][bone]));
+        match best {
+            Some(g) => chosen[g] = bone,
+            None => return chosen,
+        }
+    }
+}
+
 /// How much farther outside the surface (m on the reference human, on average over the frames)
 /// than the best bone a Gaussian's own bone may carry it before the Gaussian moves
 /// (`Trainer::rebind_gaussians`): a few millimetres, below the surface's own noise, so that
@@ -1000,7 +1019,8 @@ impl Trainer {
     /// the first training frame, is carried rigidly by every bone in turn through up to
     /// `SEARCH_FRAMES` training frames, and scored by how far outside the field's surface it
     /// ends on average. Among the bones within `REBIND_TOLERANCE` of the best, it stays on its
-    /// own if it is one, else goes to the one nearest it. Returns how many moved.
+    /// own if it is one, else goes to the one nearest it; but a bone keeps at least one of its
+    /// Gaussians (`keep_every_bone`). Returns how many moved.
     pub fn rebind_gaussians(&mut self) -> Result<usize, FitError> {
         let model = self.model.as_ref().ok_or_else(|| FitError::Input("the model was lost by an interrupted step".into()))?;
         let set = model.gaussians.to_set();
@@ -1038,6 +1058,8 @@ impl Trainer {
                 (0..bone_count).filter(|&b| near_best(b)).min_by(|&a, &b| distance(a).total_cmp(&distance(b))).unwrap_or(gaussian.bone)
             })
             .collect();
+        let current: Vec<usize> = set.gaussians.iter().map(|g| g.bone).collect();
+        let bones = keep_every_bone(bones, &current, &outside);
         let moved = bones.iter().zip(&set.gaussians).filter(|(b, g)| **b != g.bone).count();
         if moved > 0 {
             if let Some(model) = self.model.as_mut() {
@@ -1623,6 +1645,26 @@ impl Trainer {
 mod tests {
     use super::*;
     use crate::imageio::{Mask, RgbImage};
+
+    /// A bone all of whose Gaussians would move keeps the one its motion carries best; bones
+    /// that keep one, and moves between them, are left alone; a chain of emptied bones is
+    /// undone link by link.
+    #[test]
+    fn rebinding_leaves_every_bone_a_gaussian() {
+        // Gaussians on bones 0, 0, 1, 1, 2 (outside[g][b]: how far outside bone b carries g).
+        let current = [0, 0, 1, 1, 2];
+        let outside = vec![vec![0.0, 0.1, 0.2], vec![0.0, 0.1, 0.2], vec![0.1, 0.03, 0.0], vec![0.1, 0.02, 0.0], vec![0.0, 0.1, 0.1]];
+        // Bone 1 would lose both: the second (0.02 outside on bone 1) stays.
+        assert_eq!(keep_every_bone(vec![0, 0, 2, 2, 2], &current, &outside), vec![0, 0, 2, 1, 2]);
+        // One of bone 0's moves to bone 2 and bone 2's to bone 0: each still has one.
+        assert_eq!(keep_every_bone(vec![0, 2, 1, 1, 0], &current, &outside), vec![0, 2, 1, 1, 0]);
+        // Bone 1's go to 2 and bone 2's to 0: bone 2 still has one (bone 1's that stays not).
+        assert_eq!(keep_every_bone(vec![0, 0, 2, 2, 0], &current, &outside), vec![0, 0, 2, 1, 0]);
+        // A chain: one Gaussian a bone, bone 1's to 2 and bone 2's to 0. Keeping bone 1's
+        // empties bone 2, which then keeps its own.
+        let outside = vec![vec![0.0; 3]; 3];
+        assert_eq!(keep_every_bone(vec![0, 2, 0], &[0, 1, 2], &outside), vec![0, 1, 2]);
+    }
 
     /// A 6x4 image: the left half black, the right half white, all foreground but the
     /// bottom-right pixel.
