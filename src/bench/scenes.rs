@@ -49,17 +49,7 @@ pub fn scenes(options: &ScenesBenchOptions, mut on: impl FnMut(String)) -> Resul
     }
     std::fs::create_dir_all(&options.out).map_err(|e| crate::train::io(&options.out, e))?;
     let several = options.seeds.len() > 1;
-    let header = [
-        "scene",
-        "seed",
-        "wall time (s)",
-        "light error",
-        "novel pose foreground PSNR (dB)",
-        "novel pose SSIM",
-        "novel view foreground PSNR (dB)",
-        "albedo foreground PSNR (dB)",
-    ];
-    let mut md = format!("| {} |\n|{}\n", header.join(" | "), "---|".repeat(header.len()));
+    let mut md = table_head(["scene", "seed"]);
     let mut csv =
         "scene,wall_seconds,light_error,light_error_unit,novel_pose_foreground_psnr,novel_pose_ssim,novel_view_foreground_psnr,albedo_foreground_psnr,seed\n"
             .to_string();
@@ -113,19 +103,19 @@ pub fn scenes(options: &ScenesBenchOptions, mut on: impl FnMut(String)) -> Resul
     Ok(md)
 }
 
+/// The figures both tables give after their first two columns.
+const FIGURES: [&str; 6] =
+    ["wall time (s)", "light error", "novel pose foreground PSNR (dB)", "novel pose SSIM", "novel view foreground PSNR (dB)", "albedo foreground PSNR (dB)"];
+
+/// A Markdown table's head: the `first` two columns, then `FIGURES`.
+fn table_head(first: [&str; 2]) -> String {
+    let header: Vec<&str> = first.into_iter().chain(FIGURES).collect();
+    format!("| {} |\n|{}\n", header.join(" | "), "---|".repeat(header.len()))
+}
+
 /// Each scene's mean and sample standard deviation over its fits, as a Markdown table and a CSV.
 fn summary(names: &[String], rows: &[Row]) -> (String, String) {
-    let header = [
-        "scene",
-        "fits",
-        "wall time (s)",
-        "light error",
-        "novel pose foreground PSNR (dB)",
-        "novel pose SSIM",
-        "novel view foreground PSNR (dB)",
-        "albedo foreground PSNR (dB)",
-    ];
-    let mut md = format!("| {} |\n|{}\n", header.join(" | "), "---|".repeat(header.len()));
+    let mut md = table_head(["scene", "fits"]);
     let mut csv = "scene,fits,wall_seconds_mean,wall_seconds_sd,light_error_mean,light_error_sd,light_error_unit,novel_pose_foreground_psnr_mean,novel_pose_foreground_psnr_sd,novel_pose_ssim_mean,novel_pose_ssim_sd,novel_view_foreground_psnr_mean,novel_view_foreground_psnr_sd,albedo_foreground_psnr_mean,albedo_foreground_psnr_sd\n".to_string();
     for name in names {
         let fits: Vec<&Row> = rows.iter().filter(|r| &r.name == name).collect();
