@@ -338,6 +338,9 @@ fn bench_scenes_at_several_seeds_adds_each_scenes_mean_and_spread() {
     let (mean, sd) = ((pose[0] + pose[1]) / 2.0, (pose[0] - pose[1]).abs() / 2f64.sqrt());
     assert!((column("novel_pose_foreground_psnr_mean") - mean).abs() < 1e-3 && (column("novel_pose_foreground_psnr_sd") - sd).abs() < 1e-3, "{summary}");
     assert!(std::fs::read_to_string(out.join("scenes.md")).unwrap().contains("Mean +- standard deviation over seeds 0, 1"));
+    // One seed into the same folder: no summary of the earlier seeds is left beside its table.
+    succeeds(&root, &args("2").iter().map(String::as_str).collect::<Vec<_>>());
+    assert!(!out.join("scenes-summary.csv").exists() && out.join("scene/fit.json").is_file());
 }
 
 /// Whether a triangle mesh is closed and consistently oriented: every directed

@@ -97,6 +97,9 @@ pub fn scenes(options: &ScenesBenchOptions, mut on: impl FnMut(String)) -> Resul
             options.seeds.iter().map(|s| s.to_string()).collect::<Vec<_>>().join(", ")
         );
         write("scenes-summary.csv", &summary_csv)?;
+    } else if options.out.join("scenes-summary.csv").is_file() {
+        // A summary of an earlier run at several seeds would contradict this run's table.
+        std::fs::remove_file(options.out.join("scenes-summary.csv")).map_err(|e| crate::train::io(&options.out.join("scenes-summary.csv"), e))?;
     }
     write("scenes.md", &md)?;
     write("scenes.csv", &csv)?;
@@ -124,10 +127,12 @@ fn summary(names: &[String], rows: &[Row]) -> (String, String) {
         let light = stats(&|r| r.light.map(|(v, _)| v));
         let unit = fits.iter().find_map(|r| r.light.map(|(_, u)| u)).unwrap_or("");
         let columns = [stats(&|r| r.pose), stats(&|r| r.pose_ssim), stats(&|r| r.view), stats(&|r| r.albedo)];
-        let light_cell = match (light, unit) {
-            (None, _) => "(no light to fit)".to_string(),
-            (Some(l), "m") => format!("{:.1} +- {:.1} cm", l.mean * 100.0, l.sd * 100.0),
-            (Some(l), unit) => format!("{:.2} +- {:.2} {unit}", l.mean, l.sd),
+        let light_cell = match light {
+            None => "(no light to fit)".to_string(),
+            Some(l) => {
+                let ((mean, shown, digits), (sd, _, _)) = (in_shown_unit(l.mean, unit), in_shown_unit(l.sd, unit));
+                format!("{mean:.digits$} +- {sd:.digits$} {shown}")
+            }
         };
         let cell = |s: Option<MeanSd>, digits: usize| s.map(|s| format!("{:.digits$} +- {:.digits$}", s.mean, s.sd)).unwrap_or_else(|| "-".into());
         let digits = [2, 3, 2, 2];
@@ -138,6 +143,15 @@ fn summary(names: &[String], rows: &[Row]) -> (String, String) {
         csv += &format!("{name},{},{},{},{unit},{}\n", fits.len(), pair(wall), pair(light), columns.iter().map(|s| pair(*s)).collect::<Vec<_>>().join(","));
     }
     (md, csv)
+}
+
+/// A light error as the tables show it: a position's metres in centimetres to 1 digit, a
+/// direction's degrees to 2. Returns the value, its unit and its digits.
+fn in_shown_unit(value: f64, unit: &'static str) -> (f64, &'static str, usize) {
+    match unit {
+        "m" => (value * 100.0, "cm", 1),
+        _ => (value, unit, 2),
+    }
 }
 
 /// The mean and sample standard deviation (n - 1; 0 for one value) of some values.
@@ -199,8 +213,10 @@ impl Row {
     fn cells(&self) -> Vec<String> {
         let f = |v: Option<f64>, digits: usize| v.map(|v| format!("{v:.digits$}")).unwrap_or_else(|| "-".into());
         let light = match self.light {
-            Some((v, "m")) => format!("{:.1} cm", v * 100.0),
-            Some((v, unit)) => format!("{v:.2} {unit}"),
+            Some((v, unit)) => {
+                let (v, shown, digits) = in_shown_unit(v, unit);
+                format!("{v:.digits$} {shown}")
+            }
             None => "(no light to fit)".into(),
         };
         vec![
