@@ -114,23 +114,51 @@ enum RunState {
 
 /// The state of the run in `folder` for `schedule_text`; an error when the folder holds a run
 /// of another schedule, iteration count or seed (unless `force`, which starts afresh).
-fn run_state(folder: &Path, schedule_text: &str, options: &AblateOptions, force: bool) -> Result<RunState, FitError> {
-    if force || crate::run::existing_checkpoint(folder).is_none() {
+fn run_state(folder: &Path, schedule_text: &str, scene: &SceneIdentity, options: &AblateOptions, force: bool) -> Result<RunState, FitError> {
+    let Some(checkpoint) = crate::run::existing_checkpoint(folder) else { return Ok(RunState::Fresh) };
+    if force {
         return Ok(RunState::Fresh);
     }
-    let copy = std::fs::read_to_string(folder.join(crate::run::SCHEDULE_COPY)).unwrap_or_default();
+    let read = |file: &Path| crate::files::read_text(file, crate::files::STATE_BYTES).ok().and_then(|t| serde_json::from_str::<serde_json::Value>(&t).ok());
+    let state = read(&checkpoint.join("state.json")).unwrap_or_default();
+    if state["training_data"].as_str() != Some(scene.training.as_str()) {
+        return Err(io(folder, "holds a run fitted on other training data than this scene's: pass --force to replace it, or choose another --out"));
+    }
+    let copy = crate::files::read_text(&folder.join(crate::run::SCHEDULE_COPY), crate::files::SMALL_TEXT_BYTES).unwrap_or_default();
     if copy != schedule_text {
         return Err(io(folder, "holds a run of another schedule: pass --force to replace it, or choose another --out"));
     }
-    let Some(report) = std::fs::read_to_string(folder.join("fit.json")).ok().and_then(|t| serde_json::from_str::<serde_json::Value>(&t).ok()) else {
+    let Some(report) = read(&folder.join("fit.json")) else {
         return Ok(RunState::Interrupted);
     };
+    // Its evaluation was of the test images of the scene it names.
+    if report["scene"].as_str() != Some(scene.path.as_str()) {
+        return Err(io(folder, format!("holds a run of the scene {}: pass --force to replace it, or choose another --out", report["scene"])));
+    }
     let same_seed = report["seed"].as_u64() == Some(options.seed);
     let same_length = options.iterations.is_none_or(|n| report["iterations"].as_u64() == Some(n as u64));
     if !same_seed || !same_length {
         return Err(io(folder, "holds a run with another seed or iteration count: pass --force to replace it, or choose another --out"));
     }
     Ok(RunState::Finished(report))
+}
+
+/// What a run must have been fitted on to be reused: the scene's training data and its
+/// folder (fit.json records it absolute).
+struct SceneIdentity {
+    training: String,
+    path: String,
+}
+
+/// Whether `out` holds anything but what ablations write: their tables and run folders.
+fn foreign_entry(out: &Path) -> Option<std::path::PathBuf> {
+    let entries = std::fs::read_dir(out).ok()?;
+    entries.flatten().map(|e| e.path()).find(|path| {
+        let table = path.file_name().is_some_and(|n| ["ablation.csv", "ablation.md", "ablation.png"].iter().any(|t| n == *t));
+        let run = path.is_dir() && (crate::run::existing_checkpoint(path).is_some() || path.join("fit.json").is_file());
+        let empty = path.is_dir() && std::fs::read_dir(path).is_ok_and(|mut e| e.next().is_none());
+        !(table || run || empty)
+    })
 }
 
 /// What one invocation of `ablate` did.
@@ -150,7 +178,22 @@ pub fn ablate(options: &AblateOptions, mut on: impl FnMut(usize, &str, TrainMess
     if options.schedules.len() < 2 {
         return Err(FitError::Input("an ablation compares at least two schedules (--schedule A.toml --schedule B.toml)".into()));
     }
+    if options.out.exists() && !options.out.is_dir() {
+        return Err(io(&options.out, "exists and is not a folder: --out names the ablation's folder (nothing was written)"));
+    }
     let scene = crate::scene::Scene::load(&options.scene)?;
+    if !options.force {
+        if let Some(foreign) = foreign_entry(&options.out) {
+            return Err(io(
+                &options.out,
+                format!("holds {}, which is neither an ablation's table nor a run: pass --force to write into it anyway, or choose another --out (nothing was written)", foreign.display()),
+            ));
+        }
+    }
+    let identity = SceneIdentity {
+        training: scene.training_identity(),
+        path: std::fs::canonicalize(&options.scene).unwrap_or_else(|_| options.scene.clone()).display().to_string(),
+    };
     let light = scene.training_lights().first().map(|name| scene.lights[*name].casts_shadows()).unwrap_or(false);
     let mut names: Vec<String> = Vec::new();
     let mut texts: Vec<String> = Vec::new();
@@ -161,7 +204,7 @@ pub fn ablate(options: &AblateOptions, mut on: impl FnMut(usize, &str, TrainMess
         if names.contains(&name) {
             return Err(FitError::Input(format!("{}: another schedule is also named {name:?}; runs are kept by file name", path.display())));
         }
-        run_state(&options.out.join(&name), &text, options, options.force)?;
+        run_state(&options.out.join(&name), &text, &identity, options, options.force)?;
         names.push(name);
         texts.push(text);
     }
@@ -169,7 +212,7 @@ pub fn ablate(options: &AblateOptions, mut on: impl FnMut(usize, &str, TrainMess
     let mut summary = AblationSummary { rows: Vec::new(), fitted: 0, elsewhere: Vec::new() };
     for (k, (path, name)) in options.schedules.iter().zip(&names).enumerate() {
         let folder = options.out.join(name);
-        let resume = match run_state(&folder, &texts[k], options, options.force)? {
+        let resume = match run_state(&folder, &texts[k], &identity, options, options.force)? {
             RunState::Finished(_) => continue,
             RunState::Interrupted => true,
             RunState::Fresh => false,
@@ -196,20 +239,20 @@ pub fn ablate(options: &AblateOptions, mut on: impl FnMut(usize, &str, TrainMess
             Err(e) => return Err(e),
         }
         // After every run, so a stopped ablation keeps its rows.
-        summary.rows = finished_rows(options, &names, &texts);
+        summary.rows = finished_rows(options, &identity, &names, &texts);
         write_tables(&options.out, &summary.rows)?;
     }
-    summary.rows = finished_rows(options, &names, &texts);
+    summary.rows = finished_rows(options, &identity, &names, &texts);
     write_tables(&options.out, &summary.rows)?;
     Ok(summary)
 }
 
 /// The rows of every run in `options.out` that has finished with its schedule.
-fn finished_rows(options: &AblateOptions, names: &[String], texts: &[String]) -> Vec<AblationRow> {
+fn finished_rows(options: &AblateOptions, scene: &SceneIdentity, names: &[String], texts: &[String]) -> Vec<AblationRow> {
     names
         .iter()
         .zip(texts)
-        .filter_map(|(name, text)| match run_state(&options.out.join(name), text, options, false) {
+        .filter_map(|(name, text)| match run_state(&options.out.join(name), text, scene, options, false) {
             Ok(RunState::Finished(report)) => Some(AblationRow::from_report(name.clone(), &report)),
             _ => None,
         })

@@ -23,7 +23,8 @@ pub enum Command {
         /// The folder to create.
         #[arg(long)]
         out: PathBuf,
-        /// Replace `out` if it exists.
+        /// Replace `out` if it is a scene `umbra synth` wrote that holds nothing else (any
+        /// other folder is refused, and so are the working folder and its parents).
         #[arg(long)]
         force: bool,
         #[command(flatten)]
@@ -40,10 +41,12 @@ pub enum Command {
         #[arg(long, default_value = "schedules/default.toml")]
         schedule: PathBuf,
         /// Override the schedule's iteration count.
-        #[arg(long)]
+        #[arg(long, value_parser = parse_iterations)]
         iterations: Option<usize>,
-        #[arg(long, default_value_t = 0)]
-        seed: u64,
+        /// The seed of the fit's random draws (Gaussians, batches): 0 unless given; a resumed
+        /// fit keeps its own.
+        #[arg(long)]
+        seed: Option<u64>,
         /// Continue from the run's last checkpoint.
         #[arg(long, conflicts_with = "force")]
         resume: bool,
@@ -181,7 +184,7 @@ pub enum Command {
         #[arg(long)]
         out: PathBuf,
         /// Override every schedule's iteration count (a quick comparison).
-        #[arg(long)]
+        #[arg(long, value_parser = parse_iterations)]
         iterations: Option<usize>,
         #[arg(long, default_value_t = 0)]
         seed: u64,
@@ -216,7 +219,7 @@ pub enum Command {
         #[arg(long, default_value_t = 6)]
         evaluations: usize,
         /// `fit`: override the schedule's iteration count.
-        #[arg(long)]
+        #[arg(long, value_parser = parse_iterations)]
         iterations: Option<usize>,
         #[arg(long, default_value_t = 0)]
         seed: u64,
@@ -238,6 +241,12 @@ pub enum Command {
         #[arg(long)]
         run: Option<PathBuf>,
     },
+}
+
+/// `--iterations`: a whole number within the bounds a schedule's `iterations` has.
+fn parse_iterations(text: &str) -> Result<usize, String> {
+    let n: usize = text.parse().map_err(|_| format!("{text:?} is not a whole number from 1 to {}", crate::schedule::MAX_COUNT))?;
+    crate::schedule::check_iterations(n).map_err(|_| format!("{n} is not from 1 to {} (the schedule's own limit)", crate::schedule::MAX_COUNT))
 }
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
@@ -278,6 +287,7 @@ pub fn main() -> i32 {
         Command::Inspect { scene } => inspect(&scene),
         Command::Synth { out, force, options } => synth(&out, force, &options),
         Command::Fit { scene, out, schedule, iterations, seed, resume, force, force_schedule, backend, no_eval } => {
+            let seed = seed.or_else(|| resume.then(|| crate::fit::recorded_seed(&out)).flatten()).unwrap_or(0);
             fit(&crate::train::FitOptions { scene, out, schedule, iterations, seed, resume, force, force_schedule, backend, evaluate: !no_eval })
         }
         Command::Render { run, scene, backend } => render(&run, scene.as_deref(), backend),
@@ -387,7 +397,9 @@ fn fit(options: &crate::train::FitOptions) -> Result<(), String> {
     })
     .map_err(|e| e.to_string())?;
     println!("wrote {}", options.out.join("fit.json").display());
-    if options.evaluate {
+    if let Some(why) = report["evaluation_skipped"].as_str() {
+        println!("not evaluated: {why}");
+    } else {
         // The report needs the renders beside the truth that the evaluation writes.
         let report = crate::report::ReportOptions {
             run: options.out.clone(),

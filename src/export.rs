@@ -6,7 +6,7 @@ use crate::eval::surface_mesh;
 use crate::skeleton::PoseTensors;
 use crate::train::{io, FitError, TrainMessage};
 use burn::module::Module;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 pub struct ExportOptions {
     pub run: PathBuf,
@@ -44,13 +44,31 @@ impl Targets {
     }
 }
 
+/// The first line of every OBJ `export-mesh` writes: what lets a later export replace it.
+pub const EXPORT_HEADER: &str = "# umbra export-mesh";
+
+/// Whether `path` is a file an earlier `export-mesh` wrote (its first line is `EXPORT_HEADER`).
+fn written_by_export(path: &Path) -> bool {
+    use std::io::Read;
+    let mut head = [0u8; EXPORT_HEADER.len()];
+    path.is_file() && std::fs::File::open(path).and_then(|mut f| f.read_exact(&mut head)).is_ok() && head == EXPORT_HEADER.as_bytes()
+}
+
 /// Exports the meshes; every file is written atomically, and nothing before the run, its scene
 /// and the frames are known good.
 pub fn export_meshes(options: &ExportOptions, mut on: impl FnMut(TrainMessage)) -> Result<Vec<Exported>, FitError> {
     let trainer = crate::run::restore(&options.run, options.scene.as_deref(), options.backend)?;
     let scene = &trainer.scene;
     let targets = options.targets.resolve(scene.frames.len())?;
-    let _lock = crate::run_lock::RunLock::acquire(&options.run, "export-mesh")?;
+    // A file in the way is replaced only when an earlier export wrote it.
+    if let Some((_, path)) = targets.iter().find(|(_, path)| path.exists() && !written_by_export(path)) {
+        return Err(io(path, "exists and is not a mesh umbra export-mesh wrote: choose another --out, or move it away (nothing was written)"));
+    }
+    let written = match &options.targets {
+        Targets::One { out, .. } => out.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(Path::new(".")).to_path_buf(),
+        Targets::All { dir } => dir.clone(),
+    };
+    let _lock = crate::run_lock::RunLock::for_output(&options.run, &written, "export-mesh")?;
     let model = trainer.model()?.valid();
     let device = trainer.device.clone().without_autodiff();
     let scale = crate::run::albedo_scale(scene, &model);
@@ -64,7 +82,8 @@ pub fn export_meshes(options: &ExportOptions, mut on: impl FnMut(TrainMessage)) 
         if let Some(parent) = path.parent().filter(|p| !p.as_os_str().is_empty()) {
             std::fs::create_dir_all(parent).map_err(|e| io(parent, e))?;
         }
-        crate::imageio::write_atomic(path, mesh.to_obj(Some(&colours), Some(&normals)).as_bytes()).map_err(|e| io(path, e))?;
+        let text = format!("{EXPORT_HEADER}\n{}", mesh.to_obj(Some(&colours), Some(&normals)));
+        crate::imageio::write_atomic(path, text.as_bytes()).map_err(|e| io(path, e))?;
         done.push(Exported {
             frame: *frame,
             path: path.clone(),

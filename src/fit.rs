@@ -97,14 +97,22 @@ fn losses_chart(history: &[(usize, StepStats)]) -> Chart {
 /// A `--resume` must continue the run as it was scheduled: the same schedule text and the same
 /// iteration count (the learning-rate decays and the stages depend on both), unless
 /// `force_schedule`; and never fewer iterations than are done.
-fn check_continuation(out: &Path, schedule_text: &str, iterations: usize, force_schedule: bool) -> Result<(), FitError> {
+fn check_continuation(out: &Path, schedule_text: &str, iterations: usize, seed: u64, force_schedule: bool) -> Result<(), FitError> {
     let checkpoint = existing_checkpoint(out).ok_or_else(|| io(out, "holds no checkpoint to resume"))?;
     let state_path = checkpoint.join("state.json");
-    let text = std::fs::read_to_string(&state_path).map_err(|e| io(&state_path, e))?;
+    let text = crate::files::read_text(&state_path, crate::files::STATE_BYTES).map_err(|e| io(&state_path, e))?;
     let state: serde_json::Value = serde_json::from_str(&text).map_err(|e| io(&state_path, e))?;
     let done = state["iteration"].as_u64().ok_or_else(|| io(&state_path, "iteration: missing"))? as usize;
     if iterations < done {
         return Err(io(out, format!("has {done} iterations done; resuming to {iterations} would run nothing (nothing was written)")));
+    }
+    if let Some(recorded) = recorded_seed(out) {
+        if recorded != seed {
+            return Err(io(
+                out,
+                format!("was fitted with --seed {recorded}: a resumed fit keeps its seed; leave --seed out or pass --seed {recorded} (nothing was written)"),
+            ));
+        }
     }
     if force_schedule {
         return Ok(());
@@ -115,15 +123,18 @@ fn check_continuation(out: &Path, schedule_text: &str, iterations: usize, force_
             changes.push(format!("the iteration count ({total} -> {iterations})"));
         }
     }
+    // Compared as parsed: a comment or `0.10` for `0.1` changes no fit.
     let copy = out.join(SCHEDULE_COPY);
-    if let Ok(previous) = std::fs::read_to_string(&copy) {
-        let old: Vec<&str> = previous.lines().map(str::trim).filter(|l| !l.is_empty()).collect();
-        let new: Vec<&str> = schedule_text.lines().map(str::trim).filter(|l| !l.is_empty()).collect();
-        let removed: Vec<&str> = old.iter().filter(|l| !new.contains(l)).copied().collect();
-        let added: Vec<&str> = new.iter().filter(|l| !old.contains(l)).copied().collect();
-        if !removed.is_empty() || !added.is_empty() {
-            let show = |v: &[&str]| v.iter().take(3).map(|l| format!("`{l}`")).collect::<Vec<_>>().join(", ");
-            changes.push(format!("the schedule (the run's {} has {}; the new one has {})", copy.display(), show(&removed), show(&added)));
+    if let Ok(previous) = crate::files::read_text(&copy, crate::files::SMALL_TEXT_BYTES) {
+        let parsed = |text: &str| Schedule::parse(text, Path::new(SCHEDULE_COPY)).ok().and_then(|s| serde_json::to_value(s).ok());
+        let differences = match (parsed(&previous), parsed(schedule_text)) {
+            (Some(old), Some(new)) => value_differences(&old, &new, ""),
+            _ => vec!["its text (the run's copy no longer parses)".to_string()],
+        };
+        if !differences.is_empty() {
+            let shown: Vec<&str> = differences.iter().take(4).map(String::as_str).collect();
+            let more = if differences.len() > 4 { format!(" and {} more", differences.len() - 4) } else { String::new() };
+            changes.push(format!("the schedule against the run's {} ({}{more})", copy.display(), shown.join(", ")));
         }
     }
     if changes.is_empty() {
@@ -136,6 +147,44 @@ fn check_continuation(out: &Path, schedule_text: &str, iterations: usize, force_
             changes.join(" and ")
         ),
     ))
+}
+
+/// Where two parsed schedules differ, as `path: old -> new` (the file they were read from
+/// aside).
+fn value_differences(old: &serde_json::Value, new: &serde_json::Value, at: &str) -> Vec<String> {
+    use serde_json::Value;
+    match (old, new) {
+        (Value::Object(a), Value::Object(b)) => {
+            let keys: std::collections::BTreeSet<&String> = a.keys().chain(b.keys()).filter(|k| !(at.is_empty() && k.as_str() == "file")).collect();
+            let null = Value::Null;
+            keys.into_iter()
+                .flat_map(|k| {
+                    value_differences(a.get(k).unwrap_or(&null), b.get(k).unwrap_or(&null), &if at.is_empty() { k.clone() } else { format!("{at}.{k}") })
+                })
+                .collect()
+        }
+        _ if old == new => Vec::new(),
+        _ => vec![format!("{at}: {old} -> {new}")],
+    }
+}
+
+/// The evaluation a run's fit.json records (null when it has none).
+fn previous_evaluation(run: &Path) -> serde_json::Value {
+    crate::files::read_text(&run.join("fit.json"), crate::files::SCENE_BYTES)
+        .ok()
+        .and_then(|text| serde_json::from_str::<serde_json::Value>(&text).ok())
+        .map(|report| report["evaluation"].clone())
+        .unwrap_or(json!(null))
+}
+
+/// The seed a run was started with, from its checkpoint (or, for checkpoints that predate
+/// recording it, its fit.json); `None` when neither says.
+pub fn recorded_seed(run: &Path) -> Option<u64> {
+    let from = |file: PathBuf| {
+        let text = crate::files::read_text(&file, crate::files::STATE_BYTES).ok()?;
+        serde_json::from_str::<serde_json::Value>(&text).ok()?["seed"].as_u64()
+    };
+    existing_checkpoint(run).and_then(|c| from(c.join("state.json"))).or_else(|| from(run.join("fit.json")))
 }
 
 /// Whether `dir` exists and holds entries but none of a run's (checkpoint, fit.json, the
@@ -155,12 +204,12 @@ pub fn fit(options: &FitOptions, mut on: impl FnMut(TrainMessage)) -> Result<ser
     let scene = Scene::load(&options.scene)?;
     let (mut schedule, schedule_text) = Schedule::read(&options.schedule)?;
     if let Some(n) = options.iterations {
-        if n == 0 {
-            return Err(FitError::Input("--iterations must be at least 1".into()));
-        }
-        schedule.iterations = n;
+        schedule.iterations = crate::schedule::check_iterations(n).map_err(FitError::Input)?;
     }
     let out = &options.out;
+    if out.exists() && !out.is_dir() {
+        return Err(io(out, "exists and is not a folder: --out names the run's folder (nothing was written)"));
+    }
     if existing_checkpoint(out).is_some() && !options.resume && !options.force {
         return Err(io(out, "holds a checkpoint of an earlier fit: pass --resume to continue it, --force to replace it, or choose another --out"));
     }
@@ -174,7 +223,7 @@ pub fn fit(options: &FitOptions, mut on: impl FnMut(TrainMessage)) -> Result<ser
     // A resumed run keeps the field it was fitted with (the schedule text is compared below).
     let mut built = schedule.clone();
     if options.resume {
-        apply_recorded_field(out, &mut built.field)?;
+        apply_recorded_field(out, scene.skeleton.len(), &mut built.field)?;
     }
     // Everything is validated before the run folder is touched: a refused fit writes nothing.
     let mut trainer = Trainer::new(scene, built, options.backend, options.seed)?;
@@ -184,7 +233,7 @@ pub fn fit(options: &FitOptions, mut on: impl FnMut(TrainMessage)) -> Result<ser
     trainer.schedule.iterations = schedule.iterations;
     // The checkpoint is loaded (and so validated) before the run's schedule copy is replaced.
     if options.resume {
-        check_continuation(out, &schedule_text, schedule.iterations, options.force_schedule)?;
+        check_continuation(out, &schedule_text, schedule.iterations, options.seed, options.force_schedule)?;
     }
     // The folder is locked before anything in it changes: a forced fit must not delete the
     // checkpoint of a fit that is still running there.
@@ -193,8 +242,10 @@ pub fn fit(options: &FitOptions, mut on: impl FnMut(TrainMessage)) -> Result<ser
     if options.force && !options.resume {
         let _ = std::fs::remove_dir_all(out.join(CHECKPOINT));
         let _ = std::fs::remove_dir_all(out.join(OLD_CHECKPOINT));
+        crate::run::clear_run_outputs(out, true)?;
     }
     let mut history = if options.resume { load_checkpoint(&mut trainer, out)? } else { Vec::new() };
+    let first_iteration_here = trainer.iteration;
     crate::imageio::write_atomic(&out.join(SCHEDULE_COPY), schedule_text.as_bytes()).map_err(|e| io(&out.join(SCHEDULE_COPY), e))?;
     history.retain(|(i, _)| *i < trainer.iteration);
     let training_images = trainer.scene.views_in(Split::Train).count();
@@ -229,7 +280,22 @@ pub fn fit(options: &FitOptions, mut on: impl FnMut(TrainMessage)) -> Result<ser
     set.save(&out.join("gaussians.json")).map_err(|e| io(&out.join("gaussians.json"), e))?;
     write_text(&out.join("losses.csv"), &losses_csv(&history))?;
     losses_chart(&history).render(800, 500).save_png(&out.join("losses.png")).map_err(|e| io(&out.join("losses.png"), e))?;
-    let evaluation = if options.evaluate { evaluate(&trainer, out, &mut on)? } else { json!(null) };
+    let has_tests = trainer.scene.views_in(Split::Test).next().is_some();
+    let evaluation = if options.evaluate && has_tests {
+        evaluate(&trainer, out, &mut on)?
+    } else if trainer.iteration == first_iteration_here {
+        // Nothing was trained: the run's own evaluation (if any) still describes it.
+        previous_evaluation(out)
+    } else {
+        // Renders and a report of fewer iterations would describe another fit.
+        crate::run::clear_run_outputs(out, false)?;
+        json!(null)
+    };
+    let evaluation_skipped = match (options.evaluate, has_tests) {
+        (_, false) => Some("the scene has no test images (split \"test\"): nothing to evaluate"),
+        (false, true) => Some("--no-eval"),
+        (true, true) => None,
+    };
     let model: &Avatar = trainer.model()?;
     let light = model.light.report();
     let mut stages = Vec::new();
@@ -315,6 +381,7 @@ pub fn fit(options: &FitOptions, mut on: impl FnMut(TrainMessage)) -> Result<ser
         "final_total": last.total,
         "wall_seconds": wall.elapsed().as_secs_f64(),
         "evaluation": evaluation,
+        "evaluation_skipped": evaluation_skipped,
         "light_error_against_scene": light_error,
         "light_errors_against_scene": by_name(errors),
         "sun_search": searches.first().cloned().unwrap_or(json!(null)),
@@ -403,6 +470,7 @@ pub fn evaluate_split(trainer: &Trainer, dir: &Path, split: Split, on: &mut impl
     }
     on(TrainMessage::Evaluating { images: tests.len() });
     let dir = dir.to_path_buf();
+    crate::run::clear_renders(&dir)?;
     std::fs::create_dir_all(&dir).map_err(|e| io(&dir, e))?;
     // Inference on the plain backend: no autodiff graph is recorded (or held) for the renders.
     let model = trainer.fitted_model()?.valid();
@@ -553,7 +621,7 @@ fn geometry_scores(trainer: &Trainer, model: &Avatar, albedo_scale: glam::DVec3,
     let mut out = Vec::new();
     for (position, frame) in scene.frames.iter().enumerate() {
         let Some(path) = &frame.mesh else { continue };
-        let truth = crate::geometry::load_obj(path).map_err(FitError::Input)?;
+        let truth = crate::geometry::load_obj(path).map_err(|e| io(path, e))?;
         let pose = crate::skeleton::PoseTensors::new(&frame.pose, &scene.skeleton, device);
         let (fitted, _, _) = crate::eval::surface_mesh(model, &pose, frame.pose.bounds(&scene.skeleton), extent, albedo_scale, device)?;
         let scores = crate::geometry::compare(&fitted, &truth, GEOMETRY_SAMPLES, position as u64);

@@ -102,8 +102,11 @@ impl GaussianSet {
 
     /// Reads a set, checking every value; `bones` is the skeleton size the set must fit.
     pub fn load(path: &Path, bones: Option<usize>) -> Result<Self, SceneError> {
-        let text =
-            std::fs::read_to_string(path).map_err(|e| SceneError { file: path.to_path_buf(), path: String::new(), message: format!("cannot read: {e}") })?;
+        let text = crate::files::read_text(path, crate::files::SCENE_BYTES).map_err(|e| SceneError {
+            file: path.to_path_buf(),
+            path: String::new(),
+            message: format!("cannot read: {e}"),
+        })?;
         Self::parse(&text, path, bones)
     }
 

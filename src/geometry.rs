@@ -24,24 +24,44 @@ pub struct GeometryScores {
     pub normal_angle: f64,
 }
 
-/// Reads an OBJ's triangles (polygons are triangulated; every object of the file).
+/// The largest OBJ read (a ground-truth body of a million triangles is about 60 MB).
+pub const OBJ_BYTES: u64 = 256 << 20;
+
+/// The largest coordinate (m) a ground-truth mesh may hold: a body is metres across, and its
+/// squared distances must stay finite in the geometry scores.
+pub const OBJ_MAX_COORDINATE: f64 = 1e6;
+
+/// Reads an OBJ's triangles (polygons are triangulated; every object of the file), refusing
+/// one with no triangle, a vertex that is not finite or beyond `OBJ_MAX_COORDINATE`, or a face
+/// that names a missing vertex. The error says what is wrong (callers name the file).
 pub fn load_obj(path: &Path) -> Result<Mesh, String> {
+    let text = crate::files::read_text(path, OBJ_BYTES).map_err(|e| e.to_string())?;
     let options = tobj::LoadOptions { triangulate: true, single_index: true, ..Default::default() };
-    let (models, _) = tobj::load_obj(path, &options).map_err(|e| format!("{}: {e}", path.display()))?;
+    let (models, _) =
+        tobj::load_obj_buf(&mut std::io::Cursor::new(text.as_bytes()), &options, |_| Ok(Default::default())).map_err(|e| format!("not a readable OBJ: {e}"))?;
     let mut mesh = Mesh::default();
     for model in models {
         let base = mesh.vertices.len();
-        mesh.vertices.extend(model.mesh.positions.chunks(3).map(|p| DVec3::new(p[0] as f64, p[1] as f64, p[2] as f64)));
+        if model.mesh.positions.len() % 3 != 0 {
+            return Err("a vertex has fewer than three coordinates".into());
+        }
+        for p in model.mesh.positions.chunks(3) {
+            let v = DVec3::new(p[0] as f64, p[1] as f64, p[2] as f64);
+            if !v.is_finite() || v.abs().max_element() > OBJ_MAX_COORDINATE {
+                return Err(format!("vertex {} is {v} (not finite, or beyond {OBJ_MAX_COORDINATE:e} m)", mesh.vertices.len() + 1));
+            }
+            mesh.vertices.push(v);
+        }
         for t in model.mesh.indices.chunks(3) {
             let tri = [base + t[0] as usize, base + t[1] as usize, base + t[2] as usize];
-            if tri.iter().any(|&i| i >= mesh.vertices.len()) {
-                return Err(format!("{}: a face refers to a missing vertex", path.display()));
+            if t.len() < 3 || tri.iter().any(|&i| i >= mesh.vertices.len()) {
+                return Err("a face refers to a missing vertex".into());
             }
             mesh.triangles.push(tri);
         }
     }
     if mesh.triangles.is_empty() {
-        return Err(format!("{}: no triangles", path.display()));
+        return Err("holds no triangles".into());
     }
     Ok(mesh)
 }

@@ -181,9 +181,7 @@ pub const MAX_PIXELS: usize = 1 << 26;
 
 /// An image's width and height from its header alone (PNG or EXR), nothing decoded.
 pub fn dimensions(path: &Path) -> Result<(usize, usize), ImageError> {
-    if !path.is_file() {
-        return Err(ImageError::NotFound(path.display().to_string()));
-    }
+    regular_file(path)?;
     let decode_error = |e: String| ImageError::Decode(path.display().to_string(), e);
     match kind(path) {
         Some("png") => {
@@ -201,6 +199,16 @@ pub fn dimensions(path: &Path) -> Result<(usize, usize), ImageError> {
     }
 }
 
+/// Refuses a path that is missing, or is not a regular file (a FIFO would block a read).
+fn regular_file(path: &Path) -> Result<(), ImageError> {
+    match std::fs::metadata(path) {
+        Ok(meta) if meta.is_file() => Ok(()),
+        Ok(meta) if meta.is_dir() => Err(ImageError::Io(format!("{}: is a folder, not an image", path.display()))),
+        Ok(_) => Err(ImageError::Io(format!("{}: is not a regular file (a device, FIFO or socket)", path.display()))),
+        Err(_) => Err(ImageError::NotFound(path.display().to_string())),
+    }
+}
+
 /// Refuses a header that declares more than `MAX_PIXELS`.
 fn check_declared_size(path: &Path) -> Result<(), ImageError> {
     let (w, h) = dimensions(path)?;
@@ -212,19 +220,19 @@ fn check_declared_size(path: &Path) -> Result<(), ImageError> {
 
 /// Reads a colour image: sRGB PNG (8 or 16 bit) to linear, EXR as linear (alpha ignored).
 pub fn read_rgb(path: &Path) -> Result<RgbImage, ImageError> {
-    if !path.is_file() {
-        return Err(ImageError::NotFound(path.display().to_string()));
-    }
+    regular_file(path)?;
     check_declared_size(path)?;
     match kind(path) {
         Some("png") => {
             let img = decode_png(path)?;
             let (width, height) = (img.width() as usize, img.height() as usize);
+            // Converted in place where the decoder's layout allows (`into_*`): a 16-bit image of
+            // 2^26 pixels would otherwise hold a second 400 MB copy while it is converted.
             let pixels = if matches!(img.color(), image::ColorType::Rgb16 | image::ColorType::Rgba16 | image::ColorType::L16 | image::ColorType::La16) {
-                img.to_rgb16().pixels().map(|p| p.0.map(|c| srgb_to_linear(c as f32 / 65535.0))).collect()
+                img.into_rgb16().pixels().map(|p| p.0.map(|c| srgb_to_linear(c as f32 / 65535.0))).collect()
             } else {
                 let table = srgb8_table();
-                img.to_rgb8().pixels().map(|p| p.0.map(|c| table[c as usize])).collect()
+                img.into_rgb8().pixels().map(|p| p.0.map(|c| table[c as usize])).collect()
             };
             Ok(RgbImage { width, height, pixels })
         }
@@ -250,9 +258,7 @@ fn read_exr(path: &Path) -> Result<RgbImage, ImageError> {
 
 /// Reads a mask: the first channel of a PNG, foreground where the 8-bit value is > 127.
 pub fn read_mask(path: &Path) -> Result<Mask, ImageError> {
-    if !path.is_file() {
-        return Err(ImageError::NotFound(path.display().to_string()));
-    }
+    regular_file(path)?;
     if kind(path) != Some("png") {
         return Err(ImageError::UnsupportedType(format!("{} (masks are PNG)", path.display())));
     }

@@ -11,6 +11,7 @@ pub mod error_map;
 pub mod eval;
 pub mod export;
 pub mod field;
+pub mod files;
 pub mod fit;
 pub mod fuzzing;
 pub mod gaussians;

@@ -133,18 +133,40 @@ pub struct RelightOptions {
     pub orbit: Option<usize>,
 }
 
-/// The light `options.light` names and a label for it.
+/// The contact sheet of a relight's folder (cameras down, frames across).
+const SHEET: &str = "sheet.png";
+
+/// A light's name as one plain folder name: letters, digits, `-`, `_` and `.` kept, anything
+/// else (a separator, `..`, a drive) replaced by `_`, so no name writes outside `relit/`.
+pub fn folder_label(name: &str) -> String {
+    let label: String = name.chars().map(|c| if c.is_alphanumeric() || matches!(c, '-' | '_' | '.') { c } else { '_' }).collect();
+    let label = label.trim_start_matches('.');
+    if label.is_empty() {
+        "light".into()
+    } else {
+        label.to_string()
+    }
+}
+
+/// The light `options.light` names and the folder label its renders go under: a scene light's
+/// name (made a plain folder name), a file's stem prefixed `file-` when a scene light has that
+/// label, so the two never share a folder.
 fn resolve_light(scene: &Scene, spec: &str) -> Result<(Light, String), FitError> {
     if let Some(light) = scene.lights.get(spec) {
-        return Ok((light.clone(), spec.to_string()));
+        return Ok((light.clone(), folder_label(spec)));
     }
     let path = Path::new(spec);
-    let label = path.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_else(|| "light".into());
+    let stem = folder_label(&path.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_default());
+    let taken = |label: &str| scene.lights.keys().any(|name| folder_label(name) == label);
+    let mut label = stem;
+    while taken(&label) {
+        label = format!("file-{label}");
+    }
     let is_exr = path.extension().is_some_and(|e| e.eq_ignore_ascii_case("exr"));
     if is_exr {
         let image = crate::imageio::read_rgb(path).map_err(|e| io(path, e))?;
-        if image.pixels.iter().any(|p| p.iter().any(|c| !c.is_finite())) {
-            return Err(io(path, "the environment map holds a non-finite value"));
+        if let Some(message) = crate::scene::environment_problem(&image) {
+            return Err(io(path, message));
         }
         return Ok((Light::Environment { path: path.to_path_buf(), scale: 1.0, map: EnvironmentMap { image } }, label));
     }
@@ -211,7 +233,15 @@ pub fn relight_run(options: &RelightOptions, mut on: impl FnMut(TrainMessage)) -
         return Err(FitError::Input("--samples must be at least 1".into()));
     }
     let out = options.out.clone().unwrap_or_else(|| options.run.join("relit").join(&label));
-    let _lock = crate::run_lock::RunLock::acquire(&options.run, "relight")?;
+    if out.exists() && !out.is_dir() {
+        return Err(io(&out, "exists and is not a folder: --out names a folder for the renders (nothing was written)"));
+    }
+    // Renders replace only an earlier relight's (its contact sheet marks it).
+    let holds_files = std::fs::read_dir(&out).is_ok_and(|mut entries| entries.next().is_some());
+    if holds_files && !out.join(SHEET).is_file() {
+        return Err(io(&out, format!("holds files but no {SHEET} of an earlier relight: choose a new or empty --out folder (nothing was written)")));
+    }
+    let _lock = crate::run_lock::RunLock::for_output(&options.run, &out, "relight")?;
     std::fs::create_dir_all(&out).map_err(|e| io(&out, e))?;
     let model = trainer.model()?.valid();
     let device = trainer.device.clone().without_autodiff();
@@ -259,7 +289,7 @@ pub fn relight_run(options: &RelightOptions, mut on: impl FnMut(TrainMessage)) -
         }
         on(TrainMessage::Rendered { done: done + 1, total, name, psnr: None });
     }
-    crate::run::save_png(&out.join("sheet.png"), &sheet)?;
+    crate::run::save_png(&out.join(SHEET), &sheet)?;
     for (views, frame) in turntables.iter().zip(&frames).filter(|(views, _)| !views.is_empty()) {
         let path = out.join(format!("orbit_f{frame:04}.png"));
         let apng = crate::imageio::encode_apng_rgb(views, TURNTABLE_FRAME_MS).map_err(|e| io(&path, e))?;

@@ -22,6 +22,49 @@ pub(crate) const OLD_CHECKPOINT: &str = ".checkpoint.old";
 /// from it; the original file may have moved).
 pub const SCHEDULE_COPY: &str = "schedule.toml";
 
+/// What a run's report writes into the run folder.
+pub const REPORT_FILES: [&str; 3] = ["report.html", "report.md", "report-relit.png"];
+
+/// What a fit writes beside its checkpoint (besides the evaluation's folders and the report).
+pub const FIT_FILES: [&str; 4] = ["fit.json", "gaussians.json", "losses.csv", "losses.png"];
+
+/// The folders an evaluation renders into.
+pub const RENDER_FOLDERS: [&str; 2] = ["renders", "renders-train"];
+
+/// Removes from `dir` the files an evaluation writes there (its PNGs, `metrics.*`,
+/// `compare.png`), and `dir` itself when that leaves it empty: what another scene's or an earlier
+/// fit's evaluation left must not stand beside a new one's table. Files of other kinds stay.
+pub fn clear_renders(dir: &Path) -> Result<(), FitError> {
+    let Ok(entries) = std::fs::read_dir(dir) else { return Ok(()) };
+    for entry in entries.flatten() {
+        let path = entry.path();
+        let ours = path.extension().is_some_and(|e| e == "png")
+            || ["metrics.csv", "metrics.md", "metrics.json"].iter().any(|n| path.file_name().is_some_and(|f| f == *n));
+        if ours && entry.file_type().is_ok_and(|t| t.is_file()) {
+            std::fs::remove_file(&path).map_err(|e| io(&path, e))?;
+        }
+    }
+    let _ = std::fs::remove_dir(dir);
+    Ok(())
+}
+
+/// Removes what an earlier fit's evaluation and report left in `run` (its renders, report,
+/// and with `fit_outputs` also fit.json, gaussians.json and the losses), so that a fit that
+/// replaces it or ends without evaluating leaves nothing that describes another fit.
+pub fn clear_run_outputs(run: &Path, fit_outputs: bool) -> Result<(), FitError> {
+    for folder in RENDER_FOLDERS {
+        clear_renders(&run.join(folder))?;
+    }
+    let files = REPORT_FILES.iter().chain(if fit_outputs { FIT_FILES.iter() } else { [].iter() });
+    for name in files {
+        let path = run.join(name);
+        if path.is_file() {
+            std::fs::remove_file(&path).map_err(|e| io(&path, e))?;
+        }
+    }
+    Ok(())
+}
+
 pub(crate) fn write_text(path: &Path, text: &str) -> Result<(), FitError> {
     crate::imageio::write_atomic(path, text.as_bytes()).map_err(|e| io(path, e))
 }
@@ -79,6 +122,7 @@ pub fn save_checkpoint_until(trainer: &Trainer, out: &Path, history: &[(usize, S
         "training_data": trainer.training_identity(),
         "checksums": checksums,
         "iteration": trainer.iteration,
+        "seed": trainer.seed,
         "iterations_total": trainer.schedule.iterations,
         "stream": trainer.stream.state().to_string(),
         // The first light's search and cone under their one-light keys, the others' after.
@@ -92,6 +136,8 @@ pub fn save_checkpoint_until(trainer: &Trainer, out: &Path, history: &[(usize, S
         "error_maps": trainer.error_maps().into_iter().map(|(view, errors)| json!({"view": view, "errors": errors})).collect::<Vec<_>>(),
     });
     write_text(&temp.join("state.json"), &state.to_string())?;
+    let sum = file_checksum(&temp.join("state.json")).map_err(|e| io(&temp.join("state.json"), e))?;
+    write_text(&temp.join(STATE_CHECKSUM), &sum)?;
     if step() {
         return Ok(false);
     }
@@ -135,14 +181,57 @@ fn checkpoint_files(trainer: &Trainer) -> Vec<String> {
     std::iter::once("model.bpk".to_string()).chain(training).chain(trainer.optimizers.iter().map(|(name, _)| format!("optimizer-{name}.bpk"))).collect()
 }
 
+/// The checksum of a checkpoint's `state.json`, beside it: state.json holds the others.
+const STATE_CHECKSUM: &str = "state.checksum";
+
+/// A checkpoint's `state.json`, read bounded and checked against the checksum beside it (a
+/// checkpoint that records its files' checksums must have one for its state too), with the
+/// types of the keys that guard a load: an edited or damaged state is refused, not trusted.
+pub(crate) fn read_state(dir: &Path) -> Result<serde_json::Value, FitError> {
+    let state_path = dir.join("state.json");
+    let text = crate::files::read_text(&state_path, crate::files::STATE_BYTES).map_err(|e| io(&state_path, format!("cannot read the checkpoint: {e}")))?;
+    let state: serde_json::Value = serde_json::from_str(&text).map_err(|e| io(&state_path, e))?;
+    if !state.is_object() {
+        return Err(io(&state_path, "not a checkpoint's state (expected a JSON object)"));
+    }
+    let sum_path = dir.join(STATE_CHECKSUM);
+    match crate::files::read_text(&sum_path, 256) {
+        Ok(expected) => {
+            let found = file_checksum(&state_path).map_err(|e| io(&state_path, e))?;
+            if found != expected.trim() {
+                return Err(io(
+                    &state_path,
+                    format!("checksum {found} differs from {} recorded in {STATE_CHECKSUM}: the file is damaged or was edited", expected.trim()),
+                ));
+            }
+        }
+        Err(_) if state.get("checksums").is_some() => {
+            return Err(io(
+                &sum_path,
+                "missing or unreadable: a checkpoint that records its files' checksums records its state's too; the checkpoint is incomplete",
+            ));
+        }
+        // Checkpoints from before checksums were recorded.
+        Err(_) => {}
+    }
+    for key in ["skeleton", "training_data", "stream"] {
+        if state.get(key).is_some_and(|v| !v.is_string()) {
+            return Err(io(&state_path, format!("{key}: expected a string, found {}", state[key])));
+        }
+    }
+    if state.get("checksums").is_some_and(|v| !v.is_object()) {
+        return Err(io(&state_path, "checksums: expected an object of file names to checksums"));
+    }
+    Ok(state)
+}
+
 /// Reads a checkpoint's `state.json` and checks it against `scene` (the skeleton, and the
 /// training data when `resuming`) and the checksums of the files it lists. Checkpoints written
 /// before these were recorded pass unchecked.
 fn verified_state(dir: &Path, trainer: &Trainer, resuming: bool) -> Result<serde_json::Value, FitError> {
     let scene = &trainer.scene;
     let state_path = dir.join("state.json");
-    let text = std::fs::read_to_string(&state_path).map_err(|e| io(&state_path, format!("cannot read the checkpoint: {e}")))?;
-    let state: serde_json::Value = serde_json::from_str(&text).map_err(|e| io(&state_path, e))?;
+    let state = read_state(dir)?;
     let scene_file = crate::scene::scene_file(&scene.root);
     if let Some(skeleton) = state["skeleton"].as_str() {
         if skeleton != scene.skeleton_identity() {
@@ -185,12 +274,13 @@ fn verified_state(dir: &Path, trainer: &Trainer, resuming: bool) -> Result<serde
 /// from before that records at most its albedo decoder's depth (none: it shared the SDF's
 /// decoder) and predates the root's skinning. Nothing changes without a readable checkpoint
 /// (its loading reports that).
-pub(crate) fn apply_recorded_field(run: &Path, settings: &mut crate::schedule::FieldSettings) -> Result<(), FitError> {
-    let Some(state_path) = existing_checkpoint(run).map(|c| c.join("state.json")) else { return Ok(()) };
-    let Ok(text) = std::fs::read_to_string(&state_path) else { return Ok(()) };
-    let Ok(state) = serde_json::from_str::<serde_json::Value>(&text) else { return Ok(()) };
+pub(crate) fn apply_recorded_field(run: &Path, bones: usize, settings: &mut crate::schedule::FieldSettings) -> Result<(), FitError> {
+    let Some(checkpoint) = existing_checkpoint(run) else { return Ok(()) };
+    let state_path = checkpoint.join("state.json");
+    let state = read_state(&checkpoint)?;
     if let Some(field) = state.get("field") {
-        let config = serde_json::from_value(field.clone()).map_err(|e| io(&state_path, format!("field: {e}")))?;
+        let config: crate::field::FieldConfig = serde_json::from_value(field.clone()).map_err(|e| io(&state_path, format!("field: {e}")))?;
+        config.check(bones).map_err(|e| io(&state_path, format!("field.{e}")))?;
         settings.recorded = Some(config);
         return Ok(());
     }
@@ -277,7 +367,7 @@ pub(crate) fn load_checkpoint(trainer: &mut Trainer, out: &Path) -> Result<Vec<(
         maps.push((view, errors));
     }
     trainer.set_error_maps(maps).map_err(|e| io(&state_path, format!("error_maps: {e}")))?;
-    let csv = std::fs::read_to_string(dir.join("losses.csv")).map_err(|e| io(&dir.join("losses.csv"), e))?;
+    let csv = crate::files::read_text(&dir.join("losses.csv"), crate::files::STATE_BYTES).map_err(|e| io(&dir.join("losses.csv"), e))?;
     Ok(parse_losses_csv(&csv))
 }
 
@@ -304,7 +394,7 @@ fn parse_cone(cone: &serde_json::Value, state_path: &Path, key: &str) -> Result<
 /// Replaces the trainer's model by the one saved in checkpoint folder `dir`.
 fn load_model(trainer: &mut Trainer, dir: &Path) -> Result<(), FitError> {
     let state_path = dir.join("state.json");
-    let state: serde_json::Value = std::fs::read_to_string(&state_path).ok().and_then(|t| serde_json::from_str(&t).ok()).unwrap_or_default();
+    let state = read_state(dir)?;
     // A loose body fitted before Gaussians were seeded on it has only the bones' Gaussians.
     let recorded = state.get("gaussian_bones").and_then(|b| b.as_array()).map(|b| b.len());
     let starts = trainer.model()?.gaussians.len();
@@ -331,17 +421,20 @@ pub fn restore(run: &Path, scene: Option<&Path>, backend: crate::train::Backend)
         return Err(io(run, format!("{what}: name the --out folder of an `umbra fit`")));
     }
     let mut schedule = Schedule::load(&run.join(SCHEDULE_COPY))?;
-    apply_recorded_field(run, &mut schedule.field)?;
     let scene_path = match scene {
         Some(path) => path.to_path_buf(),
         None => {
             let report = run.join("fit.json");
-            let text = std::fs::read_to_string(&report).map_err(|e| io(&report, format!("{e} (pass --scene to name the scene)")))?;
+            if !report.exists() && crate::run_lock::held_elsewhere(run) {
+                return Err(io(run, "a fit is in progress in this run folder (it has no fit.json yet): wait for it to finish"));
+            }
+            let text = crate::files::read_text(&report, crate::files::SCENE_BYTES).map_err(|e| io(&report, format!("{e} (pass --scene to name the scene)")))?;
             let value: serde_json::Value = serde_json::from_str(&text).map_err(|e| io(&report, e))?;
             value["scene"].as_str().map(std::path::PathBuf::from).ok_or_else(|| io(&report, "scene: missing (pass --scene)"))?
         }
     };
     let scene = Scene::load(&scene_path)?;
+    apply_recorded_field(run, scene.skeleton.len(), &mut schedule.field)?;
     let mut trainer = Trainer::new(scene, schedule, backend, 0)?;
     let checkpoint = existing_checkpoint(run).ok_or_else(|| io(run, "holds no checkpoint"))?;
     verified_state(&checkpoint, &trainer, false)?;

@@ -49,6 +49,27 @@ impl RunLock {
     }
 }
 
+impl RunLock {
+    /// For a command that reads `run` and writes to `out`: the run's lock when `out` lies inside
+    /// the run (a read-only run can still be read into a folder elsewhere); otherwise no lock,
+    /// but a refusal while another process works in the run (its checkpoint may be half
+    /// swapped).
+    pub fn for_output(run: &Path, out: &Path, command: &str) -> Result<Option<Self>, FitError> {
+        let resolve = |p: &Path| std::path::absolute(p).ok().map(|a| std::fs::canonicalize(&a).unwrap_or(a));
+        let inside = match (resolve(run), resolve(out)) {
+            (Some(run), Some(out)) => out.starts_with(run),
+            _ => true,
+        };
+        if inside {
+            return Self::acquire(run, command).map(Some);
+        }
+        if let Some((pid, what)) = holder(run).filter(|(pid, _)| *pid != std::process::id() && !process_is_gone(*pid)) {
+            return Err(io(run, format!("another umbra {what} (process {pid}) is working in this run folder; wait for it to finish")));
+        }
+        Ok(None)
+    }
+}
+
 impl Drop for RunLock {
     fn drop(&mut self) {
         let _ = std::fs::remove_file(&self.path);

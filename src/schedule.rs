@@ -327,11 +327,25 @@ fn number(file: &Path, table: &toml::Table, key: &str, prefix: &str) -> Result<O
     }
 }
 
+/// The largest count a schedule or `--iterations` may give (a billion iterations is weeks of
+/// fitting; a larger number is a typo).
+pub const MAX_COUNT: usize = 1_000_000_000;
+
 fn count(file: &Path, table: &toml::Table, key: &str, default: usize, min: usize) -> Result<usize, ScheduleError> {
     match number(file, table, key, "")? {
         None => Ok(default),
-        Some(v) if v.fract() == 0.0 && v >= min as f64 && v <= 1e9 => Ok(v as usize),
-        Some(v) => Err(err(file, key, format!("must be a whole number >= {min}, found {v}"))),
+        Some(v) if v.fract() == 0.0 && v >= min as f64 && v <= MAX_COUNT as f64 => Ok(v as usize),
+        Some(v) => Err(err(file, key, format!("must be a whole number from {min} to {MAX_COUNT}, found {v}"))),
+    }
+}
+
+/// Checks an iteration count given on the command line (`--iterations`) against the bounds a
+/// schedule's `iterations` has.
+pub fn check_iterations(n: usize) -> Result<usize, String> {
+    if (1..=MAX_COUNT).contains(&n) {
+        Ok(n)
+    } else {
+        Err(format!("--iterations {n}: must be a whole number from 1 to {MAX_COUNT}"))
     }
 }
 
@@ -456,10 +470,10 @@ impl Schedule {
     /// The schedule at `path` and its text. The default schedule's path works from any folder:
     /// when `schedules/default.toml` is not there, the copy compiled into the binary is used.
     pub fn read(path: &Path) -> Result<(Self, String), ScheduleError> {
-        let text = match std::fs::read_to_string(path) {
+        let text = match crate::files::read_text(path, crate::files::SMALL_TEXT_BYTES) {
             Ok(text) => text,
             Err(e) if e.kind() == std::io::ErrorKind::NotFound && path == Path::new(DEFAULT_PATH) => DEFAULT_TEXT.to_string(),
-            Err(e) => return Err(err(path, "(file)", format!("cannot read: {e}"))),
+            Err(e) => return Err(err(path, "(file)", e.to_string())),
         };
         Ok((Self::parse(&text, path)?, text))
     }
@@ -547,11 +561,10 @@ impl Schedule {
             }
             let key = format!("losses.{name}");
             let ramp = match value {
-                toml::Value::Integer(_) | toml::Value::Float(_) => {
-                    let mut t = toml::Table::new();
-                    t.insert("weight".into(), value.clone());
-                    Ramp::constant(number(file, &t, "weight", &key)?.unwrap_or(0.0))
-                }
+                // The shorthand `term = w`: errors name the key as written.
+                toml::Value::Integer(i) => Ramp::constant(*i as f64),
+                toml::Value::Float(f) if f.is_finite() => Ramp::constant(*f),
+                toml::Value::Float(f) => return Err(err(file, &key, format!("must be finite, found {f}"))),
                 toml::Value::Table(t) => {
                     for k in t.keys() {
                         if !["from", "to", "hold", "ramp"].contains(&k.as_str()) {
@@ -566,9 +579,11 @@ impl Schedule {
                 }
                 other => return Err(err(file, &key, format!("expected a number or a table, found {}", other.type_str()))),
             };
+            let shorthand = !value.is_table();
             for (field, v) in [("from", ramp.from), ("to", ramp.to), ("hold", ramp.hold), ("ramp", ramp.ramp)] {
                 if v < 0.0 {
-                    return Err(err(file, &format!("{key}.{field}"), format!("must be >= 0, found {v}")));
+                    let at = if shorthand { key.clone() } else { format!("{key}.{field}") };
+                    return Err(err(file, &at, format!("must be >= 0, found {v}")));
                 }
             }
             if ramp.hold >= iterations as f64 && ramp.from == 0.0 && ramp.to != 0.0 {
@@ -799,7 +814,8 @@ mod tests {
         assert_eq!(error_of("[field]\nkind = \"grid\"\nlevels = 0\n[losses]\nmask = 1.0").key, "field.levels");
         assert_eq!(error_of("[field]\nlevels = 4\n[losses]\nmask = 1.0").key, "field.levels");
         assert_eq!(error_of("[field]\nkind = \"grid\"\ncells = 4\n[losses]\nmask = 1.0").key, "field.cells");
-        assert_eq!(error_of("[losses]\nmask = nan").key, "losses.mask.weight");
+        assert_eq!(error_of("[losses]\nmask = nan").key, "losses.mask");
+        assert_eq!(error_of("[losses]\nmask = 1\neikonal = -1").key, "losses.eikonal", "a shorthand's error names the key as written");
         assert_eq!(error_of("density_points = 0\n[losses]\nmask = 1.0\ndensity = 0.5").key, "density_points");
         assert_eq!(error_of("regulariser_points = 0\n[losses]\nmask = 1.0\ncurvature = 0.1").key, "regulariser_points");
         assert!(Schedule::parse("regulariser_points = 0\n[losses]\nmask = 1.0", Path::new("s.toml")).is_ok(), "no weight, no points needed");

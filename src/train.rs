@@ -309,6 +309,8 @@ pub struct Trainer {
     pub fit_light: bool,
     pub light_kind: LightKind,
     pub iteration: usize,
+    /// The seed the fit was started with (a resumed fit keeps it).
+    pub seed: u64,
     pub stream: Stream,
     /// How SDF gradients (normals, Eikonal, curvature) are taken; `GRADIENT` unless a
     /// benchmark compares methods.
@@ -755,6 +757,16 @@ impl Trainer {
         if training.is_empty() {
             return Err(FitError::Input(format!("{}: no training images (split \"train\")", scene.root.join("scene.json").display())));
         }
+        // Masks that hold no body anywhere (a segmenter that found nothing, inverted masks
+        // saved as black) would fit an empty avatar without a word.
+        let masked = |i: &usize| scene.views[*i].mask.as_ref().is_some_and(|m| m.foreground.iter().any(|&f| f));
+        if !training.iter().any(masked) {
+            return Err(FitError::Input(format!(
+                "{}: images[*].mask: none of the {} training masks marks any pixel as body (value > 127): check the masks (inverted? empty?)",
+                scene.root.join("scene.json").display(),
+                training.len()
+            )));
+        }
         let lights = scene.training_lights();
         let kind_of = |light: &Light| match light {
             Light::Directional { .. } => LightKind::Directional,
@@ -928,6 +940,7 @@ impl Trainer {
             fit_light,
             light_kind,
             iteration: 0,
+            seed,
             stream: Stream::new(seed, 0x7AA1, 0),
             gradient: crate::field::GRADIENT,
             render_missed_rays: false,

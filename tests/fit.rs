@@ -281,8 +281,7 @@ fn a_non_finite_parameter_or_loss_stops_the_fit_and_keeps_the_last_good_checkpoi
     // checksum (a checkpoint from before checksums were recorded is loaded unchecked).
     let state_path = out.join("checkpoint/state.json");
     let mut state: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&state_path).unwrap()).unwrap();
-    state.as_object_mut().unwrap().remove("checksums");
-    std::fs::write(&state_path, state.to_string()).unwrap();
+    common::without_checksums(&state_path, &mut state);
     std::fs::remove_file(out.join("fit.json")).unwrap();
     let err = umbra::fit::fit(&fit_options(&scene_path, out.clone(), &schedule_path, Some(8), 2, true), |_| {}).unwrap_err().to_string();
     assert!(err.contains("diverged at iteration 4") && err.contains("loss is not finite"), "{err}");
@@ -351,7 +350,8 @@ fn evaluation_renders_and_scores_every_test_image_and_umbra_render_repeats_it() 
     std::fs::write(&lamp, r#"{"type": "point", "position": [1.0, 2.0, 1.5], "intensity": [5, 5, 5]}"#).unwrap();
     let run = cli(&["relight", out.to_str().unwrap(), "--light", lamp.to_str().unwrap(), "--camera", "0", "--frame", "1"]);
     assert!(run.status.success(), "{}", String::from_utf8_lossy(&run.stderr));
-    assert!(out.join("relit/lamp/c00_f0001.png").exists());
+    // The scene has a light named lamp too: the file's renders get a folder of their own.
+    assert!(out.join("relit/file-lamp/c00_f0001.png").exists());
     // Through a visibility basis: the same views, and basis.md with its times and the first
     // view's scores against the direct estimator (the basis is a quadrature of the same
     // integral, so they agree closely; `basis` tests the maths against dense quadrature).
@@ -671,7 +671,7 @@ fn a_run_from_before_the_albedo_decoder_renders_and_resumes_as_it_was_fitted() {
     for key in ["albedo_layers", "field", "gaussian_bones"] {
         state.as_object_mut().unwrap().remove(key);
     }
-    std::fs::write(&state_path, state.to_string()).unwrap();
+    common::without_checksums(&state_path, &mut state);
     std::fs::copy(&today, run.join("schedule.toml")).unwrap();
     let evaluation = umbra::fit::render_run(&run, None, Backend::Flex, |_| {}).unwrap();
     assert!(evaluation["novel_pose_psnr"].as_f64().is_some_and(|p| p.is_finite()), "{evaluation}");
@@ -821,12 +821,11 @@ fn gaussians_move_to_the_bones_that_carry_them_and_a_run_keeps_their_bones() {
     let mut edited = recorded.clone();
     edited[0] = last;
     state["gaussian_bones"] = serde_json::json!(edited);
-    std::fs::write(&state_path, state.to_string()).unwrap();
-    // (The checksums cover the parameter files, not state.json.)
+    common::rewrite_state(&state_path, &state);
     let restored = umbra::fit::restore(&run, None, Backend::Flex).unwrap();
     assert_eq!(restored.model().unwrap().gaussians.bones, edited);
     state["gaussian_bones"] = serde_json::json!([0, 1]);
-    std::fs::write(&state_path, state.to_string()).unwrap();
+    common::rewrite_state(&state_path, &state);
     let err = umbra::fit::restore(&run, None, Backend::Flex).err().expect("a wrong count is refused");
     assert!(err.to_string().contains("gaussian_bones"), "{err}");
 }

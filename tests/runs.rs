@@ -5,58 +5,12 @@
 
 mod common;
 
-use common::TempDir;
+use common::{fails, short_run, snapshot, succeeds, umbra, TempDir};
 use std::path::{Path, PathBuf};
 use umbra::synth::{TestKind, TrainingLight};
 
 fn tiny_scene(dir: &Path) -> PathBuf {
     common::tiny_synth(dir, TrainingLight::Sun, 24, 3, vec![TestKind::Poses], 9)
-}
-
-fn umbra(cwd: &Path, args: &[&str]) -> std::process::Output {
-    std::process::Command::new(env!("CARGO_BIN_EXE_umbra")).current_dir(cwd).args(args).output().unwrap()
-}
-
-/// Runs `umbra args` in `cwd` and requires it to succeed.
-fn succeeds(cwd: &Path, args: &[&str]) {
-    let out = umbra(cwd, args);
-    assert!(out.status.success(), "umbra {args:?}: {}", String::from_utf8_lossy(&out.stderr));
-}
-
-/// Runs `umbra args` in `cwd`, requires it to fail and returns its standard error.
-fn fails(cwd: &Path, args: &[&str]) -> String {
-    let out = umbra(cwd, args);
-    assert!(!out.status.success(), "umbra {args:?} should have failed");
-    String::from_utf8_lossy(&out.stderr).into_owned()
-}
-
-/// A tiny scene and a two-iteration run of it (no evaluation), in a fresh folder.
-fn short_run(tag: &str) -> (TempDir, PathBuf, PathBuf) {
-    let dir = TempDir::new(tag);
-    let scene = tiny_scene(dir.path());
-    let run = dir.path().join("run");
-    succeeds(&std::env::current_dir().unwrap(), &["fit", scene.to_str().unwrap(), "--out", run.to_str().unwrap(), "--iterations", "2", "--no-eval"]);
-    (dir, scene, run)
-}
-
-/// Every file under `dir` with its bytes, to prove a refused command wrote nothing.
-fn snapshot(dir: &Path) -> Vec<(PathBuf, Vec<u8>)> {
-    let mut out = Vec::new();
-    let mut stack = vec![dir.to_path_buf()];
-    while let Some(d) = stack.pop() {
-        if let Ok(entries) = std::fs::read_dir(&d) {
-            for e in entries.flatten() {
-                let p = e.path();
-                if p.is_dir() {
-                    stack.push(p);
-                } else {
-                    out.push((p.clone(), std::fs::read(&p).unwrap_or_default()));
-                }
-            }
-        }
-    }
-    out.sort();
-    out
 }
 
 #[test]
@@ -150,7 +104,7 @@ fn resume_refuses_another_schedule_or_iteration_count_unless_forced() {
     let other = dir.path().join("other.toml");
     std::fs::write(&other, umbra::schedule::DEFAULT_TEXT.replace("rays_per_batch = 512", "rays_per_batch = 256")).unwrap();
     let stderr = fails(&cwd, &["fit", scene_arg, "--out", run_arg, "--iterations", "3", "--resume", "--schedule", other.to_str().unwrap()]);
-    assert!(stderr.contains("rays_per_batch = 256"), "{stderr}");
+    assert!(stderr.contains("rays_per_batch: 512 -> 256"), "{stderr}");
     // Fewer iterations than are done: refused even when forced.
     let stderr = fails(&cwd, &["fit", scene_arg, "--out", run_arg, "--iterations", "2", "--resume", "--force-schedule"]);
     assert!(stderr.contains("would run nothing"), "{stderr}");
@@ -474,8 +428,7 @@ fn a_truncated_model_without_checksums_is_refused_in_words_not_a_debug_dump() {
     let (_dir, _scene, run) = short_run("truncated-model");
     let state_path = run.join("checkpoint/state.json");
     let mut state: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&state_path).unwrap()).unwrap();
-    state.as_object_mut().unwrap().remove("checksums");
-    std::fs::write(&state_path, state.to_string()).unwrap();
+    common::without_checksums(&state_path, &mut state);
     let model = run.join("checkpoint/model.bpk");
     let bytes = std::fs::read(&model).unwrap();
     std::fs::write(&model, &bytes[..bytes.len() / 2]).unwrap();

@@ -120,7 +120,76 @@ const COARSEST_PER_EXTENT: f32 = 10.0;
 const FINEST_PER_EXTENT: f32 = 160.0;
 pub const REACH_PER_EXTENT: f32 = 0.125;
 
+/// The most entries a grid may allocate (feature rows times features, or a dense preference
+/// grid's vertices): 2^28 f32s are 1 GiB, far beyond any fit's (a human's is about 2^21).
+const MAX_ENTRIES: f64 = (1u64 << 28) as f64;
+
+/// Checks that a length read from a file is finite and positive (`what` names it).
+fn positive(what: &str, value: f32) -> Result<(), String> {
+    if value.is_finite() && value > 0.0 {
+        Ok(())
+    } else {
+        Err(format!("{what}: {value} is not a finite positive length"))
+    }
+}
+
+/// Vertices of a box reaching `reach` around a segment of `length` at `cell` (f64, so a
+/// hostile size cannot overflow).
+fn box_vertices(length: f32, reach: f32, cell: f32) -> f64 {
+    let across = (2.0 * reach as f64 / cell as f64).ceil() + 1.0;
+    across * across * ((length as f64 + 2.0 * reach as f64) / cell as f64).ceil() + 1.0
+}
+
 impl GridConfig {
+    /// Checks a recorded grid (a checkpoint's `state.json`) before anything is allocated from
+    /// it: every length finite and positive, counts in range, and no table or dense grid over
+    /// `MAX_ENTRIES`. The error names the key.
+    pub fn check(&self, bones: usize) -> Result<(), String> {
+        if !(1..=32).contains(&self.levels) || !(1..=64).contains(&self.features) || !(1..=MAX_TOP_BONES).contains(&self.top_bones) {
+            return Err(format!(
+                "levels, features, top_bones: {}, {}, {} out of range (1-32, 1-64, 1-{MAX_TOP_BONES})",
+                self.levels, self.features, self.top_bones
+            ));
+        }
+        if !(1..=26).contains(&self.table_log2) {
+            return Err(format!("table_log2: {} out of range (1-26)", self.table_log2));
+        }
+        positive("coarsest_cell", self.coarsest_cell)?;
+        positive("finest_cell", self.finest_cell)?;
+        if !(self.reach.is_finite() && self.reach >= 0.0) {
+            return Err(format!("reach: {} is not a finite length >= 0", self.reach));
+        }
+        if self.bone_lengths.len() != bones {
+            return Err(format!("bone_lengths: {} lengths for {bones} bones", self.bone_lengths.len()));
+        }
+        for (k, &length) in self.bone_lengths.iter().enumerate() {
+            positive(&format!("bone_lengths[{k}]"), length)?;
+        }
+        if (self.table_rows() * self.features) as f64 > MAX_ENTRIES {
+            return Err(format!("table_log2, levels, features: a table of {} entries is more than {MAX_ENTRIES} allowed", self.table_rows() * self.features));
+        }
+        if let Some(root) = &self.root {
+            if root.bone >= bones {
+                return Err(format!("root.bone: {} is not a bone (there are {bones})", root.bone));
+            }
+            positive("root.cell", root.cell)?;
+            if !(root.cap.is_finite() && root.cap >= 0.0 && root.reach.is_finite() && root.reach >= 0.0) {
+                return Err(format!("root.cap, root.reach: {}, {} are not finite lengths >= 0", root.cap, root.reach));
+            }
+            let dense = box_vertices(self.bone_lengths[root.bone], root.reach, root.cell);
+            if dense > MAX_ENTRIES {
+                return Err(format!("root.reach, root.cell: a preference grid of {dense:e} vertices is more than {MAX_ENTRIES} allowed"));
+            }
+        }
+        // Each level's boxes are counted to decide whether they fit the table: bound them too.
+        let finest = self.coarsest_cell.min(self.finest_cell);
+        let largest = (0..bones).map(|b| box_vertices(self.bone_lengths[b], self.bone_reach(b), finest)).fold(0.0, f64::max);
+        if largest * bones as f64 > 1e15 {
+            return Err(format!("coarsest_cell, finest_cell, reach: boxes of {largest:e} vertices at the finest cell cannot be indexed"));
+        }
+        Ok(())
+    }
+
     /// The default grid for a skeleton with these bone lengths whose posed bounds have a
     /// diagonal of `extent` metres.
     pub fn for_body(bone_lengths: Vec<f32>, extent: f32) -> Self {

@@ -56,6 +56,42 @@ pub struct FieldConfig {
 pub const ROOT_REACH_PER_WIDTH: f32 = 3.0;
 
 impl FieldConfig {
+    /// Checks a recorded field (a checkpoint's `state.json`) for a skeleton of `bones` bones
+    /// before a field is built from it: sizes in range and every length finite and positive.
+    /// The error names the key.
+    pub fn check(&self, bones: usize) -> Result<(), String> {
+        if self.bones != bones {
+            return Err(format!("bones: {} recorded for a skeleton of {bones}", self.bones));
+        }
+        if !(1..=4096).contains(&self.hidden) || !(1..=64).contains(&self.layers) || self.albedo_layers > 64 || self.frequencies.len() > 64 {
+            return Err(format!(
+                "hidden, layers, albedo_layers, frequencies: {}, {}, {}, {} values out of range (1-4096, 1-64, 0-64, at most 64)",
+                self.hidden,
+                self.layers,
+                self.albedo_layers,
+                self.frequencies.len()
+            ));
+        }
+        if let Some(f) = self.frequencies.iter().find(|f| !f.is_finite()) {
+            return Err(format!("frequencies: {f} is not finite"));
+        }
+        for (what, value) in [
+            ("skinning_width", self.skinning_width),
+            ("prior_radius", self.prior_radius),
+            ("initial_beta", self.initial_beta),
+            ("residual_scale", self.residual_scale),
+            ("min_beta", self.min_beta),
+        ] {
+            if !(value.is_finite() && value > 0.0) {
+                return Err(format!("{what}: {value} is not a finite positive number"));
+            }
+        }
+        match &self.grid {
+            Some(grid) => grid.check(bones).map_err(|e| format!("grid.{e}")),
+            None => Ok(()),
+        }
+    }
+
     /// The `mlp` field: Fourier features in every bone's frame into a 3 x 64 MLP.
     pub fn for_bones(bones: usize) -> Self {
         Self {

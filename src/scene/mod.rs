@@ -89,10 +89,10 @@ impl Scene {
     pub fn load(path: &Path) -> Result<Scene, SceneError> {
         let file = scene_file(path);
         let root = file.parent().map(Path::to_path_buf).unwrap_or_default();
-        let text = std::fs::read_to_string(&file).map_err(|e| SceneError {
+        let text = crate::files::read_text(&file, crate::files::SCENE_BYTES).map_err(|e| SceneError {
             file: file.clone(),
             path: String::new(),
-            message: if e.kind() == std::io::ErrorKind::NotFound { "file not found".into() } else { format!("cannot read: {e}") },
+            message: read_message(e),
         })?;
         let value = json::parse(&text, &file)?;
         let doc = At::root(&value, &file);
@@ -133,13 +133,36 @@ impl Scene {
 /// to that file's folder), e.g. for `umbra relight --light sunset.json`.
 pub fn load_light(file: &Path) -> Result<Light, SceneError> {
     let root = file.parent().map(Path::to_path_buf).unwrap_or_default();
-    let text = std::fs::read_to_string(file).map_err(|e| SceneError {
+    let text = crate::files::read_text(file, crate::files::SMALL_TEXT_BYTES).map_err(|e| SceneError {
         file: file.to_path_buf(),
         path: String::new(),
-        message: if e.kind() == std::io::ErrorKind::NotFound { "file not found".into() } else { format!("cannot read: {e}") },
+        message: read_message(e),
     })?;
     let value = json::parse(&text, file)?;
     Reader { root: &root, file }.light(&At::root(&value, file))
+}
+
+/// What is wrong with an environment map's radiance, if anything: a value not finite, or
+/// negative (light cannot be negative; the irradiance it gives would be refused).
+pub fn environment_problem(image: &RgbImage) -> Option<String> {
+    if let Some(bad) = image.pixels.iter().find(|p| p.iter().any(|c| !c.is_finite())) {
+        return Some(format!("environment map holds a non-finite value {bad:?}"));
+    }
+    let (k, bad) = image.pixels.iter().enumerate().find(|(_, p)| p.iter().any(|&c| c < 0.0))?;
+    Some(format!("environment map holds a negative radiance {bad:?} at pixel ({}, {})", k % image.width.max(1), k / image.width.max(1)))
+}
+
+/// What a failed bounded read says (the file is named beside it).
+fn read_message(e: std::io::Error) -> String {
+    match e.kind() {
+        std::io::ErrorKind::NotFound | std::io::ErrorKind::InvalidInput => e.to_string(),
+        _ => format!("cannot read: {e}"),
+    }
+}
+
+/// Reads a scene's `scene.json` as bounded text (for tools that check a folder is a scene).
+pub fn read_capped(file: &Path) -> Result<String, SceneError> {
+    crate::files::read_text(file, crate::files::SCENE_BYTES).map_err(|e| SceneError { file: file.to_path_buf(), path: String::new(), message: read_message(e) })
 }
 
 struct Reader<'a> {
@@ -235,7 +258,11 @@ impl Reader<'_> {
             let bone_to_world = transforms.iter().map(|m| m.rigid_mat4()).collect::<Result<Vec<_>, _>>()?;
             let mesh = match item.opt_field("mesh")? {
                 None => None,
-                Some(m) => Some(self.existing_file(&m)?),
+                Some(m) => {
+                    let file = self.existing_file(&m)?;
+                    crate::geometry::load_obj(&file).map_err(|e| m.error(format!("{}: {e}", m.str().unwrap_or_default())))?;
+                    Some(file)
+                }
             };
             frames.push(Frame { index, time, pose: Pose { bone_to_world }, mesh });
         }
@@ -253,8 +280,20 @@ impl Reader<'_> {
         }
         let file = self.root.join(relative);
         match std::fs::metadata(&file) {
-            Ok(meta) if meta.is_file() => Ok(file),
-            Ok(_) => Err(node.error(format!("{relative} is a directory, not a file"))),
+            Ok(meta) if meta.is_file() => {
+                // The text stays inside; a link must too, once resolved.
+                let inside =
+                    match (std::fs::canonicalize(&file), std::fs::canonicalize(if self.root.as_os_str().is_empty() { Path::new(".") } else { self.root })) {
+                        (Ok(resolved), Ok(root)) => resolved.starts_with(root),
+                        _ => false,
+                    };
+                if !inside {
+                    return Err(node.error(format!("{relative} is a link that leads outside the scene's folder: copy the file into the scene instead")));
+                }
+                Ok(file)
+            }
+            Ok(meta) if meta.is_dir() => Err(node.error(format!("{relative} is a directory, not a file"))),
+            Ok(_) => Err(node.error(format!("{relative} is not a regular file (a device, FIFO or socket)"))),
             Err(e) if e.kind() == std::io::ErrorKind::NotFound => Err(node.error(format!("file not found: {relative}"))),
             Err(e) => Err(node.error(format!("{relative} cannot be read: {e}"))),
         }
@@ -300,9 +339,14 @@ impl Reader<'_> {
                     }
                     None => 1.0,
                 };
+                if !file.extension().is_some_and(|e| e.eq_ignore_ascii_case("exr")) {
+                    return Err(
+                        path_node.error(format!("{}: an environment map is a linear EXR (.exr), not an 8-bit image", path_node.str().unwrap_or_default()))
+                    );
+                }
                 let image = imageio::read_rgb(&file).map_err(|e| path_node.error(image_message(e, path_node.str().unwrap_or_default())))?;
-                if let Some(bad) = image.pixels.iter().find(|p| p.iter().any(|c| !c.is_finite())) {
-                    return Err(path_node.error(format!("environment map holds a non-finite value {bad:?}")));
+                if let Some(message) = environment_problem(&image) {
+                    return Err(path_node.error(message));
                 }
                 Ok(Light::Environment { path: file, scale, map: EnvironmentMap { image } })
             }

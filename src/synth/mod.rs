@@ -504,12 +504,12 @@ pub struct Report {
 }
 
 /// Writes the whole scene into `out`, atomically: everything goes to a temp folder beside it
-/// that is renamed into place at the end (an existing `out` is replaced only with `force`).
+/// that is renamed into place at the end. An existing `out` is replaced only with `force`, and
+/// only when it is a scene `umbra synth` wrote holding nothing but the files it lists
+/// (`check_replaceable`): the generator never removes what it did not write.
 pub fn generate(options: &SynthOptions, out: &Path, force: bool, mut progress: impl FnMut(usize, usize)) -> Result<Report, SynthError> {
     let plan = options.plan()?;
-    if out.exists() && !force {
-        return Err(io_error(out, "already exists (pass --force to replace it)"));
-    }
+    let out = &check_replaceable(out, force)?;
     let parent = out.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(Path::new("."));
     std::fs::create_dir_all(parent).map_err(|e| io_error(parent, e))?;
     let temp = imageio::temp_path(out);
@@ -520,6 +520,8 @@ pub fn generate(options: &SynthOptions, out: &Path, force: bool, mut progress: i
     match result {
         Ok(report) => {
             if out.exists() {
+                // Checked again: the folder may have changed while the scene was rendered.
+                check_replaceable(out, force)?;
                 std::fs::remove_dir_all(out).map_err(|e| io_error(out, e))?;
             }
             std::fs::rename(&temp, out).map_err(|e| io_error(out, e))?;
@@ -532,8 +534,93 @@ pub fn generate(options: &SynthOptions, out: &Path, force: bool, mut progress: i
     }
 }
 
+/// The folders a scene of `umbra synth` holds its files in.
+const SCENE_FOLDERS: [&str; 5] = ["images", "masks", "albedo", "lights", "meshes"];
+
+/// `out` as the scene will be written to it (absolute, so `.` and `..` name real folders), once
+/// it is known that writing there removes nothing the generator did not write: `out` does not
+/// exist, is an empty folder, or (with `force`) is a scene `umbra synth` wrote that holds no file
+/// its `scene.json` does not list. The working folder and its ancestors are never replaced.
+fn check_replaceable(out: &Path, force: bool) -> Result<PathBuf, SynthError> {
+    if out.as_os_str().is_empty() {
+        return Err(SynthError::Options("--out: an empty path".into()));
+    }
+    let absolute = std::path::absolute(out).map_err(|e| io_error(out, e))?;
+    let Ok(meta) = std::fs::symlink_metadata(&absolute) else { return Ok(absolute) };
+    if meta.file_type().is_symlink() {
+        return Err(io_error(out, "is a link: name the folder itself, or choose another --out (nothing was written)"));
+    }
+    if !meta.is_dir() {
+        return Err(io_error(out, "exists and is not a folder: choose another --out (nothing was written)"));
+    }
+    let resolved = std::fs::canonicalize(&absolute).map_err(|e| io_error(out, e))?;
+    if std::env::current_dir().is_ok_and(|cwd| cwd.starts_with(&resolved)) {
+        return Err(io_error(out, "is the working folder or holds it: choose a new folder for --out (nothing was written)"));
+    }
+    let mut entries = std::fs::read_dir(&resolved).map_err(|e| io_error(out, e))?;
+    if entries.next().is_none() {
+        return Ok(resolved);
+    }
+    if !force {
+        return Err(io_error(out, "already exists (pass --force to replace a scene umbra synth wrote; nothing was written)"));
+    }
+    let listed = synth_scene_files(&resolved).map_err(|why| {
+        io_error(out, format!("{why}: --force replaces only a scene umbra synth wrote; remove it yourself or choose another --out (nothing was written)"))
+    })?;
+    if let Some(foreign) = unlisted_file(&resolved, Path::new(""), &listed) {
+        return Err(io_error(
+            &resolved.join(&foreign),
+            "is not a file of the scene umbra synth wrote here: --force replaces only what it wrote; move it away or choose another --out (nothing was written)",
+        ));
+    }
+    Ok(resolved)
+}
+
+/// The files (relative, `/`-separated) a scene written by `umbra synth` lists, or why `dir`
+/// holds no such scene.
+fn synth_scene_files(dir: &Path) -> Result<std::collections::BTreeSet<String>, String> {
+    let path = dir.join("scene.json");
+    if !path.exists() {
+        return Err("is not a scene umbra synth wrote (it holds no scene.json)".into());
+    }
+    let text = crate::scene::read_capped(&path).map_err(|e| format!("is not a scene umbra synth wrote ({e})"))?;
+    let scene: Value = serde_json::from_str(&text).map_err(|e| format!("is not a scene umbra synth wrote (its scene.json is not JSON: {e})"))?;
+    if scene["generator"]["program"].as_str() != Some("umbra synth") {
+        return Err("is not a scene umbra synth wrote (its scene.json names no generator \"umbra synth\")".into());
+    }
+    let mut files: std::collections::BTreeSet<String> = ["scene.json".to_string()].into();
+    let strings = |values: Vec<&Value>| values.into_iter().filter_map(|v| v.as_str().map(String::from)).collect::<Vec<_>>();
+    let images = scene["images"].as_array().map(|a| a.iter().flat_map(|i| [&i["path"], &i["mask"], &i["albedo"]]).collect()).unwrap_or_default();
+    let meshes = scene["frames"].as_array().map(|a| a.iter().map(|f| &f["mesh"]).collect()).unwrap_or_default();
+    let maps = scene["lights"].as_object().map(|m| m.values().map(|l| &l["path"]).collect()).unwrap_or_default();
+    files.extend(strings(images));
+    files.extend(strings(meshes));
+    files.extend(strings(maps));
+    Ok(files)
+}
+
+/// The first file or folder below `dir` (walked from `relative`) that is neither in `listed` nor
+/// one of the scene's folders.
+fn unlisted_file(dir: &Path, relative: &Path, listed: &std::collections::BTreeSet<String>) -> Option<PathBuf> {
+    let Ok(entries) = std::fs::read_dir(dir.join(relative)) else { return Some(relative.to_path_buf()) };
+    for entry in entries {
+        let Ok(entry) = entry else { return Some(relative.to_path_buf()) };
+        let name = relative.join(entry.file_name());
+        let key = name.to_string_lossy().replace('\\', "/");
+        let is_folder = entry.file_type().is_ok_and(|t| t.is_dir());
+        if is_folder && relative.as_os_str().is_empty() && SCENE_FOLDERS.contains(&key.as_str()) {
+            if let Some(found) = unlisted_file(dir, &name, listed) {
+                return Some(found);
+            }
+        } else if is_folder || !listed.contains(&key) {
+            return Some(name);
+        }
+    }
+    None
+}
+
 fn write_scene(options: &SynthOptions, plan: &Plan, dir: &Path, progress: &mut impl FnMut(usize, usize)) -> Result<Report, SynthError> {
-    for sub in ["images", "masks", "albedo", "lights", "meshes"] {
+    for sub in SCENE_FOLDERS {
         if sub == "meshes" && !options.meshes {
             continue;
         }

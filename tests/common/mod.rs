@@ -131,3 +131,65 @@ pub fn tiny_synth(dir: &Path, light: umbra::synth::TrainingLight, size: usize, c
     umbra::synth::generate(&options, &out, false, |_, _| {}).unwrap();
     out
 }
+
+pub fn umbra(cwd: &Path, args: &[&str]) -> std::process::Output {
+    std::process::Command::new(env!("CARGO_BIN_EXE_umbra")).current_dir(cwd).args(args).output().unwrap()
+}
+
+/// Runs `umbra args` in `cwd` and requires it to succeed.
+pub fn succeeds(cwd: &Path, args: &[&str]) {
+    let out = umbra(cwd, args);
+    assert!(out.status.success(), "umbra {args:?}: {}", String::from_utf8_lossy(&out.stderr));
+}
+
+/// Runs `umbra args` in `cwd`, requires it to fail and returns its standard error.
+pub fn fails(cwd: &Path, args: &[&str]) -> String {
+    let out = umbra(cwd, args);
+    assert!(!out.status.success(), "umbra {args:?} should have failed");
+    String::from_utf8_lossy(&out.stderr).into_owned()
+}
+
+/// A tiny scene and a two-iteration run of it (no evaluation), in a fresh folder.
+pub fn short_run(tag: &str) -> (TempDir, PathBuf, PathBuf) {
+    let dir = TempDir::new(tag);
+    let scene = tiny_synth(dir.path(), umbra::synth::TrainingLight::Sun, 24, 3, vec![umbra::synth::TestKind::Poses], 9);
+    let run = dir.path().join("run");
+    succeeds(&std::env::current_dir().unwrap(), &["fit", scene.to_str().unwrap(), "--out", run.to_str().unwrap(), "--iterations", "2", "--no-eval"]);
+    (dir, scene, run)
+}
+
+/// Every file under `dir` with its bytes, to prove a refused command wrote nothing.
+pub fn snapshot(dir: &Path) -> Vec<(PathBuf, Vec<u8>)> {
+    let mut out = Vec::new();
+    let mut stack = vec![dir.to_path_buf()];
+    while let Some(d) = stack.pop() {
+        if let Ok(entries) = std::fs::read_dir(&d) {
+            for e in entries.flatten() {
+                let p = e.path();
+                if p.is_dir() {
+                    stack.push(p);
+                } else {
+                    out.push((p.clone(), std::fs::read(&p).unwrap_or_default()));
+                }
+            }
+        }
+    }
+    out.sort();
+    out
+}
+
+/// Writes a checkpoint's `state.json` as an editor would who also updates the checksum beside
+/// it (`state.checksum`).
+pub fn rewrite_state(state_path: &Path, state: &Value) {
+    std::fs::write(state_path, state.to_string()).unwrap();
+    let sum = umbra::scene::identity::file_checksum(state_path).unwrap();
+    std::fs::write(state_path.with_file_name("state.checksum"), sum).unwrap();
+}
+
+/// Makes a checkpoint look as one from before checksums were recorded: none for its files in
+/// `state.json`, none for the state.
+pub fn without_checksums(state_path: &Path, state: &mut Value) {
+    state.as_object_mut().unwrap().remove("checksums");
+    std::fs::write(state_path, state.to_string()).unwrap();
+    let _ = std::fs::remove_file(state_path.with_file_name("state.checksum"));
+}
