@@ -57,6 +57,7 @@ pub enum Command {
         /// (the learning-rate decays and stages then follow the new one).
         #[arg(long, requires = "resume")]
         force_schedule: bool,
+        /// The tensor backend: `flex` (the default, fast on CPU) or `ndarray`.
         #[arg(long, value_enum, default_value_t = crate::train::Backend::Flex)]
         backend: crate::train::Backend,
         /// Skip rendering and scoring the test images at the end.
@@ -72,6 +73,7 @@ pub enum Command {
         /// The scene to render (default: the one in RUN/fit.json), e.g. with more test images.
         #[arg(long)]
         scene: Option<PathBuf>,
+        /// The tensor backend: `flex` (the default, fast on CPU) or `ndarray`.
         #[arg(long, value_enum, default_value_t = crate::train::Backend::Flex)]
         backend: crate::train::Backend,
     },
@@ -89,6 +91,7 @@ pub enum Command {
         /// Which images: `test` (into RUN/renders) or `train` (into RUN/renders-train).
         #[arg(long, value_enum, default_value_t = EvalSplit::Test)]
         split: EvalSplit,
+        /// The tensor backend: `flex` (the default, fast on CPU) or `ndarray`.
         #[arg(long, value_enum, default_value_t = crate::train::Backend::Flex)]
         backend: crate::train::Backend,
     },
@@ -119,6 +122,7 @@ pub enum Command {
         /// Output folder (default: RUN/relit/LIGHT).
         #[arg(long)]
         out: Option<PathBuf>,
+        /// The tensor backend: `flex` (the default, fast on CPU) or `ndarray`.
         #[arg(long, value_enum, default_value_t = crate::train::Backend::Flex)]
         backend: crate::train::Backend,
         /// Relight through a visibility basis of DIRECTIONS directions (default 1024) precomputed
@@ -141,6 +145,7 @@ pub enum Command {
         /// The view of the relighting panel: a camera by index and a frame by position.
         #[arg(long, default_value_t = 0)]
         camera: usize,
+        /// The frame of the relighting panel, by position in the scene's frames.
         #[arg(long, default_value_t = 0)]
         frame: usize,
         /// Directions of the panel's visibility basis.
@@ -149,6 +154,7 @@ pub enum Command {
         /// The scene whose cameras and poses to use (default: the run's).
         #[arg(long)]
         scene: Option<PathBuf>,
+        /// The tensor backend: `flex` (the default, fast on CPU) or `ndarray`.
         #[arg(long, value_enum, default_value_t = crate::train::Backend::Flex)]
         backend: crate::train::Backend,
     },
@@ -170,6 +176,7 @@ pub enum Command {
         /// The scene whose poses to use (default: the run's).
         #[arg(long)]
         scene: Option<PathBuf>,
+        /// The tensor backend: `flex` (the default, fast on CPU) or `ndarray`.
         #[arg(long, value_enum, default_value_t = crate::train::Backend::Flex)]
         backend: crate::train::Backend,
     },
@@ -177,25 +184,30 @@ pub enum Command {
     /// PSNR of novel poses, views, relighting and albedo, time and final loss. Writes
     /// OUT/<schedule>/ per run and OUT/ablation.{csv,md,png}.
     Ablate {
+        /// A scene folder (or its scene.json) to fit with every schedule.
         scene: PathBuf,
         /// A schedule to compare (at least two), e.g. --schedule schedules/default.toml.
         #[arg(long = "schedule", required = true)]
         schedules: Vec<PathBuf>,
+        /// The folder of the runs (one per schedule, named by its file) and the tables.
         #[arg(long)]
         out: PathBuf,
         /// Override every schedule's iteration count (a quick comparison).
         #[arg(long, value_parser = parse_iterations)]
         iterations: Option<usize>,
+        /// The seed of the fits' random draws.
         #[arg(long, default_value_t = 0)]
         seed: u64,
         /// Replace earlier runs in OUT.
         #[arg(long)]
         force: bool,
+        /// The tensor backend: `flex` (the default, fast on CPU) or `ndarray`.
         #[arg(long, value_enum, default_value_t = crate::train::Backend::Flex)]
         backend: crate::train::Backend,
     },
     /// Run a benchmark and write its table (Markdown, CSV) and plot (PNG).
     Bench {
+        /// Which benchmark.
         #[arg(value_enum)]
         which: BenchKind,
         /// Where the tables and plots go.
@@ -221,6 +233,7 @@ pub enum Command {
         /// `fit`: override the schedule's iteration count.
         #[arg(long, value_parser = parse_iterations)]
         iterations: Option<usize>,
+        /// The seed of the fits' random draws.
         #[arg(long, default_value_t = 0)]
         seed: u64,
         /// `scenes`: fit every scene once per seed (instead of `--seed`) and add a table of each
@@ -368,7 +381,12 @@ fn fit(options: &crate::train::FitOptions) -> Result<(), String> {
     let bar = progress_bar(0, "fitting");
     let report = crate::fit::fit(options, |message| match message {
         TrainMessage::Loaded { scene, training_images, frames, light } => {
-            bar.println(format!("scene {scene}: {training_images} training images, {frames} frames, light {light:?}"));
+            let light = match light {
+                crate::shading::LightKind::Directional => "a sun",
+                crate::shading::LightKind::Point => "a point light",
+                crate::shading::LightKind::Uniform => "uniform light",
+            };
+            bar.println(format!("scene {scene}: {training_images} training images, {frames} frames, lit by {light}"));
         }
         TrainMessage::Started { first, iterations } => {
             bar.set_length(iterations as u64);
@@ -412,7 +430,7 @@ fn fit(options: &crate::train::FitOptions) -> Result<(), String> {
         let (html, _) = crate::report::write_report(&report).map_err(|e| format!("the fit is complete (fit.json written), but its report failed: {e}"))?;
         println!("wrote {}", html.display());
     }
-    println!("light: {}", report["light"]);
+    println!("light: {}", describe_light(&report["light"]));
     if let Some(search) = report["sun_search"].as_object() {
         let start = search
             .get("error_against_scene")
@@ -573,6 +591,32 @@ fn export_mesh(
     Ok(())
 }
 
+/// A fitted light (`fit.json`'s `light`) as a person reads it: a sun's direction as azimuth
+/// (degrees from +Z toward +X, about the up axis +Y) and elevation, a point light's position in
+/// metres, colours to 3 digits.
+pub fn describe_light(light: &serde_json::Value) -> String {
+    let triple = |key: &str| -> Option<[f64; 3]> {
+        let v = light[key].as_array()?;
+        Some([v.first()?.as_f64()?, v.get(1)?.as_f64()?, v.get(2)?.as_f64()?])
+    };
+    let rgb = |key: &str| triple(key).map(|c| format!("{:.3} {:.3} {:.3}", c[0], c[1], c[2])).unwrap_or_else(|| "-".into());
+    match light["type"].as_str() {
+        Some("directional") => {
+            let Some([x, y, z]) = triple("direction") else { return "a sun of unknown direction".into() };
+            let length = (x * x + y * y + z * z).sqrt().max(1e-12);
+            let elevation = (y / length).clamp(-1.0, 1.0).asin().to_degrees();
+            let azimuth = x.atan2(z).to_degrees();
+            format!("sun at azimuth {azimuth:.1} degrees, elevation {elevation:.1} degrees; irradiance {}, ambient {}", rgb("irradiance"), rgb("ambient"))
+        }
+        Some("point") => {
+            let position = triple("position").map(|p| format!("({:.3}, {:.3}, {:.3}) m", p[0], p[1], p[2])).unwrap_or_else(|| "unknown".into());
+            format!("point light at {position}; intensity {}, ambient {}", rgb("intensity"), rgb("ambient"))
+        }
+        Some("uniform") => "uniform light (no direction to fit)".into(),
+        _ => light.to_string(),
+    }
+}
+
 fn print_evaluation(evaluation: &serde_json::Value) {
     for (key, what) in [("novel_pose", "novel pose"), ("novel_view", "novel view"), ("relit", "relit"), ("albedo", "albedo")] {
         if let Some(p) = evaluation[format!("{key}_psnr")].as_f64() {
@@ -580,5 +624,25 @@ fn print_evaluation(evaluation: &serde_json::Value) {
             let ssim = evaluation[format!("{key}_ssim")].as_f64().unwrap_or(f64::NAN);
             println!("{what}: PSNR {p:.2} dB, foreground {foreground:.2} dB, SSIM {ssim:.4}");
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::describe_light;
+    use serde_json::json;
+
+    #[test]
+    fn a_light_is_described_in_degrees_and_three_digit_colours() {
+        let sun = |d: [f64; 3]| json!({"type": "directional", "direction": d, "irradiance": [0.30000007152557373, 1, 2], "ambient": [0.25, 0.25, 0.25]});
+        assert_eq!(
+            describe_light(&sun([0.0, 0.0, 1.0])),
+            "sun at azimuth 0.0 degrees, elevation 0.0 degrees; irradiance 0.300 1.000 2.000, ambient 0.250 0.250 0.250"
+        );
+        assert!(describe_light(&sun([1.0, 0.0, 0.0])).contains("azimuth 90.0 degrees, elevation 0.0"));
+        assert!(describe_light(&sun([0.0, 2.0, 0.0])).contains("elevation 90.0"));
+        assert!(describe_light(&sun([-1.0, 1.0, -1.0])).contains("azimuth -135.0 degrees, elevation 35.3"));
+        let lamp = json!({"type": "point", "position": [1, 2.5, -0.25], "intensity": [8, 8, 8], "ambient": [0, 0, 0]});
+        assert!(describe_light(&lamp).starts_with("point light at (1.000, 2.500, -0.250) m; intensity 8.000"));
     }
 }

@@ -497,7 +497,7 @@ pub fn render_view_and_albedo(
     // scene format's images and masks have it. (At a centre sample the opacity is not a
     // coverage but the chance the ray meets the body: there the same rule cost human-sun 0.85 dB
     // over the foreground. The expected value below gains on human-sun-128, dog-sun and
-    // human-lamp and loses 0.4 dB on the 64x64 human-sun: README, session 24.)
+    // human-lamp and loses 0.4 dB on the 64x64 human-sun.)
     let mut image = RgbImage::new(w, h);
     let mut albedo = albedo_scale.map(|_| RgbImage::new(w, h));
     // At a centre sample the coverage is the chance the ray meets the body: the pixel is its

@@ -12,7 +12,7 @@ fn main() {
 /// at the next step: on `human-sun` a quarter of a fit's CPU time was the kernel's (7.6 s of
 /// 28.8 over 150 iterations), 0.3 s with blocks up to 32 MiB (glibc's most) served from the
 /// heap and the heap never trimmed. Either alone made it worse (15.4 and 21.6 s). The memory a
-/// step frees is reused by the next one, so the peak grows by little (see the README).
+/// step frees is reused by the next one, so the peak grows by little.
 #[cfg(all(target_os = "linux", target_env = "gnu"))]
 fn keep_freed_memory() {
     // glibc's <malloc.h>: M_TRIM_THRESHOLD -1, M_MMAP_THRESHOLD -3.

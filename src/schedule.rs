@@ -46,7 +46,7 @@ pub struct FieldSettings {
     /// (`FieldConfig::root_bone`; none: the field's default, yes).
     pub root_skinning: Option<bool>,
     /// Whether a loose body's capped capsule prior bends into its cap (`grid::saturate`) rather
-    /// than stopping dead at it (false, the default: a corner; session 37 in the README).
+    /// than stopping dead at it (false, the default: a corner; docs/measurements.md).
     pub prior_knee: bool,
     /// The whole field a run's checkpoint was fitted with (from its `state.json`, never from a
     /// schedule file): when set, it is the field, whatever the settings above and the defaults.

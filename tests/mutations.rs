@@ -1,5 +1,5 @@
 //! Seeded mutation testing of everything umbra reads from a user, in every `cargo test` (the
-//! coverage-guided fuzzing is `cargo fuzz` on the targets in `fuzz/`, README "Fuzzing"): the
+//! coverage-guided fuzzing is `cargo fuzz` on the targets in `fuzz/`, docs/design.md): the
 //! scene reader on hundreds of mutated `scene.json`s of the independent fixture, the schedule
 //! parser on mutated default schedules and the image decoders on mutated PNGs. None may panic;
 //! a refused scene names `scene.json`.

@@ -199,7 +199,7 @@ const TURN_SECONDS: f64 = 2.0;
 /// evenly spaced marks; returns each one's kind, length and training time. Taking turns, every
 /// fit sees the machine as it is at that moment: a slow spell (this machine's timings vary 2x
 /// from run to run) slows all of them alike, so their times compare as ratios, which fits run
-/// one after the other did not (session 23: the MLP's 2,900 iterations took 290 s in one run
+/// one after the other did not (the MLP's 2,900 iterations once took 290 s in one run
 /// and 344 s in the next, the grid's 240 s and 195 s).
 fn run_curves(
     mut fits: Vec<Curve>,

@@ -1,7 +1,7 @@
 //! `umbra bench scenes`: every shipped scene fitted with the default schedule, one after
 //! another, and one table of what each fit recovers (light error, foreground PSNR and SSIM of
 //! its novel poses and views, albedo) and what it costs (wall time), written as `scenes.md` and
-//! `scenes.csv`: the README's measured table made by one command. Fitted at several seeds, each
+//! `scenes.csv`: the README's results table made by one command. Fitted at several seeds, each
 //! scene also gets its mean and standard deviation over them (`scenes-summary.csv`, and a
 //! second table in `scenes.md`): one seed's figures vary by about half a dB, so two scenes are
 //! compared by their means.
