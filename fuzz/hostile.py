@@ -295,15 +295,17 @@ class Campaign:
             (["relight", run, "--light", "sun", "--out", os.path.join(users, "sub")], self.work),
             (["relight", run, "--light", "sun", "--out", user_file], self.work),
             (["export-mesh", run, "--frame", "0", "--out", user_file], self.work),
-            (["export-mesh", run, "--all-frames", users], self.work),
+            # New files beside a user's (frame_PPPP.obj): allowed; none of theirs may change.
+            (["export-mesh", run, "--all-frames", users], self.work, False),
             (["ablate", self.scene, "--schedule", "schedules/default.toml", "--schedule", "schedules/detail.toml", "--out", users, "--iterations", "1"], os.getcwd()),
             (["relight", run, "--light", "/dev/zero"], self.work),
             (["fit", self.scene, "--out", os.path.join(self.work, "x"), "--schedule", "/dev/zero"], self.work),
             (["inspect", "/dev/zero"], self.work),
             (["render", run, "--scene", "/dev/null"], self.work),
         ]
-        for args, cwd in cases:
-            self.run(args, cwd, True, [users], "argument " + args[0])
+        for case in cases:
+            args, cwd, must_refuse = case if len(case) == 3 else (*case, True)
+            self.run(args, cwd, must_refuse, [users], "argument " + args[0])
             if not os.path.exists(user_file) or open(user_file).read() != "mine":
                 self.counts["lost"] += 1
                 self.findings.append(("lost", "argument " + args[0], args, [user_file]))

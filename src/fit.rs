@@ -343,7 +343,6 @@ pub fn fit(options: &FitOptions, mut on: impl FnMut(TrainMessage)) -> Result<ser
     let capture = json!({
         "pixel_footprint": {
             "modelled": trainer.footprint,
-            "rays_per_training_pixel": trainer.pixel_rays,
             "read_off_the_images": trainer.footprint_estimate,
         },
         // Rays drawn where the fit is wrong: the share of each batch's anywhere-third
@@ -352,9 +351,6 @@ pub fn fit(options: &FitOptions, mut on: impl FnMut(TrainMessage)) -> Result<ser
         // The Gaussians' density also fitted at the shadows' scale (`Schedule::density_at_shadow_scale`;
         // under `auto`, for a loose body alone).
         "density_at_shadow_scale": trainer.density_at_shadow_scale,
-        // The share of the curvature term's weight (`Schedule::loose_body_curvature` for a loose
-        // body, 1 for a tight one).
-        "curvature_share": trainer.curvature_share,
         // Gaussians seeded on the body the masks show beyond every bone (a loose body's root).
         "gaussians_on_loose_body": trainer.loose_gaussians(),
         "training_cameras": training_cameras.len(),

@@ -57,26 +57,6 @@ pub fn ray_bounds(origin: DVec3, direction: DVec3, gaussians: &[PosedGaussian], 
     (far > near).then_some((near, far))
 }
 
-/// The `[near, far]` interval where a ray crosses the box `[lo, hi]` (slabs); `None` misses.
-pub fn box_bounds(origin: DVec3, direction: DVec3, lo: DVec3, hi: DVec3) -> Option<(f64, f64)> {
-    let (mut near, mut far) = (0.0f64, f64::INFINITY);
-    for k in 0..3 {
-        let inverse = 1.0 / direction[k];
-        let (a, b) = ((lo[k] - origin[k]) * inverse, (hi[k] - origin[k]) * inverse);
-        let (a, b) = if a <= b { (a, b) } else { (b, a) };
-        // A ray parallel to a slab and outside it gives NaN or an empty interval: a miss.
-        if a.is_nan() || b.is_nan() {
-            if origin[k] < lo[k] || origin[k] > hi[k] {
-                return None;
-            }
-            continue;
-        }
-        near = near.max(a);
-        far = far.min(b);
-    }
-    (far > near).then_some((near, far))
-}
-
 /// Camera rays with their sampling intervals (CPU side).
 #[derive(Clone, Debug, Default)]
 pub struct RaySet {
@@ -938,22 +918,6 @@ impl Deferred {
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn box_bounds_are_where_a_ray_crosses_the_box() {
-        let (lo, hi) = (DVec3::new(-1.0, 0.0, -1.0), DVec3::new(1.0, 2.0, 1.0));
-        let (near, far) = box_bounds(DVec3::new(0.0, 1.0, -5.0), DVec3::Z, lo, hi).unwrap();
-        assert!((near - 4.0).abs() < 1e-12 && (far - 6.0).abs() < 1e-12);
-        // From inside: from the origin to the exit.
-        let (near, far) = box_bounds(DVec3::new(0.0, 1.0, 0.0), DVec3::new(1.0, 0.0, 0.0), lo, hi).unwrap();
-        assert!(near == 0.0 && (far - 1.0).abs() < 1e-12);
-        // Parallel to a slab and outside it, pointing away, or passing beside: misses.
-        assert!(box_bounds(DVec3::new(0.0, 3.0, -5.0), DVec3::Z, lo, hi).is_none());
-        assert!(box_bounds(DVec3::new(0.0, 1.0, -5.0), -DVec3::Z, lo, hi).is_none());
-        assert!(box_bounds(DVec3::new(0.0, 1.0, -5.0), DVec3::new(1.0, 0.0, 0.3).normalize(), lo, hi).is_none());
-        // Exactly on a face's plane, parallel to it: the slab's arithmetic gives NaN; still in.
-        assert!(box_bounds(DVec3::new(1.0, 1.0, -5.0), DVec3::Z, lo, hi).is_some());
-    }
 
     #[test]
     fn a_views_coarse_pass_skips_only_samples_the_sdf_shows_empty_or_the_rounds_before_show_hidden() {

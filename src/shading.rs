@@ -90,7 +90,8 @@ fn rows_scaled(value: Tensor<1>, r: usize, weights: Option<&Tensor<1>>) -> Tenso
 /// of the density at the point (`shadow::own_shares`: a body part does not shadow the surface
 /// it makes); a point light's E falls off as 1 / r^2 and its shadow ray ends at the light.
 /// With `weights` `[R]`, the light's gradient (direction or position, irradiance, ambient) is
-/// scaled ray by ray by them (`Schedule::light_robustness`); the colours are the same.
+/// scaled ray by ray by them (0 for the rays drawn where the fit is wrong: `Schedule::error_rays`); the
+/// colours are the same.
 #[allow(clippy::too_many_arguments)]
 pub fn shade_lambertian(
     albedo: Tensor<2>,
@@ -222,19 +223,6 @@ impl FittedLight {
     ) -> Tensor<2> {
         let Some(emitter) = self.emitter() else { return albedo };
         shade_lambertian(albedo, points, normals, &self.shadow_casters(gaussians), self.ambient(), &emitter, self.shadow_start, weights)
-    }
-
-    /// The shaded colour with nothing tracked (the light's values and the inputs detached): what
-    /// the batch's errors are measured on before the tracked shading is weighted by them.
-    pub fn shade_untracked(&self, albedo: Tensor<2>, points: Tensor<2>, normals: Tensor<2>, gaussians: &GaussianTensors) -> Tensor<2> {
-        let Some(emitter) = self.emitter() else { return albedo.detach() };
-        let emitter = match emitter {
-            Emitter::Sun { direction, irradiance } => Emitter::Sun { direction: direction.detach(), irradiance: irradiance.detach() },
-            Emitter::Point { position, intensity } => Emitter::Point { position: position.detach(), intensity: intensity.detach() },
-        };
-        let casters = self.shadow_casters(gaussians);
-        let casters = GaussianTensors { means: casters.means.detach(), whiten: casters.whiten.detach(), amplitudes: casters.amplitudes.detach() };
-        shade_lambertian(albedo.detach(), points.detach(), normals.detach(), &casters, self.ambient().detach(), &emitter, self.shadow_start, None)
     }
 
     /// The light as an emitter of the image formation; none for uniform light.

@@ -3,15 +3,12 @@
 //! and typed messages that the CLI turns into a progress bar. It skips what a scene does not
 //! need: a uniformly lit capture gets no light, no shadow rays and no light-fitting stage. A
 //! capture under several lights of one kind fits them jointly, each batch under one of them.
-//! A capture whose pixels average their area (`scene::footprint`) is fitted pixel by pixel:
-//! each training pixel is the mean of several stratified rays, and along the silhouette only
-//! the side of half covered its mask gives is trusted (`losses::mask_area`).
 
 use crate::field::{AvatarField, FieldConfig, GradientMethod, PoseTensors};
 use crate::gaussians::{GaussianParams, GaussianSet};
 use crate::light::Light;
 use crate::random::Stream;
-use crate::render::{box_bounds, ray_bounds, render, render_in_parts, sum_gradients, Deferred, RaySet};
+use crate::render::{ray_bounds, render, render_in_parts, sum_gradients, Deferred, RaySet};
 use crate::scene::{Scene, Split};
 use crate::schedule::Schedule;
 use crate::shading::{FittedLight, LightKind};
@@ -220,55 +217,9 @@ struct ViewData {
     foreground: Vec<usize>,
     /// Pixels within `BOUNDARY_BAND` pixels of the silhouette's edge, on either side.
     boundary: Vec<usize>,
-    /// Per pixel, whether it touches a pixel of the other kind (8-neighbours): where a pixel
-    /// averaging its area may be partly covered whatever its mask says.
-    silhouette: Vec<bool>,
-    /// Foreground pixels with some local contrast and their running sum of it
-    /// (`contrast_weights`), to draw a pixel in proportion to its contrast.
-    contrast: Vec<usize>,
-    contrast_cumulative: Vec<f64>,
     /// Where the fit is still wrong in this view, when the schedule draws rays by it
     /// (`Schedule::error_rays`; training views with a mask only).
     error_map: Option<crate::error_map::ErrorMap>,
-}
-
-impl ViewData {
-    /// A foreground pixel drawn in proportion to its contrast from `u` in [0, 1); `None` when
-    /// the view has no contrast at all.
-    fn by_contrast(&self, u: f64) -> Option<usize> {
-        let total = *self.contrast_cumulative.last()?;
-        let at = self.contrast_cumulative.partition_point(|&c| c <= u * total);
-        self.contrast.get(at.min(self.contrast.len() - 1)).copied()
-    }
-}
-
-/// Per foreground pixel, the largest difference (8-bit sRGB, per channel, over 0-1) between it
-/// and a foreground 8-neighbour: high on a clothing pattern's edges and a shadow's, zero where
-/// the image is flat. The silhouette's own edge is the boundary band's business, so background
-/// neighbours do not count. Pixels with no contrast are left out.
-pub fn contrast_weights(image: &crate::imageio::RgbImage, mask: &crate::imageio::Mask) -> Vec<(usize, f64)> {
-    let (w, h) = (image.width, image.height);
-    let srgb: Vec<[f32; 3]> = image.pixels.iter().map(|c| c.map(crate::imageio::linear_to_srgb)).collect();
-    (0..w * h)
-        .filter(|&p| mask.foreground[p])
-        .filter_map(|p| {
-            let (x, y) = ((p % w) as i64, (p / w) as i64);
-            let mut most = 0.0f32;
-            for dy in -1..=1i64 {
-                for dx in -1..=1i64 {
-                    let (u, v) = (x + dx, y + dy);
-                    if (dx, dy) == (0, 0) || u < 0 || v < 0 || u >= w as i64 || v >= h as i64 {
-                        continue;
-                    }
-                    let q = v as usize * w + u as usize;
-                    if mask.foreground[q] {
-                        most = (0..3).map(|c| (srgb[p][c] - srgb[q][c]).abs()).fold(most, f32::max);
-                    }
-                }
-            }
-            (most > 0.0).then_some((p, most as f64))
-        })
-        .collect()
 }
 
 /// How far above the body's centre a point light starts, in body extents (2.5 m for a walking
@@ -322,8 +273,6 @@ pub struct Trainer {
     /// default; 1 renders the batch on one (a benchmark's baseline). The parts' matrix products
     /// round differently, so a fit is the same to the bit for a seed and a thread count.
     pub render_threads: usize,
-    /// How far (m) the body's box reaches beyond the posed bones (the grid's reach).
-    body_reach: f64,
     /// The centre of the skeleton's bounds over the capture and the body's extent (m): where
     /// and at what distances a point light is searched.
     body_centre: glam::DVec3,
@@ -350,8 +299,6 @@ pub struct Trainer {
     /// footprint the fit models (the schedule's, else that).
     pub footprint_estimate: crate::scene::FootprintEstimate,
     pub footprint: crate::scene::Footprint,
-    /// Rays per training pixel: the schedule's `pixel_rays` for an area footprint, else one.
-    pub pixel_rays: usize,
     /// The moving average of the field's parameters, once the schedule's
     /// `field_average_half_life` has started it (`fitted_model`).
     pub average: Option<crate::averaging::ParameterAverage>,
@@ -361,27 +308,6 @@ pub struct Trainer {
     /// Whether the Gaussians also fit the density at the shadows' scale (the schedule's
     /// `density_at_shadow_scale`, `auto` resolved by the body's looseness).
     pub density_at_shadow_scale: bool,
-    /// The share of the curvature term's weight this body gets (the schedule's
-    /// `loose_body_curvature` on a loose body, 1 on a tight one).
-    pub curvature_share: f64,
-}
-
-/// A value per ray from one per pixel: with one ray a pixel, the pixel's; with several
-/// (`gather`, the rays' indices pixel after pixel), each ray takes its pixel's.
-fn ray_values(per_pixel: &[f32], gather: Option<&[i64]>, rays: usize) -> Vec<f32> {
-    match gather {
-        None => (0..rays).map(|k| per_pixel.get(k).copied().unwrap_or(1.0)).collect(),
-        Some(g) => {
-            let per = g.len() / per_pixel.len().max(1);
-            let mut out = vec![1.0; rays];
-            for (slot, ray) in g.iter().enumerate() {
-                if let (Some(o), Some(v)) = (out.get_mut(*ray as usize), per_pixel.get(slot / per.max(1))) {
-                    *o = *v;
-                }
-            }
-            out
-        }
-    }
 }
 
 /// Whether the `j`-th draw of a part of the batch is one of the evenly spread `share` of its
@@ -402,11 +328,6 @@ struct Batch {
     /// Per pixel, its colour (linear RGB) and mask.
     colours: Vec<f32>,
     masks: Vec<f32>,
-    /// Per pixel, 1 where it touches the other side of the silhouette (`ViewData::silhouette`).
-    silhouette: Vec<f32>,
-    /// With several rays per pixel, where each pixel's rays are in `rays`, pixel after pixel;
-    /// none when each pixel is one ray, in `rays`' order.
-    gather: Option<Vec<i64>>,
     /// Per pixel, its view, its index in the view, and whether it was drawn by the view's
     /// error map (`Schedule::error_rays`).
     sources: Vec<(usize, usize, bool)>,
@@ -820,34 +741,10 @@ impl Trainer {
         let mut views: Vec<ViewData> = scene
             .views
             .iter()
-            .map(|v| {
-                // Only a training view's contrast is drawn from, and only when the schedule asks.
-                let weighted = match &v.mask {
-                    Some(mask) if v.split == Split::Train && schedule.contrast_rays > 0.0 => contrast_weights(&v.colour, mask),
-                    _ => Vec::new(),
-                };
-                ViewData {
-                    foreground: v.mask.as_ref().map(|m| (0..m.foreground.len()).filter(|&k| m.foreground[k]).collect()).unwrap_or_default(),
-                    boundary: v.mask.as_ref().map(|m| boundary_pixels(m, BOUNDARY_BAND)).unwrap_or_default(),
-                    silhouette: v
-                        .mask
-                        .as_ref()
-                        .map(|m| {
-                            let mut flags = vec![false; m.foreground.len()];
-                            boundary_pixels(m, 1).into_iter().for_each(|p| flags[p] = true);
-                            flags
-                        })
-                        .unwrap_or_default(),
-                    error_map: None,
-                    contrast: weighted.iter().map(|w| w.0).collect(),
-                    contrast_cumulative: weighted
-                        .iter()
-                        .scan(0.0, |sum, w| {
-                            *sum += w.1;
-                            Some(*sum)
-                        })
-                        .collect(),
-                }
+            .map(|v| ViewData {
+                foreground: v.mask.as_ref().map(|m| (0..m.foreground.len()).filter(|&k| m.foreground[k]).collect()).unwrap_or_default(),
+                boundary: v.mask.as_ref().map(|m| boundary_pixels(m, BOUNDARY_BAND)).unwrap_or_default(),
+                error_map: None,
             })
             .collect();
         let extent = scene.body_extent();
@@ -899,7 +796,6 @@ impl Trainer {
         // under `auto`; each training view with a mask then keeps an error map.
         let error_rays = schedule.error_rays.share(root.is_some());
         let density_at_shadow_scale = schedule.density_at_shadow_scale.on(root.is_some());
-        let curvature_share = if root.is_some() { schedule.loose_body_curvature } else { 1.0 };
         if error_rays > 0.0 {
             for (data, view) in views.iter_mut().zip(&scene.views) {
                 if let (Some(mask), Split::Train) = (&view.mask, view.split) {
@@ -928,7 +824,6 @@ impl Trainer {
             .collect();
         let footprint_estimate = scene.footprint();
         let footprint = schedule.footprint.unwrap_or(footprint_estimate.footprint);
-        let pixel_rays = if footprint == crate::scene::Footprint::Area { schedule.pixel_rays } else { 1 };
         Ok(Self {
             scene,
             schedule,
@@ -947,7 +842,6 @@ impl Trainer {
             render_threads: rayon::current_num_threads(),
             body_centre: centre,
             body_extent: extent,
-            body_reach: field_config.grid.as_ref().map_or(extent * crate::field::grid::REACH_PER_EXTENT as f64, |g| g.reach as f64),
             searches: vec![None; light_count],
             cones: vec![None; light_count],
             view_light,
@@ -957,11 +851,9 @@ impl Trainer {
             loose_root: root,
             footprint_estimate,
             footprint,
-            pixel_rays,
             average: None,
             error_rays,
             density_at_shadow_scale,
-            curvature_share,
         })
     }
 
@@ -1100,8 +992,7 @@ impl Trainer {
     }
 
     /// Samples a batch of pixels from one random training frame, all from its views under one
-    /// training light, each pixel as `pixel_rays` rays (one through its centre, or stratified
-    /// over its area).
+    /// training light, each pixel as the ray through its centre.
     fn batch(&mut self, set: &GaussianSet) -> Batch {
         let frame = self.stream.below(self.frames.len());
         let data = &self.frames[frame];
@@ -1116,64 +1007,38 @@ impl Trainer {
         };
         let pose = &self.scene.frames[data.position].pose;
         let posed = set.pose(pose);
-        let per_pixel = self.pixel_rays;
-        let pixel_count = (self.schedule.rays_per_batch / per_pixel).max(1);
-        let mut drawn = Vec::with_capacity(pixel_count * per_pixel);
+        let pixel_count = self.schedule.rays_per_batch.max(1);
+        let mut drawn = Vec::with_capacity(pixel_count);
         let mut colours = Vec::with_capacity(pixel_count * 3);
         let mut masks = Vec::with_capacity(pixel_count);
-        let mut silhouette = Vec::with_capacity(pixel_count);
         let mut sources = Vec::with_capacity(pixel_count);
-        // The body's box, for foreground rays that miss every bound (when asked): once a batch.
-        let body_box = self.schedule.sample_masked_misses.then(|| {
-            let (lo, hi) = pose.bounds(&self.scene.skeleton);
-            let reach = glam::DVec3::splat(self.body_reach);
-            (lo - reach, hi + reach)
-        });
         for k in 0..pixel_count {
             let v = same_light[self.stream.below(same_light.len())];
             let view = &self.scene.views[v];
             let camera = &self.scene.cameras[view.camera];
             let pixels = camera.width * camera.height;
-            // A third each from the foreground, the silhouette's band and the whole view; of the
-            // foreground's, every (1 / contrast_rays)-th in proportion to its contrast.
+            // A third each from the foreground, the silhouette's band and the whole view.
             let pool = match k % 3 {
                 0 => &self.views[v].foreground,
                 1 => &self.views[v].boundary,
                 _ => &Vec::new(),
             };
             let j = k / 3;
-            let by_contrast = k % 3 == 0 && takes_share(j, self.schedule.contrast_rays);
-            let contrasted = if by_contrast { self.views[v].by_contrast(self.stream.uniform()) } else { None };
             // Of the third drawn anywhere, every (1 / error_rays)-th where the fit is wrong.
             let by_error = k % 3 == 2 && takes_share(j, self.error_rays);
             let wrong = match &self.views[v].error_map {
                 Some(map) if by_error => Some(map.draw(self.stream.uniform(), self.stream.uniform())),
                 _ => None,
             };
-            let pixel = match contrasted.or(wrong) {
+            let pixel = match wrong {
                 Some(p) => p,
                 None if pool.is_empty() => self.stream.below(pixels),
                 None => pool[self.stream.below(pool.len())],
             };
             let mask = view.mask.as_ref().map(|m| m.foreground[pixel] as u8 as f32).unwrap_or(0.0);
-            let (x, y) = ((pixel % camera.width) as f64, (pixel / camera.width) as f64);
-            let rays: Vec<crate::scene::Ray> = if per_pixel == 1 {
-                vec![camera.pixel_ray(pixel % camera.width, pixel / camera.width)]
-            } else {
-                let jitter: Vec<f64> = (0..2 * per_pixel).map(|_| self.stream.uniform()).collect();
-                crate::scene::footprint::subpixel_offsets(per_pixel, Some(&jitter))
-                    .into_iter()
-                    .map(|[u, v]| camera.ray_through(glam::DVec2::new(x + u, y + v)))
-                    .collect()
-            };
-            for ray in rays {
-                let bounds = match (ray_bounds(ray.origin, ray.direction, &posed, self.min_bound_radius()), body_box) {
-                    (None, Some((lo, hi))) if mask > 0.5 => box_bounds(ray.origin, ray.direction, lo, hi),
-                    (bounds, _) => bounds,
-                };
-                drawn.push((ray, bounds, view.colour.pixels[pixel], mask));
-            }
-            silhouette.push(self.views[v].silhouette.get(pixel).copied().unwrap_or(false) as u8 as f32);
+            let ray = camera.pixel_ray(pixel % camera.width, pixel / camera.width);
+            let bounds = ray_bounds(ray.origin, ray.direction, &posed, self.min_bound_radius());
+            drawn.push((ray, bounds, view.colour.pixels[pixel], mask));
             sources.push((v, pixel, wrong.is_some()));
         }
         // A stable partition: hits first, in the order drawn.
@@ -1185,26 +1050,13 @@ impl Trainer {
             let (ray, bounds, _, _) = &drawn[d];
             rays.push(ray.origin, ray.direction, *bounds);
         }
-        let gather = if per_pixel == 1 {
-            // One ray per pixel: the targets follow the rays' order.
-            for &d in &order {
-                colours.extend(drawn[d].2);
-                masks.push(drawn[d].3);
-            }
-            sources = order.iter().map(|&d| sources[d]).collect();
-            None
-        } else {
-            for pixel in drawn.chunks(per_pixel) {
-                colours.extend(pixel[0].2);
-                masks.push(pixel[0].3);
-            }
-            let mut position = vec![0i64; drawn.len()];
-            for (slot, &d) in order.iter().enumerate() {
-                position[d] = slot as i64;
-            }
-            Some(position)
-        };
-        Batch { frame, light, rays, hits, colours, masks, silhouette, gather, sources }
+        // One ray per pixel: the targets follow the rays' order.
+        for &d in &order {
+            colours.extend(drawn[d].2);
+            masks.push(drawn[d].3);
+        }
+        let sources = order.iter().map(|&d| sources[d]).collect();
+        Batch { frame, light, rays, hits, colours, masks, sources }
     }
 
     /// The body's length unit: `skeleton::body_length(1, extent)`.
@@ -1390,7 +1242,7 @@ impl Trainer {
             self.rebind_gaussians()?;
         }
         let set = self.model()?.gaussians.to_set();
-        let Batch { frame, light: light_index, rays, hits, colours, masks, silhouette, gather, sources } = self.batch(&set);
+        let Batch { frame, light: light_index, rays, hits, colours, masks, sources } = self.batch(&set);
         clock.mark(1);
         let r = rays.len();
         // Only rays that meet a bound are rendered (at least one, so the graph is never empty);
@@ -1419,24 +1271,10 @@ impl Trainer {
         } else {
             deferred.accumulation.clone()
         };
-        // Several rays per pixel: each pixel's rays averaged, in the targets' order.
+        // One ray a pixel, in the targets' order.
         let pixels = masks.len();
-        let per_pixel = r / pixels.max(1);
-        let gather_rows = gather.clone();
-        let gather = gather.map(|g| Tensor::<1, Int>::from_data(TensorData::new(g, [r]), &device));
-        let average = |t: Tensor<2>| match &gather {
-            Some(g) => t.select(0, g.clone()).reshape([pixels, per_pixel, 3]).mean_dim(1).reshape([pixels, 3]),
-            None => t,
-        };
-        let accumulation = match &gather {
-            Some(g) => accumulation.select(0, g.clone()).reshape([pixels, per_pixel]).mean_dim(1).reshape([pixels]),
-            None => accumulation,
-        };
-        let albedo = average(background(deferred.albedo.clone()));
+        let albedo = background(deferred.albedo.clone());
         let target: Tensor<2> = Tensor::from_data(TensorData::new(colours, [pixels, 3]), &device);
-        // Pixels averaging their area: along the silhouette what the mask and a black
-        // background say is only which side of half covered a pixel is (`losses::mask_area`).
-        let silhouette = gather.as_ref().map(|_| Tensor::<1>::from_data(TensorData::new(silhouette, [pixels]), &device));
         let mask: Tensor<1> = Tensor::from_data(TensorData::new(masks.clone(), [pixels]), &device);
         // The Gaussians posed in the graph only when a loss reaches them: burn registers every
         // operation on a parameter in the parameter's graph, and what no backward consumes stays
@@ -1453,60 +1291,21 @@ impl Trainer {
                 Some(normal) => {
                     let casters = model.gaussians.posed_values(&pose);
                     let batch_light = model.light_at(light_index);
-                    // What each pixel tells the light, weighted by how well the model explains
-                    // it (`Schedule::light_robustness`): the batch shaded once untracked for
-                    // the errors.
                     // The pixels drawn where the fit is wrong teach the light nothing: it learns
                     // from the same pixels as a batch without them.
-                    let robust = self.schedule.light_robustness > 0.0 && it >= self.schedule.light_from;
                     let error_drawn = sources.iter().any(|s| s.2);
-                    let weights = (robust || error_drawn).then(|| {
-                        let mut per_pixel_weight = if robust {
-                            let untracked =
-                                average(background(batch_light.shade_untracked(deferred.albedo.clone(), deferred.surface.clone(), normal.clone(), &casters)));
-                            let errors = (untracked - target.clone()).abs().mean_dim(1).reshape([pixels]);
-                            let errors = errors.into_data().convert::<f32>().try_to_vec::<f32>().unwrap_or_default();
-                            let foreground: Vec<bool> = masks.iter().map(|m| *m > 0.5).collect();
-                            crate::losses::cauchy_weights(&errors, &foreground, self.schedule.light_robustness as f32)
-                        } else {
-                            vec![1.0; pixels]
-                        };
-                        for (weight, source) in per_pixel_weight.iter_mut().zip(&sources) {
-                            if source.2 {
-                                *weight = 0.0;
-                            }
-                        }
-                        let ray_weights = ray_values(&per_pixel_weight, gather_rows.as_deref(), r);
-                        Tensor::<1>::from_data(TensorData::new(ray_weights[..rendered].to_vec(), [rendered]), &device)
+                    let weights = error_drawn.then(|| {
+                        let ray_weights: Vec<f32> = sources.iter().take(rendered).map(|source| if source.2 { 0.0 } else { 1.0 }).collect();
+                        Tensor::<1>::from_data(TensorData::new(ray_weights, [rendered]), &device)
                     });
-                    average(background(batch_light.shade_weighted(
-                        deferred.albedo.clone(),
-                        deferred.surface.clone(),
-                        normal.clone(),
-                        &casters,
-                        weights.as_ref(),
-                    )))
+                    background(batch_light.shade_weighted(deferred.albedo.clone(), deferred.surface.clone(), normal.clone(), &casters, weights.as_ref()))
                 }
                 None => albedo.clone(),
-            };
-            // The loss in the images' sRGB encoding when asked (`Schedule::rgb_space`): after
-            // the pixel's rays are averaged, which is linear.
-            let (colour, target) = match self.schedule.rgb_space {
-                crate::schedule::RgbSpace::Linear => (colour, target),
-                // A centre sample is the surface or black: composited as the image stores it.
-                crate::schedule::RgbSpace::Srgb if self.footprint == crate::scene::Footprint::Centre => {
-                    (crate::losses::srgb_centre_sample(colour, accumulation.clone()), crate::losses::srgb(target))
-                }
-                crate::schedule::RgbSpace::Srgb => (crate::losses::srgb(colour), crate::losses::srgb(target)),
             };
             if self.error_rays > 0.0 {
                 colour_error = Some((colour.clone().detach() - target.clone()).abs().mean_dim(1).reshape([pixels]));
             }
-            let rgb = match &silhouette {
-                Some(edge) => crate::losses::rgb_area(colour, target, mask.clone(), edge.clone()),
-                None => crate::losses::rgb(colour, target),
-            };
-            terms.push(("rgb", w("rgb"), rgb));
+            terms.push(("rgb", w("rgb"), crate::losses::rgb(colour, target)));
         }
         clock.mark(5);
         if self.error_rays > 0.0 {
@@ -1523,11 +1322,7 @@ impl Trainer {
                 }
             }
         }
-        let mask_loss = match &silhouette {
-            Some(edge) => crate::losses::mask_area(accumulation, mask.clone(), edge.clone()),
-            None => crate::losses::mask(accumulation, mask.clone()),
-        };
-        terms.push(("mask", w("mask"), mask_loss));
+        terms.push(("mask", w("mask"), crate::losses::mask(accumulation, mask.clone())));
         if w("grey") > 0.0 {
             terms.push(("grey", w("grey"), crate::losses::grey(albedo, mask)));
         }
@@ -1568,8 +1363,7 @@ impl Trainer {
             terms.push(("ambient", w("ambient"), crate::losses::ambient(ambient, self.schedule.ambient_target)));
         }
         clock.mark(6);
-        // The curvature term's weight on this body (a loose body's share of it, `curvature_share`).
-        let curvature = w("curvature") * self.curvature_share;
+        let curvature = w("curvature");
         if (w("eikonal") > 0.0 || curvature > 0.0) && self.schedule.regulariser_points > 0 {
             let q = self.schedule.regulariser_points;
             let idx = self.random_indices(q, rendered * s);
@@ -1657,7 +1451,6 @@ impl Trainer {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::imageio::{Mask, RgbImage};
 
     /// A bone all of whose Gaussians would move keeps the one its motion carries best; bones
     /// that keep one, and moves between them, are left alone; a chain of emptied bones is
@@ -1677,44 +1470,6 @@ mod tests {
         // empties bone 2, which then keeps its own.
         let outside = vec![vec![0.0; 3]; 3];
         assert_eq!(keep_every_bone(vec![0, 2, 0], &[0, 1, 2], &outside), vec![0, 1, 2]);
-    }
-
-    /// A 6x4 image: the left half black, the right half white, all foreground but the
-    /// bottom-right pixel.
-    fn halves() -> (RgbImage, Mask) {
-        let mut image = RgbImage::new(6, 4);
-        for y in 0..4 {
-            for x in 3..6 {
-                image.set(x, y, [1.0; 3]);
-            }
-        }
-        let mut foreground = vec![true; 24];
-        foreground[23] = false;
-        (image, Mask { width: 6, height: 4, foreground })
-    }
-
-    #[test]
-    fn each_ray_takes_its_pixels_value() {
-        assert_eq!(ray_values(&[0.5, 0.25], None, 3), vec![0.5, 0.25, 1.0]);
-        // Two rays a pixel: pixel 0's rays are 3 and 0, pixel 1's 1 and 2.
-        assert_eq!(ray_values(&[0.5, 0.25], Some(&[3, 0, 1, 2]), 4), vec![0.5, 0.25, 0.25, 0.5]);
-    }
-
-    #[test]
-    fn contrast_is_the_pattern_edge_not_the_flat_or_the_silhouette() {
-        let (image, mask) = halves();
-        let weights = contrast_weights(&image, &mask);
-        let pixels: Vec<usize> = weights.iter().map(|w| w.0).collect();
-        // Columns 2 and 3 border the other colour; the background pixel is left out and its
-        // neighbours' flat colour gives nothing.
-        let expected: Vec<usize> = (0..24).filter(|&p| (p % 6 == 2 || p % 6 == 3) && p != 23).collect();
-        assert_eq!(pixels, expected);
-        assert!(weights.iter().all(|w| (w.1 - 1.0).abs() < 1e-6), "{weights:?}");
-        // A dark step weighs as the sRGB metric sees it: linear 0.01 against 0.02 is 0.099 -> 0.153.
-        let mut dim = image.clone();
-        dim.pixels.iter_mut().for_each(|c| *c = if c[0] > 0.5 { [0.02; 3] } else { [0.01; 3] });
-        let step = crate::imageio::linear_to_srgb(0.02) - crate::imageio::linear_to_srgb(0.01);
-        assert!(contrast_weights(&dim, &mask).iter().all(|w| (w.1 - step as f64).abs() < 1e-6));
     }
 
     #[test]
@@ -1756,7 +1511,7 @@ mod tests {
         let seeded = trainer.anchors.iter().position(|a| a.is_some()).unwrap();
         let anchor = trainer.anchors[seeded].unwrap();
         let target = |trainer: &Trainer, g: usize| {
-            let rows = trainer.mean_targets.clone().into_data().convert::<f32>().to_vec::<f32>().unwrap();
+            let rows = trainer.mean_targets.clone().into_data().convert::<f32>().try_to_vec::<f32>().unwrap();
             glam::DVec3::new(rows[3 * g] as f64, rows[3 * g + 1] as f64, rows[3 * g + 2] as f64)
         };
         assert!(target(&trainer, seeded).distance(anchor) < 1e-6, "on the root: its seed");
@@ -1772,25 +1527,5 @@ mod tests {
         // A bone's own Gaussian: its bone's centre.
         let own = (0..bones.len()).find(|&g| trainer.anchors[g].is_none() && bones[g] == chest).unwrap();
         assert!(target(&trainer, own).distance(glam::DVec3::new(0.0, trainer.scene.skeleton.bones[chest].length / 2.0, 0.0)) < 1e-6);
-    }
-
-    #[test]
-    fn pixels_are_drawn_in_proportion_to_contrast() {
-        let view = ViewData {
-            foreground: Vec::new(),
-            boundary: Vec::new(),
-            silhouette: Vec::new(),
-            contrast: vec![4, 9, 30],
-            contrast_cumulative: vec![1.0, 1.0 + 3.0, 1.0 + 3.0 + 0.5],
-            error_map: None,
-        };
-        let mut counts = [0usize; 3];
-        let n = 9000;
-        for k in 0..n {
-            let drawn = view.by_contrast((k as f64 + 0.5) / n as f64).unwrap();
-            counts[view.contrast.iter().position(|&p| p == drawn).unwrap()] += 1;
-        }
-        assert_eq!(counts, [2000, 6000, 1000]);
-        assert_eq!(ViewData { contrast: vec![], contrast_cumulative: vec![], ..view }.by_contrast(0.3), None);
     }
 }

@@ -704,10 +704,10 @@ fn view_and_albedo(trainer: &Trainer) -> (umbra::imageio::RgbImage, umbra::image
 }
 
 /// A capture whose pixels average their area (anti-aliased, `synth --pixel-samples`) is read as
-/// such, and fitted with several rays per training pixel when the schedule asks (the fit runs
-/// and lowers its loss); a centre-sampled one with one ray, unless the schedule says otherwise.
+/// such, fitted (the fit runs and lowers its loss) and its views rendered over each pixel's
+/// area; a centre-sampled one at pixel centres, unless the schedule says otherwise.
 #[test]
-fn an_anti_aliased_capture_is_fitted_with_several_rays_per_pixel() {
+fn an_anti_aliased_capture_is_read_as_one_and_rendered_over_each_pixels_area() {
     let dir = TempDir::new("footprint");
     // 64 pixels square: at 32 the limbs are a pixel or two wide, with no inside to compare
     // their silhouette's pixels with.
@@ -723,13 +723,10 @@ fn an_anti_aliased_capture_is_fitted_with_several_rays_per_pixel() {
         ..umbra::synth::SynthOptions::default()
     };
     umbra::synth::generate(&options(4), &dir.path().join("area"), false, |_, _| {}).unwrap();
-    // As many pixels per batch as the quick schedule's centre-sampled fits have.
-    let schedule =
-        Schedule::parse(&format!("pixel_rays = 4\n{}", QUICK.replace("rays_per_batch = 256", "rays_per_batch = 1024")), Path::new("quick.toml")).unwrap();
+    let schedule = Schedule::parse(QUICK, Path::new("quick.toml")).unwrap();
     let scene = umbra::scene::Scene::load(&dir.path().join("area")).unwrap();
     let mut trainer = Trainer::new(scene, schedule.clone(), Backend::Flex, 1).unwrap();
     assert_eq!(trainer.footprint, umbra::scene::Footprint::Area, "{:?}", trainer.footprint_estimate);
-    assert_eq!(trainer.pixel_rays, 4);
     let losses: Vec<f64> = (0..60).map(|_| trainer.step().unwrap().total).collect();
     assert!(losses.iter().all(|l| l.is_finite()));
     let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len() as f64;
@@ -766,14 +763,10 @@ fn an_anti_aliased_capture_is_fitted_with_several_rays_per_pixel() {
             assert!(average < 0.25 / 255.0 && flipped * 100 <= covered, "worst {worst}, mean {average}, {flipped} of {covered} flipped");
         }
     }
-    // The default schedule trains an area capture with one ray through each pixel's centre.
-    let default = Schedule::parse(umbra::schedule::DEFAULT_TEXT, Path::new("default.toml")).unwrap();
-    let trainer = Trainer::new(umbra::scene::Scene::load(&dir.path().join("area")).unwrap(), default, Backend::Flex, 1).unwrap();
-    assert_eq!((trainer.footprint, trainer.pixel_rays), (umbra::scene::Footprint::Area, 1));
-    // The same capture sampled at pixel centres: one ray per pixel, or as the schedule says.
+    // The same capture sampled at pixel centres: read as such, or as the schedule says.
     let centre = tiny_scene(dir.path(), TrainingLight::Sun);
     let mut trainer = Trainer::new(umbra::scene::Scene::load(&centre).unwrap(), schedule.clone(), Backend::Flex, 1).unwrap();
-    assert_eq!((trainer.footprint, trainer.pixel_rays), (umbra::scene::Footprint::Centre, 1));
+    assert_eq!(trainer.footprint, umbra::scene::Footprint::Centre);
     // At pixel centres one trace gives exactly the two renders.
     for _ in 0..20 {
         trainer.step().unwrap();
@@ -781,9 +774,9 @@ fn an_anti_aliased_capture_is_fitted_with_several_rays_per_pixel() {
     let (image, albedo, alone, albedo_alone) = view_and_albedo(&trainer);
     assert!(image.pixels == alone.pixels && albedo.pixels == albedo_alone.pixels);
     assert!(albedo.pixels.iter().any(|p| p[0] > 0.0), "the view sees the body");
-    let forced = Schedule::parse(&format!("footprint = \"area\"\npixel_rays = 9\n{QUICK}"), Path::new("quick.toml")).unwrap();
+    let forced = Schedule::parse(&format!("footprint = \"area\"\n{QUICK}"), Path::new("quick.toml")).unwrap();
     let trainer = Trainer::new(umbra::scene::Scene::load(&centre).unwrap(), forced, Backend::Flex, 1).unwrap();
-    assert_eq!((trainer.footprint, trainer.pixel_rays), (umbra::scene::Footprint::Area, 9));
+    assert_eq!(trainer.footprint, umbra::scene::Footprint::Area);
 }
 
 /// Gaussians fit the field's density wherever it is; a fit moves each to the bone whose

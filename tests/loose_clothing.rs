@@ -43,8 +43,6 @@ fn under_the_default_schedule_a_loose_body_draws_rays_by_error_seeds_gaussians_o
         assert_eq!(trainer.error_rays, share, "{name}");
         // And fits its Gaussians' density at the shadows' scale too when loose.
         assert_eq!(trainer.density_at_shadow_scale, share > 0.0, "{name}");
-        // The curvature term whole (`loose_body_curvature` is off by default).
-        assert_eq!(trainer.curvature_share, 1.0, "{name}");
         // The capsule prior capped when loose, at a corner (`[field] prior_knee` is off by default).
         let skinning = trainer.model().expect("a model").field.config.skinning();
         assert_eq!(skinning.prior_cap.is_some(), share > 0.0, "{name}: {skinning:?}");
@@ -116,21 +114,6 @@ fn a_loose_fit_resumes_bit_for_bit_with_its_seeded_gaussians_and_renders_from_it
     let bones = trainer.scene.skeleton.len();
     assert_eq!(trainer.model().expect("a model").gaussians.len(), 4 * bones + trainer.loose_gaussians());
     let _ = std::fs::remove_dir_all(&dir);
-}
-
-/// `loose_body_curvature` weighs the curvature term by its share on a loose body alone: the
-/// dressed human's term at half, the tight human's whole.
-#[test]
-fn a_loose_body_curvature_share_applies_to_the_loose_body_alone() {
-    use umbra::schedule::Schedule;
-    let text = format!("{}\n", umbra::schedule::DEFAULT_TEXT).replacen("loose_body_curvature = 1.0", "loose_body_curvature = 0.5", 1);
-    let schedule = Schedule::parse(&text, Path::new("half.toml")).expect("the schedule parses");
-    assert_eq!(schedule.loose_body_curvature, 0.5);
-    for (name, share) in [("human-dressed", 0.5), ("human-sun", 1.0)] {
-        let scene = Scene::load(&Path::new("datasets-synthetic").join(name)).expect("a shipped scene");
-        let trainer = umbra::train::Trainer::new(scene, schedule.clone(), umbra::train::Backend::Flex, 0).expect("a trainer");
-        assert_eq!(trainer.curvature_share, share, "{name}");
-    }
 }
 
 /// `[field] prior_knee = true` bends a loose body's capped prior into its cap from the capsule's

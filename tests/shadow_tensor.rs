@@ -283,7 +283,7 @@ fn a_body_part_does_not_shadow_the_surface_it_makes_but_a_part_near_it_does() {
 
 #[test]
 fn weights_scale_only_what_each_ray_tells_the_light() {
-    // Shading with per-ray weights on the light's gradient (`Schedule::light_robustness`): the
+    // Shading with per-ray weights on the light's gradient (`Schedule::error_rays`: 0 or 1): the
     // same colours; the light's gradient (sun direction, irradiance, ambient; point position and
     // intensity) the weighted sum of the rays' own, the albedo's and normals' untouched.
     use umbra::shading::{shade_lambertian, Emitter};
