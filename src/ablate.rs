@@ -260,10 +260,9 @@ fn finished_rows(options: &AblateOptions, scene: &SceneIdentity, names: &[String
 }
 
 fn write_tables(out: &Path, rows: &[AblationRow]) -> Result<(), FitError> {
-    let mut csv = COLUMNS.join(",") + "\n";
+    let csv = crate::table::to_csv(&COLUMNS, rows.iter().map(|row| std::iter::once(row.schedule.clone()).chain(row.cells("")).collect::<Vec<_>>()));
     let mut md = format!("## Ablation\n\n| {} |\n|{}\n", COLUMNS.join(" | "), "---|".repeat(COLUMNS.len()));
     for row in rows {
-        csv += &format!("{},{}\n", row.schedule, row.cells("").join(","));
         md += &format!("| {} | {} |\n", row.schedule, row.cells("-").join(" | "));
     }
     md += "\nPSNR in dB over whole test images, sRGB 8-bit; light error against the light the scene states.\n";

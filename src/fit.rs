@@ -785,16 +785,33 @@ fn cells(s: &ImageScores, digits: usize) -> [String; 3] {
     [format!("{:.digits$}", s.psnr), format!("{:.digits$}", s.foreground_psnr), format!("{:.4}", s.ssim)]
 }
 
+/// The columns of `metrics.csv`.
+pub const METRICS_COLUMNS: [&str; 12] = [
+    "image",
+    "light",
+    "group",
+    "psnr",
+    "foreground_psnr",
+    "ssim",
+    "albedo_psnr",
+    "albedo_foreground_psnr",
+    "albedo_ssim",
+    "error_outside_mask",
+    "error_along_silhouette",
+    "error_inside",
+];
+
 fn metrics_csv(rows: &[ImageScore]) -> String {
-    let mut csv = String::from(
-        "image,light,group,psnr,foreground_psnr,ssim,albedo_psnr,albedo_foreground_psnr,albedo_ssim,error_outside_mask,error_along_silhouette,error_inside\n",
-    );
-    for r in rows {
+    let rows = rows.iter().map(|r| {
         let albedo = r.albedo.map(|a| cells(&a, 3)).unwrap_or_else(|| [String::new(), String::new(), String::new()]);
-        let shares = r.error_share.map(|e| share_cells(&e, 4)).unwrap_or_default();
-        csv += &format!("{},{},{},{},{},{}\n", r.image, r.light, r.group, cells(&r.scores, 3).join(","), albedo.join(","), shares.join(","));
-    }
-    csv
+        let shares = r.error_share.map(|e| share_cells(&e, 4)).unwrap_or_else(|| [String::new(), String::new(), String::new()]);
+        let mut row = vec![r.image.clone(), r.light.clone(), r.group.to_string()];
+        row.extend(cells(&r.scores, 3));
+        row.extend(albedo);
+        row.extend(shares);
+        row
+    });
+    crate::table::to_csv(&METRICS_COLUMNS, rows)
 }
 
 /// An `ErrorRegions` of shares as three cells: outside the mask, along the silhouette, inside.

@@ -36,4 +36,5 @@ pub mod shadow;
 pub mod skeleton;
 pub mod sun_search;
 pub mod synth;
+pub mod table;
 pub mod train;

@@ -454,19 +454,21 @@ pub fn albedo_scale(scene: &Scene, model: &Avatar) -> glam::DVec3 {
 const LIGHT_COLUMNS: [&str; 3] = ["light_x", "light_y", "light_z"];
 
 pub(crate) fn losses_csv(history: &[(usize, StepStats)]) -> String {
-    let mut out = format!("iteration,total,seconds,{},{}\n", crate::schedule::TERMS.join(","), LIGHT_COLUMNS.join(","));
-    for (it, s) in history {
-        let terms: Vec<String> = crate::schedule::TERMS.iter().map(|t| s.terms.get(*t).map(|v| format!("{v:.6e}")).unwrap_or_default()).collect();
-        let light: Vec<String> = (0..3).map(|k| s.light.map(|v| format!("{:.7}", v[k])).unwrap_or_default()).collect();
-        out += &format!("{it},{:.6e},{:.4},{},{}\n", s.total, s.seconds, terms.join(","), light.join(","));
-    }
-    out
+    let header: Vec<&str> = ["iteration", "total", "seconds"].into_iter().chain(crate::schedule::TERMS).chain(LIGHT_COLUMNS).collect();
+    let rows = history.iter().map(|(it, s)| {
+        let mut row = vec![it.to_string(), format!("{:.6e}", s.total), format!("{:.4}", s.seconds)];
+        row.extend(crate::schedule::TERMS.iter().map(|t| s.terms.get(*t).map(|v| format!("{v:.6e}")).unwrap_or_default()));
+        row.extend((0..3).map(|k| s.light.map(|v| format!("{:.7}", v[k])).unwrap_or_default()));
+        row
+    });
+    crate::table::to_csv(&header, rows)
 }
 
 fn parse_losses_csv(text: &str) -> Vec<(usize, StepStats)> {
     let mut rows = Vec::new();
-    for line in text.lines().skip(1) {
-        let cells: Vec<&str> = line.split(',').collect();
+    let table = crate::table::read_csv(text).map(|(_, rows)| rows).unwrap_or_default();
+    for line in &table {
+        let cells: Vec<&str> = line.iter().map(String::as_str).collect();
         let (Some(it), Some(total), Some(seconds)) =
             (cells.first().and_then(|c| c.parse().ok()), cells.get(1).and_then(|c| c.parse().ok()), cells.get(2).and_then(|c| c.parse().ok()))
         else {

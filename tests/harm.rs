@@ -184,6 +184,8 @@ fn ablate_reuses_only_runs_of_its_own_scene_and_keeps_out_of_a_users_folder() {
     };
     let run = |scene: &Path| umbra(&cwd(), &args(scene).iter().map(String::as_str).collect::<Vec<_>>());
     assert!(run(&first).status.success());
+    let (header, rows) = umbra::table::read_csv(&std::fs::read_to_string(out.join("ablation.csv")).unwrap()).unwrap();
+    assert!(rows.len() == 2 && rows.iter().all(|r| r.len() == header.len()), "{header:?} {rows:?}");
     let before = snapshot(&out);
     let refused = run(&second);
     let stderr = String::from_utf8_lossy(&refused.stderr);
@@ -260,6 +262,11 @@ fn outputs_of_an_earlier_fit_or_scene_are_not_left_beside_new_ones() {
     succeeds(&cwd(), &["fit", s(&scene), "--out", s(&run), "--iterations", "3", "--resume", "--force-schedule"]);
     let evaluation = read_json(&run.join("fit.json"))["evaluation"].clone();
     assert!(!evaluation.is_null() && run.join("report.html").exists() && run.join("renders/compare.png").exists());
+    // Its tables read back with a CSV reader, every row as wide as its header.
+    for table in ["renders/metrics.csv", "losses.csv"] {
+        let (header, rows) = umbra::table::read_csv(&std::fs::read_to_string(run.join(table)).unwrap()).unwrap();
+        assert!(!rows.is_empty() && rows.iter().all(|r| r.len() == header.len()), "{table}: {header:?}");
+    }
     // Resumed with nothing to do and --no-eval: its evaluation stays.
     succeeds(&cwd(), &["fit", s(&scene), "--out", s(&run), "--iterations", "3", "--resume", "--no-eval"]);
     assert_eq!(read_json(&run.join("fit.json"))["evaluation"], evaluation);
@@ -457,9 +464,12 @@ fn a_fifo_is_reported_as_what_it_is() {
 fn synth_writes_the_same_scene_into_an_empty_folder_as_into_a_new_one() {
     let dir = TempDir::new("synth-empty");
     let options = SynthOptions { character: Kind::Human, size: 8, cameras: 1, frames: 1, test_frames: 1, samples: 1, ..SynthOptions::default() };
-    umbra::synth::generate(&options, &dir.path().join("new"), false, |_, _| {}).unwrap();
-    std::fs::create_dir_all(dir.path().join("empty")).unwrap();
-    umbra::synth::generate(&options, &dir.path().join("empty"), false, |_, _| {}).unwrap();
+    // Both folders are named `scene` (a scene is named after its folder).
+    let (new, empty) = (dir.path().join("new/scene"), dir.path().join("empty/scene"));
+    umbra::synth::generate(&options, &new, false, |_, _| {}).unwrap();
+    std::fs::create_dir_all(&empty).unwrap();
+    umbra::synth::generate(&options, &empty, false, |_, _| {}).unwrap();
     let strip = |root: &Path| snapshot(root).into_iter().map(|(p, b)| (p.strip_prefix(root).unwrap().to_path_buf(), b)).collect::<Vec<_>>();
-    assert_eq!(strip(&dir.path().join("new")), strip(&dir.path().join("empty")));
+    assert_eq!(strip(&new), strip(&empty));
+    assert_eq!(read_json(&new.join("scene.json"))["name"], "scene");
 }

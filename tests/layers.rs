@@ -9,7 +9,7 @@ use std::path::Path;
 const LAYERS: &[&[&str]] = &[
     // files, validation, geometry, the seeded stream, the format's lights, pictures and tables,
     // the average of any module's parameters
-    &["files", "scene", "skeleton", "imageio", "random", "light", "geometry", "isosurface", "metrics", "plot", "progress", "averaging"],
+    &["files", "table", "scene", "skeleton", "imageio", "random", "light", "geometry", "isosurface", "metrics", "plot", "progress", "averaging"],
     // the ray integral of posed Gaussians (both paths pinned together)
     &["shadow"],
     // the bone-anchored Gaussian set, posed

@@ -134,21 +134,21 @@ pub fn breakdown(scene_path: &Path, schedule_path: &Path, out: &Path, quick: boo
         schedule.probe_samples_per_ray,
         schedule.fine_samples_per_ray
     );
-    let mut csv = String::from("stage,part,ms,share,peak_mib\n");
+    let mut csv_rows = Vec::new();
     for p in &parts {
         let whole = parts.iter().find(|q| q.stage == p.stage && q.part == "whole step").map(|q| q.ms);
         let share = whole.filter(|_| p.part != "whole step").map(|w| p.ms / w);
         let peak = p.peak_mib.map(|m| format!("{m:.0}")).unwrap_or_else(|| "-".into());
         md += &format!("| {} | {} | {:.1} | {} | {peak} |\n", p.stage, p.part, p.ms, share.map(|s| format!("{:.0}%", s * 100.0)).unwrap_or_else(|| "-".into()));
-        csv += &format!(
-            "{},{},{:.3},{},{}\n",
-            p.stage,
-            p.part,
-            p.ms,
+        csv_rows.push([
+            p.stage.clone(),
+            p.part.clone(),
+            format!("{:.3}", p.ms),
             share.map(|s| format!("{s:.4}")).unwrap_or_default(),
-            p.peak_mib.map(|m| format!("{m:.1}")).unwrap_or_default()
-        );
+            p.peak_mib.map(|m| format!("{m:.1}")).unwrap_or_default(),
+        ]);
     }
+    let csv = crate::table::to_csv(&["stage", "part", "ms", "share", "peak_mib"], csv_rows);
     md += "\nPeak memory is the process's high-water mark after each stage (it only grows).\n";
     let write = |name: &str, text: &str| crate::imageio::write_atomic(&out.join(name), text.as_bytes()).map_err(|e| io(&out.join(name), e));
     write("breakdown.md", &md)?;

@@ -151,11 +151,13 @@ pub fn environment(out: &Path, quick: bool) -> Result<String, String> {
         "## Environment light: error against a {reference_samples}-sample reference at equal samples\n\n{} points inside a 96-Gaussian body, normals all around; error = RMS over points of the difference, over the reference's mean.\n\n| sky | estimator | samples | relative RMS error | time (ms) |\n|---|---|---|---|---|\n",
         points.len()
     );
-    let mut csv = String::from("sky,estimator,samples,relative_rms_error,seconds\n");
     for r in &rows {
         md += &format!("| {} | {} | {} | {:.4} | {:.1} |\n", r.sky, r.method, r.samples, r.error, r.seconds * 1e3);
-        csv += &format!("{},{},{},{},{}\n", r.sky, r.method, r.samples, r.error, r.seconds);
     }
+    let csv = crate::table::to_csv(
+        &["sky", "estimator", "samples", "relative_rms_error", "seconds"],
+        rows.iter().map(|r| [r.sky.to_string(), r.method.to_string(), r.samples.to_string(), r.error.to_string(), r.seconds.to_string()]),
+    );
     crate::imageio::write_atomic(&out.join("environment.md"), md.as_bytes()).map_err(|e| e.to_string())?;
     crate::imageio::write_atomic(&out.join("environment.csv"), csv.as_bytes()).map_err(|e| e.to_string())?;
     let mut series = Vec::new();

@@ -317,7 +317,7 @@ fn write_outputs(out: &Path, scene: &Path, points: &[CurvePoint]) -> Result<Stri
     sorted.sort_by_key(|p| (order.iter().position(|r| *r == p.run), p.iteration));
     let points = &sorted[..];
     let f = |v: Option<f64>, digits: usize| v.map(|v| format!("{v:.digits$}")).unwrap_or_else(|| "-".into());
-    let mut csv = String::from("run,iteration,train_seconds,novel_pose_psnr,novel_pose_foreground_psnr,novel_pose_ssim,albedo_psnr,albedo_foreground_psnr,light_error_degrees,peak_rss_mib\n");
+    let mut csv_rows = Vec::new();
     let mut md = format!(
         "## Time against error: {}\n\nTraining wall time (scoring excluded), novel-pose test images (sRGB 8-bit; foreground = mask or any rendered pixel).\n\n| fit | iteration | training time (s) | novel pose PSNR | foreground PSNR | SSIM | albedo PSNR | albedo foreground PSNR | light error (deg) | peak RSS (MiB) |\n|---|---|---|---|---|---|---|---|---|---|\n",
         scene.display()
@@ -335,9 +335,24 @@ fn write_outputs(out: &Path, scene: &Path, points: &[CurvePoint]) -> Result<Stri
             f(p.light_error_degrees, 2),
             f(p.peak_rss_mib, 0),
         ];
-        csv += &(cells.join(",").replace(",-", ",") + "\n");
         md += &format!("| {} |\n", cells.join(" | "));
+        csv_rows.push(cells.map(|c| if c == "-" { String::new() } else { c }));
     }
+    let csv = crate::table::to_csv(
+        &[
+            "run",
+            "iteration",
+            "train_seconds",
+            "novel_pose_psnr",
+            "novel_pose_foreground_psnr",
+            "novel_pose_ssim",
+            "albedo_psnr",
+            "albedo_foreground_psnr",
+            "light_error_degrees",
+            "peak_rss_mib",
+        ],
+        csv_rows,
+    );
     let write = |name: &str, text: &str| crate::imageio::write_atomic(&out.join(name), text.as_bytes()).map_err(|e| crate::train::io(&out.join(name), e));
     if let Some(summary) = grid_against_mlp(points) {
         md += &format!("\n{summary}\n");

@@ -119,13 +119,14 @@ pub fn gradients(out: &Path, quick: bool, scene: Option<&Path>) -> Result<String
         "## SDF gradients: forward-mode tangents vs central differences\n\n\
          | task | method | points | time (ms) | vs baseline | max / median disagreement with tangents |\n|---|---|---|---|---|---|\n",
     );
-    let mut csv = String::from("task,method,points,seconds,baseline_seconds,max_disagreement,median_disagreement\n");
+    let mut csv_rows = Vec::new();
     for r in &rows {
         let error = r.error.map(|(max, median)| format!("{max:.2e} / {median:.2e}")).unwrap_or_else(|| "-".into());
         md += &format!("| {} | {} | {} | {:.2} | {:.2}x | {} |\n", r.task, r.method, r.points, r.seconds * 1e3, r.seconds / r.baseline_seconds, error);
         let (max, median) = r.error.map(|(a, b)| (a.to_string(), b.to_string())).unwrap_or_default();
-        csv += &format!("{},{},{},{},{},{max},{median}\n", r.task, r.method, r.points, r.seconds, r.baseline_seconds);
+        csv_rows.push([r.task.to_string(), r.method.to_string(), r.points.to_string(), r.seconds.to_string(), r.baseline_seconds.to_string(), max, median]);
     }
+    let csv = crate::table::to_csv(&["task", "method", "points", "seconds", "baseline_seconds", "max_disagreement", "median_disagreement"], csv_rows);
     md += "\nBaselines, measured in the same run: a plain SDF step (forward + backward of the mean SDF) over the same points \
            for the Eikonal rows; a plain SDF forward pass for normals; for training steps, a step with tangents. \
            Disagreement: |g - g_tangents| / max(|g_tangents|, 0.1) on a human field with an MLP residual.\n";

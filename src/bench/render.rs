@@ -93,10 +93,10 @@ pub fn render(run: &Path, out: &Path, quick: bool) -> Result<String, FitError> {
         "## Render time per view: {} ({w} x {h}, camera {camera}, frame {frame}; {threads} threads)\n\n| light | s per view, all threads | s per view, one thread | ratio |\n|---|---|---|---|\n",
         run.display()
     );
-    let mut csv = String::from("light,seconds_all_threads,seconds_one_thread\n");
+    let mut csv_rows: Vec<[String; 3]> = Vec::new();
     for (name, all, one) in &rows {
         md += &format!("| {name} | {all:.3} | {one:.3} | {:.2}x |\n", all / one);
-        csv += &format!("{name},{all:.5},{one:.5}\n");
+        csv_rows.push([name.to_string(), format!("{all:.5}"), format!("{one:.5}")]);
     }
     md += &format!(
         "\n{} test views of the fitted light, as the evaluation renders them: {sequential:.3} s per view one after another, {together:.3} s per view {} at once ({:.2}x). Peak memory {} MiB.\n",
@@ -105,7 +105,8 @@ pub fn render(run: &Path, out: &Path, quick: bool) -> Result<String, FitError> {
         together / sequential,
         peak_rss_mib().map_or("-".to_string(), |m| format!("{m:.0}"))
     );
-    csv += &format!("views one after another,{sequential:.5},\nviews at once,{together:.5},\n");
+    csv_rows.push(["views one after another".into(), format!("{sequential:.5}"), String::new()]);
+    csv_rows.push(["views at once".into(), format!("{together:.5}"), String::new()]);
     match strata_times {
         Some([traced, shortcuts]) => {
             md += &format!(
@@ -113,10 +114,12 @@ pub fn render(run: &Path, out: &Path, quick: bool) -> Result<String, FitError> {
                 strata_views.len(),
                 shortcuts / traced
             );
-            csv += &format!("views with albedo every stratum traced,{traced:.5},\nviews with albedo strata shortcuts,{shortcuts:.5},\n");
+            csv_rows.push(["views with albedo every stratum traced".into(), format!("{traced:.5}"), String::new()]);
+            csv_rows.push(["views with albedo strata shortcuts".into(), format!("{shortcuts:.5}"), String::new()]);
         }
         None => md += "\nThe capture's pixels are their centres: no pixel is rendered over its area.\n",
     }
+    let csv = crate::table::to_csv(&["light", "seconds_all_threads", "seconds_one_thread"], csv_rows);
     std::fs::create_dir_all(out).map_err(|e| io(out, e))?;
     let write = |name: &str, text: &str| crate::imageio::write_atomic(&out.join(name), text.as_bytes()).map_err(|e| io(&out.join(name), e));
     write("render.md", &md)?;

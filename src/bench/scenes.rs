@@ -50,9 +50,7 @@ pub fn scenes(options: &ScenesBenchOptions, mut on: impl FnMut(String)) -> Resul
     std::fs::create_dir_all(&options.out).map_err(|e| crate::train::io(&options.out, e))?;
     let several = options.seeds.len() > 1;
     let mut md = table_head(["scene", "seed"]);
-    let mut csv =
-        "scene,wall_seconds,light_error,light_error_unit,novel_pose_foreground_psnr,novel_pose_ssim,novel_view_foreground_psnr,albedo_foreground_psnr,seed\n"
-            .to_string();
+    let mut csv_rows: Vec<Vec<String>> = Vec::new();
     let mut names: Vec<String> = Vec::new();
     let mut rows: Vec<Row> = Vec::new();
     let fits = scenes.len() * options.seeds.len();
@@ -83,7 +81,7 @@ pub fn scenes(options: &ScenesBenchOptions, mut on: impl FnMut(String)) -> Resul
             let row = Row::of(&name, seed, &report);
             on(format!("bench scenes: {run}: {}", row.cells().join(", ")));
             md += &format!("| {} |\n", row.cells().join(" | "));
-            csv += &row.csv();
+            csv_rows.push(row.csv());
             rows.push(row);
         }
     }
@@ -101,8 +99,19 @@ pub fn scenes(options: &ScenesBenchOptions, mut on: impl FnMut(String)) -> Resul
         // A summary of an earlier run at several seeds would contradict this run's table.
         std::fs::remove_file(options.out.join("scenes-summary.csv")).map_err(|e| crate::train::io(&options.out.join("scenes-summary.csv"), e))?;
     }
+    let header = [
+        "scene",
+        "wall_seconds",
+        "light_error",
+        "light_error_unit",
+        "novel_pose_foreground_psnr",
+        "novel_pose_ssim",
+        "novel_view_foreground_psnr",
+        "albedo_foreground_psnr",
+        "seed",
+    ];
     write("scenes.md", &md)?;
-    write("scenes.csv", &csv)?;
+    write("scenes.csv", &crate::table::to_csv(&header, csv_rows))?;
     Ok(md)
 }
 
@@ -119,7 +128,7 @@ fn table_head(first: [&str; 2]) -> String {
 /// Each scene's mean and sample standard deviation over its fits, as a Markdown table and a CSV.
 fn summary(names: &[String], rows: &[Row]) -> (String, String) {
     let mut md = table_head(["scene", "fits"]);
-    let mut csv = "scene,fits,wall_seconds_mean,wall_seconds_sd,light_error_mean,light_error_sd,light_error_unit,novel_pose_foreground_psnr_mean,novel_pose_foreground_psnr_sd,novel_pose_ssim_mean,novel_pose_ssim_sd,novel_view_foreground_psnr_mean,novel_view_foreground_psnr_sd,albedo_foreground_psnr_mean,albedo_foreground_psnr_sd\n".to_string();
+    let mut csv_rows: Vec<Vec<String>> = Vec::new();
     for name in names {
         let fits: Vec<&Row> = rows.iter().filter(|r| &r.name == name).collect();
         let stats = |value: &dyn Fn(&Row) -> Option<f64>| MeanSd::of(fits.iter().filter_map(|r| value(r)));
@@ -139,10 +148,32 @@ fn summary(names: &[String], rows: &[Row]) -> (String, String) {
         let mut cells = vec![name.clone(), fits.len().to_string(), cell(wall, 0), light_cell];
         cells.extend(columns.iter().zip(digits).map(|(s, d)| cell(*s, d)));
         md += &format!("| {} |\n", cells.join(" | "));
-        let pair = |s: Option<MeanSd>| s.map(|s| format!("{:.4},{:.4}", s.mean, s.sd)).unwrap_or_else(|| ",".into());
-        csv += &format!("{name},{},{},{},{unit},{}\n", fits.len(), pair(wall), pair(light), columns.iter().map(|s| pair(*s)).collect::<Vec<_>>().join(","));
+        let pair = |s: Option<MeanSd>| s.map(|s| [format!("{:.4}", s.mean), format!("{:.4}", s.sd)]).unwrap_or_default();
+        let mut row = vec![name.clone(), fits.len().to_string()];
+        row.extend(pair(wall));
+        row.extend(pair(light));
+        row.push(unit.to_string());
+        columns.iter().for_each(|s| row.extend(pair(*s)));
+        csv_rows.push(row);
     }
-    (md, csv)
+    let header = [
+        "scene",
+        "fits",
+        "wall_seconds_mean",
+        "wall_seconds_sd",
+        "light_error_mean",
+        "light_error_sd",
+        "light_error_unit",
+        "novel_pose_foreground_psnr_mean",
+        "novel_pose_foreground_psnr_sd",
+        "novel_pose_ssim_mean",
+        "novel_pose_ssim_sd",
+        "novel_view_foreground_psnr_mean",
+        "novel_view_foreground_psnr_sd",
+        "albedo_foreground_psnr_mean",
+        "albedo_foreground_psnr_sd",
+    ];
+    (md, crate::table::to_csv(&header, csv_rows))
 }
 
 /// A light error as the tables show it: a position's metres in centimetres to 1 digit, a
@@ -231,10 +262,20 @@ impl Row {
         ]
     }
 
-    fn csv(&self) -> String {
+    fn csv(&self) -> Vec<String> {
         let f = |v: Option<f64>| v.map(|v| format!("{v:.4}")).unwrap_or_default();
         let (light, unit) = self.light.map(|(v, u)| (format!("{v:.4}"), u)).unwrap_or_default();
-        format!("{},{:.1},{light},{unit},{},{},{},{},{}\n", self.name, self.wall, f(self.pose), f(self.pose_ssim), f(self.view), f(self.albedo), self.seed)
+        vec![
+            self.name.clone(),
+            format!("{:.1}", self.wall),
+            light,
+            unit.to_string(),
+            f(self.pose),
+            f(self.pose_ssim),
+            f(self.view),
+            f(self.albedo),
+            self.seed.to_string(),
+        ]
     }
 }
 

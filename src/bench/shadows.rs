@@ -184,7 +184,19 @@ pub fn shadows(out: &Path, quick: bool) -> Result<String, String> {
          against the scalar closed form without culling, measured in the same run.\n\n\
          | method | Gaussians | rays | time (ms) | pairs/s | vs scalar, culling off | pairs sent to the scalar integral | % of FLOP peak |\n|---|---|---|---|---|---|---|---|\n",
     );
-    let mut csv = String::from("section,method,gaussians,rays,seconds,pairs_per_second,max_error,scalar_share\n");
+    let mut csv_rows = Vec::new();
+    let csv_row = |section: &str, r: &Row, max_error: String, scalar_share: String| {
+        [
+            section.to_string(),
+            r.method.to_string(),
+            r.gaussians.to_string(),
+            r.rays.to_string(),
+            r.seconds.to_string(),
+            r.pairs_per_second.to_string(),
+            max_error,
+            scalar_share,
+        ]
+    };
     for r in &rows {
         let baseline = rows
             .iter()
@@ -202,16 +214,17 @@ pub fn shadows(out: &Path, quick: bool) -> Result<String, String> {
             r.pairs_per_second / baseline,
             100.0 * r.pairs_per_second * FLOPS_PER_PAIR / peak
         );
-        csv += &format!("throughput,{},{},{},{},{},,{}\n", r.method, r.gaussians, r.rays, r.seconds, r.pairs_per_second, r.scalar_share.unwrap_or(f64::NAN));
+        csv_rows.push(csv_row("throughput", r, String::new(), r.scalar_share.unwrap_or(f64::NAN).to_string()));
     }
     md += "\n## Closed form against ray marching (96 Gaussians, culling tolerance 1e-6, max error against the unculled f64 closed form)\n\n| method | time (ms) | speed vs closed form | max abs transmittance error |\n|---|---|---|---|\n";
     let closed_seconds = trade[0].seconds;
     for r in &trade {
         md += &format!("| {} | {:.3} | {:.2}x | {:.2e} |\n", r.method, r.seconds * 1e3, closed_seconds / r.seconds, r.max_error.unwrap_or(f64::NAN));
-        csv += &format!("accuracy,{},{},{},{},{},{},\n", r.method, r.gaussians, r.rays, r.seconds, r.pairs_per_second, r.max_error.unwrap_or(f64::NAN));
+        csv_rows.push(csv_row("accuracy", r, r.max_error.unwrap_or(f64::NAN).to_string(), String::new()));
     }
     md += &format!("\nFLOP peak: {:.1} GFLOP/s ({peak_text}); the closed form is counted at {FLOPS_PER_PAIR} flop per pair.\n", peak / 1e9);
     crate::imageio::write_atomic(&out.join("shadows.md"), md.as_bytes()).map_err(|e| e.to_string())?;
+    let csv = crate::table::to_csv(&["section", "method", "gaussians", "rays", "seconds", "pairs_per_second", "max_error", "scalar_share"], csv_rows);
     crate::imageio::write_atomic(&out.join("shadows.csv"), csv.as_bytes()).map_err(|e| e.to_string())?;
     let chart = Chart {
         title: "shadow transmittance: time vs error".into(),

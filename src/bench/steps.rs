@@ -158,11 +158,13 @@ pub fn steps(scene_path: &Path, schedule_path: &Path, out: &Path, quick: bool, r
         schedule.samples_per_ray,
         schedule.fine_samples_per_ray
     );
-    let mut csv = String::from("stage,variant,ms_per_step,ratio\n");
     for (stage, name, ms, ratio) in &rows {
         md += &format!("| {stage} | {name} | {ms:.1} | {ratio:.2}x |\n");
-        csv += &format!("{stage},{name},{ms:.3},{ratio:.4}\n");
     }
+    let csv = crate::table::to_csv(
+        &["stage", "variant", "ms_per_step", "ratio"],
+        rows.iter().map(|(stage, name, ms, ratio)| [stage.to_string(), name.to_string(), format!("{ms:.3}"), format!("{ratio:.4}")]),
+    );
     md += "\nBaseline: the first row of each stage (the mlp field rendering every ray), measured in the same run.\n";
     if let Some(run) = run {
         md += &format!("The fitted field's rows: the fit in `{}` continued from its checkpoint, 100 iterations before its end.\n", run.display());

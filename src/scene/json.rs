@@ -228,46 +228,64 @@ const NON_FINITE_MARK: &str = "\\u0000non-finite:";
 /// `text` with every `NaN`, `Infinity`, `-Infinity` and overflowing number outside strings
 /// replaced by a JSON string holding `NON_FINITE_MARK` and the literal; whether any was found.
 fn mark_non_finite_literals(text: &str) -> (String, bool) {
+    // Byte by byte: what is copied is copied whole, byte for byte (a string's UTF-8 included),
+    // and what is inserted is ASCII, so the result is UTF-8 again.
     let bytes = text.as_bytes();
-    let mut out = String::with_capacity(text.len());
+    let mut out: Vec<u8> = Vec::with_capacity(text.len());
     let (mut i, mut found, mut in_string) = (0, false, false);
     while i < bytes.len() {
         let c = bytes[i];
         if in_string {
             if c == b'\\' && i + 1 < bytes.len() {
-                out.push_str(&text[i..i + 2]);
+                out.extend_from_slice(&bytes[i..i + 2]);
                 i += 2;
                 continue;
             }
             in_string = c != b'"';
-            out.push(c as char);
+            out.push(c);
             i += 1;
             continue;
         }
         if c == b'"' {
             in_string = true;
-            out.push('"');
+            out.push(b'"');
             i += 1;
             continue;
         }
-        // A token of letters, digits, signs and dots: a literal or a number.
+        // A token of letters, digits, signs and dots (all ASCII): a literal or a number.
         let end = i + bytes[i..].iter().take_while(|b| b.is_ascii_alphanumeric() || matches!(b, b'+' | b'-' | b'.')).count();
         if end > i {
-            let token = &text[i..end];
+            let token = std::str::from_utf8(&bytes[i..end]).unwrap_or_default();
             let non_finite = matches!(token, "NaN" | "-NaN" | "Infinity" | "-Infinity" | "+Infinity") || token.parse::<f64>().is_ok_and(|v| !v.is_finite());
             if non_finite {
-                out.push_str(&format!("\"{NON_FINITE_MARK}{token}\""));
+                out.extend_from_slice(format!("\"{NON_FINITE_MARK}{token}\"").as_bytes());
                 found = true;
             } else {
-                out.push_str(token);
+                out.extend_from_slice(&bytes[i..end]);
             }
             i = end;
             continue;
         }
         // Everything else (punctuation, whitespace, other UTF-8) is copied as it is.
-        let next = text[i..].chars().next().map_or(1, char::len_utf8);
-        out.push_str(&text[i..i + next]);
-        i += next;
+        out.push(c);
+        i += 1;
     }
-    (out, found)
+    (String::from_utf8(out).unwrap_or_else(|_| text.to_string()), found)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::mark_non_finite_literals;
+
+    #[test]
+    fn non_finite_literals_are_marked_and_every_other_byte_is_kept() {
+        // An escape before a two-byte character inside a string, other UTF-8 outside and inside.
+        let text = "{\"\\ݣ é\": NaN, \"name\": \"héllo ݣ\", \"x\": [1e999, -Infinity, 2.5]}";
+        let (marked, found) = mark_non_finite_literals(text);
+        assert!(found);
+        assert!(marked.contains("\"\\ݣ é\"") && marked.contains("\"héllo ݣ\"") && marked.contains("2.5"), "{marked}");
+        assert_eq!(marked.matches("non-finite:").count(), 3, "{marked}");
+        let (same, none) = mark_non_finite_literals("{\"ä\": [1, 2]}");
+        assert!(!none && same == "{\"ä\": [1, 2]}");
+    }
 }

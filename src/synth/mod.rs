@@ -516,7 +516,9 @@ pub fn generate(options: &SynthOptions, out: &Path, force: bool, mut progress: i
     if temp.exists() {
         std::fs::remove_dir_all(&temp).map_err(|e| io_error(&temp, e))?;
     }
-    let result = write_scene(options, &plan, &temp, &mut progress);
+    // The scene is named after its folder (`datasets-synthetic/human-mono` is "human-mono").
+    let name = out.file_name().map(|n| n.to_string_lossy().into_owned());
+    let result = write_scene(options, &plan, &temp, name, &mut progress);
     match result {
         Ok(report) => {
             if out.exists() {
@@ -619,7 +621,7 @@ fn unlisted_file(dir: &Path, relative: &Path, listed: &std::collections::BTreeSe
     None
 }
 
-fn write_scene(options: &SynthOptions, plan: &Plan, dir: &Path, progress: &mut impl FnMut(usize, usize)) -> Result<Report, SynthError> {
+fn write_scene(options: &SynthOptions, plan: &Plan, dir: &Path, name: Option<String>, progress: &mut impl FnMut(usize, usize)) -> Result<Report, SynthError> {
     for sub in SCENE_FOLDERS {
         if sub == "meshes" && !options.meshes {
             continue;
@@ -677,11 +679,13 @@ fn write_scene(options: &SynthOptions, plan: &Plan, dir: &Path, progress: &mut i
         frames.push(frame);
     }
     let lights_json: serde_json::Map<String, Value> = plan.lights.iter().map(|(n, l)| (n.clone(), light_json(l))).collect();
-    let name = format!(
-        "{}-{}",
-        serde_json::to_value(options.character).ok().and_then(|v| v.as_str().map(String::from)).unwrap_or_default(),
-        serde_json::to_value(options.light).ok().and_then(|v| v.as_str().map(String::from)).unwrap_or_default()
-    );
+    let name = name.unwrap_or_else(|| {
+        format!(
+            "{}-{}",
+            serde_json::to_value(options.character).ok().and_then(|v| v.as_str().map(String::from)).unwrap_or_default(),
+            serde_json::to_value(options.light).ok().and_then(|v| v.as_str().map(String::from)).unwrap_or_default()
+        )
+    });
     let scene = json!({
         "format": crate::scene::FORMAT,
         "name": name,
