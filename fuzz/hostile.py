@@ -134,6 +134,7 @@ class Campaign:
 
         walk(doc, [])
         path = self.rng.choice(paths[1:])
+        self.last_mutation = path
         parent = doc
         for key in path[:-1]:
             parent = parent[key]
@@ -204,7 +205,7 @@ class Campaign:
                     open(target, "wb").write(bytes(self.rng.randrange(256) for _ in range(200)))
             command = self.rng.choice(["inspect", "fit"])
             args = ["inspect", scene] if command == "inspect" else ["fit", scene, "--out", os.path.join(self.work, f"scene-run-{k}"), "--iterations", "1", "--no-eval"]
-            self.run(args, self.work, must_refuse is True, [scene], label)
+            self.run(args, self.work, must_refuse is True, [scene], f"{label} {getattr(self, 'last_mutation', '')}")
             shutil.rmtree(os.path.join(self.work, f"scene-run-{k}"), ignore_errors=True)
             shutil.rmtree(scene, ignore_errors=True)
 

@@ -78,6 +78,8 @@ fn required_top_level_fields() {
 fn skeleton_rules() {
     expect_path(broken(|s, _| s["skeleton"]["bones"] = json!([])), "skeleton.bones", "at least one");
     expect_path(broken(|s, _| s["skeleton"]["bones"][1]["parent"] = json!(1)), "skeleton.bones[1].parent", "earlier");
+    // A bone without its parent key would become a second root: refused.
+    expect_path(broken(|s, _| drop(s["skeleton"]["bones"][1].as_object_mut().unwrap().remove("parent"))), "skeleton.bones[1].parent", "missing");
     expect_path(broken(|s, _| s["skeleton"]["bones"][0]["parent"] = json!(0)), "skeleton.bones[0].parent", "earlier");
     expect_path(broken(|s, _| s["skeleton"]["bones"][0]["length"] = json!(0.0)), "skeleton.bones[0].length", "> 0");
     expect_path(broken(|s, _| s["skeleton"]["bones"][1]["name"] = json!("root")), "skeleton.bones[1].name", "twice");

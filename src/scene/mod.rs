@@ -204,6 +204,16 @@ impl Reader<'_> {
             if !names.insert(name.clone()) {
                 return Err(name_node.error(format!("bone name {name:?} is used twice")));
             }
+            // Required, null for a root: a bone that lost its parent would silently become a
+            // second root.
+            let has_parent_key = item.value.as_object().is_some_and(|o| o.contains_key("parent"));
+            if !has_parent_key {
+                return Err(SceneError {
+                    file: self.file.to_path_buf(),
+                    path: format!("{}.parent", item.path),
+                    message: "missing required field (null for a root)".into(),
+                });
+            }
             let parent = match item.opt_field("parent")? {
                 None => None,
                 Some(p) => {
