@@ -31,16 +31,23 @@ pub const FIT_FILES: [&str; 4] = ["fit.json", "gaussians.json", "losses.csv", "l
 /// The folders an evaluation renders into.
 pub const RENDER_FOLDERS: [&str; 2] = ["renders", "renders-train"];
 
-/// Removes from `dir` the files an evaluation writes there (its PNGs, `metrics.*`,
-/// `compare.png`), and `dir` itself when that leaves it empty: what another scene's or an earlier
-/// fit's evaluation left must not stand beside a new one's table. Files of other kinds stay.
+/// Removes from `dir` what an earlier evaluation wrote there (the images its `metrics.csv`
+/// lists with their albedos, `compare.png`, `metrics.*`), and `dir` itself when that leaves it
+/// empty: another scene's or an earlier fit's renders must not stand beside a new table. Any
+/// other file, a user's, stays.
 pub fn clear_renders(dir: &Path) -> Result<(), FitError> {
-    let Ok(entries) = std::fs::read_dir(dir) else { return Ok(()) };
-    for entry in entries.flatten() {
-        let path = entry.path();
-        let ours = path.extension().is_some_and(|e| e == "png")
-            || ["metrics.csv", "metrics.md", "metrics.json"].iter().any(|n| path.file_name().is_some_and(|f| f == *n));
-        if ours && entry.file_type().is_ok_and(|t| t.is_file()) {
+    let listed = crate::files::read_text(&dir.join("metrics.csv"), crate::files::STATE_BYTES)
+        .ok()
+        .and_then(|text| crate::table::read_csv(&text).ok())
+        .map(|(_, rows)| rows.into_iter().filter_map(|row| row.into_iter().next()).collect::<Vec<String>>())
+        .unwrap_or_default();
+    // A render's name is one plain file name (`render_name`); anything else is not ours.
+    let plain = |name: &String| !name.is_empty() && !name.starts_with('.') && !name.contains(['/', '\\']) && name.ends_with(".png");
+    let renders = listed.iter().filter(|n| plain(n)).flat_map(|n| [n.clone(), n.replace(".png", "-albedo.png")]);
+    let own = ["compare.png", "metrics.csv", "metrics.md", "metrics.json"].map(String::from);
+    for name in renders.chain(own) {
+        let path = dir.join(&name);
+        if std::fs::symlink_metadata(&path).is_ok_and(|m| m.is_file()) {
             std::fs::remove_file(&path).map_err(|e| io(&path, e))?;
         }
     }

@@ -55,8 +55,7 @@ impl RunLock {
     /// but a refusal while another process works in the run (its checkpoint may be half
     /// swapped).
     pub fn for_output(run: &Path, out: &Path, command: &str) -> Result<Option<Self>, FitError> {
-        let resolve = |p: &Path| std::path::absolute(p).ok().map(|a| std::fs::canonicalize(&a).unwrap_or(a));
-        let inside = match (resolve(run), resolve(out)) {
+        let inside = match (resolved(run), resolved(out)) {
             (Some(run), Some(out)) => out.starts_with(run),
             _ => true,
         };
@@ -67,6 +66,22 @@ impl RunLock {
             return Err(io(run, format!("another umbra {what} (process {pid}) is working in this run folder; wait for it to finish")));
         }
         Ok(None)
+    }
+}
+
+/// `path` absolute with its links resolved, also when it does not exist yet: its nearest
+/// existing ancestor resolved, the rest appended (so a folder about to be made inside a run
+/// reached through a link is still seen inside it).
+fn resolved(path: &Path) -> Option<PathBuf> {
+    let absolute = std::path::absolute(path).ok()?;
+    let mut rest = Vec::new();
+    let mut at = absolute.as_path();
+    loop {
+        if let Ok(real) = std::fs::canonicalize(at) {
+            return Some(rest.iter().rev().fold(real, |p, c| p.join(c)));
+        }
+        rest.push(at.file_name()?.to_os_string());
+        at = at.parent()?;
     }
 }
 
@@ -93,4 +108,29 @@ pub fn held_elsewhere(run: &Path) -> bool {
 /// (Linux); elsewhere a lock is never assumed stale.
 fn process_is_gone(pid: u32) -> bool {
     Path::new("/proc/self").exists() && !Path::new(&format!("/proc/{pid}")).exists()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[cfg(unix)]
+    #[test]
+    fn an_output_inside_a_run_reached_through_a_link_takes_the_runs_lock() {
+        let dir = std::env::temp_dir().join(format!("umbra-lock-{}", std::process::id()));
+        let run = dir.join("run");
+        std::fs::create_dir_all(&run).unwrap();
+        let link = dir.join("link");
+        let _ = std::fs::remove_file(&link);
+        std::os::unix::fs::symlink(&run, &link).unwrap();
+        // The output, not yet made, named through the link; the run by its own path, and the
+        // other way round.
+        for (named_run, out) in [(&run, link.join("relit/sun")), (&link, run.join("relit/sun"))] {
+            let lock = RunLock::for_output(named_run, &out, "relight").unwrap();
+            assert!(lock.is_some() && run.join(LOCK_FILE).is_file(), "written into the run: locked ({})", out.display());
+        }
+        let elsewhere = RunLock::for_output(&link, &dir.join("out/sun"), "relight").unwrap();
+        assert!(elsewhere.is_none() && !run.join(LOCK_FILE).exists(), "written elsewhere: no lock");
+        let _ = std::fs::remove_dir_all(&dir);
+    }
 }

@@ -282,10 +282,12 @@ fn outputs_of_an_earlier_fit_or_scene_are_not_left_beside_new_ones() {
     let pngs = |dir: &Path| std::fs::read_dir(dir).unwrap().filter(|e| e.as_ref().unwrap().path().extension().is_some_and(|x| x == "png")).count();
     let before = pngs(&run.join("renders"));
     std::fs::write(run.join("renders/notes.txt"), "mine").unwrap();
+    std::fs::write(run.join("renders/my-picture.png"), "mine").unwrap();
     succeeds(&cwd(), &["render", s(&run), "--scene", s(&smaller)]);
     let after = pngs(&run.join("renders"));
     assert!(after < before, "{before} -> {after} PNGs");
     assert_eq!(std::fs::read_to_string(run.join("renders/notes.txt")).unwrap(), "mine", "a user's file stays");
+    assert_eq!(std::fs::read_to_string(run.join("renders/my-picture.png")).unwrap(), "mine", "a user's picture stays");
     // Refitted with --force --no-eval: no report or renders of the old fit remain.
     succeeds(&cwd(), &["fit", s(&scene), "--out", s(&run), "--iterations", "2", "--force", "--no-eval"]);
     for stale in ["report.html", "report.md", "report-relit.png", "renders/compare.png", "renders/metrics.csv"] {
