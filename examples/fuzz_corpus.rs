@@ -64,7 +64,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     std::fs::create_dir_all(&out)?;
     let schedule = out.join("seed-schedule.toml");
     std::fs::write(&schedule, umbra::schedule::DEFAULT_TEXT.replacen("[field]\n", "[field]\nlevels = 4\ntable_log2 = 8\n", 1))?;
-    let options = umbra::train::FitOptions {
+    let options = umbra::fit::FitOptions {
         scene: example.clone(),
         out: run.clone(),
         schedule,
@@ -73,7 +73,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         resume: false,
         force: true,
         force_schedule: false,
-        backend: umbra::train::Backend::Flex,
+        backend: umbra::backend::Backend::Flex,
         evaluate: false,
     };
     umbra::fit::fit(&options, |_| {})?;

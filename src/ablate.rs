@@ -8,9 +8,12 @@
 //! (on one machine, or on several sharing a disk) split the work; each writes the table of
 //! every run finished so far.
 
+use crate::backend::Backend;
+use crate::fit::FitOptions;
+use crate::fit_error::{io, FitError};
+use crate::messages::TrainMessage;
 use crate::plot::{Chart, Series};
 use crate::schedule::Schedule;
-use crate::train::{io, Backend, FitError, FitOptions, TrainMessage};
 use std::path::{Path, PathBuf};
 
 pub struct AblateOptions {

@@ -63,7 +63,7 @@ impl TransferBasis {
     /// The basis of one view (`camera`, `frame`) of a fitted avatar: its surfels as the view
     /// renders draw them (`eval::surfels`), the fitted light's shadow casters in that pose.
     pub fn of_view(
-        model: &crate::train::Avatar,
+        model: &crate::avatar::Avatar,
         scene: &crate::scene::Scene,
         camera: usize,
         frame: usize,
@@ -169,6 +169,8 @@ impl TransferBasis {
                 })
                 .collect(),
             Light::Uniform { .. } | Light::Environment { .. } => self.sky(&self.sky_light(light).unwrap_or_default()),
+            // Nothing to relight by but its ambient (commands refuse unknown lights first).
+            Light::Unknown { ambient, .. } => self.reflectance.iter().map(|r| *r * *ambient).collect(),
         };
         for ((p, v), &coverage) in self.pixels.iter().zip(values).zip(&self.coverage) {
             image.pixels[*p] = crate::imageio::composite_centre_sample(v.as_vec3().to_array(), coverage);
@@ -184,7 +186,7 @@ impl TransferBasis {
         match light {
             Light::Uniform { radiance } => Some(vec![*radiance * (4.0 * PI / k as f64); k]),
             Light::Environment { map, scale, .. } => Some(self.sky_cells(map, *scale)),
-            Light::Directional { .. } | Light::Point { .. } => None,
+            Light::Directional { .. } | Light::Point { .. } | Light::Unknown { .. } => None,
         }
     }
 

@@ -58,8 +58,8 @@ pub enum Command {
         #[arg(long, requires = "resume")]
         force_schedule: bool,
         /// The tensor backend: `flex` (the default, fast on CPU) or `ndarray`.
-        #[arg(long, value_enum, default_value_t = crate::train::Backend::Flex)]
-        backend: crate::train::Backend,
+        #[arg(long, value_enum, default_value_t = crate::backend::Backend::Flex)]
+        backend: crate::backend::Backend,
         /// Skip rendering and scoring the test images at the end.
         #[arg(long)]
         no_eval: bool,
@@ -74,8 +74,8 @@ pub enum Command {
         #[arg(long)]
         scene: Option<PathBuf>,
         /// The tensor backend: `flex` (the default, fast on CPU) or `ndarray`.
-        #[arg(long, value_enum, default_value_t = crate::train::Backend::Flex)]
-        backend: crate::train::Backend,
+        #[arg(long, value_enum, default_value_t = crate::backend::Backend::Flex)]
+        backend: crate::backend::Backend,
     },
     /// Score a fit: its test images (or training images) rendered and scored (PSNR over the
     /// whole image and the foreground, SSIM, per image and group), the light's error, and the
@@ -92,8 +92,8 @@ pub enum Command {
         #[arg(long, value_enum, default_value_t = EvalSplit::Test)]
         split: EvalSplit,
         /// The tensor backend: `flex` (the default, fast on CPU) or `ndarray`.
-        #[arg(long, value_enum, default_value_t = crate::train::Backend::Flex)]
-        backend: crate::train::Backend,
+        #[arg(long, value_enum, default_value_t = crate::backend::Backend::Flex)]
+        backend: crate::backend::Backend,
     },
     /// Render a fitted avatar under a new light: a sun, a point light, uniform light or an HDR
     /// environment map, in any of the scene's cameras and poses. Writes one PNG per view and a
@@ -123,8 +123,8 @@ pub enum Command {
         #[arg(long)]
         out: Option<PathBuf>,
         /// The tensor backend: `flex` (the default, fast on CPU) or `ndarray`.
-        #[arg(long, value_enum, default_value_t = crate::train::Backend::Flex)]
-        backend: crate::train::Backend,
+        #[arg(long, value_enum, default_value_t = crate::backend::Backend::Flex)]
+        backend: crate::backend::Backend,
         /// Relight through a visibility basis of DIRECTIONS directions (default 1024) precomputed
         /// per view, instead of tracing shadow rays for the light: writes basis.md with the
         /// precompute and relight times and the first view's error against the direct estimator.
@@ -155,8 +155,8 @@ pub enum Command {
         #[arg(long)]
         scene: Option<PathBuf>,
         /// The tensor backend: `flex` (the default, fast on CPU) or `ndarray`.
-        #[arg(long, value_enum, default_value_t = crate::train::Backend::Flex)]
-        backend: crate::train::Backend,
+        #[arg(long, value_enum, default_value_t = crate::backend::Backend::Flex)]
+        backend: crate::backend::Backend,
     },
     /// Export the fitted surface in one of the scene's poses as an OBJ mesh (marching tetrahedra
     /// on the fitted SDF at a cell of 1/160 of the body's size, vertex colours from the albedo,
@@ -177,8 +177,8 @@ pub enum Command {
         #[arg(long)]
         scene: Option<PathBuf>,
         /// The tensor backend: `flex` (the default, fast on CPU) or `ndarray`.
-        #[arg(long, value_enum, default_value_t = crate::train::Backend::Flex)]
-        backend: crate::train::Backend,
+        #[arg(long, value_enum, default_value_t = crate::backend::Backend::Flex)]
+        backend: crate::backend::Backend,
     },
     /// Fit one scene with several schedules and compare the runs in one table: light error,
     /// PSNR of novel poses, views, relighting and albedo, time and final loss. Writes
@@ -202,8 +202,8 @@ pub enum Command {
         #[arg(long)]
         force: bool,
         /// The tensor backend: `flex` (the default, fast on CPU) or `ndarray`.
-        #[arg(long, value_enum, default_value_t = crate::train::Backend::Flex)]
-        backend: crate::train::Backend,
+        #[arg(long, value_enum, default_value_t = crate::backend::Backend::Flex)]
+        backend: crate::backend::Backend,
     },
     /// Run a benchmark and write its table (Markdown, CSV) and plot (PNG).
     Bench {
@@ -301,7 +301,7 @@ pub fn main() -> i32 {
         Command::Synth { out, force, options } => synth(&out, force, &options),
         Command::Fit { scene, out, schedule, iterations, seed, resume, force, force_schedule, backend, no_eval } => {
             let seed = seed.or_else(|| resume.then(|| crate::fit::recorded_seed(&out)).flatten()).unwrap_or(0);
-            fit(&crate::train::FitOptions { scene, out, schedule, iterations, seed, resume, force, force_schedule, backend, evaluate: !no_eval })
+            fit(&crate::fit::FitOptions { scene, out, schedule, iterations, seed, resume, force, force_schedule, backend, evaluate: !no_eval })
         }
         Command::Render { run, scene, backend } => render(&run, scene.as_deref(), backend),
         Command::Eval { run, scene, split, backend } => eval(&run, scene.as_deref(), split, backend),
@@ -376,8 +376,8 @@ fn synth(out: &Path, force: bool, options: &crate::synth::SynthOptions) -> Resul
     Ok(())
 }
 
-fn fit(options: &crate::train::FitOptions) -> Result<(), String> {
-    use crate::train::TrainMessage;
+fn fit(options: &crate::fit::FitOptions) -> Result<(), String> {
+    use crate::messages::TrainMessage;
     let bar = progress_bar(0, "fitting");
     let report = crate::fit::fit(options, |message| match message {
         TrainMessage::Loaded { scene, training_images, frames, light } => {
@@ -452,8 +452,8 @@ fn fit(options: &crate::train::FitOptions) -> Result<(), String> {
 }
 
 /// Follows a command that renders or writes images one by one on `bar`.
-fn image_progress(bar: &crate::progress::Progress) -> impl FnMut(crate::train::TrainMessage) + '_ {
-    use crate::train::TrainMessage;
+fn image_progress(bar: &crate::progress::Progress) -> impl FnMut(crate::messages::TrainMessage) + '_ {
+    use crate::messages::TrainMessage;
     move |message| match message {
         TrainMessage::Evaluating { images } => bar.set_length(images as u64),
         TrainMessage::Rendered { done, name, psnr, .. } => {
@@ -464,7 +464,7 @@ fn image_progress(bar: &crate::progress::Progress) -> impl FnMut(crate::train::T
     }
 }
 
-fn render(run: &Path, scene: Option<&Path>, backend: crate::train::Backend) -> Result<(), String> {
+fn render(run: &Path, scene: Option<&Path>, backend: crate::backend::Backend) -> Result<(), String> {
     let bar = progress_bar(0, "rendering");
     let evaluation = crate::fit::render_run(run, scene, backend, image_progress(&bar)).map_err(|e| e.to_string())?;
     bar.finish_and_clear();
@@ -473,7 +473,7 @@ fn render(run: &Path, scene: Option<&Path>, backend: crate::train::Backend) -> R
     Ok(())
 }
 
-fn eval(run: &Path, scene: Option<&Path>, split: EvalSplit, backend: crate::train::Backend) -> Result<(), String> {
+fn eval(run: &Path, scene: Option<&Path>, split: EvalSplit, backend: crate::backend::Backend) -> Result<(), String> {
     let split = match split {
         EvalSplit::Test => crate::scene::Split::Test,
         EvalSplit::Train => crate::scene::Split::Train,
@@ -516,7 +516,7 @@ fn eval(run: &Path, scene: Option<&Path>, split: EvalSplit, backend: crate::trai
 }
 
 fn ablate(options: &crate::ablate::AblateOptions) -> Result<(), String> {
-    use crate::train::TrainMessage;
+    use crate::messages::TrainMessage;
     let bar = progress_bar(0, "fitting");
     let runs = options.schedules.len();
     let summary = crate::ablate::ablate(options, |k, name, message| match message {
@@ -566,7 +566,7 @@ fn export_mesh(
     out: Option<PathBuf>,
     all_frames: Option<PathBuf>,
     scene: Option<PathBuf>,
-    backend: crate::train::Backend,
+    backend: crate::backend::Backend,
 ) -> Result<(), String> {
     use crate::export::Targets;
     let targets = match (frame, out, all_frames) {

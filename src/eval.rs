@@ -7,7 +7,9 @@
 //! its zero level set by marching tetrahedra (`isosurface`), each crossing bisected on the
 //! field itself.
 
+use crate::avatar::Avatar;
 use crate::environment::MisEstimator;
+use crate::fit_error::FitError;
 use crate::imageio::RgbImage;
 use crate::isosurface::{bisect, extract, Grid, Mesh};
 use crate::light::Light;
@@ -16,7 +18,6 @@ use crate::scene::{Footprint, Scene};
 use crate::shading::{shade_lambertian, Emitter, LightKind};
 use crate::shadow::PosedGaussian;
 use crate::skeleton::PoseTensors;
-use crate::train::{Avatar, FitError};
 use burn::tensor::{Device, Tensor, TensorData};
 use glam::DVec3;
 use rayon::prelude::*;
@@ -737,7 +738,7 @@ fn emitter(light: &Light, device: &Device) -> Option<(Emitter, Tensor<1>)> {
     match light {
         Light::Directional { direction, irradiance, ambient } => Some((Emitter::Sun { direction: t(*direction), irradiance: t(*irradiance) }, t(*ambient))),
         Light::Point { position, intensity, ambient } => Some((Emitter::Point { position: t(*position), intensity: t(*intensity) }, t(*ambient))),
-        Light::Uniform { .. } | Light::Environment { .. } => None,
+        Light::Uniform { .. } | Light::Environment { .. } | Light::Unknown { .. } => None,
     }
 }
 

@@ -3,8 +3,9 @@
 //! as the renders are) and normals (the SDF's exact gradient).
 
 use crate::eval::surface_mesh;
+use crate::fit_error::{io, FitError};
+use crate::messages::TrainMessage;
 use crate::skeleton::PoseTensors;
-use crate::train::{io, FitError, TrainMessage};
 use burn::module::Module;
 use std::path::{Path, PathBuf};
 
@@ -12,7 +13,7 @@ pub struct ExportOptions {
     pub run: PathBuf,
     pub scene: Option<PathBuf>,
     pub targets: Targets,
-    pub backend: crate::train::Backend,
+    pub backend: crate::backend::Backend,
 }
 
 /// Which poses go to which files.
@@ -57,8 +58,8 @@ fn written_by_export(path: &Path) -> bool {
 /// Exports the meshes; every file is written atomically, and nothing before the run, its scene
 /// and the frames are known good.
 pub fn export_meshes(options: &ExportOptions, mut on: impl FnMut(TrainMessage)) -> Result<Vec<Exported>, FitError> {
-    let trainer = crate::run::restore(&options.run, options.scene.as_deref(), options.backend)?;
-    let scene = &trainer.scene;
+    let restored = crate::run::restore(&options.run, options.scene.as_deref(), options.backend)?;
+    let scene = &restored.scene;
     let targets = options.targets.resolve(scene.frames.len())?;
     // A file in the way is replaced only when an earlier export wrote it.
     if let Some((_, path)) = targets.iter().find(|(_, path)| path.exists() && !written_by_export(path)) {
@@ -69,8 +70,8 @@ pub fn export_meshes(options: &ExportOptions, mut on: impl FnMut(TrainMessage)) 
         Targets::All { dir } => dir.clone(),
     };
     let _lock = crate::run_lock::RunLock::for_output(&options.run, &written, "export-mesh")?;
-    let model = trainer.model()?.valid();
-    let device = trainer.device.clone().without_autodiff();
+    let model = restored.fitted.model.valid();
+    let device = restored.fitted.device.clone().without_autodiff();
     let scale = crate::run::albedo_scale(scene, &model);
     let extent = scene.body_extent();
     on(TrainMessage::Evaluating { images: targets.len() });

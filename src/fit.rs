@@ -3,8 +3,12 @@
 //! (written and read back by `run`), exact `--resume`, and the evaluation of the test images
 //! at the end (rendered by `eval`).
 
+use crate::avatar::{Avatar, Fitted};
+use crate::backend::Backend;
 use crate::eval::{render_view_and_albedo, Lighting};
+use crate::fit_error::{io, FitError};
 use crate::imageio::RgbImage;
+use crate::messages::{StepStats, TrainMessage};
 use crate::metrics::{score, ErrorRegions, ImageScores};
 use crate::plot::{Chart, Series};
 pub use crate::run::{albedo_scale, existing_checkpoint, restore, resume_checkpoint, save_checkpoint_until, save_png, CHECKPOINT, SCHEDULE_COPY};
@@ -13,12 +17,30 @@ use crate::run_lock::RunLock;
 use crate::scene::{Scene, Split};
 use crate::schedule::Schedule;
 use crate::shading::LightKind;
-use crate::train::{io, Avatar, FitError, FitOptions, StepStats, TrainMessage, Trainer};
+use crate::train::Trainer;
 use burn::module::Module;
 use serde_json::json;
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
+
+#[derive(Clone, Debug)]
+pub struct FitOptions {
+    pub scene: PathBuf,
+    pub out: PathBuf,
+    pub schedule: PathBuf,
+    pub iterations: Option<usize>,
+    pub seed: u64,
+    pub resume: bool,
+    /// Replace an earlier run's checkpoint and outputs in `out`.
+    pub force: bool,
+    /// With `resume`: continue even though the schedule or the iteration count differs from
+    /// the run's (otherwise refused: it would not be the continuation it claims).
+    pub force_schedule: bool,
+    pub backend: Backend,
+    /// Render and score the test images at the end.
+    pub evaluate: bool,
+}
 
 /// The three segments of the schedule, for timing and reporting.
 fn segment(schedule: &Schedule, iteration: usize) -> &'static str {
@@ -34,7 +56,7 @@ fn segment(schedule: &Schedule, iteration: usize) -> &'static str {
 
 /// Renders and scores the test images of a finished (or checkpointed) fit in `run`, with the
 /// scene it was fitted on or `scene`; writes `run/renders/` and returns the evaluation.
-pub fn render_run(run: &Path, scene: Option<&Path>, backend: crate::train::Backend, on: impl FnMut(TrainMessage)) -> Result<serde_json::Value, FitError> {
+pub fn render_run(run: &Path, scene: Option<&Path>, backend: crate::backend::Backend, on: impl FnMut(TrainMessage)) -> Result<serde_json::Value, FitError> {
     restore_and_evaluate(run, scene, Split::Test, backend, "render", on).map(|(_, evaluation)| evaluation)
 }
 
@@ -45,7 +67,7 @@ pub fn eval_run(
     run: &Path,
     scene: Option<&Path>,
     split: Split,
-    backend: crate::train::Backend,
+    backend: crate::backend::Backend,
     on: impl FnMut(TrainMessage),
 ) -> Result<(PathBuf, serde_json::Value), FitError> {
     restore_and_evaluate(run, scene, split, backend, "eval", on)
@@ -56,14 +78,14 @@ fn restore_and_evaluate(
     run: &Path,
     scene: Option<&Path>,
     split: Split,
-    backend: crate::train::Backend,
+    backend: crate::backend::Backend,
     command: &str,
     mut on: impl FnMut(TrainMessage),
 ) -> Result<(PathBuf, serde_json::Value), FitError> {
-    let trainer = restore(run, scene, backend)?;
+    let restored = restore(run, scene, backend)?;
     let _lock = RunLock::acquire(run, command)?;
     let dir = run.join(if split == Split::Test { "renders" } else { "renders-train" });
-    let evaluation = evaluate_split(&trainer, &dir, split, &mut on)?;
+    let evaluation = evaluate_split(&restored.scene, &restored.fitted, &dir, split, &mut on)?;
     Ok((dir, evaluation))
 }
 
@@ -254,7 +276,7 @@ pub fn fit(options: &FitOptions, mut on: impl FnMut(TrainMessage)) -> Result<ser
     let mut segment_seconds: BTreeMap<&str, f64> = BTreeMap::new();
     while trainer.iteration < schedule.iterations {
         let it = trainer.iteration;
-        let stats = trainer.step().map_err(|e| match e {
+        let stats = trainer.iterate().map_err(|e| match e {
             FitError::NonFinite { iteration, what, .. } => {
                 let saved = std::fs::read_to_string(out.join(CHECKPOINT).join("state.json"))
                     .ok()
@@ -282,7 +304,7 @@ pub fn fit(options: &FitOptions, mut on: impl FnMut(TrainMessage)) -> Result<ser
     losses_chart(&history).render(800, 500).save_png(&out.join("losses.png")).map_err(|e| io(&out.join("losses.png"), e))?;
     let has_tests = trainer.scene.views_in(Split::Test).next().is_some();
     let evaluation = if options.evaluate && has_tests {
-        evaluate(&trainer, out, &mut on)?
+        evaluate(&trainer.scene, &trainer.fitted()?, out, &mut on)?
     } else if trainer.iteration == first_iteration_here {
         // Nothing was trained: the run's own evaluation (if any) still describes it.
         previous_evaluation(out)
@@ -327,7 +349,7 @@ pub fn fit(options: &FitOptions, mut on: impl FnMut(TrainMessage)) -> Result<ser
                     Some(position) => json!({"position": position}),
                     None => json!({"direction": r.best.direction}),
                 };
-                value["error_against_scene"] = light_error(&trainer, k, &start);
+                value["error_against_scene"] = light_error(&trainer.scene, trainer.fit_light, k, &start);
                 value
             }
         })
@@ -335,7 +357,7 @@ pub fn fit(options: &FitOptions, mut on: impl FnMut(TrainMessage)) -> Result<ser
     let names = trainer.scene.training_lights();
     let by_name = |values: Vec<serde_json::Value>| -> serde_json::Map<String, serde_json::Value> { names.iter().map(|n| n.to_string()).zip(values).collect() };
     let reports: Vec<serde_json::Value> = (0..model.light_count()).map(|k| model.light_at(k).report()).collect();
-    let errors: Vec<serde_json::Value> = reports.iter().enumerate().map(|(k, r)| light_error(&trainer, k, r)).collect();
+    let errors: Vec<serde_json::Value> = reports.iter().enumerate().map(|(k, r)| light_error(&trainer.scene, trainer.fit_light, k, r)).collect();
     let light_error = errors.first().cloned().unwrap_or(json!(null));
     // One schedule serves every capture: with one camera the sun search is what keeps the
     // light from sliding behind the body (fit.json says which case this was).
@@ -408,7 +430,7 @@ fn light_path(trainer: &Trainer, history: &[(usize, StepStats)]) -> serde_json::
         .filter_map(|(it, stats)| {
             let location = json!({ key: stats.light? });
             let mut point = json!({"after_iteration": it + 1, key: location[key]});
-            let error = light_error(trainer, 0, &location);
+            let error = light_error(&trainer.scene, trainer.fit_light, 0, &location);
             if !error.is_null() {
                 point["error_against_scene"] = error;
             }
@@ -441,8 +463,8 @@ pub const SKY_SAMPLES: usize = 256;
 
 /// The evaluation `fit` ends with and `render` and `eval` run: `evaluate_split` of the test
 /// images into `RUN/renders`.
-pub fn evaluate(trainer: &Trainer, out: &Path, on: &mut impl FnMut(TrainMessage)) -> Result<serde_json::Value, FitError> {
-    evaluate_split(trainer, &out.join("renders"), Split::Test, on)
+pub fn evaluate(scene: &Scene, fitted: &Fitted, out: &Path, on: &mut impl FnMut(TrainMessage)) -> Result<serde_json::Value, FitError> {
+    evaluate_split(scene, fitted, &out.join("renders"), Split::Test, on)
 }
 
 /// Renders every image of `split` (in the fitted light, or relit by the light the image
@@ -452,8 +474,7 @@ pub fn evaluate(trainer: &Trainer, out: &Path, on: &mut impl FnMut(TrainMessage)
 /// angle), and writes into `dir`: the PNGs, `metrics.csv`, `metrics.md`, `metrics.json` (all of
 /// it with the light's error) and `compare.png` (a row per image: the truth, the render and
 /// their difference times `COMPARE_GAIN`, then the same for its albedo).
-pub fn evaluate_split(trainer: &Trainer, dir: &Path, split: Split, on: &mut impl FnMut(TrainMessage)) -> Result<serde_json::Value, FitError> {
-    let scene = &trainer.scene;
+pub fn evaluate_split(scene: &Scene, fitted: &Fitted, dir: &Path, split: Split, on: &mut impl FnMut(TrainMessage)) -> Result<serde_json::Value, FitError> {
     let kinds = TestKinds::new(scene);
     let tests: Vec<&crate::scene::View> = scene.views_in(split).collect();
     if tests.is_empty() {
@@ -469,8 +490,8 @@ pub fn evaluate_split(trainer: &Trainer, dir: &Path, split: Split, on: &mut impl
     crate::run::clear_renders(&dir)?;
     std::fs::create_dir_all(&dir).map_err(|e| io(&dir, e))?;
     // Inference on the plain backend: no autodiff graph is recorded (or held) for the renders.
-    let model = trainer.fitted_model()?.valid();
-    let device = trainer.device.clone().without_autodiff();
+    let model = fitted.model.valid();
+    let device = fitted.device.clone().without_autodiff();
     let albedo_scale = albedo_scale(scene, &model);
     let mut rows = Vec::new();
     let mut compare: Vec<Vec<RgbImage>> = Vec::new();
@@ -544,8 +565,8 @@ pub fn evaluate_split(trainer: &Trainer, dir: &Path, split: Split, on: &mut impl
     evaluation.insert("groups".into(), json!(groups));
     evaluation.insert("albedo_scale".into(), json!(albedo_scale.to_array()));
     evaluation.insert("images".into(), json!(rows));
-    let geometry = geometry_scores(trainer, &model, albedo_scale, &device)?;
-    let light = light_error(trainer, 0, &model.light.report());
+    let geometry = geometry_scores(scene, &model, albedo_scale, &device)?;
+    let light = light_error(scene, fitted.fit_light, 0, &model.light.report());
     let mut markdown = metrics_markdown(&rows, &groups);
     if let Some(frames) = geometry.as_array().filter(|f| !f.is_empty()) {
         markdown += "\n## Geometry against the scene's meshes\n\n| frame | accuracy (mm) | completeness (mm) | Chamfer (mm) | normal angle (deg) |\n|---|---|---|---|---|\n";
@@ -611,8 +632,7 @@ const GEOMETRY_SAMPLES: usize = 20_000;
 
 /// The fitted surface (`eval::surface_mesh`) against every ground-truth mesh of the scene's
 /// frames, one entry per frame with a mesh (metres, degrees).
-fn geometry_scores(trainer: &Trainer, model: &Avatar, albedo_scale: glam::DVec3, device: &burn::tensor::Device) -> Result<serde_json::Value, FitError> {
-    let scene = &trainer.scene;
+fn geometry_scores(scene: &Scene, model: &Avatar, albedo_scale: glam::DVec3, device: &burn::tensor::Device) -> Result<serde_json::Value, FitError> {
     let extent = scene.body_extent();
     let mut out = Vec::new();
     for (position, frame) in scene.frames.iter().enumerate() {
@@ -844,10 +864,10 @@ fn metrics_markdown(rows: &[ImageScore], groups: &[GroupScores]) -> String {
 
 /// How far the recovered training light `k` is from the one the scene states for it
 /// (synthetic and evaluation scenes state it): degrees for a sun, metres for a point light.
-pub fn light_error(trainer: &Trainer, k: usize, light: &serde_json::Value) -> serde_json::Value {
-    let lights = trainer.scene.training_lights();
+pub fn light_error(scene: &Scene, fit_light: bool, k: usize, light: &serde_json::Value) -> serde_json::Value {
+    let lights = scene.training_lights();
     let vector = |v: &serde_json::Value| -> Option<glam::DVec3> { Some(glam::DVec3::new(v[0].as_f64()?, v[1].as_f64()?, v[2].as_f64()?)) };
-    match (lights.get(k).map(|n| &trainer.scene.lights[*n]), trainer.fit_light) {
+    match (lights.get(k).map(|n| &scene.lights[*n]), fit_light) {
         (Some(crate::light::Light::Directional { direction, .. }), true) => match vector(&light["direction"]) {
             Some(d) => json!({"direction_degrees": d.normalize().dot(*direction).clamp(-1.0, 1.0).acos().to_degrees()}),
             None => json!(null),

@@ -7,10 +7,11 @@
 //! (`tests/fuzz_targets.rs`), so they keep compiling and keep passing on every finding kept in
 //! `fuzz/regressions/`.
 
+use crate::backend::Backend;
+use crate::fit_error::FitError;
 use crate::scene::Scene;
 use crate::schedule::Schedule;
-use crate::train::FitError;
-use crate::train::{Backend, Trainer};
+use crate::train::Trainer;
 use std::path::{Component, Path, PathBuf};
 
 /// What a target made of its input: read and accepted, or refused with an error (a harness
@@ -218,8 +219,8 @@ impl CheckpointTarget {
     /// The scene and schedule of `run` (a finished `umbra fit` folder), with its field as its
     /// checkpoint records it (so a trainer is built without looking at the training masks).
     pub fn new(run: &Path, scene: &Path) -> Result<Self, FitError> {
-        let trainer = crate::run::restore(run, Some(scene), Backend::Flex)?;
-        Ok(Self { scene: trainer.scene.clone(), schedule: trainer.schedule.clone() })
+        let restored = crate::run::restore(run, Some(scene), Backend::Flex)?;
+        Ok(Self { scene: restored.scene.clone(), schedule: restored.schedule.clone() })
     }
 
     pub fn run(&self, data: &[u8]) -> Outcome {

@@ -2,7 +2,9 @@
 //! shadows by a closed-form ray integral; a staged fit recovers light, ambient and albedo.
 
 pub mod ablate;
+pub mod avatar;
 pub mod averaging;
+pub mod backend;
 pub mod basis;
 pub mod bench;
 pub mod cli;
@@ -13,6 +15,7 @@ pub mod export;
 pub mod field;
 pub mod files;
 pub mod fit;
+pub mod fit_error;
 pub mod fuzzing;
 pub mod gaussians;
 pub mod geometry;
@@ -20,6 +23,7 @@ pub mod imageio;
 pub mod isosurface;
 pub mod light;
 pub mod losses;
+pub mod messages;
 pub mod metrics;
 pub mod plot;
 pub mod progress;

@@ -38,7 +38,22 @@ pub fn albedo_scale(training: &Light, fitted_intensity: Option<f64>) -> DVec3 {
         Light::Point { intensity, .. } => inverse(*intensity) * fitted_intensity.unwrap_or(1.0),
         Light::Uniform { radiance } => inverse(*radiance),
         Light::Environment { map, scale, .. } => inverse(map.mean_radiance() * *scale),
+        // Unstated, the fitted light's strength is taken as the capture's: the albedo as fitted.
+        Light::Unknown { strength, kind, .. } => match (strength, kind) {
+            (Some(s), UnknownLight::Sun) => inverse(*s),
+            (Some(s), UnknownLight::Point) => inverse(*s) * fitted_intensity.unwrap_or(1.0),
+            (None, _) => DVec3::ONE,
+        },
     }
+}
+
+/// What kind of light a capture's unknown light is.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum UnknownLight {
+    /// A sun whose direction the capture does not state.
+    Sun,
+    /// A lamp whose position the capture does not state.
+    Point,
 }
 
 #[derive(Clone, Debug, PartialEq)]
@@ -51,6 +66,11 @@ pub enum Light {
     Environment { path: PathBuf, scale: f64, map: EnvironmentMap },
     /// A near-field light: irradiance `intensity / r^2` on a surface facing it.
     Point { position: DVec3, intensity: DVec3, ambient: DVec3 },
+    /// A real capture's sun or lamp, unstated (`directional` without `direction`, `point`
+    /// without `position`): a fit recovers it and is scored against nothing; it lights only the
+    /// images of its capture, never a relighting. `strength` is its irradiance or intensity
+    /// when stated.
+    Unknown { kind: UnknownLight, strength: Option<DVec3>, ambient: DVec3 },
 }
 
 impl Light {
@@ -60,12 +80,20 @@ impl Light {
             Light::Uniform { .. } => "uniform",
             Light::Environment { .. } => "environment",
             Light::Point { .. } => "point",
+            Light::Unknown { kind: UnknownLight::Sun, .. } => "directional",
+            Light::Unknown { kind: UnknownLight::Point, .. } => "point",
         }
+    }
+
+    /// Whether the light is stated (everything but an unknown light): only a stated light
+    /// relights a fit or scores a fitted light.
+    pub fn is_known(&self) -> bool {
+        !matches!(self, Light::Unknown { .. })
     }
 
     /// Whether the light casts shadows a fitter must model (a sun or a point light).
     pub fn casts_shadows(&self) -> bool {
-        matches!(self, Light::Directional { .. } | Light::Point { .. })
+        matches!(self, Light::Directional { .. } | Light::Point { .. } | Light::Unknown { .. })
     }
 }
 

@@ -4,15 +4,17 @@
 //! cameras or a turntable around the body (`orbit_cameras`), directly or through a visibility
 //! basis precomputed per view (`basis`, timed and checked against the direct estimator).
 
+use crate::backend::Backend;
 use crate::eval::{render_view, Lighting};
+use crate::fit_error::{io, FitError};
 use crate::imageio::RgbImage;
 use crate::light::{uv_to_direction, EnvironmentMap, Light};
+use crate::messages::TrainMessage;
 use crate::random::Stream;
 use crate::scene::Scene;
 use crate::shading::SHADOW_START;
 use crate::shadow::PosedGaussian;
 use crate::shadow::{ShadowCaster, ShadowRay};
-use crate::train::{io, Backend, FitError, TrainMessage};
 use burn::module::Module;
 use glam::DVec3;
 use rayon::prelude::*;
@@ -192,20 +194,27 @@ fn chosen(flag: &str, picked: &Option<Vec<usize>>, count: usize) -> Result<Vec<u
 /// per view (`cCC_fFFFF.png`, the frame's position) and `sheet.png` (cameras down, frames
 /// across). Returns the output folder.
 pub fn relight_run(options: &RelightOptions, mut on: impl FnMut(TrainMessage)) -> Result<PathBuf, FitError> {
-    let trainer = crate::run::restore(&options.run, options.scene.as_deref(), options.backend)?;
-    let (light, label) = resolve_light(&trainer.scene, &options.light)?;
+    let restored = crate::run::restore(&options.run, options.scene.as_deref(), options.backend)?;
+    let (light, label) = resolve_light(&restored.scene, &options.light)?;
+    if !light.is_known() {
+        return Err(FitError::Input(format!(
+            "--light {:?}: an unknown light (the capture states no {}): it cannot relight; name a stated light of the scene, a light .json or an environment .exr",
+            options.light,
+            if light.type_name() == "point" { "position" } else { "direction" }
+        )));
+    }
     // A turntable renders cameras of its own (after the scene's), by default in the first frame.
     let (scene, cameras, frames) = match options.orbit {
         Some(0) => return Err(FitError::Input("--orbit needs at least 1 view".into())),
         Some(count) => {
-            let frames = chosen("--frame", &Some(options.frames.clone().unwrap_or(vec![0])), trainer.scene.frames.len())?;
-            let mut scene = trainer.scene.clone();
+            let frames = chosen("--frame", &Some(options.frames.clone().unwrap_or(vec![0])), restored.scene.frames.len())?;
+            let mut scene = restored.scene.clone();
             let first = scene.cameras.len();
-            scene.cameras.extend(orbit_cameras(&trainer.scene, frames[0], count));
+            scene.cameras.extend(orbit_cameras(&restored.scene, frames[0], count));
             (std::borrow::Cow::Owned(scene), (first..first + count).collect::<Vec<_>>(), frames)
         }
         None => {
-            let scene = &trainer.scene;
+            let scene = &restored.scene;
             (
                 std::borrow::Cow::Borrowed(scene),
                 chosen("--camera", &options.cameras, scene.cameras.len())?,
@@ -243,8 +252,8 @@ pub fn relight_run(options: &RelightOptions, mut on: impl FnMut(TrainMessage)) -
     }
     let _lock = crate::run_lock::RunLock::for_output(&options.run, &out, "relight")?;
     std::fs::create_dir_all(&out).map_err(|e| io(&out, e))?;
-    let model = trainer.model()?.valid();
-    let device = trainer.device.clone().without_autodiff();
+    let model = restored.fitted.model.valid();
+    let device = restored.fitted.device.clone().without_autodiff();
     let lighting = Lighting::Known { light: &light, albedo_scale: crate::run::albedo_scale(scene, &model), samples: options.samples };
     let total = cameras.len() * frames.len();
     on(TrainMessage::Evaluating { images: total });
@@ -372,7 +381,7 @@ const RELIGHT_REPEATS: usize = 5;
 
 /// One view relit through a visibility basis of `directions` directions built for it.
 fn relight_by_basis(
-    model: &crate::train::Avatar,
+    model: &crate::avatar::Avatar,
     scene: &Scene,
     camera: usize,
     frame: usize,

@@ -7,10 +7,11 @@
 //! by the same sums as `TransferBasis::relight` (the page checks itself against the image
 //! Rust made for the training light and says whether they agree).
 
+use crate::backend::Backend;
 use crate::basis::TransferBasis;
+use crate::fit_error::{io, FitError};
 use crate::imageio::{linear_to_srgb8, RgbImage};
 use crate::light::Light;
-use crate::train::{io, Backend, FitError};
 use burn::module::Module;
 use glam::DVec3;
 use serde_json::{json, Value};
@@ -38,8 +39,8 @@ pub fn write_report(options: &ReportOptions) -> Result<(PathBuf, PathBuf), FitEr
     let fit_json = run.join("fit.json");
     let text = std::fs::read_to_string(&fit_json).map_err(|e| io(&fit_json, format!("{e} (a report needs a finished fit)")))?;
     let fit: Value = serde_json::from_str(&text).map_err(|e| io(&fit_json, e))?;
-    let trainer = crate::run::restore(run, options.scene.as_deref(), options.backend)?;
-    let scene = &trainer.scene;
+    let restored = crate::run::restore(run, options.scene.as_deref(), options.backend)?;
+    let scene = &restored.scene;
     if options.camera >= scene.cameras.len() {
         return Err(FitError::Input(format!("--camera {}: out of range, the scene has {}", options.camera, scene.cameras.len())));
     }
@@ -50,8 +51,8 @@ pub fn write_report(options: &ReportOptions) -> Result<(PathBuf, PathBuf), FitEr
         return Err(FitError::Input("--directions must be at least 1".into()));
     }
     let _lock = crate::run_lock::RunLock::acquire(run, "report")?;
-    let model = trainer.model()?.valid();
-    let device = trainer.device.clone().without_autodiff();
+    let model = restored.fitted.model.valid();
+    let device = restored.fitted.device.clone().without_autodiff();
 
     // The panel: one view's basis, the scene's training sun as the first light.
     let basis = TransferBasis::of_view(&model, scene, options.camera, options.frame, options.directions, &device);
@@ -60,6 +61,11 @@ pub fn write_report(options: &ReportOptions) -> Result<(PathBuf, PathBuf), FitEr
     let training = scene.training_lights().first().and_then(|name| scene.lights.get(*name)).cloned();
     let (sun, irradiance, ambient) = match &training {
         Some(Light::Directional { direction, irradiance, ambient }) => (*direction, *irradiance, *ambient),
+        // A capture's unstated sun: the panel starts from the fitted one.
+        Some(Light::Unknown { kind: crate::light::UnknownLight::Sun, strength, ambient }) => match model.light.location() {
+            Some(d) => (DVec3::from_array(d).normalize(), strength.unwrap_or(DVec3::ONE), *ambient),
+            None => ((up + camera.camera_to_world.z_axis.truncate() * -0.5).normalize(), DVec3::ONE, DVec3::splat(0.25)),
+        },
         _ => ((up + camera.camera_to_world.z_axis.truncate() * -0.5).normalize(), DVec3::ONE, DVec3::splat(0.25)),
     };
     let first = basis.relight(&Light::Directional { direction: sun, irradiance, ambient });

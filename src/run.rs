@@ -3,12 +3,15 @@
 //! restored from it for rendering, the losses it records, and the images written into it.
 //! Below every command that reads a run (fit, eval, relight, report, export).
 
+use crate::avatar::{Avatar, Fitted};
+use crate::fit_error::{io, FitError};
+use crate::messages::StepStats;
 use crate::random::Stream;
 use crate::scene::identity::file_checksum;
 use crate::scene::Scene;
 use crate::schedule::Schedule;
 use crate::shading::LightKind;
-use crate::train::{io, Avatar, FitError, StepStats, Trainer};
+use crate::train::Trainer;
 use burn::module::Module;
 use serde_json::json;
 use std::path::{Path, PathBuf};
@@ -109,7 +112,7 @@ pub fn save_checkpoint_until(trainer: &Trainer, out: &Path, history: &[(usize, S
     if step() {
         return Ok(false);
     }
-    for (name, optimizer) in &trainer.optimizers {
+    for (name, optimizer) in trainer.optimisers.named() {
         let path = temp.join(format!("optimizer-{name}.bpk"));
         optimizer.save(&path).map_err(|e| io(&path, format!("{e}")))?;
         if step() {
@@ -185,7 +188,10 @@ const TRAINING_MODEL: &str = "training-model.bpk";
 /// field is averaged) and one per optimizer.
 fn checkpoint_files(trainer: &Trainer) -> Vec<String> {
     let training = trainer.average.is_some().then(|| TRAINING_MODEL.to_string());
-    std::iter::once("model.bpk".to_string()).chain(training).chain(trainer.optimizers.iter().map(|(name, _)| format!("optimizer-{name}.bpk"))).collect()
+    std::iter::once("model.bpk".to_string())
+        .chain(training)
+        .chain(trainer.optimisers.named().into_iter().map(|(name, _)| format!("optimizer-{name}.bpk")))
+        .collect()
 }
 
 /// The checksum of a checkpoint's `state.json`, beside it: state.json holds the others.
@@ -235,8 +241,7 @@ pub(crate) fn read_state(dir: &Path) -> Result<serde_json::Value, FitError> {
 /// Reads a checkpoint's `state.json` and checks it against `scene` (the skeleton, and the
 /// training data when `resuming`) and the checksums of the files it lists. Checkpoints written
 /// before these were recorded pass unchecked.
-fn verified_state(dir: &Path, trainer: &Trainer, resuming: bool) -> Result<serde_json::Value, FitError> {
-    let scene = &trainer.scene;
+fn verified_state(dir: &Path, scene: &Scene, training_identity: Option<&str>) -> Result<serde_json::Value, FitError> {
     let state_path = dir.join("state.json");
     let state = read_state(dir)?;
     let scene_file = crate::scene::scene_file(&scene.root);
@@ -248,9 +253,9 @@ fn verified_state(dir: &Path, trainer: &Trainer, resuming: bool) -> Result<serde
             ));
         }
     }
-    if resuming {
+    if let Some(identity) = training_identity {
         if let Some(data) = state["training_data"].as_str() {
-            if data != trainer.training_identity() {
+            if data != identity {
                 return Err(io(
                     &state_path,
                     format!(
@@ -318,7 +323,7 @@ pub fn resume_checkpoint(trainer: &mut Trainer, out: &Path) -> Result<usize, Fit
 pub(crate) fn load_checkpoint(trainer: &mut Trainer, out: &Path) -> Result<Vec<(usize, StepStats)>, FitError> {
     let dir = existing_checkpoint(out).ok_or_else(|| io(out, "holds no checkpoint to resume"))?;
     let state_path = dir.join("state.json");
-    let state = verified_state(&dir, trainer, true)?;
+    let state = verified_state(&dir, &trainer.scene, Some(trainer.training_identity()))?;
     let iteration = state["iteration"].as_u64().ok_or_else(|| io(&state_path, "iteration: missing"))? as usize;
     let stream: u64 = state["stream"].as_str().and_then(|s| s.parse().ok()).ok_or_else(|| io(&state_path, "stream: missing"))?;
     load_model(trainer, &dir)?;
@@ -331,8 +336,7 @@ pub(crate) fn load_checkpoint(trainer: &mut Trainer, out: &Path) -> Result<Vec<(
         let path = dir.join(TRAINING_MODEL);
         trainer.model = Some(fitted.try_load_file(&path).map_err(|e| io(&path, format!("cannot load the model being trained: {e}")))?);
     }
-    let mut optimizers = std::mem::take(&mut trainer.optimizers);
-    for (name, optimizer) in optimizers.iter_mut() {
+    for (name, optimizer) in trainer.optimisers.named_mut() {
         let path = dir.join(format!("optimizer-{name}.bpk"));
         // Checkpoints from before the feature tables had their own optimizer have no file for it.
         if name == "features" && !path.exists() {
@@ -340,7 +344,6 @@ pub(crate) fn load_checkpoint(trainer: &mut Trainer, out: &Path) -> Result<Vec<(
         }
         *optimizer = optimizer.clone().load(&path).map_err(|e| io(&path, format!("{e}")))?;
     }
-    trainer.optimizers = optimizers;
     trainer.iteration = iteration;
     trainer.stream = Stream::from_state(stream);
     let lights = trainer.cones.len();
@@ -420,9 +423,19 @@ fn load_model(trainer: &mut Trainer, dir: &Path) -> Result<(), FitError> {
     Ok(())
 }
 
-/// A fit rebuilt from its run folder (its schedule copy and last checkpoint), on the scene it
-/// was fitted on (from `fit.json`) or on `scene`.
-pub fn restore(run: &Path, scene: Option<&Path>, backend: crate::train::Backend) -> Result<Trainer, FitError> {
+/// A finished (or checkpointed) run as `restore` rebuilds it: the scene it is rendered on, its
+/// schedule copy and the fitted avatar.
+pub struct FittedRun {
+    pub scene: Scene,
+    pub schedule: Schedule,
+    pub fitted: Fitted,
+}
+
+/// A run rebuilt from its folder (its schedule copy and last checkpoint), on the scene it was
+/// fitted on (from `fit.json`) or on `scene`: the avatar's shape from what the checkpoint
+/// records (the field, the Gaussians' bones), its parameters from `model.bpk`. Nothing of the
+/// training (optimisers, error maps, the body's analysis) is rebuilt.
+pub fn restore(run: &Path, scene: Option<&Path>, backend: crate::backend::Backend) -> Result<FittedRun, FitError> {
     if !run.join(SCHEDULE_COPY).is_file() {
         let what = if run.is_dir() { "is not an umbra run (it has no schedule.toml)" } else { "does not exist" };
         return Err(io(run, format!("{what}: name the --out folder of an `umbra fit`")));
@@ -430,23 +443,67 @@ pub fn restore(run: &Path, scene: Option<&Path>, backend: crate::train::Backend)
     let mut schedule = Schedule::load(&run.join(SCHEDULE_COPY))?;
     let scene_path = match scene {
         Some(path) => path.to_path_buf(),
-        None => {
-            let report = run.join("fit.json");
-            if !report.exists() && crate::run_lock::held_elsewhere(run) {
-                return Err(io(run, "a fit is in progress in this run folder (it has no fit.json yet): wait for it to finish"));
-            }
-            let text = crate::files::read_text(&report, crate::files::SCENE_BYTES).map_err(|e| io(&report, format!("{e} (pass --scene to name the scene)")))?;
-            let value: serde_json::Value = serde_json::from_str(&text).map_err(|e| io(&report, e))?;
-            value["scene"].as_str().map(std::path::PathBuf::from).ok_or_else(|| io(&report, "scene: missing (pass --scene)"))?
-        }
+        None => recorded_scene(run)?,
     };
     let scene = Scene::load(&scene_path)?;
     apply_recorded_field(run, scene.skeleton.len(), &mut schedule.field)?;
+    let checkpoint = existing_checkpoint(run).ok_or_else(|| io(run, "holds no checkpoint"))?;
+    let state = verified_state(&checkpoint, &scene, None)?;
+    let state_path = checkpoint.join("state.json");
+    let lights = crate::train::training_lights(&scene, &schedule)?;
+    let device = backend.device();
+    device.seed(0);
+    let extent = scene.body_extent();
+    // The field is recorded (or predates the root's skinning): the masks are never searched.
+    let config = crate::train::field_config(&schedule.field, &scene.skeleton, extent as f32, |_, _| None);
+    // The Gaussians' bones, when recorded; before, each stayed on its bone, four a bone.
+    let bones: Vec<usize> = match state.get("gaussian_bones") {
+        Some(bones) => serde_json::from_value(bones.clone()).map_err(|e| io(&state_path, format!("gaussian_bones: {e}")))?,
+        None => (0..scene.skeleton.len()).flat_map(|b| [b; 4]).collect(),
+    };
+    if let Some(b) = bones.iter().find(|&&b| b >= scene.skeleton.len()) {
+        return Err(io(&state_path, format!("gaussian_bones: bone {b} is not in the skeleton's {}", scene.skeleton.len())));
+    }
+    let unit = crate::skeleton::body_length(1.0, extent);
+    let gaussian = |bone: usize| crate::gaussians::Gaussian { bone, mean: [0.0; 3], rotation: [0.0, 0.0, 0.0, 1.0], scales: [unit; 3], amplitude: 1.0 };
+    let set = crate::gaussians::GaussianSet { gaussians: bones.iter().map(|&b| gaussian(b)).collect() };
+    let shell = crate::train::new_avatar(&scene, &config, &set, lights.kind, lights.count, &device, 0);
+    let model_path = checkpoint.join("model.bpk");
+    // burn checks every tensor's shape against the shell's: a wrong count of bones is refused.
+    let model = shell.try_load_file(&model_path).map_err(|e| {
+        io(
+            &model_path,
+            format!("cannot load the fitted model as {}'s gaussian_bones ({} Gaussians) and field describe it: {e}", state_path.display(), bones.len()),
+        )
+    })?;
+    let iteration = state["iteration"].as_u64().unwrap_or(0) as usize;
+    let footprint = schedule.footprint.unwrap_or_else(|| scene.footprint().footprint);
+    let fitted = Fitted { model, device, light_kind: lights.kind, fit_light: lights.fit, footprint, iteration };
+    Ok(FittedRun { scene, schedule, fitted })
+}
+
+/// A trainer rebuilt from a run folder on the scene it was fitted on, its model loaded from the
+/// last checkpoint (optimisers fresh): what the step benchmarks time on a formed surface.
+pub fn restore_trainer(run: &Path, backend: crate::backend::Backend) -> Result<Trainer, FitError> {
+    let mut schedule = Schedule::load(&run.join(SCHEDULE_COPY))?;
+    let scene = Scene::load(&recorded_scene(run)?)?;
+    apply_recorded_field(run, scene.skeleton.len(), &mut schedule.field)?;
     let mut trainer = Trainer::new(scene, schedule, backend, 0)?;
     let checkpoint = existing_checkpoint(run).ok_or_else(|| io(run, "holds no checkpoint"))?;
-    verified_state(&checkpoint, &trainer, false)?;
+    verified_state(&checkpoint, &trainer.scene, None)?;
     load_model(&mut trainer, &checkpoint)?;
     Ok(trainer)
+}
+
+/// The scene a run was fitted on, as its `fit.json` records it.
+fn recorded_scene(run: &Path) -> Result<std::path::PathBuf, FitError> {
+    let report = run.join("fit.json");
+    if !report.exists() && crate::run_lock::held_elsewhere(run) {
+        return Err(io(run, "a fit is in progress in this run folder (it has no fit.json yet): wait for it to finish"));
+    }
+    let text = crate::files::read_text(&report, crate::files::SCENE_BYTES).map_err(|e| io(&report, format!("{e} (pass --scene to name the scene)")))?;
+    let value: serde_json::Value = serde_json::from_str(&text).map_err(|e| io(&report, e))?;
+    value["scene"].as_str().map(std::path::PathBuf::from).ok_or_else(|| io(&report, "scene: missing (pass --scene)"))
 }
 
 /// The factor from the fitted albedo to reflectance (`relight::albedo_scale`) for a model

@@ -3,7 +3,7 @@
 //! two fits cannot interleave checkpoints and a render cannot read a half-written run. A lock
 //! whose process is gone (a killed fit) is taken over.
 
-use crate::train::{io, FitError};
+use crate::fit_error::{io, FitError};
 use std::io::Write;
 use std::path::{Path, PathBuf};
 

@@ -5,9 +5,11 @@ mod common;
 
 use common::TempDir;
 use std::path::Path;
+use umbra::backend::Backend;
+use umbra::fit::FitOptions;
 use umbra::schedule::Schedule;
 use umbra::synth::{TestKind, TrainingLight};
-use umbra::train::{Backend, FitOptions, Trainer};
+use umbra::train::Trainer;
 
 fn tiny_scene(dir: &Path, light: TrainingLight) -> std::path::PathBuf {
     tiny_scene_with_tests(dir, light, vec![TestKind::Poses])
@@ -80,7 +82,7 @@ fn a_short_fit_lowers_the_loss_and_turns_the_light_toward_the_truth() {
     let mut first = Vec::new();
     let mut last = Vec::new();
     for i in 0..60 {
-        let stats = trainer.step().unwrap();
+        let stats = trainer.iterate().unwrap();
         if i < 10 {
             first.push(stats.total);
         } else if i >= 50 {
@@ -107,17 +109,17 @@ fn the_sun_search_seeds_the_light_and_its_cone_holds_it() {
     let schedule = Schedule::parse(&text, Path::new("search.toml")).unwrap();
     let mut trainer = Trainer::new(scene, schedule, Backend::Flex, 1).unwrap();
     for _ in 0..40 {
-        trainer.step().unwrap();
+        trainer.iterate().unwrap();
     }
     assert!(trainer.searches[0].is_none(), "the search waits for light_from");
-    trainer.step().unwrap();
+    trainer.iterate().unwrap();
     let report = trainer.searches[0].clone().expect("the search ran at light_from");
     assert!(report.samples > 50 && report.candidates == 64 + 64, "{report:?}");
     let start = glam::DVec3::from_array(report.best.direction);
     let cone = (4.0f64 / 64.0).sqrt().to_degrees() * umbra::train::SUN_CONE_SPACINGS;
     let mut widest: f64 = 0.0;
     for _ in 0..15 {
-        trainer.step().unwrap();
+        trainer.iterate().unwrap();
         let now = angle_to(&trainer.model().unwrap().light.report()["direction"], start);
         assert!(now <= cone + 1e-3, "the direction left the cone: {now:.2} > {cone:.2} degrees");
         widest = widest.max(now);
@@ -226,7 +228,7 @@ fn point_lit_scenes_fit_a_light_position_and_ndarray_runs_the_same_step() {
         let before = trainer.model().unwrap().light.report();
         assert_eq!(before["type"], "point");
         for _ in 0..4 {
-            let stats = trainer.step().unwrap();
+            let stats = trainer.iterate().unwrap();
             assert!(stats.total.is_finite() && stats.terms.contains_key("rgb"), "{backend:?}: {stats:?}");
         }
         let after = trainer.model().unwrap().light.report();
@@ -259,11 +261,11 @@ fn a_non_finite_parameter_or_loss_stops_the_fit_and_keeps_the_last_good_checkpoi
     // A parameter this step's losses do not read (a sun has no intensity) is still checked.
     let scene = umbra::scene::Scene::load(&scene_path).unwrap();
     let mut trainer = Trainer::new(scene, schedule.clone(), Backend::Flex, 1).unwrap();
-    trainer.step().unwrap();
+    trainer.iterate().unwrap();
     let mut model = trainer.model.take().unwrap();
     model.light.log_intensity = poisoned(&model.light.log_intensity);
     trainer.model = Some(model);
-    let err = trainer.step().unwrap_err().to_string();
+    let err = trainer.iterate().unwrap_err().to_string();
     assert!(err.contains("iteration 1") && err.contains("light.log_intensity"), "{err}");
 
     // A fit whose loss turns NaN stops with an error that points at the checkpoint it kept.
@@ -573,7 +575,7 @@ curvature = 0.05
     let schedule = Schedule::parse(text, Path::new("scale.toml")).unwrap();
     let steps = |scene| {
         let mut trainer = Trainer::new(scene, schedule.clone(), Backend::Flex, 2).unwrap();
-        (0..6).map(|_| trainer.step().unwrap().terms).collect::<Vec<_>>()
+        (0..6).map(|_| trainer.iterate().unwrap().terms).collect::<Vec<_>>()
     };
     let one = steps(scene_at(1.0));
     for scale in [1.0 / 3.0, 3.0] {
@@ -614,7 +616,7 @@ fn several_training_suns_are_fitted_jointly_and_mixed_kinds_are_refused() {
     let mut trainer = Trainer::new(scene, schedule, Backend::Flex, 1).unwrap();
     assert_eq!(trainer.model().unwrap().light_count(), 3);
     for _ in 0..11 {
-        trainer.step().unwrap();
+        trainer.iterate().unwrap();
     }
     let model = trainer.model().unwrap();
     for (k, truth) in truths.iter().enumerate() {
@@ -727,7 +729,7 @@ fn an_anti_aliased_capture_is_read_as_one_and_rendered_over_each_pixels_area() {
     let scene = umbra::scene::Scene::load(&dir.path().join("area")).unwrap();
     let mut trainer = Trainer::new(scene, schedule.clone(), Backend::Flex, 1).unwrap();
     assert_eq!(trainer.footprint, umbra::scene::Footprint::Area, "{:?}", trainer.footprint_estimate);
-    let losses: Vec<f64> = (0..60).map(|_| trainer.step().unwrap().total).collect();
+    let losses: Vec<f64> = (0..60).map(|_| trainer.iterate().unwrap().total).collect();
     assert!(losses.iter().all(|l| l.is_finite()));
     let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len() as f64;
     assert!(mean(&losses[50..]) < 0.8 * mean(&losses[..10]), "{losses:?}");
@@ -769,7 +771,7 @@ fn an_anti_aliased_capture_is_read_as_one_and_rendered_over_each_pixels_area() {
     assert_eq!(trainer.footprint, umbra::scene::Footprint::Centre);
     // At pixel centres one trace gives exactly the two renders.
     for _ in 0..20 {
-        trainer.step().unwrap();
+        trainer.iterate().unwrap();
     }
     let (image, albedo, alone, albedo_alone) = view_and_albedo(&trainer);
     assert!(image.pixels == alone.pixels && albedo.pixels == albedo_alone.pixels);
@@ -802,7 +804,7 @@ fn gaussians_move_to_the_bones_that_carry_them_and_a_run_keeps_their_bones() {
     // The moved Gaussians still train.
     let means = |t: &Trainer| t.model().unwrap().gaussians.means.val().into_data().convert::<f32>().try_to_vec::<f32>().unwrap();
     let before = means(&trainer);
-    trainer.step().unwrap();
+    trainer.iterate().unwrap();
     assert!(means(&trainer) != before, "a step moves the rebound Gaussians' means");
     // A run records its Gaussians' bones and restores them with its checkpoint.
     let run = dir.path().join("run");
@@ -816,7 +818,7 @@ fn gaussians_move_to_the_bones_that_carry_them_and_a_run_keeps_their_bones() {
     state["gaussian_bones"] = serde_json::json!(edited);
     common::rewrite_state(&state_path, &state);
     let restored = umbra::fit::restore(&run, None, Backend::Flex).unwrap();
-    assert_eq!(restored.model().unwrap().gaussians.bones, edited);
+    assert_eq!(restored.fitted.model.gaussians.bones, edited);
     state["gaussian_bones"] = serde_json::json!([0, 1]);
     common::rewrite_state(&state_path, &state);
     let err = umbra::fit::restore(&run, None, Backend::Flex).err().expect("a wrong count is refused");

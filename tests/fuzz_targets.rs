@@ -97,7 +97,7 @@ fn the_checkpoint_target_resumes_a_real_checkpoint_and_refuses_damaged_ones() {
     // A small grid, as the fuzzing seed run has (`examples/fuzz_corpus.rs`).
     let schedule = dir.path().join("small.toml");
     std::fs::write(&schedule, umbra::schedule::DEFAULT_TEXT.replacen("[field]\n", "[field]\nlevels = 4\ntable_log2 = 8\n", 1)).unwrap();
-    let options = umbra::train::FitOptions {
+    let options = umbra::fit::FitOptions {
         scene: scene.clone(),
         out: run.clone(),
         schedule,
@@ -106,7 +106,7 @@ fn the_checkpoint_target_resumes_a_real_checkpoint_and_refuses_damaged_ones() {
         resume: false,
         force: false,
         force_schedule: false,
-        backend: umbra::train::Backend::Flex,
+        backend: umbra::backend::Backend::Flex,
         evaluate: false,
     };
     umbra::fit::fit(&options, |_| {}).unwrap();

@@ -9,7 +9,7 @@ use std::path::Path;
 const LAYERS: &[&[&str]] = &[
     // files, validation, geometry, the seeded stream, the format's lights, pictures and tables,
     // the average of any module's parameters
-    &["files", "table", "scene", "skeleton", "imageio", "random", "light", "geometry", "isosurface", "metrics", "plot", "progress", "averaging"],
+    &["files", "table", "backend", "scene", "skeleton", "imageio", "random", "light", "geometry", "isosurface", "metrics", "plot", "progress", "averaging"],
     // the ray integral of posed Gaussians (both paths pinned together)
     &["shadow"],
     // the bone-anchored Gaussian set, posed
@@ -20,8 +20,9 @@ const LAYERS: &[&[&str]] = &[
     &["render"],
     // the image formation and light searches (know nothing of the network's insides)
     &["shading", "environment", "sun_search"],
-    // and the per-view maps of where the fit is still wrong that a batch draws from
-    &["losses", "schedule", "error_map"],
+    // losses, the schedule, the per-view maps of where the fit is still wrong that a batch draws
+    // from; the shared vocabulary: the avatar module, what can stop a fit, the fit's messages
+    &["losses", "schedule", "error_map", "avatar", "fit_error", "messages"],
     // step(batch, state) -> (state, stats)
     &["train"],
     // the run folder: checkpoints, restore, its lock

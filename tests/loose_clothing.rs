@@ -39,7 +39,7 @@ fn under_the_default_schedule_a_loose_body_draws_rays_by_error_seeds_gaussians_o
     for (name, share) in [("human-dressed", LOOSE_ERROR_RAYS), ("human-sun", 0.0)] {
         let scene = Scene::load(&Path::new("datasets-synthetic").join(name)).expect("a shipped scene");
         let masked_training_views = scene.views.iter().filter(|v| v.split == umbra::scene::Split::Train && v.mask.is_some()).count();
-        let trainer = umbra::train::Trainer::new(scene, schedule.clone(), umbra::train::Backend::Flex, 0).expect("a trainer");
+        let trainer = umbra::train::Trainer::new(scene, schedule.clone(), umbra::backend::Backend::Flex, 0).expect("a trainer");
         assert_eq!(trainer.error_rays, share, "{name}");
         // And fits its Gaussians' density at the shadows' scale too when loose.
         assert_eq!(trainer.density_at_shadow_scale, share > 0.0, "{name}");
@@ -79,7 +79,7 @@ fn a_loose_fit_resumes_bit_for_bit_with_its_seeded_gaussians_and_renders_from_it
          [learning_rates]\nfield = 3e-3\ngaussians = 5e-3\nlight = 5e-2\n[losses]\nmask = 1.0\nrgb = 1.0\neikonal = 0.05\ndensity = 0.5\nmean = 0.5\n[field]\nkind = \"grid\"\n",
     )
     .expect("a schedule");
-    let options = |out: &str, iterations: usize, resume: bool| umbra::train::FitOptions {
+    let options = |out: &str, iterations: usize, resume: bool| umbra::fit::FitOptions {
         scene: Path::new("datasets-synthetic/human-dressed").to_path_buf(),
         out: dir.join(out),
         schedule: schedule.clone(),
@@ -88,7 +88,7 @@ fn a_loose_fit_resumes_bit_for_bit_with_its_seeded_gaussians_and_renders_from_it
         resume,
         force: false,
         force_schedule: resume,
-        backend: umbra::train::Backend::Flex,
+        backend: umbra::backend::Backend::Flex,
         evaluate: false,
     };
     let straight = umbra::fit::fit(&options("straight", 12, false), |_| {}).expect("a straight fit");
@@ -110,9 +110,12 @@ fn a_loose_fit_resumes_bit_for_bit_with_its_seeded_gaussians_and_renders_from_it
     );
     assert!(read("straight", "gaussians.json") == read("resumed", "gaussians.json"), "the resumed fit's Gaussians differ");
     // Restored to render: the seeded Gaussians are part of the model again.
-    let trainer = umbra::run::restore(&dir.join("resumed"), None, umbra::train::Backend::Flex).expect("the run restores");
-    let bones = trainer.scene.skeleton.len();
-    assert_eq!(trainer.model().expect("a model").gaussians.len(), 4 * bones + trainer.loose_gaussians());
+    let restored = umbra::run::restore(&dir.join("resumed"), None, umbra::backend::Backend::Flex).expect("the run restores");
+    let bones = restored.scene.skeleton.len();
+    let saved = umbra::gaussians::GaussianSet::load(&dir.join("resumed").join("gaussians.json"), None).expect("gaussians.json").len();
+    assert!(saved > 4 * bones, "{saved} Gaussians: none seeded on the loose body");
+    assert_eq!(restored.fitted.model.gaussians.len(), saved);
+    assert_eq!(restored.fitted.model.gaussians.means.val().dims()[0], saved);
     let _ = std::fs::remove_dir_all(&dir);
 }
 
@@ -127,7 +130,7 @@ fn the_prior_knee_option_bends_a_loose_bodys_capped_prior_alone() {
     assert!(!Schedule::parse(umbra::schedule::DEFAULT_TEXT, Path::new("default.toml")).expect("the default").field.prior_knee);
     for (name, loose) in [("human-dressed", true), ("human-sun", false)] {
         let scene = Scene::load(&Path::new("datasets-synthetic").join(name)).expect("a shipped scene");
-        let trainer = umbra::train::Trainer::new(scene, schedule.clone(), umbra::train::Backend::Flex, 0).expect("a trainer");
+        let trainer = umbra::train::Trainer::new(scene, schedule.clone(), umbra::backend::Backend::Flex, 0).expect("a trainer");
         let skinning = trainer.model().expect("a model").field.config.skinning();
         match skinning.prior_cap {
             Some(cap) => assert!(loose && cap > 0.0 && skinning.prior_knee == cap, "{name}: {skinning:?}"),

@@ -391,13 +391,13 @@ fn a_checkpoint_swap_interrupted_at_every_step_leaves_a_complete_checkpoint() {
     loop {
         let _ = std::fs::remove_dir_all(&run);
         copy_tree(&pristine, &run);
-        let mut trainer = umbra::fit::restore(&run, None, umbra::train::Backend::Flex).unwrap();
+        let mut trainer = umbra::run::restore_trainer(&run, umbra::backend::Backend::Flex).unwrap();
         trainer.iteration = 7;
         let finished = umbra::fit::save_checkpoint_until(&trainer, &run, &[], steps).unwrap();
         // Killed after `steps` steps: the run still loads, from the old checkpoint or the new.
         let on_disk = iteration_on_disk(&run);
         assert!(on_disk == 2 || on_disk == 7, "step {steps}: iteration {on_disk} on disk");
-        umbra::fit::restore(&run, None, umbra::train::Backend::Flex).unwrap_or_else(|e| panic!("step {steps}: the run does not load: {e}"));
+        umbra::fit::restore(&run, None, umbra::backend::Backend::Flex).unwrap_or_else(|e| panic!("step {steps}: the run does not load: {e}"));
         if finished {
             assert_eq!(on_disk, 7);
             break;

@@ -7,11 +7,13 @@ mod common;
 use burn::tensor::{Tensor, TensorData};
 use common::TempDir;
 use glam::DVec3;
+use umbra::backend::Backend;
 use umbra::field::{FieldConfig, PoseTensors};
+use umbra::fit_error::FitError;
 use umbra::render::{render, RaySet, Sampling};
 use umbra::synth::character::{Character, Kind};
 use umbra::synth::TrainingLight;
-use umbra::train::{Backend, FitError, Trainer};
+use umbra::train::Trainer;
 
 fn values<const D: usize>(t: Tensor<D>) -> Vec<f32> {
     t.into_data().convert::<f32>().try_to_vec::<f32>().unwrap()
@@ -87,7 +89,7 @@ fn fit_with_rates(factor: f64) -> Result<(), FitError> {
     let schedule = umbra::schedule::Schedule::parse(&text, std::path::Path::new("rates.toml")).unwrap();
     let mut trainer = Trainer::new(scene, schedule, Backend::Flex, 2)?;
     for _ in 0..12 {
-        trainer.step()?;
+        trainer.iterate()?;
     }
     Ok(())
 }

@@ -1,17 +1,20 @@
 //! Where a fit's and a render's time goes (`umbra bench breakdown`), as Table 2 of the
 //! relightable-characters supplement does: milliseconds per part of a training iteration
-//! (`train::PHASES`: batch sampling, field forward and normals, shading with shadows, the
+//! (`messages::PHASES`: batch sampling, field forward and normals, shading with shadows, the
 //! losses, the SDF gradients of the regularisers, backward, optimiser) in the silhouette and
 //! the light stage, and of rendering one test view (the field alone, with sun shading and
 //! shadows, with sky sampling), with the process's peak memory after each. burn's CPU
 //! backends run eagerly, so each part's tensor work is done within its span.
 
 use super::fit::peak_rss_mib;
+use crate::backend::Backend;
 use crate::eval::{render_view, render_view_and_albedo, Lighting, VIEW_SAMPLING};
+use crate::fit_error::{io, FitError};
+use crate::messages::PHASES;
 use crate::plot::BarChart;
 use crate::scene::Scene;
 use crate::schedule::Schedule;
-use crate::train::{io, Backend, FitError, Trainer, PHASES};
+use crate::train::Trainer;
 use burn::module::Module;
 use std::path::Path;
 use std::time::Instant;
@@ -35,11 +38,11 @@ fn training_parts(scene: &Scene, schedule: &Schedule, stage: &str, iteration: us
 /// Mean milliseconds per phase over `steps` steps of `trainer` from where it is, after one
 /// step to warm up.
 fn trainer_parts(trainer: &mut Trainer, stage: &str, steps: usize) -> Result<Vec<Part>, FitError> {
-    trainer.step()?;
+    trainer.iterate()?;
     let mut sums = vec![0.0; PHASES.len()];
     let mut whole = 0.0;
     for _ in 0..steps {
-        let stats = trainer.step()?;
+        let stats = trainer.iterate()?;
         whole += stats.seconds;
         for (name, seconds) in stats.phases {
             if let Some(k) = PHASES.iter().position(|p| *p == name) {
@@ -120,7 +123,7 @@ pub fn breakdown(scene_path: &Path, schedule_path: &Path, out: &Path, quick: boo
     // The sun search runs once per fit, at light_from.
     let mut trainer = Trainer::new(scene.clone(), schedule.clone(), Backend::Flex, 0)?;
     trainer.iteration = schedule.light_from;
-    let stats = trainer.step()?;
+    let stats = trainer.iterate()?;
     if let Some((_, seconds)) = stats.phases.iter().find(|(name, _)| *name == PHASES[0]) {
         parts.push(Part { stage: "once per fit".into(), part: "sun search".into(), ms: seconds * 1e3, peak_mib: peak_rss_mib() });
     }

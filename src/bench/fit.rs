@@ -3,13 +3,15 @@
 //! test images (foreground PSNR, SSIM), their albedo and the light direction; the curves of
 //! training wall time against each, both kinds on the same axes. Scoring time is not counted.
 
+use crate::backend::Backend;
 use crate::eval::Lighting;
 use crate::fit::{light_error, score_view, TestKinds};
+use crate::fit_error::FitError;
 use crate::plot::{Chart, Series};
 use crate::run::albedo_scale;
 use crate::scene::{Scene, Split};
 use crate::schedule::{FieldKind, Schedule};
-use crate::train::{Backend, FitError, Trainer};
+use crate::train::Trainer;
 use burn::module::Module;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -87,7 +89,7 @@ fn score(trainer: &Trainer, run: &str, kind: FieldKind, iteration: usize, train_
         novel_pose_ssim: mean(&|s| Some(s.scores.ssim)).unwrap_or(f64::NAN),
         albedo_psnr: mean(&|s| s.albedo.as_ref().map(|a| a.1.psnr)),
         albedo_foreground_psnr: mean(&|s| s.albedo.as_ref().map(|a| a.1.foreground_psnr)),
-        light_error_degrees: light_error(trainer, 0, &light)["direction_degrees"].as_f64(),
+        light_error_degrees: light_error(&trainer.scene, trainer.fit_light, 0, &light)["direction_degrees"].as_f64(),
         peak_rss_mib: peak_rss_mib(),
     })
 }
@@ -109,7 +111,7 @@ pub fn fit_curves(options: &FitBenchOptions, mut on: impl FnMut(String)) -> Resu
         let iterations = options.iterations.unwrap_or_else(|| schedule.iterations_for(trainer.fit_light));
         trainers.push((kind, trainer, iterations));
     }
-    std::fs::create_dir_all(&options.out).map_err(|e| crate::train::io(&options.out, e))?;
+    std::fs::create_dir_all(&options.out).map_err(|e| crate::fit_error::io(&options.out, e))?;
     let mut points = Vec::new();
     let fits =
         trainers.into_iter().map(|(kind, trainer, iterations)| Curve::new(trainer, kind_name(kind).to_string(), iterations, options.evaluations)).collect();
@@ -178,7 +180,7 @@ impl Curve {
     /// One training step (timed); the scores if it ends at a mark.
     fn step(&mut self) -> Result<Option<CurvePoint>, FitError> {
         let step = Instant::now();
-        self.trainer.step()?;
+        self.trainer.iterate()?;
         self.train_seconds += step.elapsed().as_secs_f64();
         let iteration = self.trainer.iteration;
         if !self.marks.contains(&iteration) {
@@ -353,7 +355,7 @@ fn write_outputs(out: &Path, scene: &Path, points: &[CurvePoint]) -> Result<Stri
         ],
         csv_rows,
     );
-    let write = |name: &str, text: &str| crate::imageio::write_atomic(&out.join(name), text.as_bytes()).map_err(|e| crate::train::io(&out.join(name), e));
+    let write = |name: &str, text: &str| crate::imageio::write_atomic(&out.join(name), text.as_bytes()).map_err(|e| crate::fit_error::io(&out.join(name), e));
     if let Some(summary) = grid_against_mlp(points) {
         md += &format!("\n{summary}\n");
     }
@@ -384,7 +386,7 @@ fn write_outputs(out: &Path, scene: &Path, points: &[CurvePoint]) -> Result<Stri
             log_y: false,
             series,
         };
-        chart.render(800, 500).save_png(&out.join(file)).map_err(|e| crate::train::io(&out.join(file), e))?;
+        chart.render(800, 500).save_png(&out.join(file)).map_err(|e| crate::fit_error::io(&out.join(file), e))?;
     }
     Ok(md)
 }

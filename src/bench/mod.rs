@@ -54,8 +54,8 @@ pub(crate) fn machine_peak_flops() -> (f64, String) {
 /// The fit in the run folder `run`, rebuilt from its checkpoint and set 100 iterations before its
 /// end (every grid level in, the light fitted): what most of a fit's steps look like once the
 /// surface has formed, where a fresh field's is as soft as its starting beta.
-fn fitted_trainer(run: &std::path::Path) -> Result<crate::train::Trainer, crate::train::FitError> {
-    let mut trainer = crate::run::restore(run, None, crate::train::Backend::Flex)?;
+fn fitted_trainer(run: &std::path::Path) -> Result<crate::train::Trainer, crate::fit_error::FitError> {
+    let mut trainer = crate::run::restore_trainer(run, crate::backend::Backend::Flex)?;
     trainer.iteration = trainer.schedule.iterations.saturating_sub(100).max(trainer.schedule.light_from + 1);
     Ok(trainer)
 }

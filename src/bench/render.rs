@@ -4,10 +4,11 @@
 //! the evaluation's way, a batch of views one after another against several at once.
 
 use super::fit::peak_rss_mib;
+use crate::backend::Backend;
 use crate::eval::{render_view, render_view_and_albedo, Lighting, Strata, VIEW_SAMPLING};
+use crate::fit_error::{io, FitError};
 use crate::light::Light;
 use crate::plot::BarChart;
-use crate::train::{io, Backend, FitError};
 use burn::module::Module;
 use glam::DVec3;
 use rayon::prelude::*;
@@ -18,10 +19,10 @@ const SKY_SAMPLES: usize = 64;
 
 /// Measures `run`'s renders; writes `render.{md,csv,png}` into `out`, returns the Markdown.
 pub fn render(run: &Path, out: &Path, quick: bool) -> Result<String, FitError> {
-    let trainer = crate::run::restore(run, None, Backend::Flex)?;
-    let scene = &trainer.scene;
-    let model = trainer.model()?.valid();
-    let device = trainer.device.clone().without_autodiff();
+    let restored = crate::run::restore(run, None, Backend::Flex)?;
+    let scene = &restored.scene;
+    let model = restored.fitted.model.valid();
+    let device = restored.fitted.device.clone().without_autodiff();
     let albedo_scale = crate::run::albedo_scale(scene, &model);
     let view = scene
         .views_in(crate::scene::Split::Test)

@@ -6,7 +6,9 @@
 //! second table in `scenes.md`): one seed's figures vary by about half a dB, so two scenes are
 //! compared by their means.
 
-use crate::train::{Backend, FitError, FitOptions};
+use crate::backend::Backend;
+use crate::fit::FitOptions;
+use crate::fit_error::FitError;
 use std::path::{Path, PathBuf};
 
 /// What to fit.
@@ -47,7 +49,7 @@ pub fn scenes(options: &ScenesBenchOptions, mut on: impl FnMut(String)) -> Resul
     if let Some(seed) = options.seeds.iter().enumerate().find_map(|(k, s)| options.seeds[..k].contains(s).then_some(s)) {
         return Err(FitError::Input(format!("bench scenes: seed {seed} is named twice: each seed is one fit of every scene")));
     }
-    std::fs::create_dir_all(&options.out).map_err(|e| crate::train::io(&options.out, e))?;
+    std::fs::create_dir_all(&options.out).map_err(|e| crate::fit_error::io(&options.out, e))?;
     let several = options.seeds.len() > 1;
     let mut md = table_head(["scene", "seed"]);
     let mut csv_rows: Vec<Vec<String>> = Vec::new();
@@ -86,7 +88,7 @@ pub fn scenes(options: &ScenesBenchOptions, mut on: impl FnMut(String)) -> Resul
         }
     }
     let write = |file: &str, text: &str| {
-        crate::imageio::write_atomic(&options.out.join(file), text.as_bytes()).map_err(|e| crate::train::io(&options.out.join(file), e))
+        crate::imageio::write_atomic(&options.out.join(file), text.as_bytes()).map_err(|e| crate::fit_error::io(&options.out.join(file), e))
     };
     if several {
         let (summary_md, summary_csv) = summary(&names, &rows);
@@ -97,7 +99,7 @@ pub fn scenes(options: &ScenesBenchOptions, mut on: impl FnMut(String)) -> Resul
         write("scenes-summary.csv", &summary_csv)?;
     } else if options.out.join("scenes-summary.csv").is_file() {
         // A summary of an earlier run at several seeds would contradict this run's table.
-        std::fs::remove_file(options.out.join("scenes-summary.csv")).map_err(|e| crate::train::io(&options.out.join("scenes-summary.csv"), e))?;
+        std::fs::remove_file(options.out.join("scenes-summary.csv")).map_err(|e| crate::fit_error::io(&options.out.join("scenes-summary.csv"), e))?;
     }
     let header = [
         "scene",

@@ -7,10 +7,12 @@
 //! Baseline: the `mlp` field as it was (every ray rendered, one thread), measured in the same run.
 
 use super::time;
+use crate::backend::Backend;
+use crate::fit_error::FitError;
 use crate::plot::{Chart, Series};
 use crate::scene::Scene;
 use crate::schedule::{FieldKind, FieldSettings, Schedule};
-use crate::train::{Backend, FitError, Trainer};
+use crate::train::Trainer;
 use std::path::Path;
 
 struct Variant {
@@ -44,7 +46,7 @@ fn step_ms(scene: &Scene, schedule: &Schedule, variant: &Variant, iteration: usi
 fn time_steps(trainer: &mut Trainer, budget: f64) -> Result<f64, FitError> {
     let mut failure = None;
     let seconds = time(budget, || {
-        if let Err(e) = trainer.step() {
+        if let Err(e) = trainer.iterate() {
             failure = Some(e);
         }
     });
@@ -128,7 +130,7 @@ pub fn steps(scene_path: &Path, schedule_path: &Path, out: &Path, quick: bool, r
     ];
     let stages = [("silhouette stage", 0), ("light stage", schedule.light_from + 200)];
     let budget = if quick { 1.0 } else { 8.0 };
-    std::fs::create_dir_all(out).map_err(|e| crate::train::io(out, e))?;
+    std::fs::create_dir_all(out).map_err(|e| crate::fit_error::io(out, e))?;
     let mut rows = Vec::new();
     for (stage, iteration) in stages {
         let mut baseline = None;
@@ -169,7 +171,7 @@ pub fn steps(scene_path: &Path, schedule_path: &Path, out: &Path, quick: bool, r
     if let Some(run) = run {
         md += &format!("The fitted field's rows: the fit in `{}` continued from its checkpoint, 100 iterations before its end.\n", run.display());
     }
-    let write = |name: &str, text: &str| crate::imageio::write_atomic(&out.join(name), text.as_bytes()).map_err(|e| crate::train::io(&out.join(name), e));
+    let write = |name: &str, text: &str| crate::imageio::write_atomic(&out.join(name), text.as_bytes()).map_err(|e| crate::fit_error::io(&out.join(name), e));
     write("steps.md", &md)?;
     write("steps.csv", &csv)?;
     let mut names: Vec<&str> = stages.iter().map(|(stage, _)| *stage).collect();
@@ -192,6 +194,6 @@ pub fn steps(scene_path: &Path, schedule_path: &Path, out: &Path, quick: bool, r
         log_y: false,
         series,
     };
-    chart.render(800, 500).save_png(&out.join("steps.png")).map_err(|e| crate::train::io(&out.join("steps.png"), e))?;
+    chart.render(800, 500).save_png(&out.join("steps.png")).map_err(|e| crate::fit_error::io(&out.join("steps.png"), e))?;
     Ok(md)
 }

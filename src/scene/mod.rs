@@ -12,7 +12,7 @@ pub use footprint::{Footprint, FootprintEstimate};
 pub use json::SceneError;
 
 use crate::imageio::{self, ImageError, Mask, RgbImage};
-use crate::light::{EnvironmentMap, Light};
+use crate::light::{EnvironmentMap, Light, UnknownLight};
 use crate::skeleton::{Bone, Pose, Skeleton};
 use json::At;
 use rayon::prelude::*;
@@ -321,12 +321,22 @@ impl Reader<'_> {
         Ok(lights)
     }
 
+    /// A light whose direction or position the capture leaves out (or gives as null); its
+    /// strength (`strength_key`) is then optional too.
+    fn unknown_light(&self, node: &At, kind: UnknownLight, strength_key: &str) -> Result<Light, SceneError> {
+        let strength = node.opt_field(strength_key)?.map(|s| s.rgb()).transpose()?;
+        let ambient = node.opt_field("ambient")?.map(|a| a.rgb()).transpose()?.unwrap_or(glam::DVec3::ZERO);
+        Ok(Light::Unknown { kind, strength, ambient })
+    }
+
     fn light(&self, node: &At) -> Result<Light, SceneError> {
         let type_node = node.field("type")?;
         let ambient = |n: &At| -> Result<glam::DVec3, SceneError> { Ok(n.opt_field("ambient")?.map(|a| a.rgb()).transpose()?.unwrap_or(glam::DVec3::ZERO)) };
         match type_node.str()? {
             "directional" => {
-                let direction_node = node.field("direction")?;
+                let Some(direction_node) = node.opt_field("direction")? else {
+                    return self.unknown_light(node, UnknownLight::Sun, "irradiance");
+                };
                 let direction = direction_node.vec3()?;
                 if direction.length() < 1e-12 {
                     return Err(direction_node.error("direction has zero length"));
@@ -334,7 +344,10 @@ impl Reader<'_> {
                 Ok(Light::Directional { direction: direction.normalize(), irradiance: node.field("irradiance")?.rgb()?, ambient: ambient(node)? })
             }
             "uniform" => Ok(Light::Uniform { radiance: node.field("radiance")?.rgb()? }),
-            "point" => Ok(Light::Point { position: node.field("position")?.vec3()?, intensity: node.field("intensity")?.rgb()?, ambient: ambient(node)? }),
+            "point" => match node.opt_field("position")? {
+                Some(position) => Ok(Light::Point { position: position.vec3()?, intensity: node.field("intensity")?.rgb()?, ambient: ambient(node)? }),
+                None => self.unknown_light(node, UnknownLight::Point, "intensity"),
+            },
             "environment" => {
                 let path_node = node.field("path")?;
                 let file = self.existing_file(&path_node)?;
@@ -405,6 +418,19 @@ impl Reader<'_> {
             };
             let albedo = item.opt_field("albedo")?.map(|a| self.pending(&a)).transpose()?;
             records.push(Record { camera, frame, light, split, colour, mask, albedo });
+        }
+        // An unknown light is recovered from its training images: one that lights none cannot
+        // be rendered, so no image of another split may name it.
+        let trains = |name: &str| records.iter().any(|r| r.split == Split::Train && r.light == name);
+        if let Some((k, r)) = records.iter().enumerate().find(|(_, r)| !lights[&r.light].is_known() && !trains(&r.light)) {
+            return Err(SceneError {
+                file: self.file.to_path_buf(),
+                path: format!("{}[{k}].light", node.path),
+                message: format!(
+                    "{:?} is an unknown light (no direction or position) that lights no training image: an unknown light is recovered by a fit, so it may light test images only of a capture whose training images it lights",
+                    r.light
+                ),
+            });
         }
         // Decoding is the slow part of loading: do it in parallel, report the first failure in order.
         records

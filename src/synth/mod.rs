@@ -494,6 +494,17 @@ fn light_json(light: &Light) -> Value {
         Light::Point { position, intensity, ambient } => {
             json!({"type": "point", "position": v(position), "intensity": v(intensity), "ambient": v(ambient)})
         }
+        Light::Unknown { kind, strength, ambient } => {
+            let (kind, key) = match kind {
+                crate::light::UnknownLight::Sun => ("directional", "irradiance"),
+                crate::light::UnknownLight::Point => ("point", "intensity"),
+            };
+            let mut light = json!({"type": kind, "ambient": v(ambient)});
+            if let Some(s) = strength {
+                light[key] = v(s);
+            }
+            light
+        }
     }
 }
 

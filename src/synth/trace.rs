@@ -117,6 +117,8 @@ pub fn shade(traced: &Traced, hit: &Hit, albedo: DVec3, light: &Light, samples: 
             let lit = if cosine > 0.0 && traced.visible(hit.point, hit.normal, direction, r - SHADOW_OFFSET) { 1.0 } else { 0.0 };
             albedo * (*ambient + *intensity / (r * r) * (cosine * lit))
         }
+        // A scene's unknown light has nothing to trace but its ambient.
+        Light::Unknown { ambient, .. } => albedo * *ambient,
         Light::Uniform { radiance } => {
             let open = (0..samples).filter(|&k| traced.visible(hit.point, hit.normal, cosine_direction(hit.normal, k, samples, stream), f64::INFINITY)).count();
             albedo * *radiance * (open as f64 / samples.max(1) as f64)

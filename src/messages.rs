@@ -1,0 +1,68 @@
+//! What a fit tells whoever runs it (typed messages the CLI turns into progress), and the
+//! statistics of one training step.
+
+use crate::shading::LightKind;
+use std::collections::BTreeMap;
+
+/// What the fit tells whoever runs it.
+#[derive(Clone, Debug)]
+pub enum TrainMessage {
+    Loaded {
+        scene: String,
+        training_images: usize,
+        frames: usize,
+        light: LightKind,
+    },
+    Started {
+        first: usize,
+        iterations: usize,
+    },
+    Step {
+        iteration: usize,
+        stats: StepStats,
+    },
+    Checkpoint {
+        iteration: usize,
+    },
+    Evaluating {
+        images: usize,
+    },
+    /// One image rendered, with its PSNR when there is a ground truth to score it against.
+    Rendered {
+        done: usize,
+        total: usize,
+        name: String,
+        psnr: Option<f64>,
+    },
+    Done,
+}
+
+/// The losses of one step (unweighted) and the weighted total.
+#[derive(Clone, Debug, Default, serde::Serialize)]
+pub struct StepStats {
+    pub total: f64,
+    pub terms: BTreeMap<String, f64>,
+    pub seconds: f64,
+    /// Wall seconds per part of the step, in order (`PHASES`; the sun search only when it ran).
+    /// burn's CPU backends run eagerly, so each part's tensor work is done within its span.
+    #[serde(skip)]
+    pub phases: Vec<(&'static str, f64)>,
+    /// The first training light after the step (`FittedLight::location`): a sun's unit
+    /// direction or a point light's position (m); none when no light is fitted. Kept in
+    /// `losses.csv`, so a run's path of the light survives `--resume` (`fit.json`: `light_path`).
+    pub light: Option<[f64; 3]>,
+}
+
+/// The parts of a training step `StepStats::phases` times.
+pub const PHASES: [&str; 10] = [
+    "sun search",
+    "batch sampling (CPU)",
+    crate::render::RENDER_PARTS[0],
+    crate::render::RENDER_PARTS[1],
+    crate::render::RENDER_PARTS[2],
+    "shading + shadows",
+    "mask, grey, density and Gaussian losses",
+    "Eikonal + curvature (SDF gradients)",
+    "backward",
+    "optimiser step",
+];

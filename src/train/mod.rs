@@ -1,0 +1,254 @@
+//! The fit's trainer: the state one training step changes (model, named optimisers, iteration,
+//! the seeded stream, error maps, the light search's cones) and the scene data it draws from.
+//! Each job has a room: `setup` (the body measured, the model placed), `body` (loose body from
+//! the masks), `batch` (drawing a batch and every random number a step uses), `step` (forward,
+//! losses, backward, updates), `rebind` (Gaussians to the bones that carry them) and
+//! `light_search`. `iterate` runs one iteration: the stage's events, a batch, a step.
+//!
+//! It skips what a scene does not need: a uniformly lit capture gets no light, no shadow rays and
+//! no light-fitting stage. A capture under several lights of one kind fits them jointly, each
+//! batch under one of them.
+
+mod batch;
+pub mod body;
+mod light_search;
+mod rebind;
+mod setup;
+mod step;
+
+pub use batch::Batch;
+pub use body::{masked_body_beyond_bones, masked_reach_beyond_bones, seeds_on_loose_body};
+pub use light_search::SUN_CONE_SPACINGS;
+pub use setup::{body_centre, field_config, new_avatar, training_lights, TrainingLights};
+
+use crate::avatar::Avatar;
+use crate::field::{GradientMethod, PoseTensors};
+use crate::fit_error::FitError;
+use crate::messages::StepStats;
+use crate::random::Stream;
+use crate::scene::Scene;
+use crate::schedule::Schedule;
+use crate::shading::LightKind;
+use burn::optim::{AdamConfig, ModuleOptimizer};
+use burn::tensor::{Device, Tensor};
+use std::time::Instant;
+
+/// One Adam optimiser per parameter group (`schedule::GROUPS`), by name.
+#[derive(Clone)]
+pub struct Optimisers {
+    pub field: ModuleOptimizer,
+    pub gaussians: ModuleOptimizer,
+    pub light: ModuleOptimizer,
+    /// A grid's feature tables: tiny, sparse gradients, so Adam's epsilon must not swamp them
+    /// (instant-NGP uses 1e-15).
+    pub features: ModuleOptimizer,
+}
+
+impl Optimisers {
+    pub fn new() -> Self {
+        Self {
+            field: AdamConfig::new().init(),
+            gaussians: AdamConfig::new().init(),
+            light: AdamConfig::new().init(),
+            features: AdamConfig::new().with_epsilon(1e-15).init(),
+        }
+    }
+
+    /// Each optimiser with its group's name (a checkpoint's `optimizer-NAME.bpk`).
+    pub fn named(&self) -> [(&'static str, &ModuleOptimizer); 4] {
+        [("field", &self.field), ("gaussians", &self.gaussians), ("light", &self.light), ("features", &self.features)]
+    }
+
+    pub fn named_mut(&mut self) -> [(&'static str, &mut ModuleOptimizer); 4] {
+        [("field", &mut self.field), ("gaussians", &mut self.gaussians), ("light", &mut self.light), ("features", &mut self.features)]
+    }
+}
+
+impl Default for Optimisers {
+    fn default() -> Self {
+        Self::new()
+    }
+}
+
+/// Training data of one frame: its pose and the views that see it.
+struct FrameData {
+    position: usize,
+    pose_tensors: PoseTensors,
+    views: Vec<usize>,
+}
+
+/// Per training view: pixel indices for balanced ray sampling.
+struct ViewData {
+    foreground: Vec<usize>,
+    /// Pixels within `BOUNDARY_BAND` pixels of the silhouette's edge, on either side.
+    boundary: Vec<usize>,
+    /// Where the fit is still wrong in this view, when the schedule draws rays by it
+    /// (`Schedule::error_rays`; training views with a mask only).
+    error_map: Option<crate::error_map::ErrorMap>,
+}
+
+pub struct Trainer {
+    pub scene: Scene,
+    pub schedule: Schedule,
+    pub device: Device,
+    pub model: Option<Avatar>,
+    pub optimisers: Optimisers,
+    frames: Vec<FrameData>,
+    views: Vec<ViewData>,
+    pub fit_light: bool,
+    pub light_kind: LightKind,
+    pub iteration: usize,
+    /// The seed the fit was started with (a resumed fit keeps it).
+    pub seed: u64,
+    pub stream: Stream,
+    /// How SDF gradients (normals, Eikonal, curvature) are taken; `GRADIENT` unless a
+    /// benchmark compares methods.
+    pub gradient: GradientMethod,
+    /// Render rays that miss every Gaussian bound too (as before they were skipped): only
+    /// for the benchmark that measures what skipping them saves.
+    pub render_missed_rays: bool,
+    /// Threads a step's render is split over (`render::render_in_parts`): every thread by
+    /// default; 1 renders the batch on one (a benchmark's baseline). The parts' matrix products
+    /// round differently, so a fit is the same to the bit for a seed and a thread count.
+    pub render_threads: usize,
+    /// The centre of the skeleton's bounds over the capture and the body's extent (m): where
+    /// and at what distances a point light is searched.
+    body_centre: glam::DVec3,
+    body_extent: f64,
+    /// Where the mean regulariser pulls each Gaussian, bone-local (`mean_targets`).
+    mean_targets: Tensor<2>,
+    /// Per Gaussian, its seed (root-local) when it was seeded on loose body
+    /// (`seeds_on_loose_body`): the mean regulariser pulls it there, not to its bone's centre.
+    anchors: Vec<Option<glam::DVec3>>,
+    /// The root bone when the body is loose (its grids reach body beyond every bone's).
+    loose_root: Option<usize>,
+    /// What the light search found for each training light, once it has run (`sun_search`).
+    pub searches: Vec<Option<crate::sun_search::SearchReport>>,
+    /// Per training light, the cone (axis, half-angle in radians) a sun's direction stays in
+    /// after the search.
+    pub cones: Vec<Option<(glam::DVec3, f64)>>,
+    /// The training light of each of the scene's views (its index in `Scene::training_lights`;
+    /// `None` for a view not in training).
+    view_light: Vec<Option<usize>>,
+    /// The training data's fingerprint (`Scene::training_identity`, every training pixel
+    /// hashed), computed once for all the checkpoints a fit writes.
+    training_identity: std::sync::OnceLock<String>,
+    /// What the training images say of their pixel footprint (`scene::footprint`), and the
+    /// footprint the fit models (the schedule's, else that).
+    pub footprint_estimate: crate::scene::FootprintEstimate,
+    pub footprint: crate::scene::Footprint,
+    /// The moving average of the field's parameters, once the schedule's
+    /// `field_average_half_life` has started it (`fitted_model`).
+    pub average: Option<crate::averaging::ParameterAverage>,
+    /// The share of the anywhere-third drawn by the error maps: the schedule's, or under
+    /// `auto` what the body's looseness asks (`ErrorRays::share`).
+    pub error_rays: f64,
+    /// Whether the Gaussians also fit the density at the shadows' scale (the schedule's
+    /// `density_at_shadow_scale`, `auto` resolved by the body's looseness).
+    pub density_at_shadow_scale: bool,
+}
+
+impl Trainer {
+    /// Each training view's error map (`Schedule::error_rays`) by the view's index: what a
+    /// checkpoint keeps so that a resumed fit draws its rays as the uninterrupted one does.
+    pub fn error_maps(&self) -> Vec<(usize, Vec<f32>)> {
+        self.views.iter().enumerate().filter_map(|(v, d)| d.error_map.as_ref().map(|m| (v, m.errors().to_vec()))).collect()
+    }
+
+    /// Restores `error_maps`' output; refused when a view has no map or a map's size differs.
+    pub fn set_error_maps(&mut self, maps: Vec<(usize, Vec<f32>)>) -> Result<(), String> {
+        for (v, errors) in maps {
+            let map = self.views.get_mut(v).and_then(|d| d.error_map.as_mut()).ok_or_else(|| format!("view {v} has no error map in this fit"))?;
+            map.set_errors(errors).map_err(|e| format!("view {v}: {e}"))?;
+        }
+        Ok(())
+    }
+
+    /// Runs the grid's lookup as the composite of tensor ops instead of the fused op (for the
+    /// step benchmark's comparison; a no-op for the `mlp` field).
+    pub fn set_composite_lookup(&mut self, composite: bool) {
+        if let Some(grid) = self.model.as_mut().and_then(|m| m.field.grid.as_mut()) {
+            grid.composite = composite;
+        }
+    }
+
+    /// The current model (it is only out of the trainer while a step runs).
+    /// `Scene::training_identity` of the trainer's scene, hashed on first use.
+    pub fn training_identity(&self) -> &str {
+        self.training_identity.get_or_init(|| self.scene.training_identity())
+    }
+
+    /// The model being trained: the last step's parameters.
+    pub fn model(&self) -> Result<&Avatar, FitError> {
+        self.model.as_ref().ok_or_else(|| FitError::Input("the model was lost by an interrupted step".into()))
+    }
+
+    /// The fit as it stands, for rendering and scoring (`fitted_model`).
+    pub fn fitted(&self) -> Result<crate::avatar::Fitted, FitError> {
+        Ok(crate::avatar::Fitted {
+            model: self.fitted_model()?,
+            device: self.device.clone(),
+            light_kind: self.light_kind,
+            fit_light: self.fit_light,
+            footprint: self.footprint,
+            iteration: self.iteration,
+        })
+    }
+
+    /// The model a fit shows (checkpoint, renders, evaluation): the last step's, its field's
+    /// parameters replaced by their moving average once that has started.
+    pub fn fitted_model(&self) -> Result<Avatar, FitError> {
+        let mut model = self.model()?.clone();
+        if let Some(average) = &self.average {
+            model.field =
+                average.applied(model.field).ok_or_else(|| FitError::Input("the field's parameter average does not match the field's layout".into()))?;
+        }
+        Ok(model)
+    }
+
+    /// The body's length unit: `skeleton::body_length(1, extent)`.
+    fn body_unit(&self) -> f64 {
+        crate::skeleton::body_length(1.0, self.body_extent)
+    }
+
+    /// The least radius of a Gaussian's bound on this body.
+    fn min_bound_radius(&self) -> f64 {
+        crate::render::MIN_BOUND_RADIUS * self.body_unit()
+    }
+}
+
+impl Trainer {
+    /// One iteration: the stage's events (the light search when the light stage starts,
+    /// rebinding while the Gaussians fit the density), a batch drawn, a step taken on it.
+    pub fn iterate(&mut self) -> Result<StepStats, FitError> {
+        let start = Instant::now();
+        let mut phases = Vec::new();
+        if self.searches_lights_now() {
+            self.search_lights()?;
+            phases.push((crate::messages::PHASES[0], start.elapsed().as_secs_f64()));
+        }
+        if self.rebinds_now() {
+            self.rebind_gaussians()?;
+        }
+        let drawing = Instant::now();
+        let batch = self.draw_batch()?;
+        phases.push((crate::messages::PHASES[1], drawing.elapsed().as_secs_f64()));
+        let mut stats = self.step(batch)?;
+        phases.append(&mut stats.phases);
+        stats.phases = phases;
+        stats.seconds = start.elapsed().as_secs_f64();
+        Ok(stats)
+    }
+
+    /// Whether this iteration starts the light stage with a search for the training lights.
+    fn searches_lights_now(&self) -> bool {
+        let it = self.iteration;
+        it == self.schedule.light_from && self.fit_light && self.light_kind != LightKind::Uniform && self.schedule.sun_search > 0
+    }
+
+    /// Whether the Gaussians are rebound to their bones before this iteration's batch.
+    fn rebinds_now(&self) -> bool {
+        let (it, every) = (self.iteration, self.schedule.rebind_every);
+        every > 0 && it > 0 && it % every == 0 && it <= self.schedule.light_from && self.schedule.weight("density", it) > 0.0
+    }
+}

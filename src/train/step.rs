@@ -1,0 +1,333 @@
+//! One training step: forward, the schedule's weighted losses, backward, one Adam step per named
+//! parameter group, the light kept in its cone, the field's moving average updated.
+
+use super::{Batch, Trainer};
+use crate::avatar::{first_non_finite, Avatar};
+use crate::field::AvatarField;
+use crate::fit_error::FitError;
+use crate::gaussians::GaussianParams;
+use crate::messages::{StepStats, PHASES};
+use crate::render::{render_in_parts, sum_gradients, Deferred};
+use crate::shading::{FittedLight, LightKind};
+use burn::optim::GradientsParams;
+use burn::tensor::{Device, Int, Tensor, TensorData};
+use std::time::Instant;
+
+/// Splits a step's wall time into `PHASES`.
+struct PhaseClock {
+    last: Instant,
+    spans: Vec<(&'static str, f64)>,
+}
+
+impl PhaseClock {
+    fn start() -> Self {
+        Self { last: Instant::now(), spans: Vec::new() }
+    }
+
+    /// Ends the current part of the step as the render's three parts, timed by `render`.
+    fn mark_render(&mut self, deferred: &Deferred) {
+        for (k, seconds) in deferred.seconds.iter().enumerate() {
+            self.spans.push((PHASES[2 + k], *seconds));
+        }
+        self.last = Instant::now();
+    }
+
+    /// Ends the current part of the step as `PHASES[k]`.
+    fn mark(&mut self, k: usize) {
+        let now = Instant::now();
+        self.spans.push((PHASES[k], (now - self.last).as_secs_f64()));
+        self.last = now;
+    }
+}
+
+/// The light with its sun direction rotated back onto the cone of half-angle `angle` around
+/// `axis` when a step took it outside (ambient and shadow density untouched).
+fn keep_in_cone(mut light: FittedLight, axis: glam::DVec3, angle: f64, device: &Device) -> FittedLight {
+    let values = light.vector.val().into_data().convert::<f32>().try_to_vec::<f32>().unwrap_or_default();
+    if values.len() != 3 {
+        return light;
+    }
+    let v = glam::DVec3::new(values[0] as f64, values[1] as f64, values[2] as f64);
+    let axis = axis.normalize();
+    if v.length() < 1e-12 || v.normalize().dot(axis) >= angle.cos() {
+        return light;
+    }
+    // Rotate within the plane of axis and v, to the cone's edge, keeping v's length.
+    let across = v - axis * v.dot(axis);
+    let side = if across.length() > 1e-12 { across.normalize() } else { axis.any_orthonormal_vector() };
+    let clamped = (axis * angle.cos() + side * angle.sin()) * v.length();
+    let device = device.clone();
+    light.vector = light.vector.map(|_| Tensor::from_data(TensorData::new(clamped.as_vec3().to_array().to_vec(), [3]), &device).require_grad());
+    light
+}
+
+fn scalar(t: &Tensor<1>) -> f64 {
+    t.clone().into_data().convert::<f32>().try_to_vec::<f32>().ok().and_then(|v| v.first().copied()).unwrap_or(f32::NAN) as f64
+}
+
+/// The step's losses: name, weight and value, in the order they are summed.
+type Terms<'a> = Vec<(&'a str, f64, Tensor<1>)>;
+
+impl Trainer {
+    /// One step on `batch`: forward, the weighted losses, backward, one Adam step per group. The
+    /// batch carries every random number the step uses (`draw_batch`).
+    pub fn step(&mut self, batch: Batch) -> Result<StepStats, FitError> {
+        let start = Instant::now();
+        let mut clock = PhaseClock::start();
+        let it = self.iteration;
+        let mut model = self.model.take().ok_or_else(|| FitError::Input("the model was lost by an interrupted step".into()))?;
+        // Coarse-to-fine protects the light's recovery: without a light to fit, every level
+        // works from the start.
+        if let Some(grid) = model.field.grid.as_mut() {
+            grid.active_levels = if self.fit_light { self.schedule.active_levels(grid.config.levels, it) } else { grid.config.levels as f32 };
+        }
+        let (terms, forks) = self.losses(&model, &batch, &mut clock);
+        let mut total = terms[0].2.clone() * terms[0].1;
+        for (_, weight, value) in terms.iter().skip(1) {
+            total = total + value.clone() * *weight;
+        }
+        let mut stats = StepStats { total: scalar(&total), terms: terms.iter().map(|(n, _, v)| (n.to_string(), scalar(v))).collect(), ..StepStats::default() };
+        clock.mark(7);
+        if !stats.total.is_finite() {
+            let bad = stats.terms.iter().find(|(_, v)| !v.is_finite()).map(|(n, _)| format!("the {n} loss")).unwrap_or_else(|| "the total loss".into());
+            self.model = Some(model);
+            return Err(FitError::NonFinite { iteration: it, what: bad, checkpoint: String::new() });
+        }
+        let grads = total.backward();
+        clock.mark(8);
+        let model = self.update(model, grads, forks, batch.light);
+        if self.fit_light {
+            stats.light = model.light.location();
+        }
+        let poisoned = first_non_finite(&model);
+        self.model = Some(model);
+        if let Some(name) = poisoned {
+            return Err(FitError::NonFinite { iteration: it, what: format!("the parameter {name} after the update"), checkpoint: String::new() });
+        }
+        self.iteration += 1;
+        self.update_average();
+        clock.mark(9);
+        stats.phases = clock.spans;
+        stats.seconds = start.elapsed().as_secs_f64();
+        Ok(stats)
+    }
+
+    /// The forward pass and the schedule's losses on `batch` (the colour loss records each
+    /// pixel's error in its view's error map), with the forks of the field that rendered parts
+    /// of the batch on other threads.
+    fn losses<'a>(&mut self, model: &Avatar, batch: &Batch, clock: &mut PhaseClock) -> (Terms<'a>, Vec<AvatarField>) {
+        let it = self.iteration;
+        let device = self.device.clone();
+        let schedule = self.schedule.clone();
+        let w = |name: &str| schedule.weight(name, it);
+        let pose = self.frames[batch.frame].pose_tensors.clone();
+        let (r, rendered) = (batch.rays.len(), batch.rendered);
+        let sampling = self.schedule.sampling();
+        let shading = self.fit_light && w("rgb") > 0.0;
+        let (deferred, forks) = render_in_parts(
+            &model.field,
+            &pose,
+            &batch.rays.first(rendered),
+            sampling,
+            &batch.jitter,
+            shading.then_some(self.gradient),
+            &device,
+            self.render_threads,
+        );
+        clock.mark_render(&deferred);
+        // Only rays that meet a bound were rendered: the rest are appended as background.
+        let background = |t: Tensor<2>| if rendered < r { Tensor::cat(vec![t, Tensor::zeros([r - rendered, 3], &device)], 0) } else { t };
+        let accumulation = if rendered < r {
+            Tensor::cat(vec![deferred.accumulation.clone(), Tensor::zeros([r - rendered], &device)], 0)
+        } else {
+            deferred.accumulation.clone()
+        };
+        // One ray a pixel, in the targets' order.
+        let pixels = batch.masks.len();
+        let albedo = background(deferred.albedo.clone());
+        let target: Tensor<2> = Tensor::from_data(TensorData::new(batch.colours.clone(), [pixels, 3]), &device);
+        let mask: Tensor<1> = Tensor::from_data(TensorData::new(batch.masks.clone(), [pixels]), &device);
+        // The Gaussians posed in the graph only when a loss reaches them: burn registers every
+        // operation on a parameter in the parameter's graph, and what no backward consumes stays
+        // there, swept at every backward: 300 steps of an unused posing piled up 18,000 nodes,
+        // and the first stage's steps took up to twice as long.
+        let posed = (!batch.density_samples.is_empty()).then(|| model.gaussians.posed(&pose));
+        let mut terms: Terms = Vec::new();
+        let mut colour_error: Option<Tensor<1>> = None;
+        if w("rgb") > 0.0 {
+            let colour = match &deferred.normal {
+                Some(normal) => background(self.shaded(model, batch, &deferred, normal)),
+                None => albedo.clone(),
+            };
+            if self.error_rays > 0.0 {
+                colour_error = Some((colour.clone().detach() - target.clone()).abs().mean_dim(1).reshape([pixels]));
+            }
+            terms.push(("rgb", w("rgb"), crate::losses::rgb(colour, target)));
+        }
+        clock.mark(5);
+        if self.error_rays > 0.0 {
+            self.record_errors(batch, (accumulation.clone().detach() - mask.clone()).abs(), colour_error);
+        }
+        terms.push(("mask", w("mask"), crate::losses::mask(accumulation, mask.clone())));
+        if w("grey") > 0.0 {
+            terms.push(("grey", w("grey"), crate::losses::grey(albedo, mask)));
+        }
+        self.gaussian_terms(model, batch, &deferred, posed, &mut terms);
+        clock.mark(6);
+        self.regulariser_terms(model, batch, &deferred, &mut terms);
+        (terms, forks)
+    }
+
+    /// The batch's colour under its light, with the shadows cast by the Gaussians' values: they
+    /// learn only from their fit to the field's density.
+    fn shaded(&self, model: &Avatar, batch: &Batch, deferred: &Deferred, normal: &Tensor<2>) -> Tensor<2> {
+        let pose = &self.frames[batch.frame].pose_tensors;
+        let casters = model.gaussians.posed_values(pose);
+        let batch_light = model.light_at(batch.light);
+        // The pixels drawn where the fit is wrong teach the light nothing: it learns from the
+        // same pixels as a batch without them.
+        let error_drawn = batch.sources.iter().any(|s| s.2);
+        let weights = error_drawn.then(|| {
+            let ray_weights: Vec<f32> = batch.sources.iter().take(batch.rendered).map(|source| if source.2 { 0.0 } else { 1.0 }).collect();
+            Tensor::<1>::from_data(TensorData::new(ray_weights, [batch.rendered]), &self.device)
+        });
+        batch_light.shade_weighted(deferred.albedo.clone(), deferred.surface.clone(), normal.clone(), &casters, weights.as_ref())
+    }
+
+    /// Each pixel's error (coverage, and colour once it is fitted) into its view's error map.
+    fn record_errors(&mut self, batch: &Batch, coverage: Tensor<1>, colour: Option<Tensor<1>>) {
+        let error = match colour {
+            Some(c) => coverage + c,
+            None => coverage,
+        };
+        let error = error.into_data().convert::<f32>().try_to_vec::<f32>().unwrap_or_default();
+        for (&(v, pixel, _), e) in batch.sources.iter().zip(error) {
+            if let Some(map) = self.views.get_mut(v).and_then(|d| d.error_map.as_mut()) {
+                map.record(pixel, e);
+            }
+        }
+    }
+
+    /// The Gaussians' losses: their fit to the field's density, their widths, their means, and
+    /// the light's ambient prior.
+    fn gaussian_terms(&self, model: &Avatar, batch: &Batch, deferred: &Deferred, posed: Option<crate::shadow::tensor::GaussianTensors>, terms: &mut Terms) {
+        let w = |name: &str| self.schedule.weight(name, self.iteration);
+        if let Some(posed) = posed {
+            let count = batch.density_samples.len();
+            let idx = Tensor::<1, Int>::from_data(TensorData::new(batch.density_samples.clone(), [count]), &self.device);
+            let points = deferred.sample_points.clone().detach().select(0, idx.clone());
+            // The Gaussians' amplitudes are optical density per body unit.
+            let field_density = deferred.sample_density.clone().detach().select(0, idx) * model.light.unit;
+            let mixture = GaussianParams::mixture_density(&posed, points);
+            // Also at the density the shadows are cast with, when asked (the first light's
+            // scale, detached: the light does not learn from how well the Gaussians fit): the
+            // first term keeps the body opaque to them, the second fits away the faint tails
+            // outside it that a shadow sees at the light's scale.
+            let fit = if self.density_at_shadow_scale {
+                let scale = model.light.density_scale().detach();
+                crate::losses::density(mixture.clone(), field_density.clone()) + crate::losses::density(mixture * scale.clone(), field_density * scale)
+            } else {
+                crate::losses::density(mixture, field_density)
+            };
+            terms.push(("density", w("density"), fit));
+        }
+        if w("sigma") > 0.0 {
+            terms.push(("sigma", w("sigma"), crate::losses::sigma(model.gaussians.scales() / model.light.unit)));
+        }
+        if w("mean") > 0.0 {
+            terms.push(("mean", w("mean"), crate::losses::mean(model.gaussians.means.val(), self.mean_targets.clone() / model.light.unit)));
+        }
+        if w("ambient") > 0.0 && self.fit_light {
+            // The ambient target is a fraction of the batch light's irradiance: for the first
+            // light (irradiance 1, or a point light whose strength is free) its ambient itself;
+            // for another sun, whose irradiance is learned, its ambient over that irradiance.
+            // (The same prior on every light at every step did no better on human-suns.)
+            let batch_light = model.light_at(batch.light);
+            let ambient = match (batch.light, batch_light.kind) {
+                (k, LightKind::Directional) if k > 0 => batch_light.ambient() / batch_light.irradiance(),
+                _ => model.light.ambient(),
+            };
+            terms.push(("ambient", w("ambient"), crate::losses::ambient(ambient, self.schedule.ambient_target)));
+        }
+    }
+
+    /// The SDF's regularisers at the batch's regulariser samples: Eikonal, and curvature between
+    /// each sample and its offset.
+    fn regulariser_terms(&self, model: &Avatar, batch: &Batch, deferred: &Deferred, terms: &mut Terms) {
+        let q = batch.regulariser_samples.len();
+        if q == 0 {
+            return;
+        }
+        let w = |name: &str| self.schedule.weight(name, self.iteration);
+        let pose = &self.frames[batch.frame].pose_tensors;
+        let idx = Tensor::<1, Int>::from_data(TensorData::new(batch.regulariser_samples.clone(), [q]), &self.device);
+        let points = deferred.sample_points.clone().detach().select(0, idx);
+        let gradient = model.field.sdf_gradient(points.clone(), pose, self.gradient);
+        if w("eikonal") > 0.0 {
+            terms.push(("eikonal", w("eikonal"), crate::losses::eikonal(gradient.clone())));
+        }
+        if !batch.curvature_offsets.is_empty() {
+            let perturbed = points + Tensor::<2>::from_data(TensorData::new(batch.curvature_offsets.clone(), [q, 3]), &self.device);
+            let g2 = model.field.sdf_gradient(perturbed, pose, self.gradient);
+            let unit = crate::render::unit_rows;
+            terms.push(("curvature", w("curvature"), crate::losses::curvature(unit(gradient), unit(g2))));
+        }
+    }
+
+    /// Backward's gradients applied: one Adam step per group, the light only when its stage
+    /// has started (and only the batch's light, the only one in the graph), a sun kept in its
+    /// search's cone.
+    fn update(&mut self, model: Avatar, mut grads: burn::tensor::Gradients, forks: Vec<AvatarField>, light_index: usize) -> Avatar {
+        let it = self.iteration;
+        let light_active = self.fit_light && it >= self.schedule.light_from;
+        let Avatar { mut field, gaussians, light, mut other_lights } = model;
+        let mut light = if light_index == 0 { light } else { std::mem::replace(&mut other_lights[light_index - 1], light) };
+        // A grid's feature tables have their own learning rate and optimiser.
+        let grid = field.grid.take();
+        // The forks that rendered parts of the batch on other threads hold gradients of the
+        // same parameters: summed into the field's.
+        let mut fork_grids = Vec::new();
+        let fork_fields: Vec<AvatarField> = forks
+            .into_iter()
+            .map(|mut fork| {
+                fork_grids.extend(fork.grid.take());
+                fork
+            })
+            .collect();
+        let g_grid = grid.as_ref().map(|g| sum_gradients(&mut grads, g, &fork_grids));
+        let g_field = sum_gradients(&mut grads, &field, &fork_fields);
+        let g_gaussians = GradientsParams::from_module(&mut grads, &gaussians);
+        let g_light = GradientsParams::from_module(&mut grads, &light);
+        let lr = |g: &str| self.schedule.learning_rate(g, it);
+        let optimisers = &mut self.optimisers;
+        let mut field = optimisers.field.step(lr("field"), field, g_field);
+        field.grid = match (grid, g_grid) {
+            (Some(grid), Some(g)) => Some(optimisers.features.step(lr("features"), grid, g)),
+            (grid, _) => grid,
+        };
+        let gaussians = optimisers.gaussians.step(lr("gaussians"), gaussians, g_gaussians);
+        light = if light_active { optimisers.light.step(lr("light"), light, g_light) } else { light };
+        light = match self.cones[light_index] {
+            Some((axis, angle)) if light_active => keep_in_cone(light, axis, angle, &self.device),
+            _ => light,
+        };
+        if light_index > 0 {
+            light = std::mem::replace(&mut other_lights[light_index - 1], light);
+        }
+        Avatar { field, gaussians, light, other_lights }
+    }
+
+    /// Moves the field's average toward the parameters of the step just taken, or starts it at
+    /// them on the first step of the learning rates' decay (`field_average_half_life`).
+    fn update_average(&mut self) {
+        let half_life = self.schedule.field_average_half_life;
+        let Some(model) = self.model.as_ref() else { return };
+        if half_life <= 0.0 || self.iteration <= self.schedule.field_lr_decay_from {
+            return;
+        }
+        match &mut self.average {
+            Some(average) => average.update(&model.field, crate::averaging::ParameterAverage::keep_for_half_life(half_life)),
+            None => self.average = Some(crate::averaging::ParameterAverage::start(&model.field)),
+        }
+    }
+}
