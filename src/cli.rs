@@ -30,6 +30,36 @@ pub enum Command {
         #[command(flatten)]
         options: crate::synth::SynthOptions,
     },
+    /// Import a capture (nerfstudio cameras, a BVH, masks) into a new scene/1 scene.
+    Import {
+        /// The capture folder: a transforms.json, one .bvh, the images (or name them below).
+        capture: PathBuf,
+        /// The scene folder to create (new or empty).
+        #[arg(long)]
+        out: PathBuf,
+        /// The capture's light, unknown but of this kind: `sun`, `point` or `uniform`.
+        #[arg(long, value_enum)]
+        light: crate::capture::CaptureLight,
+        /// The capture's length unit (inferred from the skeleton's size when absent).
+        #[arg(long, value_enum)]
+        units: Option<crate::capture::Units>,
+        /// The capture's up axis.
+        #[arg(long, value_enum, default_value = "+y", allow_hyphen_values = true)]
+        up: crate::capture::Up,
+        /// The camera file (nerfstudio transforms.json), when not the capture's own.
+        #[arg(long)]
+        cameras: Option<PathBuf>,
+        /// The motion (a BVH), when not the capture's only .bvh.
+        #[arg(long)]
+        motion: Option<PathBuf>,
+        /// A folder of masks named after the images (<name>.png), for images whose camera file
+        /// names no mask_path.
+        #[arg(long)]
+        masks: Option<PathBuf>,
+        /// Downscale images by a whole factor until neither side exceeds this many pixels.
+        #[arg(long)]
+        max_size: Option<usize>,
+    },
     /// Fit an avatar, its light and its albedo to a scene's training images.
     Fit {
         /// A scene folder (or its scene.json).
@@ -299,6 +329,9 @@ pub fn main() -> i32 {
     let result = match cli.command {
         Command::Inspect { scene } => inspect(&scene),
         Command::Synth { out, force, options } => synth(&out, force, &options),
+        Command::Import { capture, out, light, units, up, cameras, motion, masks, max_size } => {
+            import(&crate::capture::ImportOptions { capture, out, light, units, up, cameras, motion, masks, max_size })
+        }
         Command::Fit { scene, out, schedule, iterations, seed, resume, force, force_schedule, backend, no_eval } => {
             let seed = seed.or_else(|| resume.then(|| crate::fit::recorded_seed(&out)).flatten()).unwrap_or(0);
             fit(&crate::fit::FitOptions { scene, out, schedule, iterations, seed, resume, force, force_schedule, backend, evaluate: !no_eval })
@@ -373,6 +406,22 @@ fn synth(out: &Path, force: bool, options: &crate::synth::SynthOptions) -> Resul
     .map_err(|e| e.to_string())?;
     bar.finish_and_clear();
     println!("wrote {} ({} images, {:.2} MB)", out.display(), report.images, report.bytes as f64 / 1e6);
+    Ok(())
+}
+
+fn import(options: &crate::capture::ImportOptions) -> Result<(), String> {
+    let bar = progress_bar(0, "importing images");
+    let report = crate::capture::import(options, &|done, total| {
+        bar.set_length(total as u64);
+        bar.set_position(done as u64);
+    })
+    .map_err(|e| e.to_string())?;
+    bar.finish_and_clear();
+    println!("wrote {}: {} images, {} cameras, {} frames", options.out.display(), report.images, report.cameras, report.frames);
+    for line in &report.assumed {
+        println!("  {line}");
+    }
+    println!("check it with `umbra inspect {}` before fitting", options.out.display());
     Ok(())
 }
 

@@ -223,22 +223,24 @@ pub fn read_rgb(path: &Path) -> Result<RgbImage, ImageError> {
     regular_file(path)?;
     check_declared_size(path)?;
     match kind(path) {
-        Some("png") => {
-            let img = decode_png(path)?;
-            let (width, height) = (img.width() as usize, img.height() as usize);
-            // Converted in place where the decoder's layout allows (`into_*`): a 16-bit image of
-            // 2^26 pixels would otherwise hold a second 400 MB copy while it is converted.
-            let pixels = if matches!(img.color(), image::ColorType::Rgb16 | image::ColorType::Rgba16 | image::ColorType::L16 | image::ColorType::La16) {
-                img.into_rgb16().pixels().map(|p| p.0.map(|c| srgb_to_linear(c as f32 / 65535.0))).collect()
-            } else {
-                let table = srgb8_table();
-                img.into_rgb8().pixels().map(|p| p.0.map(|c| table[c as usize])).collect()
-            };
-            Ok(RgbImage { width, height, pixels })
-        }
+        Some("png") => Ok(linear(decode_png(path)?)),
         Some(_) => read_exr(path),
         None => Err(ImageError::UnsupportedType(path.display().to_string())),
     }
+}
+
+/// A decoded sRGB image (8 or 16 bit) in linear RGB, converted in place where the decoder's
+/// layout allows (`into_*`): a 16-bit image of 2^26 pixels would otherwise hold a second 400 MB
+/// copy while it is converted.
+fn linear(img: image::DynamicImage) -> RgbImage {
+    let (width, height) = (img.width() as usize, img.height() as usize);
+    let pixels = if matches!(img.color(), image::ColorType::Rgb16 | image::ColorType::Rgba16 | image::ColorType::L16 | image::ColorType::La16) {
+        img.into_rgb16().pixels().map(|p| p.0.map(|c| srgb_to_linear(c as f32 / 65535.0))).collect()
+    } else {
+        let table = srgb8_table();
+        img.into_rgb8().pixels().map(|p| p.0.map(|c| table[c as usize])).collect()
+    };
+    RgbImage { width, height, pixels }
 }
 
 fn read_exr(path: &Path) -> Result<RgbImage, ImageError> {
@@ -254,6 +256,32 @@ fn read_exr(path: &Path) -> Result<RgbImage, ImageError> {
         .map_err(|e| ImageError::Decode(path.display().to_string(), e.to_string()))?;
         Ok(image.layer_data.channel_data.pixels)
     })
+}
+
+/// Reads a photograph of a capture: an 8- or 16-bit sRGB PNG or a JPEG to linear RGB, with its
+/// alpha as a mask (foreground where the 8-bit alpha is > 127) when it has one; an EXR as linear,
+/// without a mask. What `umbra import` reads; scenes themselves hold PNG and EXR only.
+pub fn read_photo(path: &Path) -> Result<(RgbImage, Option<Mask>), ImageError> {
+    regular_file(path)?;
+    let ext = path.extension().and_then(|e| e.to_str()).map(|e| e.to_ascii_lowercase()).unwrap_or_default();
+    let format = match ext.as_str() {
+        "png" => image::ImageFormat::Png,
+        "jpg" | "jpeg" => image::ImageFormat::Jpeg,
+        "exr" => return Ok((read_rgb(path)?, None)),
+        _ => return Err(ImageError::UnsupportedType(format!("{} (photos are PNG, JPEG or EXR)", path.display()))),
+    };
+    let decode_error = |e: String| ImageError::Decode(path.display().to_string(), e);
+    let file = std::fs::File::open(path).map_err(|e| io_error(path, e))?;
+    let reader = image::ImageReader::with_format(std::io::BufReader::new(file), format);
+    let (w, h) = guarded(path, || reader.into_dimensions().map_err(|e| decode_error(e.to_string())))?;
+    if (w as usize).saturating_mul(h as usize) > MAX_PIXELS {
+        return Err(decode_error(format!("declares {w}x{h} pixels, more than the {MAX_PIXELS} allowed")));
+    }
+    let bytes = std::fs::read(path).map_err(|e| io_error(path, e))?;
+    let img = guarded(path, || image::load_from_memory_with_format(&bytes, format).map_err(|e| decode_error(e.to_string())))?;
+    let (width, height) = (img.width() as usize, img.height() as usize);
+    let alpha = img.color().has_alpha().then(|| Mask { width, height, foreground: img.to_rgba8().pixels().map(|p| p.0[3] > 127).collect() });
+    Ok((linear(img), alpha))
 }
 
 /// Reads a mask: the first channel of a PNG, foreground where the 8-bit value is > 127.

@@ -7,6 +7,7 @@ pub mod averaging;
 pub mod backend;
 pub mod basis;
 pub mod bench;
+pub mod capture;
 pub mod cli;
 pub mod environment;
 pub mod error_map;

@@ -112,7 +112,23 @@ pub struct SynthOptions {
     #[arg(long, default_value_t = 0.02)]
     #[serde(default = "default_mesh_cell")]
     pub mesh_cell: f64,
+    /// Write the scene as a capture as people have them instead: `nerfstudio` writes
+    /// transforms.json (OpenGL camera axes, centimetres), motion.bvh (centimetres) and plates
+    /// with a background, of the images under the training light (what `umbra import` reads).
+    #[arg(long, value_enum)]
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub export: Option<Export>,
 }
+
+/// The capture formats `synth --export` writes.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Export {
+    Nerfstudio,
+}
+
+/// Centimetres per metre: the unit of `synth --export`'s capture, as motion capture writes it.
+pub const EXPORT_UNITS: f64 = 100.0;
 
 fn default_mesh_cell() -> f64 {
     0.02
@@ -162,6 +178,7 @@ impl Default for SynthOptions {
             pixel_samples: 1,
             meshes: false,
             mesh_cell: 0.02,
+            export: None,
         }
     }
 }
@@ -530,6 +547,10 @@ pub fn generate(options: &SynthOptions, out: &Path, force: bool, mut progress: i
     // The scene is named after its folder (`datasets-synthetic/human-mono` is "human-mono").
     let name = out.file_name().map(|n| n.to_string_lossy().into_owned());
     let result = write_scene(options, &plan, &temp, name, &mut progress);
+    let result = match (result, options.export) {
+        (Ok(report), Some(Export::Nerfstudio)) => export_capture(&temp, report),
+        (result, _) => result,
+    };
     match result {
         Ok(report) => {
             if out.exists() {
@@ -545,6 +566,24 @@ pub fn generate(options: &SynthOptions, out: &Path, force: bool, mut progress: i
             Err(e)
         }
     }
+}
+
+/// The scene just written in `dir` replaced by its capture (`capture::export`).
+fn export_capture(dir: &Path, report: Report) -> Result<Report, SynthError> {
+    let scene = crate::scene::Scene::load(dir).map_err(|e| SynthError::Options(e.to_string()))?;
+    let capture = dir.with_extension("capture");
+    let _ = std::fs::remove_dir_all(&capture);
+    let written = crate::capture::export::write_capture(&scene, &capture, EXPORT_UNITS).map_err(|e| SynthError::Options(e.to_string()));
+    let images = match written {
+        Ok(images) => images,
+        Err(e) => {
+            let _ = std::fs::remove_dir_all(&capture);
+            return Err(e);
+        }
+    };
+    std::fs::remove_dir_all(dir).map_err(|e| io_error(dir, e))?;
+    std::fs::rename(&capture, dir).map_err(|e| io_error(dir, e))?;
+    Ok(Report { images, ..report })
 }
 
 /// The folders a scene of `umbra synth` holds its files in.

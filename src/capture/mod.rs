@@ -1,0 +1,356 @@
+//! Captures as people have them, into `scene/1`: cameras from nerfstudio's `transforms.json`
+//! (`nerfstudio`), motion from a BVH (`bvh`, its bones by one rule: `bones`), masks from files or
+//! the images' alpha, lens distortion removed (`distortion`), images downscaled and their
+//! background blacked (`photos`). `import` checks everything before it writes, writes into a
+//! temporary folder and moves it into place, and says what it assumed.
+
+pub mod bones;
+pub mod bvh;
+pub mod distortion;
+pub mod export;
+pub mod nerfstudio;
+mod photos;
+
+pub use distortion::Distortion;
+
+use crate::scene::Split;
+use glam::{DMat4, DVec3};
+use serde_json::{json, Value};
+use std::path::{Path, PathBuf};
+
+/// A pinhole camera's intrinsics (pixels; the top-left pixel's centre at (0.5, 0.5)).
+#[derive(Clone, Debug, PartialEq)]
+pub struct Intrinsics {
+    pub fx: f64,
+    pub fy: f64,
+    pub cx: f64,
+    pub cy: f64,
+    pub width: usize,
+    pub height: usize,
+}
+
+/// One image of a capture as its camera file lists it.
+#[derive(Clone, Debug)]
+pub struct CaptureImage {
+    pub path: PathBuf,
+    /// Where the camera file names it (`frames[12].file_path`).
+    pub json_path: String,
+    pub mask: Option<PathBuf>,
+    pub intrinsics: Intrinsics,
+    pub distortion: Distortion,
+    /// OpenCV camera axes to the capture's world (its units, its up).
+    pub camera_to_world: DMat4,
+    pub time: Option<f64>,
+    pub split: Split,
+}
+
+/// The capture's length unit.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum Units {
+    M,
+    Cm,
+    Mm,
+}
+
+impl Units {
+    pub fn metres(self) -> f64 {
+        match self {
+            Units::M => 1.0,
+            Units::Cm => 0.01,
+            Units::Mm => 0.001,
+        }
+    }
+
+    fn name(self) -> &'static str {
+        match self {
+            Units::M => "m",
+            Units::Cm => "cm",
+            Units::Mm => "mm",
+        }
+    }
+
+    /// The unit that makes a body of `extent` (the diagonal of its joints' box, file units)
+    /// nearest 1.5 m, a walking human's or a large dog's, in ratio.
+    pub fn for_extent(extent: f64) -> Units {
+        let off = |u: Units| ((extent * u.metres()) / 1.5).ln().abs();
+        [Units::M, Units::Cm, Units::Mm].into_iter().min_by(|a, b| off(*a).total_cmp(&off(*b))).unwrap_or(Units::M)
+    }
+}
+
+/// The capture's up axis.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum Up {
+    #[value(name = "+y")]
+    PlusY,
+    #[value(name = "+z")]
+    PlusZ,
+}
+
+/// The light the capture was made under, unknown but of a kind.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum CaptureLight {
+    Sun,
+    Point,
+    Uniform,
+}
+
+/// What `umbra import` is asked.
+#[derive(Clone, Debug)]
+pub struct ImportOptions {
+    pub capture: PathBuf,
+    pub out: PathBuf,
+    pub light: CaptureLight,
+    pub units: Option<Units>,
+    pub up: Up,
+    pub cameras: Option<PathBuf>,
+    pub motion: Option<PathBuf>,
+    pub masks: Option<PathBuf>,
+    pub max_size: Option<usize>,
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum ImportError {
+    #[error("{0}")]
+    Scene(#[from] crate::scene::SceneError),
+    #[error("{0}")]
+    Motion(#[from] bvh::BvhError),
+    #[error("{0}")]
+    Image(#[from] crate::imageio::ImageError),
+    #[error("{path}: {message}")]
+    Input { path: PathBuf, message: String },
+}
+
+fn input(path: &Path, message: impl Into<String>) -> ImportError {
+    ImportError::Input { path: path.to_path_buf(), message: message.into() }
+}
+
+/// What an import did and assumed, in sentences for the user.
+#[derive(Clone, Debug, Default)]
+pub struct ImportReport {
+    pub images: usize,
+    pub cameras: usize,
+    pub frames: usize,
+    pub assumed: Vec<String>,
+}
+
+/// The file a capture folder holds with one of `names`, or the only one ending in `extension`.
+fn find_in(capture: &Path, names: &[&str], extension: &str, what: &str) -> Result<PathBuf, ImportError> {
+    if capture.is_file() && names.iter().any(|n| capture.file_name().is_some_and(|f| f == *n)) {
+        return Ok(capture.to_path_buf());
+    }
+    if let Some(found) = names.iter().map(|n| capture.join(n)).find(|p| p.is_file()) {
+        return Ok(found);
+    }
+    let entries = std::fs::read_dir(capture).map_err(|e| input(capture, format!("cannot list the capture folder: {e}")))?;
+    let matching: Vec<PathBuf> =
+        entries.filter_map(|e| e.ok().map(|e| e.path())).filter(|p| p.extension().is_some_and(|x| x.eq_ignore_ascii_case(extension))).collect();
+    match matching.as_slice() {
+        [one] => Ok(one.clone()),
+        [] => Err(input(capture, format!("holds no {what} ({} or a .{extension} file): name it with --{what}", names.join(", ")))),
+        many => Err(input(capture, format!("holds {} .{extension} files: name the {what} file with --{what}", many.len()))),
+    }
+}
+
+/// Imports the capture `options` describe into a new scene folder; `on(done, total)` follows
+/// the images.
+pub fn import(options: &ImportOptions, on: &(dyn Fn(usize, usize) + Sync)) -> Result<ImportReport, ImportError> {
+    let out = &options.out;
+    if out.exists() && std::fs::read_dir(out).map(|mut d| d.next().is_some()).unwrap_or(true) {
+        return Err(input(out, "exists and is not an empty folder: import writes a new scene (nothing was written)"));
+    }
+    let camera_file = match &options.cameras {
+        Some(file) => file.clone(),
+        None => find_in(&options.capture, &["transforms.json"], "json", "cameras")?,
+    };
+    let motion_file = match &options.motion {
+        Some(file) => file.clone(),
+        None => find_in(&options.capture, &[], "bvh", "motion")?,
+    };
+    let images = nerfstudio::read(&camera_file)?;
+    let motion = bvh::read(&motion_file)?;
+    let rig = bones::rig(&motion).map_err(|e| input(&motion_file, e))?;
+    let mut report = ImportReport { images: images.len(), ..ImportReport::default() };
+    let units = match options.units {
+        Some(u) => {
+            report.assumed.push(format!("units: {} (--units)", u.name()));
+            u
+        }
+        None => {
+            let extent = joint_extent(&motion);
+            let u = Units::for_extent(extent);
+            report.assumed.push(format!(
+                "units: {} (inferred: the skeleton's joints span {extent:.3} file units, {:.2} m in {})",
+                u.name(),
+                extent * u.metres(),
+                u.name()
+            ));
+            u
+        }
+    };
+    let up = match options.up {
+        Up::PlusY => DMat4::IDENTITY,
+        // +Z up to +Y up: a quarter turn about X.
+        Up::PlusZ => DMat4::from_rotation_x(-std::f64::consts::FRAC_PI_2),
+    };
+    report.assumed.push(format!("up: {} (--up; +y unless given)", if options.up == Up::PlusY { "+y" } else { "+z" }));
+    let world = World { up, metres: units.metres() };
+    let frame_of = frames_of_images(&images, &motion, &camera_file)?;
+    let used: std::collections::BTreeSet<usize> = frame_of.iter().copied().collect();
+    report.frames = used.len();
+    report.assumed.push(format!("motion: {} of the clip's {} frames ({:.4} s apart) are seen by an image", used.len(), motion.frames.len(), motion.frame_time));
+    let photos = photos::prepare(&images, options, &camera_file)?;
+    report.assumed.extend(photos.assumed.iter().cloned());
+    let (cameras, camera_of) = cameras(&images, &photos.intrinsics, &world);
+    report.cameras = cameras.len();
+    let frames: Vec<Value> = used.iter().map(|&k| frame_json(&motion, &rig, k, &world)).collect();
+    let position = |k: usize| used.iter().position(|&u| u == k).unwrap_or(0);
+    let (light_name, light) = light_json(options.light);
+    report.assumed.push(format!("light: {light_name} ({}; the fit recovers it)", light["type"].as_str().unwrap_or("?")));
+    let temp = out.with_file_name(format!(".{}.importing", out.file_name().map(|f| f.to_string_lossy().into_owned()).unwrap_or_default()));
+    let _ = std::fs::remove_dir_all(&temp);
+    let written = photos::write(&images, &photos, &temp, on);
+    let result = written.and_then(|entries| {
+        let image_entries: Vec<Value> = entries
+            .into_iter()
+            .enumerate()
+            .map(|(i, (path, mask))| {
+                let mut entry =
+                    json!({"camera": camera_of[i], "frame": position(frame_of[i]), "light": light_name, "split": images[i].split.name(), "path": path});
+                if let Some(mask) = mask {
+                    entry["mask"] = json!(mask);
+                }
+                entry
+            })
+            .collect();
+        let bones: Vec<Value> = motion
+            .joints
+            .iter()
+            .enumerate()
+            .map(|(j, joint)| json!({"name": joint.name, "parent": joint.parent, "length": rig.lengths[j] * world.metres}))
+            .collect();
+        let name = out.file_name().map(|f| f.to_string_lossy().into_owned()).unwrap_or_else(|| "capture".into());
+        let scene = json!({
+            "format": "scene/1",
+            "name": name,
+            "generator": "umbra import",
+            "skeleton": {"bones": bones},
+            "cameras": cameras,
+            "frames": frames,
+            "lights": {light_name: light},
+            "images": image_entries,
+        });
+        let text = serde_json::to_string_pretty(&scene).map_err(|e| input(out, e.to_string()))?;
+        crate::imageio::write_atomic(&temp.join("scene.json"), text.as_bytes()).map_err(|e| input(&temp, e.to_string()))?;
+        crate::scene::Scene::load(&temp)?;
+        if out.exists() {
+            std::fs::remove_dir(out).map_err(|e| input(out, e.to_string()))?;
+        }
+        std::fs::rename(&temp, out).map_err(|e| input(out, format!("cannot move the imported scene into place: {e}")))
+    });
+    if result.is_err() {
+        let _ = std::fs::remove_dir_all(&temp);
+    }
+    result.map(|_| report)
+}
+
+/// The capture's world in scene/1's: turned so its up is +Y, scaled to metres.
+struct World {
+    up: DMat4,
+    metres: f64,
+}
+
+impl World {
+    /// A rigid transform whose translation is in capture units, in scene/1's world.
+    fn apply(&self, m: DMat4) -> DMat4 {
+        let turned = self.up * m;
+        let mut out = turned;
+        out.w_axis = (turned.w_axis.truncate() * self.metres).extend(1.0);
+        out
+    }
+}
+
+fn rows(m: &DMat4) -> Value {
+    json!((0..4).map(|r| m.row(r).to_array().to_vec()).collect::<Vec<_>>())
+}
+
+/// The diagonal of the box of the clip's joints in its first frame (file units).
+fn joint_extent(motion: &bvh::Motion) -> f64 {
+    let joints = motion.joint_to_world(0);
+    let points = joints.iter().map(|m| m.w_axis.truncate());
+    let (lo, hi) = points.fold((DVec3::splat(f64::INFINITY), DVec3::splat(f64::NEG_INFINITY)), |(lo, hi), p| (lo.min(p), hi.max(p)));
+    (hi - lo).length()
+}
+
+/// Each image's frame of the clip: the frame nearest its `time`, within half a frame time; an
+/// image without a time, the last number in its file name.
+fn frames_of_images(images: &[CaptureImage], motion: &bvh::Motion, file: &Path) -> Result<Vec<usize>, ImportError> {
+    images
+        .iter()
+        .map(|image| {
+            let refuse = |message: String| input(file, format!("{}: {message}", image.json_path));
+            let k = match image.time {
+                Some(t) => {
+                    let k = (t / motion.frame_time).round();
+                    if k < 0.0 || (t - k * motion.frame_time).abs() > 0.5 * motion.frame_time + 1e-9 || k as usize >= motion.frames.len() {
+                        return Err(refuse(format!(
+                            "time {t} s has no frame of the clip within half a frame time (the clip spans 0 to {:.4} s)",
+                            motion.time(motion.frames.len() - 1)
+                        )));
+                    }
+                    k as usize
+                }
+                None => number_in_name(&image.path).ok_or_else(|| refuse("no time and no frame number in the file name".into()))?,
+            };
+            if k >= motion.frames.len() {
+                return Err(refuse(format!("frame {k} is beyond the clip's {} frames", motion.frames.len())));
+            }
+            Ok(k)
+        })
+        .collect()
+}
+
+/// The last run of digits in a file's stem (`frame_00012.png`: 12).
+pub fn number_in_name(path: &Path) -> Option<usize> {
+    let stem = path.file_stem()?.to_string_lossy().into_owned();
+    let digits: String = stem.chars().rev().skip_while(|c| !c.is_ascii_digit()).take_while(|c| c.is_ascii_digit()).collect();
+    digits.chars().rev().collect::<String>().parse().ok()
+}
+
+/// The scene's cameras (images with the same intrinsics and pose share one) and each image's.
+fn cameras(images: &[CaptureImage], intrinsics: &[Intrinsics], world: &World) -> (Vec<Value>, Vec<usize>) {
+    let mut kept: Vec<(Intrinsics, DMat4)> = Vec::new();
+    let mut of = Vec::with_capacity(images.len());
+    for (image, k) in images.iter().zip(intrinsics) {
+        let pose = world.apply(image.camera_to_world);
+        let same = |(i, p): &(Intrinsics, DMat4)| i == k && p.abs_diff_eq(pose, 1e-9);
+        match kept.iter().position(same) {
+            Some(c) => of.push(c),
+            None => {
+                of.push(kept.len());
+                kept.push((k.clone(), pose));
+            }
+        }
+    }
+    let values = kept
+        .iter()
+        .enumerate()
+        .map(|(c, (k, pose))| json!({"name": format!("cam{c:02}"), "width": k.width, "height": k.height, "fx": k.fx, "fy": k.fy, "cx": k.cx, "cy": k.cy, "camera_to_world": rows(pose)}))
+        .collect();
+    (values, of)
+}
+
+/// Clip frame `k` as a scene/1 frame: each bone's frame in metres, +Y up.
+fn frame_json(motion: &bvh::Motion, rig: &bones::Rig, k: usize, world: &World) -> Value {
+    let joints = motion.joint_to_world(k);
+    let bones: Vec<Value> = joints.iter().zip(&rig.alignments).map(|(j, a)| rows(&world.apply(*j * *a))).collect();
+    json!({"index": k, "time": motion.time(k), "bone_to_world": bones})
+}
+
+/// The capture's light: unknown, of the kind asked.
+fn light_json(light: CaptureLight) -> (&'static str, Value) {
+    match light {
+        CaptureLight::Sun => ("sun", json!({"type": "directional"})),
+        CaptureLight::Point => ("lamp", json!({"type": "point"})),
+        CaptureLight::Uniform => ("uniform", json!({"type": "uniform", "radiance": [1.0, 1.0, 1.0]})),
+    }
+}

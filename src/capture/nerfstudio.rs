@@ -1,0 +1,169 @@
+//! nerfstudio's `transforms.json`: reading a capture's cameras (OpenGL camera axes, intrinsics
+//! shared or per frame, PINHOLE / SIMPLE_PINHOLE / OPENCV) and writing one from a scene.
+//!
+//! A frame's `transform_matrix` maps OpenGL camera axes (+X right, +Y up, looking down -Z) to the
+//! world; scene/1 cameras use OpenCV axes (+Y down, looking down +Z): the two differ by a half
+//! turn about the camera's X axis. Pixel coordinates are continuous with the top-left pixel's
+//! centre at (0.5, 0.5) in both.
+
+use super::{CaptureImage, Distortion, Intrinsics};
+use crate::scene::json::At;
+use crate::scene::{Scene, SceneError, Split};
+use glam::{DMat4, DVec4};
+use serde_json::{json, Value};
+use std::path::Path;
+
+/// OpenGL camera axes to OpenCV's (and back: its own inverse).
+pub fn flip_yz() -> DMat4 {
+    DMat4::from_diagonal(DVec4::new(1.0, -1.0, -1.0, 1.0))
+}
+
+/// Every image `transforms.json` lists, in order, with its intrinsics, its camera-to-world in
+/// OpenCV axes (capture units), its time, its mask and its split.
+pub fn read(file: &Path) -> Result<Vec<CaptureImage>, SceneError> {
+    let text = crate::files::read_text(file, crate::files::SCENE_BYTES).map_err(|e| SceneError {
+        file: file.to_path_buf(),
+        path: String::new(),
+        message: e.to_string(),
+    })?;
+    let value = crate::scene::json::parse(&text, file)?;
+    let root = At::root(&value, file);
+    let dir = file.parent().unwrap_or(Path::new("."));
+    let model = match root.opt_field("camera_model")? {
+        Some(m) => m.str()?.to_string(),
+        None => "OPENCV".to_string(),
+    };
+    let shared = intrinsics(&root, None, &model)?;
+    let split_lists: Vec<(Split, Vec<String>)> = [("train_filenames", Split::Train), ("val_filenames", Split::Val), ("test_filenames", Split::Test)]
+        .into_iter()
+        .map(|(key, split)| -> Result<_, SceneError> {
+            let names = match root.opt_field(key)? {
+                Some(list) => list.array()?.iter().map(|n| n.str().map(str::to_string)).collect::<Result<Vec<_>, _>>()?,
+                None => Vec::new(),
+            };
+            Ok((split, names))
+        })
+        .collect::<Result<_, _>>()?;
+    let listed = split_lists.iter().any(|(_, names)| !names.is_empty());
+    let mut images = Vec::new();
+    for frame in root.field("frames")?.non_empty_array()? {
+        let path_node = frame.field("file_path")?;
+        let relative = path_node.str()?;
+        let own = intrinsics(&frame, shared.as_ref(), &model)?;
+        let (intrinsics, distortion) =
+            own.or(shared.clone()).ok_or_else(|| frame.error("no intrinsics: fl_x, fl_y, cx, cy, w and h on the frame or the file"))?;
+        let opengl = frame.field("transform_matrix")?.rigid_mat4()?;
+        let split = if listed {
+            let named = |n: &String| n == relative || Path::new(n).file_name() == Path::new(relative).file_name();
+            match split_lists.iter().find(|(_, names)| names.iter().any(named)) {
+                Some((split, _)) => *split,
+                None => return Err(path_node.error("listed in none of train_filenames, val_filenames and test_filenames")),
+            }
+        } else {
+            Split::Train
+        };
+        images.push(CaptureImage {
+            path: dir.join(relative),
+            json_path: path_node.path.clone(),
+            mask: frame.opt_field("mask_path")?.map(|m| m.str().map(|p| dir.join(p))).transpose()?,
+            intrinsics,
+            distortion,
+            camera_to_world: opengl * flip_yz(),
+            time: frame.opt_field("time")?.map(|t| t.f64()).transpose()?,
+            split,
+        });
+    }
+    Ok(images)
+}
+
+/// The intrinsics `node` states (`None` when it states none of them), each missing one taken
+/// from `shared`; the camera model `node`'s or else `model`.
+fn intrinsics(node: &At, shared: Option<&(Intrinsics, Distortion)>, model: &str) -> Result<Option<(Intrinsics, Distortion)>, SceneError> {
+    let keys = ["fl_x", "fl_y", "cx", "cy", "w", "h", "k1", "k2", "k3", "p1", "p2"];
+    let states_any = keys.iter().map(|k| node.opt_field(k)).collect::<Result<Vec<_>, _>>()?.iter().any(Option::is_some);
+    if !states_any {
+        return Ok(None);
+    }
+    let base = shared.map(|s| s.0.clone());
+    let number = |key: &str, fallback: Option<f64>| -> Result<f64, SceneError> {
+        match node.opt_field(key)? {
+            Some(v) => v.f64(),
+            None => fallback.ok_or_else(|| node.error(format!("{key}: missing"))),
+        }
+    };
+    let model = match node.opt_field("camera_model")? {
+        Some(m) => m.str()?.to_string(),
+        None => model.to_string(),
+    };
+    let fl_x = number("fl_x", base.as_ref().map(|b| b.fx))?;
+    let fl_y = match model.as_str() {
+        "SIMPLE_PINHOLE" => number("fl_y", Some(fl_x))?,
+        _ => number("fl_y", base.as_ref().map(|b| b.fy))?,
+    };
+    let intrinsics = Intrinsics {
+        fx: fl_x,
+        fy: fl_y,
+        cx: number("cx", base.as_ref().map(|b| b.cx))?,
+        cy: number("cy", base.as_ref().map(|b| b.cy))?,
+        width: number("w", base.as_ref().map(|b| b.width as f64))? as usize,
+        height: number("h", base.as_ref().map(|b| b.height as f64))? as usize,
+    };
+    if intrinsics.fx <= 0.0 || intrinsics.fy <= 0.0 || intrinsics.width == 0 || intrinsics.height == 0 {
+        return Err(node.error(format!("fl_x, fl_y, w and h must be positive, found {intrinsics:?}")));
+    }
+    let coefficient =
+        |key: &str, shared_value: f64| -> Result<f64, SceneError> { Ok(node.opt_field(key)?.map(|v| v.f64()).transpose()?.unwrap_or(shared_value)) };
+    let previous = shared.map(|s| s.1.clone()).unwrap_or_default();
+    let distortion = match model.as_str() {
+        "PINHOLE" | "SIMPLE_PINHOLE" => Distortion { model, ..Distortion::default() },
+        "OPENCV" => Distortion {
+            k1: coefficient("k1", previous.k1)?,
+            k2: coefficient("k2", previous.k2)?,
+            k3: coefficient("k3", previous.k3)?,
+            p1: coefficient("p1", previous.p1)?,
+            p2: coefficient("p2", previous.p2)?,
+            model,
+        },
+        other => {
+            return Err(node
+                .error(format!("camera_model {other:?} is not supported (PINHOLE, SIMPLE_PINHOLE or OPENCV; fisheye and equirectangular captures are not)")))
+        }
+    };
+    Ok(Some((intrinsics, distortion)))
+}
+
+/// `scene`'s images `chosen` as nerfstudio's `transforms.json`: cameras in OpenGL axes,
+/// positions in `units` per metre, each image's `time` its frame's position times `frame_time`,
+/// `file_path` and `mask_path` as `name` gives them for image `k`.
+pub fn write(scene: &Scene, chosen: &[usize], units: f64, frame_time: f64, name: impl Fn(usize) -> (String, Option<String>)) -> Value {
+    let frames: Vec<Value> = chosen
+        .iter()
+        .map(|&k| {
+            let view = &scene.views[k];
+            let camera = &scene.cameras[view.camera];
+            let mut opengl = camera.camera_to_world * flip_yz();
+            opengl.w_axis = (opengl.w_axis.truncate() * units).extend(1.0);
+            let rows: Vec<Vec<f64>> = (0..4).map(|r| opengl.row(r).to_array().to_vec()).collect();
+            let (file_path, mask_path) = name(k);
+            let mut frame = json!({
+                "file_path": file_path,
+                "transform_matrix": rows,
+                "fl_x": camera.fx, "fl_y": camera.fy, "cx": camera.cx, "cy": camera.cy,
+                "w": camera.width, "h": camera.height,
+                "time": view.frame as f64 * frame_time,
+            });
+            if let Some(mask) = mask_path {
+                frame["mask_path"] = json!(mask);
+            }
+            frame
+        })
+        .collect();
+    let split_names = |split: Split| -> Vec<String> { chosen.iter().filter(|&&k| scene.views[k].split == split).map(|&k| name(k).0).collect() };
+    json!({
+        "camera_model": "PINHOLE",
+        "frames": frames,
+        "train_filenames": split_names(Split::Train),
+        "val_filenames": split_names(Split::Val),
+        "test_filenames": split_names(Split::Test),
+    })
+}

@@ -1,0 +1,329 @@
+//! Importing captures as people have them: a synth scene exported as nerfstudio + a centimetre
+//! BVH + plates comes back as the same scene; BVH channel orders, units and up axes; lens
+//! distortion removed against an independent implementation of OpenCV's model; malformed input
+//! refused with the file and the line or JSON path, and nothing written.
+
+mod common;
+
+use common::TempDir;
+use glam::{DMat3, DMat4, DQuat, DVec3};
+use std::path::{Path, PathBuf};
+use umbra::capture::{bvh, import, CaptureLight, ImportOptions, Intrinsics, Units, Up};
+use umbra::scene::Scene;
+use umbra::synth::{Export, SynthOptions, TestKind, TrainingLight};
+
+fn synth_options(export: Option<Export>) -> SynthOptions {
+    SynthOptions {
+        light: TrainingLight::Sun,
+        size: 32,
+        cameras: 3,
+        frames: 3,
+        test_frames: 1,
+        test: vec![TestKind::Poses],
+        samples: 4,
+        seed: 5,
+        export,
+        ..SynthOptions::default()
+    }
+}
+
+fn options(capture: &Path, out: PathBuf) -> ImportOptions {
+    ImportOptions {
+        capture: capture.to_path_buf(),
+        out,
+        light: CaptureLight::Sun,
+        units: None,
+        up: Up::PlusY,
+        cameras: None,
+        motion: None,
+        masks: None,
+        max_size: None,
+    }
+}
+
+/// A scene and the same scene exported as a capture, in `dir`.
+fn scene_and_capture(dir: &Path) -> (PathBuf, PathBuf) {
+    let (scene, capture) = (dir.join("scene"), dir.join("capture"));
+    umbra::synth::generate(&synth_options(None), &scene, false, |_, _| {}).unwrap();
+    umbra::synth::generate(&synth_options(Some(Export::Nerfstudio)), &capture, false, |_, _| {}).unwrap();
+    (scene, capture)
+}
+
+fn stem(path: &Path) -> String {
+    path.file_stem().unwrap().to_string_lossy().into_owned()
+}
+
+fn max_difference(a: &DMat4, b: &DMat4) -> f64 {
+    (*a - *b).to_cols_array().iter().fold(0.0f64, |m, d| m.max(d.abs()))
+}
+
+#[test]
+fn a_scene_exported_as_nerfstudio_and_a_centimetre_bvh_imports_as_the_same_scene() {
+    let dir = TempDir::new("capture-round-trip");
+    let (scene_dir, capture) = scene_and_capture(dir.path());
+    let out = dir.path().join("imported");
+    let report = import(&options(&capture, out.clone()), &|_, _| {}).unwrap();
+    assert!(report.assumed.iter().any(|a| a.starts_with("units: cm (inferred")), "{:?}", report.assumed);
+    let (original, imported) = (Scene::load(&scene_dir).unwrap(), Scene::load(&out).unwrap());
+    assert_eq!(imported.views.len(), original.views.len(), "every image is under the training light");
+    assert_eq!(imported.cameras.len(), original.cameras.len(), "images of one pose and intrinsics share a camera");
+    for view in &imported.views {
+        let twin = original.views.iter().find(|v| stem(&v.path) == stem(&view.path)).expect("each image keeps its name");
+        let (a, b) = (&imported.cameras[view.camera], &original.cameras[twin.camera]);
+        assert!(max_difference(&a.camera_to_world, &b.camera_to_world) < 1e-6, "{}: camera pose", stem(&view.path));
+        assert!((a.fx - b.fx).abs() + (a.fy - b.fy).abs() + (a.cx - b.cx).abs() + (a.cy - b.cy).abs() < 1e-9 && a.width == b.width);
+        assert_eq!(view.split, twin.split);
+        // Its frame: the same poses (the joints' places, below).
+        assert_eq!(imported.frames[view.frame].index as usize, twin.frame);
+        assert_eq!(view.mask, twin.mask, "{}: mask", stem(&view.path));
+        let mask = twin.mask.as_ref().unwrap();
+        for p in 0..mask.foreground.len() {
+            if mask.foreground[p] {
+                assert_eq!(view.colour.pixels[p], twin.colour.pixels[p], "{}: pixel {p} inside the mask", stem(&view.path));
+            } else {
+                assert_eq!(view.colour.pixels[p], [0.0; 3], "the plate's background is blacked");
+            }
+        }
+    }
+    // Bones: the same names, parents and heads in every frame; each bone's frame the original's
+    // turned by one fixed rotation (the bone rule), the identity where the bone's child sits at
+    // its tail (pelvis -> spine, spine -> chest).
+    assert_eq!(
+        imported.skeleton.bones.iter().map(|b| (&b.name, b.parent)).collect::<Vec<_>>(),
+        original.skeleton.bones.iter().map(|b| (&b.name, b.parent)).collect::<Vec<_>>()
+    );
+    for b in 0..original.skeleton.len() {
+        let turn = |f: usize| original.frames[f].pose.bone_to_world[b].inverse() * imported.frames[f].pose.bone_to_world[b];
+        for f in 0..original.frames.len() {
+            let (a, o) = (imported.frames[f].pose.bone_to_world[b], original.frames[f].pose.bone_to_world[b]);
+            assert!(a.w_axis.truncate().distance(o.w_axis.truncate()) < 1e-5, "bone {b} frame {f}: head");
+            assert!(max_difference(&turn(f), &turn(0)) < 1e-5, "bone {b} frame {f}: a fixed turn from the original");
+        }
+        let name = original.skeleton.bones[b].name.as_str();
+        if ["pelvis", "spine", "neck", "hand_l", "head"].contains(&name) {
+            assert!(max_difference(&turn(0), &DMat4::IDENTITY) < 1e-5, "{name}: its child at its tail, its frame unturned");
+            assert!((imported.skeleton.bones[b].length - original.skeleton.bones[b].length).abs() < 1e-6, "{name}: length");
+        }
+    }
+}
+
+#[test]
+fn units_and_up_axes_give_the_same_scene() {
+    let dir = TempDir::new("capture-units");
+    let (_, capture) = scene_and_capture(dir.path());
+    let reference = dir.path().join("reference");
+    import(&options(&capture, reference.clone()), &|_, _| {}).unwrap();
+    let reference = Scene::load(&reference).unwrap();
+    // The same capture in metres, +Z up: every position divided by 100, turned so +Y becomes +Z.
+    let turned = dir.path().join("metres-z-up");
+    std::fs::create_dir_all(&turned).unwrap();
+    for sub in ["images", "masks"] {
+        copy_dir(&capture.join(sub), &turned.join(sub));
+    }
+    let to_z_up = DMat4::from_rotation_x(std::f64::consts::FRAC_PI_2);
+    let mut transforms: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(capture.join("transforms.json")).unwrap()).unwrap();
+    for frame in transforms["frames"].as_array_mut().unwrap() {
+        let m = matrix(&frame["transform_matrix"]);
+        let mut moved = to_z_up * m;
+        moved.w_axis = (moved.w_axis.truncate() / 100.0).extend(1.0);
+        frame["transform_matrix"] = rows(&moved);
+    }
+    std::fs::write(turned.join("transforms.json"), serde_json::to_string(&transforms).unwrap()).unwrap();
+    let motion = bvh::read(&capture.join("motion.bvh")).unwrap();
+    let frames: Vec<Vec<DMat4>> = (0..motion.frames.len())
+        .map(|k| {
+            motion
+                .joint_to_world(k)
+                .into_iter()
+                .map(|m| {
+                    let mut moved = to_z_up * m;
+                    moved.w_axis = (moved.w_axis.truncate() / 100.0).extend(1.0);
+                    moved
+                })
+                .collect()
+        })
+        .collect();
+    let skeleton = umbra::skeleton::Skeleton {
+        bones: motion
+            .joints
+            .iter()
+            .map(|j| umbra::skeleton::Bone { name: j.name.clone(), parent: j.parent, length: j.end_site.map(|e| e.length() / 100.0).unwrap_or(0.1) })
+            .collect(),
+    };
+    std::fs::write(turned.join("motion.bvh"), bvh::write(&skeleton, &frames, motion.frame_time, 1.0).unwrap()).unwrap();
+    let out = dir.path().join("from-metres-z-up");
+    let report = import(&ImportOptions { up: Up::PlusZ, ..options(&turned, out.clone()) }, &|_, _| {}).unwrap();
+    assert!(report.assumed.iter().any(|a| a.starts_with("units: m (inferred")), "{:?}", report.assumed);
+    let scene = Scene::load(&out).unwrap();
+    for (a, b) in scene.cameras.iter().zip(&reference.cameras) {
+        assert!(max_difference(&a.camera_to_world, &b.camera_to_world) < 1e-6);
+    }
+    for (f, g) in scene.frames.iter().zip(&reference.frames) {
+        for (a, b) in f.pose.bone_to_world.iter().zip(&g.pose.bone_to_world) {
+            assert!(max_difference(a, b) < 1e-5);
+        }
+    }
+    // Stated units win over the inference: the metre capture read as centimetres is 100 times
+    // smaller.
+    let small = dir.path().join("stated-cm");
+    import(&ImportOptions { up: Up::PlusZ, units: Some(Units::Cm), ..options(&turned, small.clone()) }, &|_, _| {}).unwrap();
+    let small = Scene::load(&small).unwrap();
+    let ratio = small.cameras[0].centre().length() / scene.cameras[0].centre().length();
+    assert!((ratio - 0.01).abs() < 1e-9, "{ratio}");
+}
+
+fn matrix(value: &serde_json::Value) -> DMat4 {
+    let r = |i: usize| -> [f64; 4] { std::array::from_fn(|j| value[i][j].as_f64().unwrap()) };
+    DMat4::from_cols_array_2d(&[r(0), r(1), r(2), r(3)]).transpose()
+}
+
+fn rows(m: &DMat4) -> serde_json::Value {
+    serde_json::json!((0..4).map(|r| m.row(r).to_array().to_vec()).collect::<Vec<_>>())
+}
+
+fn copy_dir(from: &Path, to: &Path) {
+    std::fs::create_dir_all(to).unwrap();
+    for entry in std::fs::read_dir(from).unwrap() {
+        let path = entry.unwrap().path();
+        std::fs::copy(&path, to.join(path.file_name().unwrap())).unwrap();
+    }
+}
+
+/// A joint's frame composed independently: quaternions about the axes in the file's order.
+fn expected(offset: DVec3, order: &[(char, f64)]) -> DMat4 {
+    let q = order.iter().fold(DQuat::IDENTITY, |q, &(axis, degrees)| {
+        let a = match axis {
+            'X' => DVec3::X,
+            'Y' => DVec3::Y,
+            _ => DVec3::Z,
+        };
+        q * DQuat::from_axis_angle(a, degrees.to_radians())
+    });
+    DMat4::from_rotation_translation(q, offset)
+}
+
+#[test]
+fn bvh_channels_in_any_order_with_root_translation_and_end_sites() {
+    let text = "HIERARCHY\nROOT Hips\n{\n OFFSET 0 0 0\n CHANNELS 6 Xposition Yposition Zposition Yrotation Xrotation Zrotation\n\
+                JOINT Knee\n {\n  OFFSET 0 -40 5\n  CHANNELS 3 Xrotation Zrotation Yrotation\n  End Site\n  {\n   OFFSET 0 -45 0\n  }\n }\n}\n\
+                MOTION\nFrames: 2\nFrame Time: 0.04\n1 90 2 10 20 30 40 -50 60\n0 0 0 0 0 0 0 0 0\n";
+    let motion = bvh::parse(text, Path::new("clip.bvh")).unwrap();
+    assert_eq!(motion.joints.len(), 2);
+    assert_eq!(motion.joints[1].end_site, Some(DVec3::new(0.0, -45.0, 0.0)));
+    assert!((motion.time(1) - 0.04).abs() < 1e-12);
+    let world = motion.joint_to_world(0);
+    let hips = expected(DVec3::new(1.0, 90.0, 2.0), &[('Y', 10.0), ('X', 20.0), ('Z', 30.0)]);
+    let knee = hips * expected(DVec3::new(0.0, -40.0, 5.0), &[('X', 40.0), ('Z', -50.0), ('Y', 60.0)]);
+    assert!(max_difference(&world[0], &hips) < 1e-12 && max_difference(&world[1], &knee) < 1e-12);
+    // Rotation only, as written: a fixed rotation matrix.
+    assert!((DMat3::from_mat4(world[1]).determinant() - 1.0).abs() < 1e-12);
+}
+
+#[test]
+fn malformed_captures_are_refused_naming_the_file_and_the_place_and_nothing_is_written() {
+    let dir = TempDir::new("capture-malformed");
+    let (_, capture) = scene_and_capture(dir.path());
+    let bvh_text = std::fs::read_to_string(capture.join("motion.bvh")).unwrap();
+    let transforms = std::fs::read_to_string(capture.join("transforms.json")).unwrap();
+    let cases: Vec<(&str, String, String, &str)> = vec![
+        ("motion.bvh", bvh_text.replacen("CHANNELS 3 Zrotation", "CHANNELS 3 Wrotation", 1), "transforms.json".into(), "line 9: unknown channel"),
+        ("motion.bvh", bvh_text.trim_end().rsplit_once(' ').unwrap().0.to_string(), "transforms.json".into(), "MOTION section holds"),
+        ("motion.bvh", bvh_text.replacen("Frame Time: ", "Frame Time: -", 1), "transforms.json".into(), "Frame Time"),
+        ("transforms.json", transforms.replacen("\"fl_x\": ", "\"fl_x\": -", 1), "motion.bvh".into(), "frames[0]: fl_x, fl_y, w and h must be positive"),
+        (
+            "transforms.json",
+            transforms.replacen("\"transform_matrix\": [", "\"transform_matrix\": [[1,0,0,0],", 1),
+            "motion.bvh".into(),
+            "frames[0].transform_matrix",
+        ),
+        ("transforms.json", transforms.replacen("\"time\": 0.0", "\"time\": 99.0", 1), "motion.bvh".into(), "frames[0].file_path: time 99"),
+        (
+            "transforms.json",
+            transforms.replacen("\"camera_model\": \"PINHOLE\"", "\"camera_model\": \"OPENCV_FISHEYE\"", 1),
+            "motion.bvh".into(),
+            "camera_model \"OPENCV_FISHEYE\"",
+        ),
+    ];
+    for (k, (file, text, _, expected)) in cases.iter().enumerate() {
+        let broken = dir.path().join(format!("broken-{k}"));
+        copy_dir(&capture.join("images"), &broken.join("images"));
+        copy_dir(&capture.join("masks"), &broken.join("masks"));
+        std::fs::write(broken.join("motion.bvh"), &bvh_text).unwrap();
+        std::fs::write(broken.join("transforms.json"), &transforms).unwrap();
+        std::fs::write(broken.join(file), text).unwrap();
+        let out = dir.path().join(format!("out-{k}"));
+        let err = import(&options(&broken, out.clone()), &|_, _| {}).unwrap_err().to_string();
+        assert!(err.contains(file) && err.contains(expected), "case {k}: {err}");
+        assert!(!out.exists(), "case {k}: nothing written");
+    }
+    // An image whose size differs from its camera's, and a missing mask.
+    let broken = dir.path().join("broken-image");
+    copy_dir(&capture.join("images"), &broken.join("images"));
+    copy_dir(&capture.join("masks"), &broken.join("masks"));
+    std::fs::copy(capture.join("motion.bvh"), broken.join("motion.bvh")).unwrap();
+    std::fs::write(broken.join("transforms.json"), transforms.replacen("\"w\": 32", "\"w\": 33", 1)).unwrap();
+    let out = dir.path().join("out-image");
+    let err = import(&options(&broken, out.clone()), &|_, _| {}).unwrap_err().to_string();
+    assert!(err.contains("is 32x32, its camera (frames[0].file_path) says 33x32"), "{err}");
+    assert!(!out.exists() && !dir.path().join(".out-image.importing").exists());
+    // An existing folder with anything in it is never written into.
+    let occupied = dir.path().join("occupied");
+    std::fs::create_dir_all(&occupied).unwrap();
+    std::fs::write(occupied.join("notes.txt"), "mine").unwrap();
+    let err = import(&options(&capture, occupied.clone()), &|_, _| {}).unwrap_err().to_string();
+    assert!(err.contains("not an empty folder"), "{err}");
+    assert_eq!(std::fs::read_to_string(occupied.join("notes.txt")).unwrap(), "mine");
+}
+
+/// OpenCV's `undistortPoints`, written from its documentation: the pinhole point whose
+/// distortion lands on the distorted one, by fixed-point iteration.
+fn opencv_undistort_point(xd: f64, yd: f64, k: [f64; 5]) -> (f64, f64) {
+    let [k1, k2, p1, p2, k3] = k;
+    let (mut x, mut y) = (xd, yd);
+    for _ in 0..50 {
+        let r2 = x * x + y * y;
+        let icdist = 1.0 / (1.0 + ((k3 * r2 + k2) * r2 + k1) * r2);
+        let delta_x = 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x);
+        let delta_y = p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y;
+        x = (xd - delta_x) * icdist;
+        y = (yd - delta_y) * icdist;
+    }
+    (x, y)
+}
+
+#[test]
+fn lens_distortion_is_removed_as_opencv_models_it() {
+    // A smooth pattern in the pinhole image's normalised coordinates, photographed through a
+    // lens: each distorted pixel shows the pattern where OpenCV's inverse sends it.
+    let pattern = |x: f64, y: f64| [(0.5 + 0.4 * (6.0 * x).sin()) as f32, (0.5 + 0.4 * (5.0 * y).cos()) as f32, (0.3 + 0.2 * (x + y)) as f32];
+    let k = [-0.21, 0.05, 0.0012, -0.0008, -0.004];
+    let camera = Intrinsics { fx: 180.0, fy: 175.0, cx: 96.3, cy: 71.8, width: 192, height: 144 };
+    let mut photo = umbra::imageio::RgbImage::new(camera.width, camera.height);
+    for j in 0..camera.height {
+        for i in 0..camera.width {
+            let (xd, yd) = ((i as f64 + 0.5 - camera.cx) / camera.fx, (j as f64 + 0.5 - camera.cy) / camera.fy);
+            let (x, y) = opencv_undistort_point(xd, yd, k);
+            photo.set(i, j, pattern(x, y));
+        }
+    }
+    let distortion = umbra::capture::Distortion { model: "OPENCV".into(), k1: k[0], k2: k[1], p1: k[2], p2: k[3], k3: k[4] };
+    let pinhole = umbra::capture::distortion::undistort_colour(&photo, &camera, &distortion);
+    // Away from the border (where the lens leaves no source), each pinhole pixel shows the
+    // pattern at its own normalised coordinates, to the bilinear resampling's error.
+    let mut worst = 0.0f32;
+    for j in 12..camera.height - 12 {
+        for i in 12..camera.width - 12 {
+            let (x, y) = ((i as f64 + 0.5 - camera.cx) / camera.fx, (j as f64 + 0.5 - camera.cy) / camera.fy);
+            let truth = pattern(x, y);
+            let got = pinhole.get(i, j);
+            worst = worst.max((0..3).map(|c| (got[c] - truth[c]).abs()).fold(0.0, f32::max));
+        }
+    }
+    assert!(worst < 2e-3, "worst difference {worst}");
+    // And the forward model against OpenCV's inverse: distort(undistort(p)) = p.
+    for (xd, yd) in [(0.3, -0.2), (-0.5, 0.4), (0.05, 0.6)] {
+        let (x, y) = opencv_undistort_point(xd, yd, k);
+        let (u, v) = distortion.distort(x, y);
+        assert!((u - xd).abs() < 1e-9 && (v - yd).abs() < 1e-9, "({xd}, {yd})");
+    }
+}
