@@ -327,3 +327,51 @@ fn lens_distortion_is_removed_as_opencv_models_it() {
         assert!((u - xd).abs() < 1e-9 && (v - yd).abs() < 1e-9, "({xd}, {yd})");
     }
 }
+
+#[test]
+fn a_capture_whose_cameras_and_motion_disagree_is_refused_with_the_figure() {
+    let dir = TempDir::new("capture-check");
+    let (_, capture) = scene_and_capture(dir.path());
+    let agreeing = import(&options(&capture, dir.path().join("agreeing")), &|_, _| {}).unwrap();
+    assert!(agreeing.score > 0.95, "{}", agreeing.score);
+    assert!(dir.path().join("agreeing/check.png").is_file(), "the contact sheet");
+    let transforms: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(capture.join("transforms.json")).unwrap()).unwrap();
+    let motion = bvh::read(&capture.join("motion.bvh")).unwrap();
+    let skeleton = umbra::skeleton::Skeleton {
+        bones: motion
+            .joints
+            .iter()
+            .map(|j| umbra::skeleton::Bone { name: j.name.clone(), parent: j.parent, length: j.end_site.map(|e| e.length() / 100.0).unwrap_or(0.1) })
+            .collect(),
+    };
+    let frames = |change: &dyn Fn(DMat4) -> DMat4| -> Vec<Vec<DMat4>> {
+        (0..motion.frames.len()).map(|k| motion.joint_to_world(k).into_iter().map(change).collect()).collect()
+    };
+    // The clip's frames are in centimetres; `bvh::write` takes metres and a unit.
+    let metres = |mut m: DMat4| {
+        m.w_axis = (m.w_axis.truncate() / 100.0).extend(1.0);
+        m
+    };
+    let flip = DMat4::from_diagonal(glam::DVec4::new(1.0, -1.0, -1.0, 1.0));
+    let mut opencv = transforms.clone();
+    for frame in opencv["frames"].as_array_mut().unwrap() {
+        frame["transform_matrix"] = rows(&(matrix(&frame["transform_matrix"]) * flip));
+    }
+    let z_up = DMat4::from_rotation_x(std::f64::consts::FRAC_PI_2);
+    let cases: Vec<(&str, serde_json::Value, String)> = vec![
+        ("cameras in OpenCV axes", opencv, std::fs::read_to_string(capture.join("motion.bvh")).unwrap()),
+        ("motion in metres, cameras in centimetres", transforms.clone(), bvh::write(&skeleton, &frames(&|m| metres(m)), motion.frame_time, 1.0).unwrap()),
+        ("motion +Z up, cameras +Y up", transforms.clone(), bvh::write(&skeleton, &frames(&|m| metres(z_up * m)), motion.frame_time, 100.0).unwrap()),
+    ];
+    for (what, cameras, clip) in cases {
+        let broken = dir.path().join(what.replace(' ', "-").replace(',', ""));
+        copy_dir(&capture.join("images"), &broken.join("images"));
+        copy_dir(&capture.join("masks"), &broken.join("masks"));
+        std::fs::write(broken.join("transforms.json"), serde_json::to_string(&cameras).unwrap()).unwrap();
+        std::fs::write(broken.join("motion.bvh"), clip).unwrap();
+        let out = dir.path().join(format!("{}-out", broken.file_name().unwrap().to_string_lossy()));
+        let err = import(&ImportOptions { units: Some(Units::Cm), ..options(&broken, out.clone()) }, &|_, _| {}).unwrap_err().to_string();
+        assert!(err.contains("the cameras and the motion disagree") && err.contains("% of the bones' points"), "{what}: {err}");
+        assert!(!out.exists(), "{what}: nothing written");
+    }
+}

@@ -1,11 +1,12 @@
 //! Captures as people have them, into `scene/1`: cameras from nerfstudio's `transforms.json`
 //! (`nerfstudio`), motion from a BVH (`bvh`, its bones by one rule: `bones`), masks from files or
 //! the images' alpha, lens distortion removed (`distortion`), images downscaled and their
-//! background blacked (`photos`). `import` checks everything before it writes, writes into a
+//! background blacked (`photos`), and the bones checked against the masks (`check`). `import` checks everything before it writes, writes into a
 //! temporary folder and moves it into place, and says what it assumed.
 
 pub mod bones;
 pub mod bvh;
+pub mod check;
 pub mod distortion;
 pub mod export;
 pub mod nerfstudio;
@@ -127,6 +128,8 @@ fn input(path: &Path, message: impl Into<String>) -> ImportError {
 /// What an import did and assumed, in sentences for the user.
 #[derive(Clone, Debug, Default)]
 pub struct ImportReport {
+    /// The capture check's share of the bones' points inside the masks.
+    pub score: f64,
     pub images: usize,
     pub cameras: usize,
     pub frames: usize,
@@ -241,7 +244,8 @@ pub fn import(options: &ImportOptions, on: &(dyn Fn(usize, usize) + Sync)) -> Re
         });
         let text = serde_json::to_string_pretty(&scene).map_err(|e| input(out, e.to_string()))?;
         crate::imageio::write_atomic(&temp.join("scene.json"), text.as_bytes()).map_err(|e| input(&temp, e.to_string()))?;
-        crate::scene::Scene::load(&temp)?;
+        let scene = crate::scene::Scene::load(&temp)?;
+        agreement(&scene, &temp, &options.capture, &mut report)?;
         if out.exists() {
             std::fs::remove_dir(out).map_err(|e| input(out, e.to_string()))?;
         }
@@ -251,6 +255,29 @@ pub fn import(options: &ImportOptions, on: &(dyn Fn(usize, usize) + Sync)) -> Re
         let _ = std::fs::remove_dir_all(&temp);
     }
     result.map(|_| report)
+}
+
+/// The capture check (`check`) of the scene written in `dir`: its contact sheet beside it
+/// (`check.png`), its figure in the report; refused when the cameras and the motion disagree.
+fn agreement(scene: &crate::scene::Scene, dir: &Path, capture: &Path, report: &mut ImportReport) -> Result<(), ImportError> {
+    let found = check::check(scene);
+    check::contact_sheet(scene, &found).save_png(&dir.join("check.png")).map_err(|e| input(dir, e))?;
+    let figure = format!("{:.0}% of the bones' points project inside the training masks", 100.0 * found.score);
+    if found.score < check::REFUSE {
+        return Err(input(
+            capture,
+            format!(
+                "the cameras and the motion disagree: only {figure} (worst: {}); check --up, --units, the cameras' axes (nerfstudio's are OpenGL's) and the images' times (nothing was written)",
+                found.worst_bones(3)
+            ),
+        ));
+    }
+    report.assumed.push(match found.score < check::WARN {
+        true => format!("WARNING: capture check: only {figure} (worst: {}): look at check.png before fitting", found.worst_bones(3)),
+        false => format!("capture check: {figure} (check.png)"),
+    });
+    report.score = found.score;
+    Ok(())
 }
 
 /// The capture's world in scene/1's: turned so its up is +Y, scaled to metres.
