@@ -99,8 +99,15 @@ fn a_scene_exported_as_nerfstudio_and_a_centimetre_bvh_imports_as_the_same_scene
             assert!(a.w_axis.truncate().distance(o.w_axis.truncate()) < 1e-5, "bone {b} frame {f}: head");
             assert!(max_difference(&turn(f), &turn(0)) < 1e-5, "bone {b} frame {f}: a fixed turn from the original");
         }
+        // Every bone but the shins has its bone child at its tail (the foot hangs off the shin's
+        // axis): the same frame and length. A shin points at its foot's head.
         let name = original.skeleton.bones[b].name.as_str();
-        if ["pelvis", "spine", "neck", "hand_l", "head"].contains(&name) {
+        if name.starts_with("shin") {
+            let foot = original.skeleton.bones.iter().position(|f| f.parent == Some(b)).unwrap();
+            let pose = &imported.frames[0].pose;
+            let tip = pose.to_world(b, DVec3::new(0.0, imported.skeleton.bones[b].length, 0.0));
+            assert!(tip.distance(pose.bone_to_world[foot].w_axis.truncate()) < 1e-5, "{name} points at its foot's head");
+        } else {
             assert!(max_difference(&turn(0), &DMat4::IDENTITY) < 1e-5, "{name}: its child at its tail, its frame unturned");
             assert!((imported.skeleton.bones[b].length - original.skeleton.bones[b].length).abs() < 1e-6, "{name}: length");
         }
