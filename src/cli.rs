@@ -460,6 +460,7 @@ fn fit(options: &crate::fit::FitOptions) -> Result<(), String> {
             bar.set_position(done as u64);
             bar.set_message(psnr.map(|p| format!("{name}: {p:.2} dB")).unwrap_or(name));
         }
+        TrainMessage::Meshed { done, total } => bar.set_message(format!("meshing frame {}/{total} against the scene's mesh", done + 1)),
         TrainMessage::Done => bar.finish_and_clear(),
     })
     .map_err(|e| e.to_string())?;
@@ -509,6 +510,7 @@ fn image_progress(bar: &crate::progress::Progress) -> impl FnMut(crate::messages
             bar.set_position(done as u64);
             bar.set_message(psnr.map(|p| format!("{name}: {p:.2} dB")).unwrap_or(name));
         }
+        TrainMessage::Meshed { done, total } => bar.set_message(format!("meshing frame {}/{total} against the scene's mesh", done + 1)),
         _ => {}
     }
 }
@@ -673,6 +675,21 @@ fn print_evaluation(evaluation: &serde_json::Value) {
             let ssim = evaluation[format!("{key}_ssim")].as_f64().unwrap_or(f64::NAN);
             println!("{what}: PSNR {p:.2} dB, foreground {foreground:.2} dB, SSIM {ssim:.4}");
         }
+    }
+    // The fitted surface against the scene's ground-truth meshes, averaged over the frames meshed.
+    let frames = evaluation["geometry"].as_array().cloned().unwrap_or_default();
+    let mean = |key: &str| {
+        let values: Vec<f64> = frames.iter().filter_map(|f| f[key].as_f64()).collect();
+        (!values.is_empty()).then(|| values.iter().sum::<f64>() / values.len() as f64)
+    };
+    if let (Some(accuracy), Some(completeness), Some(chamfer)) = (mean("accuracy"), mean("completeness"), mean("chamfer")) {
+        println!(
+            "surface against the scene's meshes ({} frames): accuracy {:.1} mm, completeness {:.1} mm, Chamfer {:.1} mm",
+            frames.len(),
+            accuracy * 1e3,
+            completeness * 1e3,
+            chamfer * 1e3
+        );
     }
 }
 

@@ -565,7 +565,7 @@ pub fn evaluate_split(scene: &Scene, fitted: &Fitted, dir: &Path, split: Split, 
     evaluation.insert("groups".into(), json!(groups));
     evaluation.insert("albedo_scale".into(), json!(albedo_scale.to_array()));
     evaluation.insert("images".into(), json!(rows));
-    let geometry = geometry_scores(scene, &model, albedo_scale, &device)?;
+    let geometry = geometry_scores(scene, &model, albedo_scale, &device, on)?;
     let light = light_error(scene, fitted.fit_light, 0, &model.light.report());
     let mut markdown = metrics_markdown(&rows, &groups);
     if let Some(frames) = geometry.as_array().filter(|f| !f.is_empty()) {
@@ -630,12 +630,29 @@ fn in_order_while_rendering<T: Send, E>(count: usize, render: impl Fn(usize) -> 
 /// Samples per surface for the geometry error.
 const GEOMETRY_SAMPLES: usize = 20_000;
 
+/// The most frames whose fitted surface an evaluation meshes and compares with the scene's
+/// ground-truth meshes (evenly spread over those that have one).
+const GEOMETRY_FRAMES: usize = 6;
+
 /// The fitted surface (`eval::surface_mesh`) against every ground-truth mesh of the scene's
 /// frames, one entry per frame with a mesh (metres, degrees).
-fn geometry_scores(scene: &Scene, model: &Avatar, albedo_scale: glam::DVec3, device: &burn::tensor::Device) -> Result<serde_json::Value, FitError> {
+fn geometry_scores(
+    scene: &Scene,
+    model: &Avatar,
+    albedo_scale: glam::DVec3,
+    device: &burn::tensor::Device,
+    on: &mut impl FnMut(TrainMessage),
+) -> Result<serde_json::Value, FitError> {
     let extent = scene.body_extent();
+    let with_meshes: Vec<usize> = (0..scene.frames.len()).filter(|&f| scene.frames[f].mesh.is_some()).collect();
+    // Evenly spread, at most GEOMETRY_FRAMES: meshing every frame of a long capture took longer
+    // than its training.
+    let count = with_meshes.len().min(GEOMETRY_FRAMES);
+    let chosen: Vec<usize> = (0..count).map(|k| with_meshes[k * with_meshes.len() / count]).collect();
     let mut out = Vec::new();
-    for (position, frame) in scene.frames.iter().enumerate() {
+    for (done, &position) in chosen.iter().enumerate() {
+        on(TrainMessage::Meshed { done, total: chosen.len() });
+        let frame = &scene.frames[position];
         let Some(path) = &frame.mesh else { continue };
         let truth = crate::geometry::load_obj(path).map_err(|e| io(path, e))?;
         let pose = crate::skeleton::PoseTensors::new(&frame.pose, &scene.skeleton, device);

@@ -27,6 +27,11 @@ pub enum TrainMessage {
     Evaluating {
         images: usize,
     },
+    /// One frame's fitted surface meshed and compared with the scene's ground-truth mesh.
+    Meshed {
+        done: usize,
+        total: usize,
+    },
     /// One image rendered, with its PSNR when there is a ground truth to score it against.
     Rendered {
         done: usize,

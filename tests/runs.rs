@@ -353,7 +353,10 @@ fn eval_scores_test_and_training_images_and_the_surface_against_the_scenes_meshe
     succeeds(&root, &["eval", run.to_str().unwrap()]);
     let metrics: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(run.join("renders/metrics.json")).unwrap()).unwrap();
     let frames = metrics["geometry"].as_array().unwrap();
-    assert_eq!(frames.len(), umbra::scene::Scene::load(&scene).unwrap().frames.len(), "a geometry entry per frame with a mesh");
+    // A geometry entry per frame with a mesh, up to six evenly spread.
+    let meshed = umbra::scene::Scene::load(&scene).unwrap().frames.iter().filter(|f| f.mesh.is_some()).count();
+    assert_eq!(frames.len(), meshed.min(6), "{frames:?}");
+    assert!(frames.windows(2).all(|w| w[0]["frame"].as_u64() < w[1]["frame"].as_u64()), "in order, each once");
     for f in frames {
         let (accuracy, completeness, chamfer) = (f["accuracy"].as_f64().unwrap(), f["completeness"].as_f64().unwrap(), f["chamfer"].as_f64().unwrap());
         // Two iterations leave the prior's capsules: centimetres off, not metres, not zero.
