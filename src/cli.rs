@@ -271,6 +271,9 @@ pub enum Command {
         /// about half a dB, so a difference between scenes is read off their means.
         #[arg(long, value_delimiter = ',')]
         seeds: Vec<u64>,
+        /// `memory`: training images per size.
+        #[arg(long, default_value_t = 240)]
+        images: usize,
         /// `fit`: then fit the grid again for as many iterations as fill the MLP's training
         /// time, so the two fields are also compared at equal cost.
         #[arg(long)]
@@ -321,6 +324,10 @@ pub enum BenchKind {
     /// and a sky at 64 samples per pixel, with every thread and with one; and views one after
     /// another against several at once.
     Render,
+    /// Peak memory and wall time of a short fit at capture sizes: a scene's training images
+    /// upscaled to 128 and 1024 pixels (--quick: 512) and repeated to --images, each fitted in
+    /// a process of its own (`memory.md`, `memory.csv`).
+    Memory,
 }
 
 /// Runs the CLI and returns the process exit code.
@@ -371,6 +378,12 @@ pub fn main() -> i32 {
             let seeds = if seeds.is_empty() { vec![seed] } else { seeds };
             let options = crate::bench::ScenesBenchOptions { scenes, schedule, iterations, seeds, out };
             crate::bench::scenes(&options, |line| eprintln!("{line}")).map(|table| print!("{table}")).map_err(|e| e.to_string())
+        }
+        Command::Bench { which: BenchKind::Memory, out, quick, scene, iterations, images, .. } => {
+            let scene = scene.unwrap_or_else(|| PathBuf::from("datasets-synthetic/human-sun"));
+            let options =
+                crate::bench::MemoryBenchOptions { scene, out, images, sizes: (128, if quick { 512 } else { 1024 }), iterations: iterations.unwrap_or(30) };
+            crate::bench::memory(&options, |line| eprintln!("{line}")).map(|table| print!("{table}"))
         }
         Command::Bench { which: BenchKind::Gradients, out, quick, scene, .. } => {
             let scene = scene.or_else(|| Some(PathBuf::from(crate::bench::DEFAULT_SCENE)).filter(|p| p.join("scene.json").exists()));

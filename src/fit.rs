@@ -398,6 +398,8 @@ pub fn fit(options: &FitOptions, mut on: impl FnMut(TrainMessage)) -> Result<ser
         "final_losses": last.terms,
         "final_total": last.total,
         "wall_seconds": wall.elapsed().as_secs_f64(),
+        // The most memory the fit held at once (null where the system does not say).
+        "peak_memory_bytes": crate::files::peak_memory_bytes(),
         "evaluation": evaluation,
         "evaluation_skipped": evaluation_skipped,
         "light_error_against_scene": light_error,
@@ -508,7 +510,8 @@ pub fn evaluate_split(scene: &Scene, fitted: &Fitted, dir: &Path, split: Split, 
         let TestKind { novel_pose, novel_view, relit, group } = kinds.of(view);
         let name = render_name(scene, view);
         save_png(&dir.join(&name), &scored.image)?;
-        let mut row = vec![view.colour.clone(), scored.image.clone(), scored.image.difference(&view.colour, COMPARE_GAIN)];
+        let truth = view.colour.to_rgb();
+        let mut row = vec![truth.clone(), scored.image.clone(), scored.image.difference(&truth, COMPARE_GAIN)];
         if let Some((albedo, _)) = &scored.albedo {
             save_png(&dir.join(name.replace(".png", "-albedo.png")), albedo)?;
             if let Some(truth) = &view.albedo {
@@ -518,14 +521,14 @@ pub fn evaluate_split(scene: &Scene, fitted: &Fitted, dir: &Path, split: Split, 
         compare.push(row);
         // Relit images and albedos again after one per-channel least-squares scale: what is
         // left when the absolute scale the fit cannot know is forgiven.
-        let relit_scaled = relit.then(|| crate::metrics::score_scaled(&scored.image, &view.colour, view.mask.as_ref()).0);
+        let relit_scaled = relit.then(|| crate::metrics::score_scaled(&scored.image, &truth, view.mask.as_ref()).0);
         let albedo_scaled = match (&scored.albedo, &view.albedo) {
             (Some((albedo, _)), Some(truth)) => Some(crate::metrics::score_scaled(albedo, truth, view.mask.as_ref()).0),
             _ => None,
         };
         let (scores, albedo) = (scored.scores, scored.albedo.map(|a| a.1));
         on(TrainMessage::Rendered { done: done + 1, total: tests.len(), name: name.clone(), psnr: Some(scores.psnr) });
-        let error_sums = view.mask.as_ref().map(|mask| crate::metrics::error_regions(&scored.image, &view.colour, mask));
+        let error_sums = view.mask.as_ref().map(|mask| crate::metrics::error_regions(&scored.image, &truth, mask));
         let error_share = error_sums.map(|e| e.shares());
         rows.push(ImageScore {
             image: name,
@@ -736,7 +739,7 @@ pub fn score_view(
         wants_albedo,
         crate::eval::Strata::Shortcuts,
     );
-    let scores = score(&image, &view.colour, view.mask.as_ref());
+    let scores = score(&image, &view.colour.to_rgb(), view.mask.as_ref());
     let albedo = view.albedo.as_ref().zip(albedo).map(|(truth, albedo)| {
         let s = score(&albedo, truth, view.mask.as_ref());
         (albedo, s)

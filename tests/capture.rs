@@ -79,9 +79,9 @@ fn a_scene_exported_as_nerfstudio_and_a_centimetre_bvh_imports_as_the_same_scene
         let mask = twin.mask.as_ref().unwrap();
         for p in 0..mask.foreground.len() {
             if mask.foreground[p] {
-                assert_eq!(view.colour.pixels[p], twin.colour.pixels[p], "{}: pixel {p} inside the mask", stem(&view.path));
+                assert_eq!(view.colour.pixel(p), twin.colour.pixel(p), "{}: pixel {p} inside the mask", stem(&view.path));
             } else {
-                assert_eq!(view.colour.pixels[p], [0.0; 3], "the plate's background is blacked");
+                assert_eq!(view.colour.pixel(p), [0.0; 3], "the plate's background is blacked");
             }
         }
     }

@@ -250,6 +250,25 @@ fn bench_scenes_fits_every_scene_into_one_table() {
     assert!(!missing.status.success() && String::from_utf8_lossy(&missing.stderr).contains("nowhere"));
 }
 
+/// `bench memory` fits a scene's training images at two sizes, each in its own process, and
+/// reads each fit's peak memory from its fit.json into one table.
+#[test]
+fn bench_memory_measures_two_sizes_in_one_table() {
+    let dir = TempDir::new("bench-memory");
+    let scene = common::tiny_synth(dir.path(), TrainingLight::Sun, 24, 2, vec![TestKind::Poses], 3);
+    let out = dir.path().join("bench");
+    let root = std::env::current_dir().unwrap();
+    succeeds(&root, &["bench", "memory", "--scene", scene.to_str().unwrap(), "--out", out.to_str().unwrap(), "--iterations", "2", "--images", "6", "--quick"]);
+    let (header, rows) = umbra::table::read_csv(&std::fs::read_to_string(out.join("memory.csv")).unwrap()).unwrap();
+    assert_eq!(rows.len(), 2, "{rows:?}");
+    let column = |name: &str| header.iter().position(|h| h == name).unwrap();
+    let peak = |r: usize| rows[r][column("peak_bytes")].parse::<f64>().unwrap();
+    assert!(peak(0) > 1e6 && peak(1) > peak(0), "{rows:?}");
+    assert_eq!((rows[0][column("size")].as_str(), rows[1][column("size")].as_str()), ("120", "504"), "{rows:?}");
+    let report: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(out.join("run-504px-6-images/fit.json")).unwrap()).unwrap();
+    assert_eq!(report["peak_memory_bytes"].as_f64(), Some(peak(1)));
+}
+
 /// `bench scenes --seeds` fits every scene once per seed into `OUT/NAME-seedS`, one row each,
 /// and a summary of each scene's mean and standard deviation over them that the rows give back;
 /// a seed named twice is refused before anything is fitted.

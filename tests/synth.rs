@@ -367,7 +367,7 @@ fn anti_aliased_captures_average_each_pixel_and_are_recognised() {
         let (ma, mb) = (a.mask.as_ref().unwrap(), b.mask.as_ref().unwrap());
         let w = mb.width;
         for p in 0..ma.foreground.len() {
-            let (ca, cb) = (a.colour.pixels[p], b.colour.pixels[p]);
+            let (ca, cb) = (a.colour.pixel(p), b.colour.pixel(p));
             if !mb.foreground[p] {
                 assert_eq!(cb, [0.0; 3], "pixels outside the mask are black");
                 continue;

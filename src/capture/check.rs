@@ -72,7 +72,7 @@ pub fn contact_sheet(scene: &Scene, check: &CaptureCheck) -> Canvas {
     let firsts: Vec<usize> = (0..scene.cameras.len())
         .filter_map(|c| (0..scene.views.len()).find(|&v| scene.views[v].camera == c && scene.views[v].split == Split::Train && scene.views[v].mask.is_some()))
         .collect();
-    let largest = firsts.iter().map(|&v| scene.views[v].colour.width.max(scene.views[v].colour.height)).max().unwrap_or(1);
+    let largest = firsts.iter().map(|&v| scene.views[v].colour.width().max(scene.views[v].colour.height())).max().unwrap_or(1);
     let zoom = (256 / largest).max(1);
     let tile = largest * zoom;
     let label = 14;
@@ -92,10 +92,10 @@ pub fn contact_sheet(scene: &Scene, check: &CaptureCheck) -> Canvas {
 fn draw_view(sheet: &mut Canvas, scene: &Scene, v: usize, (x0, y0): (usize, usize), zoom: usize) {
     let view = &scene.views[v];
     let Some(mask) = &view.mask else { return };
-    for y in 0..view.colour.height {
-        for x in 0..view.colour.width {
-            let p = y * view.colour.width + x;
-            let srgb = view.colour.pixels[p].map(crate::imageio::linear_to_srgb8);
+    for y in 0..view.colour.height() {
+        for x in 0..view.colour.width() {
+            let p = y * view.colour.width() + x;
+            let srgb = view.colour.pixel(p).map(crate::imageio::linear_to_srgb8);
             // Outside the mask: a dim blue, so the silhouette reads at a glance.
             let c = if mask.foreground[p] { srgb } else { [srgb[0] / 3, srgb[1] / 3, srgb[2] / 3 + 60] };
             sheet.fill((x0 + x * zoom) as i64, (y0 + y * zoom) as i64, (x0 + (x + 1) * zoom) as i64, (y0 + (y + 1) * zoom) as i64, c);
@@ -114,7 +114,7 @@ fn draw_view(sheet: &mut Canvas, scene: &Scene, v: usize, (x0, y0): (usize, usiz
             let (a, c) = (at(a), at(c));
             // Clipped to the tile: a bone far outside the image is not drawn across the sheet.
             let tile = |(x, y): (f64, f64)| {
-                x >= x0 as f64 && y >= y0 as f64 && x < (x0 + view.colour.width * zoom) as f64 && y < (y0 + view.colour.height * zoom) as f64
+                x >= x0 as f64 && y >= y0 as f64 && x < (x0 + view.colour.width() * zoom) as f64 && y < (y0 + view.colour.height() * zoom) as f64
             };
             if tile(a) && tile(c) {
                 sheet.line(a, c, colour);

@@ -30,10 +30,10 @@ pub fn write_capture(scene: &Scene, dir: &Path, units: f64) -> Result<usize, Imp
     let stem = |k: usize| scene.views[k].path.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_else(|| format!("image{k}"));
     for &k in &chosen {
         let view = &scene.views[k];
-        let mut plate = RgbImage::new(view.colour.width, view.colour.height);
+        let mut plate = RgbImage::new(view.colour.width(), view.colour.height());
         for (p, pixel) in plate.pixels.iter_mut().enumerate() {
             let inside = view.mask.as_ref().is_none_or(|m| m.foreground[p]);
-            *pixel = if inside { view.colour.pixels[p] } else { background(p % plate.width, p / plate.width) };
+            *pixel = if inside { view.colour.pixel(p) } else { background(p % plate.width, p / plate.width) };
         }
         let path = dir.join(format!("images/{}.png", stem(k)));
         let bytes = crate::imageio::encode_png_rgb(&plate)?;

@@ -42,7 +42,7 @@ pub fn estimate(scene: &Scene) -> FootprintEstimate {
     for view in scene.views_in(Split::Train) {
         let Some(mask) = &view.mask else { continue };
         let (w, h) = (mask.width, mask.height);
-        if view.colour.pixels.len() != w * h {
+        if view.colour.width() * view.colour.height() != w * h {
             continue;
         }
         let fg = |x: isize, y: isize| x >= 0 && y >= 0 && (x as usize) < w && (y as usize) < h && mask.foreground[y as usize * w + x as usize];
@@ -56,13 +56,13 @@ pub fn estimate(scene: &Scene) -> FootprintEstimate {
                 for dy in -1..=1 {
                     for dx in -1..=1 {
                         if fg(x + dx, y + dy) && !is_edge(x + dx, y + dy) {
-                            sum += luminance(view.colour.pixels[(y + dy) as usize * w + (x + dx) as usize]);
+                            sum += luminance(view.colour.pixel((y + dy) as usize * w + (x + dx) as usize));
                             count += 1;
                         }
                     }
                 }
                 if count > 0 {
-                    edge_sum += luminance(view.colour.pixels[y as usize * w + x as usize]);
+                    edge_sum += luminance(view.colour.pixel(y as usize * w + x as usize));
                     inner_sum += sum / count as f64;
                     edge_pixels += 1;
                 }

@@ -65,7 +65,7 @@ impl Scene {
                 }
             }
             f = f.text(&view.light);
-            for p in &view.colour.pixels {
+            for p in view.colour.pixels() {
                 for c in p {
                     f = f.bytes(&c.to_bits().to_le_bytes());
                 }

@@ -55,7 +55,7 @@ pub struct View {
     pub light: String,
     pub split: Split,
     pub path: PathBuf,
-    pub colour: RgbImage,
+    pub colour: imageio::Photo,
     pub mask: Option<Mask>,
     pub albedo: Option<RgbImage>,
 }
@@ -437,7 +437,7 @@ impl Reader<'_> {
             .into_par_iter()
             .map(|r| {
                 let (w, h) = (cameras[r.camera].width, cameras[r.camera].height);
-                let colour = decode_rgb(&r.colour, w, h)?;
+                let colour = decode_photo(&r.colour, w, h)?;
                 let mask = r.mask.as_ref().map(|m| decode_mask(m, w, h)).transpose()?;
                 let albedo = r.albedo.as_ref().map(|a| decode_rgb(a, w, h)).transpose()?;
                 Ok(View { camera: r.camera, frame: r.frame, light: r.light, split: r.split, path: r.colour.file, colour, mask, albedo })
@@ -484,6 +484,19 @@ fn decode_rgb(p: &Pending, w: usize, h: usize) -> Result<RgbImage, SceneError> {
         return Err(pending_error(p, format!("{} holds a non-finite value", p.relative)));
     }
     Ok(image)
+}
+
+/// A view's colour image, kept compact (`imageio::Photo`).
+fn decode_photo(p: &Pending, w: usize, h: usize) -> Result<imageio::Photo, SceneError> {
+    check_header(p, (w, h))?;
+    let photo = imageio::read_photo_compact(&p.file).map_err(|e| pending_error(p, image_message(e, &p.relative)))?;
+    check_size(p, (photo.width(), photo.height()), (w, h))?;
+    if let imageio::Photo::Linear(image) = &photo {
+        if image.pixels.iter().any(|px| px.iter().any(|c| !c.is_finite())) {
+            return Err(pending_error(p, format!("{} holds a non-finite value", p.relative)));
+        }
+    }
+    Ok(photo)
 }
 
 fn decode_mask(p: &Pending, w: usize, h: usize) -> Result<Mask, SceneError> {

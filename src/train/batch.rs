@@ -14,7 +14,7 @@ use crate::render::{ray_bounds, RaySet};
 pub(super) const BOUNDARY_BAND: usize = 2;
 
 /// The pixels of `mask` within `band` pixels (Chebyshev) of a pixel of the other kind.
-pub(super) fn boundary_pixels(mask: &crate::imageio::Mask, band: usize) -> Vec<usize> {
+pub(super) fn boundary_pixels(mask: &crate::imageio::Mask, band: usize) -> Vec<u32> {
     let (w, h) = (mask.width, mask.height);
     let b = band as i64;
     (0..w * h)
@@ -28,6 +28,7 @@ pub(super) fn boundary_pixels(mask: &crate::imageio::Mask, band: usize) -> Vec<u
                 })
             })
         })
+        .map(|p| p as u32)
         .collect()
 }
 
@@ -134,12 +135,12 @@ impl Trainer {
             let pixel = match wrong {
                 Some(p) => p,
                 None if pool.is_empty() => self.stream.below(pixels),
-                None => pool[self.stream.below(pool.len())],
+                None => pool[self.stream.below(pool.len())] as usize,
             };
             let mask = view.mask.as_ref().map(|m| m.foreground[pixel] as u8 as f32).unwrap_or(0.0);
             let ray = camera.pixel_ray(pixel % camera.width, pixel / camera.width);
             let bounds = ray_bounds(ray.origin, ray.direction, &posed, self.min_bound_radius());
-            drawn.push((ray, bounds, view.colour.pixels[pixel], mask));
+            drawn.push((ray, bounds, view.colour.pixel(pixel), mask));
             sources.push((v, pixel, wrong.is_some()));
         }
         // A stable partition: hits first, in the order drawn.

@@ -60,13 +60,13 @@ impl Trainer {
                 if pool.is_empty() {
                     continue;
                 }
-                let pixel = pool[self.stream.below(pool.len())];
+                let pixel = pool[self.stream.below(pool.len())] as usize;
                 let view = &self.scene.views[v];
                 let camera = &self.scene.cameras[view.camera];
                 let ray = camera.pixel_ray(pixel % camera.width, pixel / camera.width);
                 if let Some(bounds) = ray_bounds(ray.origin, ray.direction, &posed, self.min_bound_radius()) {
                     rays.push(ray.origin, ray.direction, Some(bounds));
-                    colours.push(view.colour.pixels[pixel]);
+                    colours.push(view.colour.pixel(pixel));
                 }
             }
             if rays.is_empty() {

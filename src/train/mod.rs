@@ -79,9 +79,9 @@ struct FrameData {
 
 /// Per training view: pixel indices for balanced ray sampling.
 struct ViewData {
-    foreground: Vec<usize>,
+    foreground: Vec<u32>,
     /// Pixels within `BOUNDARY_BAND` pixels of the silhouette's edge, on either side.
-    boundary: Vec<usize>,
+    boundary: Vec<u32>,
     /// Where the fit is still wrong in this view, when the schedule draws rays by it
     /// (`Schedule::error_rays`; training views with a mask only).
     error_map: Option<crate::error_map::ErrorMap>,

@@ -210,15 +210,23 @@ impl Trainer {
                 None => frames.push(FrameData { position: f, pose_tensors: PoseTensors::new(&scene.frames[f].pose, &scene.skeleton, &device), views: vec![v] }),
             }
         }
-        let mut views: Vec<ViewData> = scene
-            .views
-            .iter()
-            .map(|v| ViewData {
-                foreground: v.mask.as_ref().map(|m| (0..m.foreground.len()).filter(|&k| m.foreground[k]).collect()).unwrap_or_default(),
-                boundary: v.mask.as_ref().map(|m| boundary_pixels(m, BOUNDARY_BAND)).unwrap_or_default(),
-                error_map: None,
-            })
-            .collect();
+        // Only training views are drawn from; pixel indices fit in 32 bits (a scene's images are
+        // at most `imageio::MAX_PIXELS`).
+        let mut views: Vec<ViewData> = {
+            use rayon::prelude::*;
+            scene
+                .views
+                .par_iter()
+                .map(|v| {
+                    let mask = v.mask.as_ref().filter(|_| v.split == Split::Train);
+                    ViewData {
+                        foreground: mask.map(|m| (0..m.foreground.len() as u32).filter(|&k| m.foreground[k as usize]).collect()).unwrap_or_default(),
+                        boundary: mask.map(|m| boundary_pixels(m, BOUNDARY_BAND)).unwrap_or_default(),
+                        error_map: None,
+                    }
+                })
+                .collect()
+        };
         let extent = scene.body_extent();
         let unit = crate::skeleton::body_length(1.0, extent);
         // Four Gaussians per bone, 5 cm wide on the reference human.
