@@ -372,8 +372,15 @@ pub fn read_mask(path: &Path) -> Result<Mask, ImageError> {
     check_declared_size(path)?;
     let img = decode_png(path)?;
     let (width, height) = (img.width() as usize, img.height() as usize);
-    // to_rgba8 keeps the first channel as is for grey, RGB and RGBA inputs (16-bit scaled to 8).
-    let foreground = img.to_rgba8().pixels().map(|p| p.0[0] > 127).collect();
+    // The first channel: read in place for 8-bit layouts; otherwise to_rgba8 keeps it as is for
+    // grey, RGB and RGBA inputs (16-bit scaled to 8).
+    let foreground = match &img {
+        image::DynamicImage::ImageLuma8(i) => i.as_raw().iter().map(|&v| v > 127).collect(),
+        image::DynamicImage::ImageLumaA8(i) => i.as_raw().chunks_exact(2).map(|c| c[0] > 127).collect(),
+        image::DynamicImage::ImageRgb8(i) => i.as_raw().chunks_exact(3).map(|c| c[0] > 127).collect(),
+        image::DynamicImage::ImageRgba8(i) => i.as_raw().chunks_exact(4).map(|c| c[0] > 127).collect(),
+        _ => img.to_rgba8().pixels().map(|p| p.0[0] > 127).collect(),
+    };
     Ok(Mask { width, height, foreground })
 }
 

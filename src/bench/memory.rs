@@ -74,6 +74,11 @@ fn upscaled(scene_dir: &Path, dir: &Path, factor: usize, images: usize) -> Resul
             image
         })
         .collect();
+    // Only the training lights: the others (a sky's map) are not copied.
+    let used: std::collections::BTreeSet<String> = listed.iter().filter_map(|i| i["light"].as_str().map(String::from)).collect();
+    if let Some(lights) = scene["lights"].as_object_mut() {
+        lights.retain(|name, _| used.contains(name));
+    }
     scene["images"] = json!(listed);
     scene["name"] = json!(dir.file_name().map(|n| n.to_string_lossy().into_owned()));
     for frame in scene["frames"].as_array_mut().into_iter().flatten() {

@@ -13,20 +13,32 @@ use crate::render::{ray_bounds, RaySet};
 /// percent of a view's pixels).
 pub(super) const BOUNDARY_BAND: usize = 2;
 
-/// The pixels of `mask` within `band` pixels (Chebyshev) of a pixel of the other kind.
+/// The pixels of `mask` within `band` pixels (Chebyshev) of a pixel of the other kind: a pixel
+/// of the body whose window holds fewer body pixels than in-image pixels, or one outside it whose
+/// window holds any; each window's count from a summed-area table, so the cost does not grow
+/// with the band.
 pub(super) fn boundary_pixels(mask: &crate::imageio::Mask, band: usize) -> Vec<u32> {
     let (w, h) = (mask.width, mask.height);
-    let b = band as i64;
+    // table[(y * (w + 1)) + x]: body pixels above and left of (x, y).
+    let mut table = vec![0u32; (w + 1) * (h + 1)];
+    for y in 0..h {
+        let mut row = 0u32;
+        for x in 0..w {
+            row += mask.foreground[y * w + x] as u32;
+            table[(y + 1) * (w + 1) + x + 1] = table[y * (w + 1) + x + 1] + row;
+        }
+    }
+    let window =
+        |x0: usize, y0: usize, x1: usize, y1: usize| table[y1 * (w + 1) + x1] + table[y0 * (w + 1) + x0] - table[y0 * (w + 1) + x1] - table[y1 * (w + 1) + x0];
     (0..w * h)
         .filter(|&p| {
-            let (x, y) = ((p % w) as i64, (p / w) as i64);
-            let inside = mask.foreground[p];
-            (-b..=b).any(|dy| {
-                (-b..=b).any(|dx| {
-                    let (u, v) = (x + dx, y + dy);
-                    u >= 0 && v >= 0 && (u as usize) < w && (v as usize) < h && mask.foreground[v as usize * w + u as usize] != inside
-                })
-            })
+            let (x, y) = (p % w, p / w);
+            let (x0, y0, x1, y1) = (x.saturating_sub(band), y.saturating_sub(band), (x + band + 1).min(w), (y + band + 1).min(h));
+            let body = window(x0, y0, x1, y1);
+            match mask.foreground[p] {
+                true => (body as usize) < (x1 - x0) * (y1 - y0),
+                false => body > 0,
+            }
         })
         .map(|p| p as u32)
         .collect()
@@ -182,6 +194,30 @@ impl Trainer {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The summed-area band against the definition, pixel by pixel, on random masks.
+    #[test]
+    fn the_boundary_band_is_every_pixel_near_one_of_the_other_kind() {
+        let mut stream = crate::random::Stream::new(7, 1, 0);
+        for (w, h, band) in [(17, 11, 2), (5, 9, 1), (30, 30, 3), (1, 1, 2)] {
+            let foreground: Vec<bool> = (0..w * h).map(|_| stream.uniform() < 0.4).collect();
+            let mask = crate::imageio::Mask { width: w, height: h, foreground };
+            let b = band as i64;
+            let expected: Vec<u32> = (0..w * h)
+                .filter(|&p| {
+                    let (x, y) = ((p % w) as i64, (p / w) as i64);
+                    (-b..=b).any(|dy| {
+                        (-b..=b).any(|dx| {
+                            let (u, v) = (x + dx, y + dy);
+                            u >= 0 && v >= 0 && (u as usize) < w && (v as usize) < h && mask.foreground[v as usize * w + u as usize] != mask.foreground[p]
+                        })
+                    })
+                })
+                .map(|p| p as u32)
+                .collect();
+            assert_eq!(boundary_pixels(&mask, band), expected, "{w}x{h}, band {band}");
+        }
+    }
 
     #[test]
     fn a_share_of_draws_is_spread_evenly() {
