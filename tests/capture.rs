@@ -382,3 +382,56 @@ fn a_capture_whose_cameras_and_motion_disagree_is_refused_with_the_figure() {
         assert!(!out.exists(), "{what}: nothing written");
     }
 }
+
+/// A COLMAP text model written from the scene (world-to-camera quaternions, one camera per
+/// intrinsics) imports with the same cameras; frames come from the numbers in the images' names.
+#[test]
+fn a_colmap_text_model_imports_with_the_scenes_cameras() {
+    let dir = TempDir::new("capture-colmap");
+    let (scene_dir, capture) = scene_and_capture(dir.path());
+    let original = Scene::load(&scene_dir).unwrap();
+    let colmap = dir.path().join("colmap");
+    std::fs::create_dir_all(colmap.join("sparse/0")).unwrap();
+    std::fs::create_dir_all(colmap.join("images")).unwrap();
+    std::fs::create_dir_all(colmap.join("masks")).unwrap();
+    std::fs::copy(capture.join("motion.bvh"), colmap.join("motion.bvh")).unwrap();
+    let mut cameras = String::from("# Camera list with one line of data per camera:\n");
+    for (c, camera) in original.cameras.iter().enumerate() {
+        cameras += &format!("{} PINHOLE {} {} {} {} {} {}\n", c + 1, camera.width, camera.height, camera.fx, camera.fy, camera.cx, camera.cy);
+    }
+    std::fs::write(colmap.join("sparse/0/cameras.txt"), cameras).unwrap();
+    let mut images = String::from("# Image list with two lines of data per image:\n");
+    let training: Vec<&umbra::scene::View> = original.views.iter().filter(|v| v.split == umbra::scene::Split::Train).collect();
+    for (k, view) in training.iter().enumerate() {
+        let world_to_camera = original.cameras[view.camera].camera_to_world.inverse();
+        // In centimetres, as the clip: one world.
+        let (_, q, t) = world_to_camera.to_scale_rotation_translation();
+        let t = t * 100.0;
+        let name = format!("c{}_frame_{:04}.png", view.camera, view.frame);
+        images += &format!("{} {} {} {} {} {} {} {} {} {name}\n\n", k + 1, q.w, q.x, q.y, q.z, t.x, t.y, t.z, view.camera + 1);
+        let source = stem(&view.path);
+        std::fs::copy(capture.join(format!("images/{source}.png")), colmap.join("images").join(&name)).unwrap();
+        std::fs::copy(capture.join(format!("masks/{source}.png")), colmap.join("masks").join(&name)).unwrap();
+    }
+    std::fs::write(colmap.join("sparse/0/images.txt"), &images).unwrap();
+    let out = dir.path().join("imported");
+    let report = import(&options(&colmap, out.clone()), &|_, _| {}).unwrap();
+    assert!(report.score > 0.95, "{:?}", report.assumed);
+    let imported = Scene::load(&out).unwrap();
+    assert_eq!(imported.views.len(), training.len());
+    for (view, twin) in imported.views.iter().zip(&training) {
+        let (a, b) = (&imported.cameras[view.camera], &original.cameras[twin.camera]);
+        assert!(max_difference(&a.camera_to_world, &b.camera_to_world) < 1e-6, "{}", view.path.display());
+        assert_eq!(imported.frames[view.frame].index as usize, twin.frame);
+        assert_eq!(view.mask, twin.mask);
+    }
+    // A malformed line is refused with the file and the line.
+    let broken: Vec<String> = images
+        .lines()
+        .enumerate()
+        .map(|(n, l)| if n == 1 { l.split(' ').enumerate().map(|(k, w)| if k == 1 { "zero" } else { w }).collect::<Vec<_>>().join(" ") } else { l.to_string() })
+        .collect();
+    std::fs::write(colmap.join("sparse/0/images.txt"), broken.join("\n")).unwrap();
+    let err = import(&options(&colmap, dir.path().join("broken")), &|_, _| {}).unwrap_err().to_string();
+    assert!(err.contains("images.txt: line 2: expected a finite number"), "{err}");
+}

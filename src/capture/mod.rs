@@ -7,6 +7,7 @@
 pub mod bones;
 pub mod bvh;
 pub mod check;
+pub mod colmap;
 pub mod distortion;
 pub mod export;
 pub mod nerfstudio;
@@ -136,22 +137,54 @@ pub struct ImportReport {
     pub assumed: Vec<String>,
 }
 
-/// The file a capture folder holds with one of `names`, or the only one ending in `extension`.
-fn find_in(capture: &Path, names: &[&str], extension: &str, what: &str) -> Result<PathBuf, ImportError> {
-    if capture.is_file() && names.iter().any(|n| capture.file_name().is_some_and(|f| f == *n)) {
-        return Ok(capture.to_path_buf());
-    }
-    if let Some(found) = names.iter().map(|n| capture.join(n)).find(|p| p.is_file()) {
-        return Ok(found);
-    }
+/// The only file of the capture folder ending in `extension` (what `--{what}` would name).
+fn only_file(capture: &Path, extension: &str, what: &str) -> Result<PathBuf, ImportError> {
     let entries = std::fs::read_dir(capture).map_err(|e| input(capture, format!("cannot list the capture folder: {e}")))?;
     let matching: Vec<PathBuf> =
         entries.filter_map(|e| e.ok().map(|e| e.path())).filter(|p| p.extension().is_some_and(|x| x.eq_ignore_ascii_case(extension))).collect();
     match matching.as_slice() {
         [one] => Ok(one.clone()),
-        [] => Err(input(capture, format!("holds no {what} ({} or a .{extension} file): name it with --{what}", names.join(", ")))),
-        many => Err(input(capture, format!("holds {} .{extension} files: name the {what} file with --{what}", many.len()))),
+        [] => Err(input(capture, format!("holds no .{extension} file: name the {what} with --{what}"))),
+        many => Err(input(capture, format!("holds {} .{extension} files: name the {what} with --{what}", many.len()))),
     }
+}
+
+/// The capture's images with their cameras, and the camera file (for messages): `--cameras` (a
+/// nerfstudio `transforms.json`, or a COLMAP text model's folder or one of its files), else the
+/// capture's `transforms.json`, else a COLMAP model in the capture, `sparse/0` or `sparse`, its
+/// images in `images/` (else the capture) and masks of their names in `masks/` when present.
+fn read_cameras(options: &ImportOptions) -> Result<(Vec<CaptureImage>, PathBuf), ImportError> {
+    let capture = &options.capture;
+    let colmap_dir = |p: &Path| -> Option<PathBuf> {
+        if p.is_dir() && p.join("cameras.txt").is_file() {
+            return Some(p.to_path_buf());
+        }
+        let named = p.file_name().is_some_and(|n| n == "cameras.txt" || n == "images.txt");
+        named.then(|| p.parent().unwrap_or(Path::new(".")).to_path_buf())
+    };
+    let dir = match &options.cameras {
+        Some(file) => match colmap_dir(file) {
+            Some(dir) => dir,
+            None => return Ok((nerfstudio::read(file)?, file.clone())),
+        },
+        None if capture.join("transforms.json").is_file() => return Ok((nerfstudio::read(&capture.join("transforms.json"))?, capture.join("transforms.json"))),
+        None => [capture.clone(), capture.join("sparse/0"), capture.join("sparse")].into_iter().find_map(|d| colmap_dir(&d)).ok_or_else(|| {
+            input(
+                capture,
+                "holds no cameras: no transforms.json, and no COLMAP text model (cameras.txt, images.txt) in it, sparse/0 or sparse; name one with --cameras",
+            )
+        })?,
+    };
+    let images_dir = if capture.join("images").is_dir() { capture.join("images") } else { capture.clone() };
+    let mut images = colmap::read(&dir, &images_dir)?;
+    for image in &mut images {
+        let stem = image.path.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_default();
+        let mask = capture.join("masks").join(format!("{stem}.png"));
+        if options.masks.is_none() && mask.is_file() {
+            image.mask = Some(mask);
+        }
+    }
+    Ok((images, dir.join("images.txt")))
 }
 
 /// Imports the capture `options` describe into a new scene folder; `on(done, total)` follows
@@ -161,15 +194,11 @@ pub fn import(options: &ImportOptions, on: &(dyn Fn(usize, usize) + Sync)) -> Re
     if out.exists() && std::fs::read_dir(out).map(|mut d| d.next().is_some()).unwrap_or(true) {
         return Err(input(out, "exists and is not an empty folder: import writes a new scene (nothing was written)"));
     }
-    let camera_file = match &options.cameras {
-        Some(file) => file.clone(),
-        None => find_in(&options.capture, &["transforms.json"], "json", "cameras")?,
-    };
+    let (images, camera_file) = read_cameras(options)?;
     let motion_file = match &options.motion {
         Some(file) => file.clone(),
-        None => find_in(&options.capture, &[], "bvh", "motion")?,
+        None => only_file(&options.capture, "bvh", "motion")?,
     };
-    let images = nerfstudio::read(&camera_file)?;
     let motion = bvh::read(&motion_file)?;
     let rig = bones::rig(&motion).map_err(|e| input(&motion_file, e))?;
     let mut report = ImportReport { images: images.len(), ..ImportReport::default() };
