@@ -49,7 +49,8 @@ pub enum Command {
         /// The camera file (nerfstudio transforms.json), when not the capture's own.
         #[arg(long)]
         cameras: Option<PathBuf>,
-        /// The motion (a BVH), when not the capture's only .bvh.
+        /// The motion: a BVH, or per-frame joint transforms as JSON (src/capture/joints.rs), when
+        /// not the capture's only .bvh or its joints.json.
         #[arg(long)]
         motion: Option<PathBuf>,
         /// A folder of masks named after the images (<name>.png), for images whose camera file

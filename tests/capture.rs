@@ -435,3 +435,54 @@ fn a_colmap_text_model_imports_with_the_scenes_cameras() {
     let err = import(&options(&colmap, dir.path().join("broken")), &|_, _| {}).unwrap_err().to_string();
     assert!(err.contains("images.txt: line 2: expected a finite number"), "{err}");
 }
+
+/// Per-frame joint transforms as JSON (what an SMPL-family tracker gives after forward
+/// kinematics), written from the scene's own frames in centimetres, import as the BVH does.
+#[test]
+fn per_frame_joint_transforms_import_as_the_bvh_does() {
+    let dir = TempDir::new("capture-joints");
+    let (scene_dir, capture) = scene_and_capture(dir.path());
+    let original = Scene::load(&scene_dir).unwrap();
+    let from_bvh = dir.path().join("from-bvh");
+    import(&options(&capture, from_bvh.clone()), &|_, _| {}).unwrap();
+    let from_bvh = Scene::load(&from_bvh).unwrap();
+    let skeleton = &original.skeleton;
+    let leaves: serde_json::Map<String, serde_json::Value> = (0..skeleton.len())
+        .filter(|&b| !skeleton.bones.iter().any(|c| c.parent == Some(b)))
+        .map(|b| (skeleton.bones[b].name.clone(), serde_json::json!([0.0, skeleton.bones[b].length * 100.0, 0.0])))
+        .collect();
+    let frames: Vec<serde_json::Value> = original
+        .frames
+        .iter()
+        .map(|f| {
+            let rotations: Vec<Vec<Vec<f64>>> = f.pose.bone_to_world.iter().map(|m| (0..3).map(|r| (0..3).map(|c| m.row(r)[c]).collect()).collect()).collect();
+            let positions: Vec<[f64; 3]> = f.pose.bone_to_world.iter().map(|m| (m.w_axis.truncate() * 100.0).to_array()).collect();
+            serde_json::json!({"rotations": rotations, "positions": positions})
+        })
+        .collect();
+    let joints = serde_json::json!({
+        "frame_time": umbra::capture::export::FRAME_TIME,
+        "joints": skeleton.bones.iter().map(|b| serde_json::json!({"name": b.name, "parent": b.parent})).collect::<Vec<_>>(),
+        "tips": leaves,
+        "frames": frames,
+    });
+    std::fs::write(capture.join("joints.json"), serde_json::to_string(&joints).unwrap()).unwrap();
+    let out = dir.path().join("from-joints");
+    import(&ImportOptions { motion: Some(capture.join("joints.json")), ..options(&capture, out.clone()) }, &|_, _| {}).unwrap();
+    let from_joints = Scene::load(&out).unwrap();
+    for (a, b) in from_joints.skeleton.bones.iter().zip(&from_bvh.skeleton.bones) {
+        assert!(a.name == b.name && a.parent == b.parent && (a.length - b.length).abs() < 1e-9, "{a:?} against {b:?}");
+    }
+    for (f, g) in from_joints.frames.iter().zip(&from_bvh.frames) {
+        for (a, b) in f.pose.bone_to_world.iter().zip(&g.pose.bone_to_world) {
+            assert!(max_difference(a, b) < 1e-5);
+        }
+    }
+    // A rotation that is not one is refused by its JSON path.
+    let mut bad = joints.clone();
+    bad["frames"][1]["rotations"][2][0][0] = serde_json::json!(2.0);
+    std::fs::write(capture.join("joints.json"), serde_json::to_string(&bad).unwrap()).unwrap();
+    let err =
+        import(&ImportOptions { motion: Some(capture.join("joints.json")), ..options(&capture, dir.path().join("bad")) }, &|_, _| {}).unwrap_err().to_string();
+    assert!(err.contains("joints.json: frames[1].rotations[2]: not a rotation"), "{err}");
+}

@@ -273,7 +273,7 @@ impl Motion {
 
 /// The angles (degrees) `a, b, c` with `Rz(a) Rx(b) Ry(c) = r` (a BVH's `Zrotation Xrotation
 /// Yrotation`).
-fn zxy_degrees(r: DMat3) -> [f64; 3] {
+pub(crate) fn zxy_degrees(r: DMat3) -> [f64; 3] {
     // Rz Rx Ry has row 2 = (-cos b sin c, sin b, cos b cos c) and column 1 = (-sin a cos b,
     // cos a cos b, sin b).
     let sin_b = r.y_axis.z.clamp(-1.0, 1.0);

@@ -1,5 +1,6 @@
 //! Captures as people have them, into `scene/1`: cameras from nerfstudio's `transforms.json`
-//! (`nerfstudio`), motion from a BVH (`bvh`, its bones by one rule: `bones`), masks from files or
+//! (`nerfstudio`) or COLMAP's text model (`colmap`), motion from a BVH (`bvh`) or per-frame joint
+//! transforms (`joints`), its bones by one rule (`bones`), masks from files or
 //! the images' alpha, lens distortion removed (`distortion`), images downscaled and their
 //! background blacked (`photos`), and the bones checked against the masks (`check`). `import` checks everything before it writes, writes into a
 //! temporary folder and moves it into place, and says what it assumed.
@@ -10,6 +11,7 @@ pub mod check;
 pub mod colmap;
 pub mod distortion;
 pub mod export;
+pub mod joints;
 pub mod nerfstudio;
 mod photos;
 
@@ -197,9 +199,14 @@ pub fn import(options: &ImportOptions, on: &(dyn Fn(usize, usize) + Sync)) -> Re
     let (images, camera_file) = read_cameras(options)?;
     let motion_file = match &options.motion {
         Some(file) => file.clone(),
+        None if options.capture.join("joints.json").is_file() && only_file(&options.capture, "bvh", "motion").is_err() => options.capture.join("joints.json"),
         None => only_file(&options.capture, "bvh", "motion")?,
     };
-    let motion = bvh::read(&motion_file)?;
+    // A BVH, or per-frame joint transforms as JSON (`joints`).
+    let motion = match motion_file.extension().is_some_and(|e| e.eq_ignore_ascii_case("json")) {
+        true => joints::read(&motion_file)?,
+        false => bvh::read(&motion_file)?,
+    };
     let rig = bones::rig(&motion).map_err(|e| input(&motion_file, e))?;
     let mut report = ImportReport { images: images.len(), ..ImportReport::default() };
     let units = match options.units {
