@@ -43,14 +43,16 @@ pub struct FitOptions {
 }
 
 /// The three segments of the schedule, for timing and reporting.
-fn segment(schedule: &Schedule, iteration: usize) -> &'static str {
+fn segment(schedule: &Schedule, iteration: usize, fit_light: bool) -> &'static str {
     let density_start = schedule.weights.get("density").map(|r| r.hold as usize).unwrap_or(usize::MAX);
     if iteration < density_start.min(schedule.light_from) {
         "density fitting"
     } else if iteration < schedule.light_from {
         "Gaussian fitting"
-    } else {
+    } else if fit_light {
         "light and RGB fitting"
+    } else {
+        "RGB fitting"
     }
 }
 
@@ -290,7 +292,7 @@ pub fn fit(options: &FitOptions, mut on: impl FnMut(TrainMessage)) -> Result<ser
             }
             other => other,
         })?;
-        *segment_seconds.entry(segment(&schedule, it)).or_default() += stats.seconds;
+        *segment_seconds.entry(segment(&schedule, it, trainer.fit_light)).or_default() += stats.seconds;
         history.push((it, stats.clone()));
         on(TrainMessage::Step { iteration: it, stats });
         if trainer.iteration % schedule.checkpoint_every == 0 || trainer.iteration == schedule.iterations {
@@ -335,6 +337,10 @@ pub fn fit(options: &FitOptions, mut on: impl FnMut(TrainMessage)) -> Result<ser
         json!({"name": "light fitting", "ran": false, "skipped_because": why, "iterations_saved": saved})
     };
     stages.push(light_stage);
+    // Without a light the colour is still fitted after light_from: its time is accounted too.
+    if !trainer.fit_light && schedule.iterations > schedule.light_from {
+        stages.push(json!({"name": "RGB fitting", "ran": true, "from": schedule.light_from, "seconds": segment_seconds.get("RGB fitting").copied().unwrap_or(0.0)}));
+    }
     let last = history.last().map(|(_, s)| s.clone()).unwrap_or_default();
     // Each light search's start, with its own error against the scene's light when it has one.
     let searches: Vec<serde_json::Value> = trainer

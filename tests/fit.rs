@@ -205,6 +205,15 @@ fn uniform_scenes_skip_the_light_and_refuse_a_light_fitting_schedule() {
     let light_stage = stages.iter().find(|s| s["name"].as_str().unwrap().starts_with("light")).unwrap();
     assert_eq!(light_stage["ran"], false);
     assert!(light_stage["skipped_because"].as_str().unwrap().contains("uniformly lit"));
+    // The colour is still fitted: every second of training is in a stage.
+    let rgb = stages.iter().find(|s| s["name"] == "RGB fitting").expect("the RGB stage");
+    assert_eq!(rgb["ran"], true);
+    let staged: f64 = stages.iter().filter_map(|s| s["seconds"].as_f64()).sum();
+    let (header, rows) = umbra::table::read_csv(&std::fs::read_to_string(dir.path().join("run/losses.csv")).unwrap()).unwrap();
+    let column = header.iter().position(|h| h == "seconds").unwrap();
+    let stepped: f64 = rows.iter().map(|r| r[column].parse::<f64>().unwrap()).sum();
+    // losses.csv keeps each step's seconds to 4 decimals.
+    assert!((staged - stepped).abs() <= 1e-4 * rows.len() as f64, "{staged} s in stages, {stepped} s of steps");
 
     std::fs::write(&schedule_path, format!("light = \"fit\"\n{QUICK}")).unwrap();
     let out = std::process::Command::new(env!("CARGO_BIN_EXE_umbra"))
