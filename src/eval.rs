@@ -742,11 +742,6 @@ fn emitter(light: &Light, device: &Device) -> Option<(Emitter, Tensor<1>)> {
     }
 }
 
-/// Mesh cells per body extent (the grid field's finest level: 11 mm for a human).
-const CELLS_PER_EXTENT: f64 = 160.0;
-/// How far beyond the posed bones' box the mesh's grid reaches, per body extent (the grid
-/// field's boxes reach as far, so no surface the field can hold is cut).
-const REACH_PER_EXTENT: f64 = 0.125;
 /// Bisection rounds per crossing: the cell / 2^10, about 10 micrometres for a human.
 const BISECTIONS: usize = 10;
 /// Points per field evaluation.
@@ -763,8 +758,11 @@ pub fn surface_mesh(
     scale: DVec3,
     device: &Device,
 ) -> Result<(Mesh, Vec<DVec3>, Vec<DVec3>), FitError> {
-    let reach = DVec3::splat(extent * REACH_PER_EXTENT);
-    let grid = Grid::covering(bones.0 - reach, bones.1 + reach, extent / CELLS_PER_EXTENT);
+    // As far as the field's grids reach (a loose body's root farther), so no surface the field
+    // can hold is cut, at their finest cell.
+    let (reach, cell) = model.field.surface_reach_and_cell(extent);
+    let reach = DVec3::splat(reach);
+    let grid = Grid::covering(bones.0 - reach, bones.1 + reach, cell);
     let values: Vec<f64> = sdf(model, pose, &grid.points(), device)?.into_iter().map(f64::from).collect();
     let mut failed = None;
     let mesh = extract(&grid, &values, |crossings| {

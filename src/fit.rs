@@ -339,7 +339,9 @@ pub fn fit(options: &FitOptions, mut on: impl FnMut(TrainMessage)) -> Result<ser
     stages.push(light_stage);
     // Without a light the colour is still fitted after light_from: its time is accounted too.
     if !trainer.fit_light && schedule.iterations > schedule.light_from {
-        stages.push(json!({"name": "RGB fitting", "ran": true, "from": schedule.light_from, "seconds": segment_seconds.get("RGB fitting").copied().unwrap_or(0.0)}));
+        stages.push(
+            json!({"name": "RGB fitting", "ran": true, "from": schedule.light_from, "seconds": segment_seconds.get("RGB fitting").copied().unwrap_or(0.0)}),
+        );
     }
     let last = history.last().map(|(_, s)| s.clone()).unwrap_or_default();
     // Each light search's start, with its own error against the scene's light when it has one.

@@ -117,7 +117,7 @@ impl RootSkinning {
 /// of the extent: at 1/160 a 1.8 m human gets 11 mm cells, finer than a pixel of a 128x128
 /// view of it; a reach of 1/8 (22 cm) holds clothing well off the bones.
 const COARSEST_PER_EXTENT: f32 = 10.0;
-const FINEST_PER_EXTENT: f32 = 160.0;
+pub const FINEST_PER_EXTENT: f32 = 160.0;
 pub const REACH_PER_EXTENT: f32 = 0.125;
 
 /// The most entries a grid may allocate (feature rows times features, or a dense preference

@@ -314,6 +314,19 @@ pub const MIN_BETA_PER_EXTENT: f32 = 1.0 / 3600.0;
 const BETA_RATE: f32 = 10.0;
 
 impl AvatarField {
+    /// How far beyond the posed bones' box the field can hold a surface (m), and the cell a mesh
+    /// of it needs (m), on a body of `extent`: the grids' reach (the root's, when its grids reach
+    /// loose body) and their finest cell; for the `mlp` field, the grids' defaults.
+    pub fn surface_reach_and_cell(&self, extent: f64) -> (f64, f64) {
+        match &self.config.grid {
+            Some(grid) => {
+                let root = grid.root.filter(|r| r.features_reach_body).map(|r| r.reach).unwrap_or(0.0);
+                (grid.reach.max(root) as f64, grid.finest_cell as f64)
+            }
+            None => (extent * grid::REACH_PER_EXTENT as f64, extent / grid::FINEST_PER_EXTENT as f64),
+        }
+    }
+
     fn config(&self) -> &FieldConfig {
         &self.config
     }
