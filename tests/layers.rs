@@ -134,3 +134,49 @@ fn the_parse_drops_test_modules_and_comments() {
     let code = "use crate::a;\n// crate::b\n#[cfg(test)]\nmod tests {\n    fn f() { let _ = \"{}\"; crate::c::x(); }\n}\nfn g() { crate::d::y() }\n";
     assert_eq!(named_modules(&library_code(code)), ["a", "d"].iter().map(|s| s.to_string()).collect());
 }
+
+/// The sibling files of a folder module (`super::name` or `crate::folder::name`) named in `code`.
+fn named_siblings(code: &str, folder: &str, siblings: &BTreeSet<String>) -> BTreeSet<String> {
+    let mut named = BTreeSet::new();
+    for prefix in ["super::".to_string(), format!("crate::{folder}::")] {
+        for (at, _) in code.match_indices(prefix.as_str()) {
+            let name: String = code[at + prefix.len()..].chars().take_while(|c| c.is_ascii_lowercase() || c.is_ascii_digit() || *c == '_').collect();
+            if siblings.contains(&name) {
+                named.insert(name);
+            }
+        }
+    }
+    named
+}
+
+#[test]
+fn no_folder_holds_a_circle_between_its_files() {
+    let mut problems = Vec::new();
+    for entry in std::fs::read_dir("src").unwrap() {
+        let folder = entry.unwrap().path();
+        if !folder.is_dir() {
+            continue;
+        }
+        let name = folder.file_name().unwrap().to_string_lossy().into_owned();
+        let mut files = Vec::new();
+        rust_files(&folder, &mut files);
+        let stem = |p: &Path| p.file_stem().unwrap().to_string_lossy().into_owned();
+        let siblings: BTreeSet<String> = files.iter().map(|f| stem(f)).filter(|s| s != "mod").collect();
+        let uses: BTreeMap<String, BTreeSet<String>> = files
+            .iter()
+            .filter(|f| stem(f) != "mod")
+            .map(|f| {
+                (stem(f), named_siblings(&library_code(&std::fs::read_to_string(f).unwrap()), &name, &siblings).into_iter().filter(|n| *n != stem(f)).collect())
+            })
+            .collect();
+        fn reaches(from: &str, to: &str, uses: &BTreeMap<String, BTreeSet<String>>, seen: &mut BTreeSet<String>) -> bool {
+            uses.get(from).into_iter().flatten().any(|next| next == to || (seen.insert(next.clone()) && reaches(next, to, uses, seen)))
+        }
+        for file in uses.keys() {
+            if reaches(file, file, &uses, &mut BTreeSet::new()) {
+                problems.push(format!("src/{name}/{file}.rs is in a circle of files within src/{name}/"));
+            }
+        }
+    }
+    assert!(problems.is_empty(), "{}", problems.join("\n"));
+}

@@ -12,7 +12,9 @@
 // burn-ndarray is deprecated upstream but stays our `--backend ndarray`.
 #![allow(deprecated)]
 
-use super::grid::{BoneFrame, GridConfig, Level, Skinning};
+use super::layout::{GridConfig, Level};
+use super::lookup::{add_row, Skinning};
+use crate::skeleton::BoneFrame;
 use burn::backend::autodiff::checkpoint::base::Checkpointer;
 use burn::backend::autodiff::checkpoint::strategy::CheckpointStrategy;
 use burn::backend::autodiff::grads::Gradients;
@@ -40,30 +42,6 @@ pub struct Plan {
     /// The table's rows are this many equal runs, group `g`'s rows lying in run
     /// `g % table_parts` (the grid's table is level-major: its level count; 1 for any table).
     pub table_parts: usize,
-}
-
-/// Adds `coefficient` times table row `row` (`sums.len()` features wide) to `sums`: the one
-/// weighted sum of the planned op and of the one-pass lookup. A row outside the table (never
-/// planned) reads NaN, so it cannot pass unseen.
-#[inline]
-pub(super) fn add_row(table: &[f32], row: usize, coefficient: f32, sums: &mut [f32]) {
-    // Two features per entry (the default grid, as instant-NGP's) on a path of its own: the
-    // general one's loop and slice cost as much as the sum itself there.
-    if let [s0, s1] = sums {
-        match table.get(2 * row..2 * row + 2) {
-            Some(&[t0, t1]) => {
-                *s0 += coefficient * t0;
-                *s1 += coefficient * t1;
-            }
-            _ => (*s0, *s1) = (f32::NAN, f32::NAN),
-        }
-        return;
-    }
-    let start = row * sums.len();
-    match table.get(start..start + sums.len()) {
-        Some(entry) => sums.iter_mut().zip(entry).for_each(|(o, t)| *o += coefficient * t),
-        None => sums.iter_mut().for_each(|o| *o = f32::NAN),
-    }
 }
 
 impl Plan {
@@ -239,7 +217,7 @@ impl HostLookup {
         let values = B::with_host(table, |table| {
             B::with_host(preference, |preference| {
                 let preference = self.preference.then_some(preference);
-                super::grid::features_on_host(&self.config, &self.levels, &self.frames, self.skinning, &self.points, table, preference, &self.fade)
+                super::lookup::features_on_host(&self.config, &self.levels, &self.frames, self.skinning, &self.points, table, preference, &self.fade)
             })
         });
         B::from_host(values, [n, self.config.width() + 1], &device)

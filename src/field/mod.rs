@@ -12,6 +12,8 @@
 
 pub mod grid;
 pub mod interpolate;
+pub mod layout;
+pub mod lookup;
 
 use grid::{FeatureGrid, GridConfig, Skinning};
 

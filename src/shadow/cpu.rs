@@ -6,17 +6,9 @@
 
 use super::integral::{optical_depth_whitened, WhitenedGaussian};
 use super::lanes::{self, Block, Collected, Group, LANES};
+use super::ray::{segment_within, ShadowRay};
 use crate::shadow::PosedGaussian;
 use rayon::prelude::*;
-
-/// A ray segment `origin + t direction`, `t` in `[t0, t1]` (`t1` may be infinite).
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub struct ShadowRay {
-    pub origin: [f32; 3],
-    pub direction: [f32; 3],
-    pub t0: f32,
-    pub t1: f32,
-}
 
 /// A posed Gaussian set prepared for fast shadow queries.
 pub struct ShadowCaster {
@@ -175,18 +167,6 @@ fn morton_order(gaussians: &[PosedGaussian]) -> Vec<usize> {
     let mut order: Vec<usize> = (0..gaussians.len()).collect();
     order.sort_by_key(|&i| (code(&gaussians[i]), i));
     order
-}
-
-/// Whether the segment comes within `sqrt(radius2)` of `centre`.
-#[inline]
-pub(super) fn segment_within(centre: [f32; 3], ray: &ShadowRay, radius2: f32) -> bool {
-    if radius2 < 0.0 {
-        return false;
-    }
-    let v = [centre[0] - ray.origin[0], centre[1] - ray.origin[1], centre[2] - ray.origin[2]];
-    let along = (v[0] * ray.direction[0] + v[1] * ray.direction[1] + v[2] * ray.direction[2]).clamp(ray.t0, ray.t1);
-    let d = [v[0] - along * ray.direction[0], v[1] - along * ray.direction[1], v[2] - along * ray.direction[2]];
-    d[0] * d[0] + d[1] * d[1] + d[2] * d[2] <= radius2
 }
 
 /// Shares below this are left out of `own_shares`: they would change an optical depth by

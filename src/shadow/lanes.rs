@@ -13,7 +13,7 @@
 //! case) are not handled here at all. Both are detected per lane and sent back.
 
 use super::integral::{optical_depth_whitened, WhitenedGaussian};
-use super::ShadowRay;
+use super::ray::{segment_within, ShadowRay};
 
 /// Gaussians per block: two SSE registers, one AVX register.
 pub const LANES: usize = 8;
@@ -221,11 +221,11 @@ fn collect(blocks: &[Block], groups: &[Group], gaussians: &[WhitenedGaussian<f32
     let groups = if cull && !groups.is_empty() { groups } else { &whole };
     let visited = groups
         .iter()
-        .filter(|g| g.radius_squared == f32::INFINITY || super::cpu::segment_within(g.centre, ray, g.radius_squared))
+        .filter(|g| g.radius_squared == f32::INFINITY || segment_within(g.centre, ray, g.radius_squared))
         .flat_map(|g| g.first.min(blocks.len())..g.end.min(blocks.len()));
     for k in visited {
         let block = &blocks[k];
-        if cull && !super::cpu::segment_within(block.centre, ray, block.radius_squared) {
+        if cull && !segment_within(block.centre, ray, block.radius_squared) {
             continue;
         }
         // A ray to a sun (t1 infinite) skips erfc(b) = 0: its own build of the block kernel.
@@ -285,7 +285,7 @@ fn block_depth<const TOWARD_INFINITY: bool, const CULL: bool>(b: &Block, ray: &S
         let mut any = 0.0f32;
         for i in 0..LANES {
             let v = [b.mean[0][i] - ox, b.mean[1][i] - oy, b.mean[2][i] - oz];
-            // The cull test of the scalar path (`cpu::segment_within`), lane by lane.
+            // The cull test of the scalar path (`ray::segment_within`), lane by lane.
             let along_world = (v[0] * dx + v[1] * dy + v[2] * dz).max(t0).min(t1);
             let e = [v[0] - along_world * dx, v[1] - along_world * dy, v[2] - along_world * dz];
             let r2 = b.cull_radius_squared[i];

@@ -7,11 +7,13 @@
 mod cpu;
 mod integral;
 pub mod lanes;
+mod ray;
 pub mod real;
 pub mod tensor;
 
-pub use cpu::{own_shares, transmittance_f64, transmittance_f64_from, ShadowCaster, ShadowRay, OWN_SHARE_FLOOR};
+pub use cpu::{own_shares, transmittance_f64, transmittance_f64_from, ShadowCaster, OWN_SHARE_FLOOR};
 use glam::{DMat3, DVec3};
+pub use ray::ShadowRay;
 
 pub use integral::{erf_difference, optical_depth, optical_depth_f32, optical_depth_whitened, WhitenedGaussian, MIN_SCALE};
 
