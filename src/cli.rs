@@ -145,7 +145,7 @@ pub enum Command {
         frame: Option<Vec<usize>>,
         /// Sky directions per pixel for environment and uniform lights (MIS of the map and the
         /// cosine lobe).
-        #[arg(long, default_value_t = crate::fit::SKY_SAMPLES)]
+        #[arg(long, default_value_t = crate::scoring::SKY_SAMPLES)]
         samples: usize,
         /// The scene whose cameras and poses to use (default: the run's).
         #[arg(long)]
@@ -531,7 +531,7 @@ fn image_progress(bar: &crate::progress::Progress) -> impl FnMut(crate::messages
 
 fn render(run: &Path, scene: Option<&Path>, backend: crate::backend::Backend) -> Result<(), String> {
     let bar = progress_bar(0, "rendering");
-    let evaluation = crate::fit::render_run(run, scene, backend, image_progress(&bar)).map_err(|e| e.to_string())?;
+    let evaluation = crate::scoring::render_run(run, scene, backend, image_progress(&bar)).map_err(|e| e.to_string())?;
     bar.finish_and_clear();
     print_evaluation(&evaluation);
     println!("wrote {}", run.join("renders").display());
@@ -544,7 +544,7 @@ fn eval(run: &Path, scene: Option<&Path>, split: EvalSplit, backend: crate::back
         EvalSplit::Train => crate::scene::Split::Train,
     };
     let bar = progress_bar(0, "scoring");
-    let (dir, evaluation) = crate::fit::eval_run(run, scene, split, backend, image_progress(&bar)).map_err(|e| e.to_string())?;
+    let (dir, evaluation) = crate::scoring::eval_run(run, scene, split, backend, image_progress(&bar)).map_err(|e| e.to_string())?;
     bar.finish_and_clear();
     for group in evaluation["groups"].as_array().into_iter().flatten() {
         let f = |k: &str| group[k].as_f64().unwrap_or(f64::NAN);

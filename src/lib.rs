@@ -36,6 +36,7 @@ pub mod run;
 pub mod run_lock;
 pub mod scene;
 pub mod schedule;
+pub mod scoring;
 pub mod shading;
 pub mod shadow;
 pub mod skeleton;

@@ -45,9 +45,6 @@ pub struct FieldSettings {
     /// Whether a grid's skinning lets points far from every bone follow the root
     /// (`FieldConfig::root_bone`; none: the field's default, yes).
     pub root_skinning: Option<bool>,
-    /// Whether a loose body's capped capsule prior bends into its cap (`grid::saturate`) rather
-    /// than stopping dead at it (false, the default: a corner; docs/measurements.md).
-    pub prior_knee: bool,
     /// The whole field a run's checkpoint was fitted with (from its `state.json`, never from a
     /// schedule file): when set, it is the field, whatever the settings above and the defaults.
     #[serde(skip)]
@@ -68,7 +65,6 @@ impl FieldSettings {
             reach_per_extent: None,
             fine_levels: None,
             root_skinning: None,
-            prior_knee: false,
             recorded: None,
         }
     }
@@ -358,9 +354,15 @@ fn parse_field(file: &Path, table: &toml::Table) -> Result<FieldSettings, Schedu
         "fine_levels_from",
         "fine_levels_until",
         "root_skinning",
-        "prior_knee",
     ];
-    for key in field.keys() {
+    // Removed (it measured no better, docs/measurements.md): read only at its old default.
+    match field.get("prior_knee") {
+        None | Some(toml::Value::Boolean(false)) => {}
+        Some(_) => {
+            return Err(err(file, "field.prior_knee", "was removed (it measured no better, docs/measurements.md); only false, its old default, is still read"))
+        }
+    }
+    for key in field.keys().filter(|k| *k != "prior_knee") {
         if !known.contains(&key.as_str()) {
             return Err(err(file, &format!("field.{key}"), format!("unknown key (known: {})", known.join(", "))));
         }
@@ -402,28 +404,13 @@ fn parse_field(file: &Path, table: &toml::Table) -> Result<FieldSettings, Schedu
             Some(toml::Value::Boolean(b)) => Some(*b),
             Some(other) => return Err(err(file, "field.root_skinning", format!("expected true or false, found {other}"))),
         },
-        prior_knee: match field.get("prior_knee") {
-            None => false,
-            Some(toml::Value::Boolean(b)) => *b,
-            Some(other) => return Err(err(file, "field.prior_knee", format!("expected true or false, found {other}"))),
-        },
         recorded: None,
     };
     if kind == FieldKind::Mlp {
-        if let Some(key) = [
-            "levels",
-            "table_log2",
-            "top_bones",
-            "features",
-            "finest_per_extent",
-            "reach_per_extent",
-            "fine_levels_from",
-            "fine_levels_until",
-            "root_skinning",
-            "prior_knee",
-        ]
-        .into_iter()
-        .find(|k| field.contains_key(*k))
+        if let Some(key) =
+            ["levels", "table_log2", "top_bones", "features", "finest_per_extent", "reach_per_extent", "fine_levels_from", "fine_levels_until", "root_skinning"]
+                .into_iter()
+                .find(|k| field.contains_key(*k))
         {
             return Err(err(file, &format!("field.{key}"), "applies to kind = \"grid\" only"));
         }
@@ -812,11 +799,9 @@ mod tests {
         assert_eq!(error_of("[field]\nkind = \"grid\"\nfine_levels_from = 100\n[losses]\nmask = 1.0").key, "field.fine_levels_from");
         assert_eq!(error_of("[field]\nkind = \"grid\"\nfine_levels_from = 100\nfine_levels_until = 50\n[losses]\nmask = 1.0").key, "field.fine_levels_until");
         // The prior's knee: a grid's, true or false.
-        assert!(!all.field.prior_knee);
-        let knee = Schedule::parse("[field]\nkind = \"grid\"\nprior_knee = true\n[losses]\nmask = 1.0", Path::new("k.toml")).unwrap();
-        assert!(knee.field.prior_knee);
-        assert_eq!(error_of("[field]\nkind = \"grid\"\nprior_knee = 1\n[losses]\nmask = 1.0").key, "field.prior_knee");
-        assert_eq!(error_of("[field]\nprior_knee = true\n[losses]\nmask = 1.0").key, "field.prior_knee");
+        // The removed knee is read at its old default, refused otherwise.
+        assert!(Schedule::parse("[field]\nkind = \"grid\"\nprior_knee = false\n[losses]\nmask = 1.0", Path::new("k.toml")).is_ok());
+        assert_eq!(error_of("[field]\nkind = \"grid\"\nprior_knee = true\n[losses]\nmask = 1.0").key, "field.prior_knee");
     }
 
     #[test]

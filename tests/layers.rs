@@ -30,7 +30,7 @@ const LAYERS: &[&[&str]] = &[
     // the run folder: checkpoints, restore, its lock
     &["run", "run_lock"],
     // after (and around) the fit: read a run, render, score, report
-    &["fit", "eval", "relight", "report", "basis", "export", "ablate"],
+    &["fit", "scoring", "eval", "relight", "report", "basis", "export", "ablate"],
     // tools and the command line
     &["synth", "bench", "fuzzing", "cli"],
 ];
@@ -125,8 +125,8 @@ fn no_module_names_one_in_a_layer_above_it_and_no_layer_holds_a_cycle() {
         }
     }
     assert!(problems.is_empty(), "{}", problems.join("\n"));
-    // The parse must see the imports at all: the trainer names the field, fit names eval.
-    assert!(uses["train"].contains("field") && uses["fit"].contains("eval"), "{uses:?}");
+    // The parse must see the imports at all: the trainer names the field, scoring names eval.
+    assert!(uses["train"].contains("field") && uses["scoring"].contains("eval"), "{uses:?}");
 }
 
 #[test]

@@ -43,10 +43,9 @@ fn under_the_default_schedule_a_loose_body_draws_rays_by_error_seeds_gaussians_o
         assert_eq!(trainer.error_rays, share, "{name}");
         // And fits its Gaussians' density at the shadows' scale too when loose.
         assert_eq!(trainer.density_at_shadow_scale, share > 0.0, "{name}");
-        // The capsule prior capped when loose, at a corner (`[field] prior_knee` is off by default).
+        // The capsule prior capped when loose.
         let skinning = trainer.model().expect("a model").field.config.skinning();
         assert_eq!(skinning.prior_cap.is_some(), share > 0.0, "{name}: {skinning:?}");
-        assert_eq!(skinning.prior_knee, 0.0, "{name}: {skinning:?}");
         // An error map for every masked training view when rays are drawn by error, else none.
         let maps = trainer.error_maps();
         assert_eq!(maps.len(), if share > 0.0 { masked_training_views } else { 0 }, "{name}");
@@ -117,24 +116,4 @@ fn a_loose_fit_resumes_bit_for_bit_with_its_seeded_gaussians_and_renders_from_it
     assert_eq!(restored.fitted.model.gaussians.len(), saved);
     assert_eq!(restored.fitted.model.gaussians.means.val().dims()[0], saved);
     let _ = std::fs::remove_dir_all(&dir);
-}
-
-/// `[field] prior_knee = true` bends a loose body's capped prior into its cap from the capsule's
-/// surface (the knee's half width is the cap) and leaves a tight body uncapped.
-#[test]
-fn the_prior_knee_option_bends_a_loose_bodys_capped_prior_alone() {
-    use umbra::schedule::Schedule;
-    let text = umbra::schedule::DEFAULT_TEXT.replace("prior_knee = false", "prior_knee = true");
-    let schedule = Schedule::parse(&text, Path::new("knee.toml")).expect("the default with the knee parses");
-    assert!(schedule.field.prior_knee);
-    assert!(!Schedule::parse(umbra::schedule::DEFAULT_TEXT, Path::new("default.toml")).expect("the default").field.prior_knee);
-    for (name, loose) in [("human-dressed", true), ("human-sun", false)] {
-        let scene = Scene::load(&Path::new("datasets-synthetic").join(name)).expect("a shipped scene");
-        let trainer = umbra::train::Trainer::new(scene, schedule.clone(), umbra::backend::Backend::Flex, 0).expect("a trainer");
-        let skinning = trainer.model().expect("a model").field.config.skinning();
-        match skinning.prior_cap {
-            Some(cap) => assert!(loose && cap > 0.0 && skinning.prior_knee == cap, "{name}: {skinning:?}"),
-            None => assert!(!loose && skinning.prior_knee == 0.0, "{name}: {skinning:?}"),
-        }
-    }
 }

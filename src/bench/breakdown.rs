@@ -74,7 +74,7 @@ fn render_parts(scene: &Scene, schedule: &Schedule, repeats: usize) -> Result<Ve
         ("field + normals + sun shading with Gaussian shadows", Lighting::Fitted(0)),
         (
             "field + normals + sky: 256 sampled directions with Gaussian visibility",
-            Lighting::Known { light: &sky, albedo_scale: scale, samples: crate::fit::SKY_SAMPLES },
+            Lighting::Known { light: &sky, albedo_scale: scale, samples: crate::scoring::SKY_SAMPLES },
         ),
     ];
     // A first render warms caches and allocations up, so the first case is not charged for it.

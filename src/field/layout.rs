@@ -53,16 +53,6 @@ pub struct RootSkinning {
     /// the root's residual could not hold it still. Runs before it: false.
     #[serde(default)]
     pub prior_capped: bool,
-    /// Whether the capped prior bends into its cap (`saturate`): its slope falling from 1 at the
-    /// capsule's surface to 0 at twice the cap, rather than stopping dead at the cap. At a corner
-    /// the residual must turn its own slope from 0 to 1 at once wherever the surface crosses the
-    /// cap (a skirt below the hips, a backpack's sides), which the Eikonal and curvature terms
-    /// resist: on human-dressed the fitted SDF's gradient length there strayed twice as far from
-    /// 1 as elsewhere on the skirt (0.26 against 0.11-0.12; 0.15 with the knee). Measured, not
-    /// the default (`[field] prior_knee`): it gained on human-dressed and lost on the 128x128
-    /// dressed capture, whose skirt it left faceted in a novel view. Runs before it: false.
-    #[serde(default)]
-    pub prior_knee: bool,
 }
 
 /// Cells of the root's preference grid per body extent: 5 cm on a 2 m human, about a
@@ -81,8 +71,8 @@ impl RootSkinning {
     pub fn for_body(bone: usize, cap: f32, reach: f32, loose: Option<f32>, extent: f32) -> Self {
         let cell = extent / ROOT_CELLS_PER_EXTENT;
         match loose {
-            Some(far) => Self { bone, cap, cell, reach: far.max(2.0 * reach), features_reach_body: true, prior_capped: true, prior_knee: false },
-            None => Self { bone, cap, cell, reach: 2.0 * reach, features_reach_body: false, prior_capped: false, prior_knee: false },
+            Some(far) => Self { bone, cap, cell, reach: far.max(2.0 * reach), features_reach_body: true, prior_capped: true },
+            None => Self { bone, cap, cell, reach: 2.0 * reach, features_reach_body: false, prior_capped: false },
         }
     }
 

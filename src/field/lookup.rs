@@ -18,10 +18,6 @@ pub struct Skinning {
     pub root: Option<(usize, f32)>,
     /// The most the capsule prior gives (m), when capped (`RootSkinning::prior_capped`).
     pub prior_cap: Option<f32>,
-    /// Half the width (m) of the knee over which the capped prior's slope falls from 1 to 0
-    /// (`RootSkinning::prior_knee`: the cap itself, so the knee starts at the capsule's surface);
-    /// 0: a corner at the cap.
-    pub prior_knee: f32,
 }
 
 impl Skinning {
@@ -299,7 +295,7 @@ fn skin_point(config: &GridConfig, frames: &[BoneFrame], skinning: Skinning, poi
         }
     }
     if let Some(cap) = skinning.prior_cap {
-        let (value, slope) = saturate(skin.prior, cap, skinning.prior_knee);
+        let (value, slope) = saturate(skin.prior, cap);
         skin.prior = value;
         skin.prior_tangent = skin.prior_tangent.map(|t| t * slope);
     }
@@ -320,20 +316,12 @@ fn skin_point(config: &GridConfig, frames: &[BoneFrame], skinning: Skinning, poi
     skin
 }
 
-/// The capsule prior `x` capped at `cap`, and its slope: unchanged up to `cap - knee`, then a
-/// parabola whose slope falls linearly to 0 at `cap + knee`, where it reaches the cap; with no
-/// knee, a corner at the cap.
-pub fn saturate(x: f32, cap: f32, knee: f32) -> (f32, f32) {
-    if knee <= 0.0 {
-        return if x > cap { (cap, 0.0) } else { (x, 1.0) };
-    }
-    let into = x - (cap - knee);
-    if into <= 0.0 {
-        (x, 1.0)
-    } else if into >= 2.0 * knee {
+/// The capsule prior `x` capped at `cap`, and its slope: a corner at the cap.
+pub fn saturate(x: f32, cap: f32) -> (f32, f32) {
+    if x > cap {
         (cap, 0.0)
     } else {
-        (x - into * into / (4.0 * knee), 1.0 - into / (2.0 * knee))
+        (x, 1.0)
     }
 }
 

@@ -124,16 +124,9 @@ impl FieldConfig {
 
     pub fn skinning(&self) -> Skinning {
         let root = self.grid.as_ref().and_then(|g| g.root);
-        // The prior's cap, and the knee's half width: the cap itself, so the knee starts at the
-        // capsule's surface.
+        // The prior's cap (the root's, less the capsule's radius).
         let prior_cap = root.filter(|root| root.prior_capped).map(|root| root.cap - self.prior_radius);
-        Skinning {
-            sharpness: self.sharpness(),
-            prior_radius: self.prior_radius,
-            root: root.map(|root| (root.bone, root.cap)),
-            prior_cap,
-            prior_knee: prior_cap.filter(|_| root.is_some_and(|root| root.prior_knee)).unwrap_or(0.0),
-        }
+        Skinning { sharpness: self.sharpness(), prior_radius: self.prior_radius, root: root.map(|root| (root.bone, root.cap)), prior_cap }
     }
 
     /// The factor on squared distance in the skinning softmax's logits.

@@ -82,9 +82,6 @@ pub fn field_config(
                     grid.reach = extent * reach as f32;
                 }
                 grid.root = root.map(|bone| crate::field::grid::RootSkinning::for_body(bone, cap, grid.reach, loose(grid.reach, bone), extent));
-                if let Some(root) = grid.root.as_mut() {
-                    root.prior_knee = root.prior_capped && settings.prior_knee;
-                }
             }
             config
         }

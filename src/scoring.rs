@@ -1,0 +1,571 @@
+//! Scoring a fit: its test (or training) images rendered in the fitted light or relit by the
+//! light each names, and scored against the truth (PSNR, SSIM, per group; `metrics.*`,
+//! `compare.png`), its surface against the scene's ground-truth meshes, its light against the
+//! scene's; and the `render` and `eval` commands that restore a run to do it.
+
+use crate::avatar::{Avatar, Fitted};
+use crate::eval::{render_view_and_albedo, Lighting};
+use crate::fit_error::{io, FitError};
+use crate::imageio::RgbImage;
+use crate::messages::TrainMessage;
+use crate::metrics::{score, ErrorRegions, ImageScores};
+use crate::run::{albedo_scale, restore, save_png, write_text};
+use crate::run_lock::RunLock;
+use crate::scene::{Scene, Split};
+use burn::module::Module;
+use serde_json::json;
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+
+/// Renders and scores the test images of a finished (or checkpointed) fit in `run`, with the
+/// scene it was fitted on or `scene`; writes `run/renders/` and returns the evaluation.
+pub fn render_run(run: &Path, scene: Option<&Path>, backend: crate::backend::Backend, on: impl FnMut(TrainMessage)) -> Result<serde_json::Value, FitError> {
+    restore_and_evaluate(run, scene, Split::Test, backend, "render", on).map(|(_, evaluation)| evaluation)
+}
+
+/// `umbra eval`: the evaluation of `split` (`evaluate_split`) into `RUN/renders` for the test
+/// images or `RUN/renders-train` for the training ones (how well the fit explains what it saw,
+/// against how well it generalises).
+pub fn eval_run(
+    run: &Path,
+    scene: Option<&Path>,
+    split: Split,
+    backend: crate::backend::Backend,
+    on: impl FnMut(TrainMessage),
+) -> Result<(PathBuf, serde_json::Value), FitError> {
+    restore_and_evaluate(run, scene, split, backend, "eval", on)
+}
+
+/// The run rebuilt and, under its lock (taken as `command`), evaluated into its folder.
+fn restore_and_evaluate(
+    run: &Path,
+    scene: Option<&Path>,
+    split: Split,
+    backend: crate::backend::Backend,
+    command: &str,
+    mut on: impl FnMut(TrainMessage),
+) -> Result<(PathBuf, serde_json::Value), FitError> {
+    let restored = restore(run, scene, backend)?;
+    let _lock = RunLock::acquire(run, command)?;
+    let dir = run.join(if split == Split::Test { "renders" } else { "renders-train" });
+    let evaluation = evaluate_split(&restored.scene, &restored.fitted, &dir, split, &mut on)?;
+    Ok((dir, evaluation))
+}
+
+/// How much `compare.png` amplifies the difference between a render and its truth.
+pub const COMPARE_GAIN: f32 = 4.0;
+
+/// Samples of the sky per view when relighting by an environment or uniform light.
+pub const SKY_SAMPLES: usize = 256;
+
+/// The evaluation `fit` ends with and `render` and `eval` run: `evaluate_split` of the test
+/// images into `RUN/renders`.
+pub fn evaluate(scene: &Scene, fitted: &Fitted, out: &Path, on: &mut impl FnMut(TrainMessage)) -> Result<serde_json::Value, FitError> {
+    evaluate_split(scene, fitted, &out.join("renders"), Split::Test, on)
+}
+
+/// Renders every image of `split` (in the fitted light, or relit by the light the image
+/// names) and its albedo when the scene has one, scores them (PSNR, sRGB 8-bit, whole image,
+/// foreground and SSIM, `metrics`), scores the fitted surface against every ground-truth mesh
+/// the scene's frames carry (`geometry`: accuracy, completeness, Chamfer distance, normal
+/// angle), and writes into `dir`: the PNGs, `metrics.csv`, `metrics.md`, `metrics.json` (all of
+/// it with the light's error) and `compare.png` (a row per image: the truth, the render and
+/// their difference times `COMPARE_GAIN`, then the same for its albedo).
+pub fn evaluate_split(scene: &Scene, fitted: &Fitted, dir: &Path, split: Split, on: &mut impl FnMut(TrainMessage)) -> Result<serde_json::Value, FitError> {
+    let kinds = TestKinds::new(scene);
+    let tests: Vec<&crate::scene::View> = scene.views_in(split).collect();
+    if tests.is_empty() {
+        let name = match split {
+            Split::Train => "training",
+            Split::Val => "validation",
+            Split::Test => "test",
+        };
+        return Err(FitError::Input(format!("{}: no {name} images to evaluate", scene.root.join("scene.json").display())));
+    }
+    on(TrainMessage::Evaluating { images: tests.len() });
+    let dir = dir.to_path_buf();
+    crate::run::clear_renders(&dir)?;
+    std::fs::create_dir_all(&dir).map_err(|e| io(&dir, e))?;
+    // Inference on the plain backend: no autodiff graph is recorded (or held) for the renders.
+    let model = fitted.model.valid();
+    let device = fitted.device.clone().without_autodiff();
+    let albedo_scale = albedo_scale(scene, &model);
+    let mut rows = Vec::new();
+    let mut compare: Vec<Vec<RgbImage>> = Vec::new();
+    // As many views at once as there are threads (one view's render keeps about one busy);
+    // each view's samples are seeded by its own camera and frame, so the images do not depend
+    // on the schedule.
+    let lighting_of = |view: &crate::scene::View| match kinds.of(view).relit {
+        false => Lighting::Fitted(kinds.training_light(view)),
+        true => Lighting::Known { light: &scene.lights[&view.light], albedo_scale, samples: SKY_SAMPLES },
+    };
+    let render = |k: usize| score_view(&model, scene, tests[k], &lighting_of(tests[k]), albedo_scale, &device);
+    in_order_while_rendering(tests.len(), render, |done, scored| {
+        let view = tests[done];
+        let TestKind { novel_pose, novel_view, relit, group } = kinds.of(view);
+        let name = render_name(scene, view);
+        save_png(&dir.join(&name), &scored.image)?;
+        let truth = view.colour.to_rgb();
+        let mut row = vec![truth.clone(), scored.image.clone(), scored.image.difference(&truth, COMPARE_GAIN)];
+        if let Some((albedo, _)) = &scored.albedo {
+            save_png(&dir.join(name.replace(".png", "-albedo.png")), albedo)?;
+            if let Some(truth) = &view.albedo {
+                row.extend([truth.clone(), albedo.clone(), albedo.difference(truth, COMPARE_GAIN)]);
+            }
+        }
+        compare.push(row);
+        // Relit images and albedos again after one per-channel least-squares scale: what is
+        // left when the absolute scale the fit cannot know is forgiven.
+        let relit_scaled = relit.then(|| crate::metrics::score_scaled(&scored.image, &truth, view.mask.as_ref()).0);
+        let albedo_scaled = match (&scored.albedo, &view.albedo) {
+            (Some((albedo, _)), Some(truth)) => Some(crate::metrics::score_scaled(albedo, truth, view.mask.as_ref()).0),
+            _ => None,
+        };
+        let (scores, albedo) = (scored.scores, scored.albedo.map(|a| a.1));
+        on(TrainMessage::Rendered { done: done + 1, total: tests.len(), name: name.clone(), psnr: Some(scores.psnr) });
+        let error_sums = view.mask.as_ref().map(|mask| crate::metrics::error_regions(&scored.image, &truth, mask));
+        let error_share = error_sums.map(|e| e.shares());
+        rows.push(ImageScore {
+            image: name,
+            light: view.light.clone(),
+            group,
+            scores,
+            albedo,
+            relit_scaled,
+            albedo_scaled,
+            error_share,
+            error_sums,
+            novel_pose,
+            novel_view,
+            relit,
+        });
+        Ok::<(), FitError>(())
+    })?;
+    let cells: Vec<Vec<&RgbImage>> = compare.iter().map(|row| row.iter().collect()).collect();
+    save_png(&dir.join("compare.png"), &RgbImage::tiled(&cells))?;
+    let groups = group_means(&rows);
+    let group = |g: &str| groups.iter().find(|m| m.group == g);
+    let field = |g: &str, pick: fn(&ImageScores) -> f64| group(g).map(|m| json!(pick(&m.scores))).unwrap_or(json!(null));
+    write_text(&dir.join("metrics.csv"), &metrics_csv(&rows))?;
+    let mut evaluation = serde_json::Map::new();
+    for (key, g) in [
+        ("novel_pose", "novel pose"),
+        ("novel_view", "novel view"),
+        ("relit", "relit"),
+        ("albedo", "albedo"),
+        ("relit_scaled", "relit, per-channel scaled"),
+        ("albedo_scaled", "albedo, per-channel scaled"),
+    ] {
+        evaluation.insert(format!("{key}_psnr"), field(g, |s| s.psnr));
+        evaluation.insert(format!("{key}_foreground_psnr"), field(g, |s| s.foreground_psnr));
+        evaluation.insert(format!("{key}_ssim"), field(g, |s| s.ssim));
+    }
+    evaluation.insert("groups".into(), json!(groups));
+    evaluation.insert("albedo_scale".into(), json!(albedo_scale.to_array()));
+    evaluation.insert("images".into(), json!(rows));
+    let geometry = geometry_scores(scene, &model, albedo_scale, &device, on)?;
+    let light = light_error(scene, fitted.fit_light, 0, &model.light.report());
+    let mut markdown = metrics_markdown(&rows, &groups);
+    if let Some(frames) = geometry.as_array().filter(|f| !f.is_empty()) {
+        markdown += "\n## Geometry against the scene's meshes\n\n| frame | accuracy (mm) | completeness (mm) | Chamfer (mm) | normal angle (deg) |\n|---|---|---|---|---|\n";
+        for f in frames {
+            let mm = |key: &str| f[key].as_f64().map(|v| format!("{:.2}", v * 1e3)).unwrap_or_else(|| "-".into());
+            markdown += &format!(
+                "| {} | {} | {} | {} | {:.2} |\n",
+                f["frame"],
+                mm("accuracy"),
+                mm("completeness"),
+                mm("chamfer"),
+                f["normal_angle"].as_f64().unwrap_or(f64::NAN)
+            );
+        }
+    }
+    write_text(&dir.join("metrics.md"), &markdown)?;
+    evaluation.insert("geometry".into(), geometry);
+    evaluation.insert("light_error".into(), light);
+    let evaluation = serde_json::Value::Object(evaluation);
+    write_text(&dir.join("metrics.json"), &serde_json::to_string_pretty(&evaluation).unwrap_or_default())?;
+    Ok(evaluation)
+}
+
+/// Renders items `0..count` on rayon's threads in about their order (`par_bridge` hands each
+/// free thread the next) while this thread `take`s each result in order, as soon as it and
+/// every earlier one are done: writing and scoring one view overlaps rendering the next, and no
+/// thread waits for a batch's slowest view (each view's samples are seeded by its own camera and
+/// frame, so the results do not depend on the order). After `take` fails, items not yet started
+/// are skipped and its error returned.
+fn in_order_while_rendering<T: Send, E>(count: usize, render: impl Fn(usize) -> T + Sync, mut take: impl FnMut(usize, T) -> Result<(), E>) -> Result<(), E> {
+    use rayon::prelude::*;
+    use std::sync::atomic::{AtomicBool, Ordering};
+    let (sender, receiver) = std::sync::mpsc::channel();
+    let failed = AtomicBool::new(false);
+    std::thread::scope(|scope| {
+        scope.spawn(|| {
+            (0..count).par_bridge().for_each_with(sender, |sender, k| {
+                if !failed.load(Ordering::Relaxed) {
+                    // The receiver lives until every sender is gone.
+                    let _ = sender.send((k, render(k)));
+                }
+            })
+        });
+        let mut waiting = BTreeMap::new();
+        let mut next = 0;
+        let mut outcome = Ok(());
+        for (k, value) in receiver {
+            waiting.insert(k, value);
+            while let Some(value) = waiting.remove(&next) {
+                if outcome.is_ok() {
+                    outcome = take(next, value);
+                    failed.store(outcome.is_err(), Ordering::Relaxed);
+                }
+                next += 1;
+            }
+        }
+        outcome
+    })
+}
+
+/// Samples per surface for the geometry error.
+const GEOMETRY_SAMPLES: usize = 20_000;
+
+/// The most frames whose fitted surface an evaluation meshes and compares with the scene's
+/// ground-truth meshes (evenly spread over those that have one).
+const GEOMETRY_FRAMES: usize = 6;
+
+/// The fitted surface (`eval::surface_mesh`) against every ground-truth mesh of the scene's
+/// frames, one entry per frame with a mesh (metres, degrees).
+fn geometry_scores(
+    scene: &Scene,
+    model: &Avatar,
+    albedo_scale: glam::DVec3,
+    device: &burn::tensor::Device,
+    on: &mut impl FnMut(TrainMessage),
+) -> Result<serde_json::Value, FitError> {
+    let extent = scene.body_extent();
+    let with_meshes: Vec<usize> = (0..scene.frames.len()).filter(|&f| scene.frames[f].mesh.is_some()).collect();
+    // Evenly spread, at most GEOMETRY_FRAMES: meshing every frame of a long capture took longer
+    // than its training.
+    let count = with_meshes.len().min(GEOMETRY_FRAMES);
+    let chosen: Vec<usize> = (0..count).map(|k| with_meshes[k * with_meshes.len() / count]).collect();
+    let mut out = Vec::new();
+    for (done, &position) in chosen.iter().enumerate() {
+        on(TrainMessage::Meshed { done, total: chosen.len() });
+        let frame = &scene.frames[position];
+        let Some(path) = &frame.mesh else { continue };
+        let truth = crate::geometry::load_obj(path).map_err(|e| io(path, e))?;
+        let pose = crate::skeleton::PoseTensors::new(&frame.pose, &scene.skeleton, device);
+        let (fitted, _, _) = crate::eval::surface_mesh(model, &pose, frame.pose.bounds(&scene.skeleton), extent, albedo_scale, device)?;
+        let scores = crate::geometry::compare(&fitted, &truth, GEOMETRY_SAMPLES, position as u64);
+        out.push(json!({"frame": position, "index": frame.index, "mesh": path, "accuracy": scores.map(|s| s.accuracy), "completeness": scores.map(|s| s.completeness), "chamfer": scores.map(|s| s.chamfer), "normal_angle": scores.map(|s| s.normal_angle)}));
+    }
+    Ok(json!(out))
+}
+
+/// How a test image differs from the training images, and its evaluation group.
+pub struct TestKind {
+    pub novel_pose: bool,
+    pub novel_view: bool,
+    pub relit: bool,
+    pub group: &'static str,
+}
+
+/// What a scene trains on, to tell its test images apart.
+pub struct TestKinds {
+    frames: Vec<usize>,
+    cameras: Vec<usize>,
+    lights: Vec<String>,
+}
+
+impl TestKinds {
+    pub fn new(scene: &Scene) -> Self {
+        Self {
+            frames: scene.views_in(Split::Train).map(|v| v.frame).collect(),
+            cameras: scene.views_in(Split::Train).map(|v| v.camera).collect(),
+            lights: scene.training_lights().into_iter().map(String::from).collect(),
+        }
+    }
+
+    /// The index of a view's light among the training lights (0 for any other light).
+    pub fn training_light(&self, view: &crate::scene::View) -> usize {
+        self.lights.iter().position(|l| *l == view.light).unwrap_or(0)
+    }
+
+    pub fn of(&self, view: &crate::scene::View) -> TestKind {
+        let novel_pose = !self.frames.contains(&view.frame);
+        let novel_view = !self.cameras.contains(&view.camera);
+        let relit = !self.lights.contains(&view.light);
+        let group = match (novel_pose, novel_view, relit) {
+            (_, _, true) => "relit",
+            (_, true, false) => "novel view",
+            (true, false, false) => "novel pose",
+            (false, false, false) => "training pose and view",
+        };
+        TestKind { novel_pose, novel_view, relit, group }
+    }
+}
+
+/// A test view rendered and scored, with its albedo when the scene has the truth.
+pub struct ScoredView {
+    pub image: RgbImage,
+    pub scores: ImageScores,
+    pub albedo: Option<(RgbImage, ImageScores)>,
+}
+
+/// Renders one test view (`eval::VIEW_SAMPLING`) in `lighting`, and its albedo where the scene
+/// has the truth, and scores both (`metrics::score`).
+pub fn score_view(
+    model: &Avatar,
+    scene: &Scene,
+    view: &crate::scene::View,
+    lighting: &Lighting,
+    albedo_scale: glam::DVec3,
+    device: &burn::tensor::Device,
+) -> ScoredView {
+    // The image and its albedo from one trace of the field.
+    let wants_albedo = view.albedo.is_some().then_some(albedo_scale);
+    let (image, albedo) = render_view_and_albedo(
+        model,
+        scene,
+        view.camera,
+        view.frame,
+        crate::eval::VIEW_SAMPLING,
+        device,
+        lighting,
+        wants_albedo,
+        crate::eval::Strata::Shortcuts,
+    );
+    let scores = score(&image, &view.colour.to_rgb(), view.mask.as_ref());
+    let albedo = view.albedo.as_ref().zip(albedo).map(|(truth, albedo)| {
+        let s = score(&albedo, truth, view.mask.as_ref());
+        (albedo, s)
+    });
+    ScoredView { image, scores, albedo }
+}
+
+/// A render's file name: the test image's path inside the scene, flattened.
+fn render_name(scene: &Scene, view: &crate::scene::View) -> String {
+    let relative = view.path.strip_prefix(&scene.root).unwrap_or(&view.path).with_extension("png");
+    relative.to_string_lossy().replace(['/', '\\'], "_")
+}
+
+/// The score of one rendered test image (and of its albedo, when the scene has one).
+#[derive(serde::Serialize)]
+struct ImageScore {
+    image: String,
+    light: String,
+    group: &'static str,
+    #[serde(flatten)]
+    scores: ImageScores,
+    albedo: Option<ImageScores>,
+    /// A relit image's scores after its per-channel least-squares scale.
+    relit_scaled: Option<ImageScores>,
+    /// The albedo's scores after its per-channel least-squares scale.
+    albedo_scaled: Option<ImageScores>,
+    /// Where the image's error lies, as shares (`metrics::ErrorRegions`; with a mask only).
+    error_share: Option<ErrorRegions>,
+    /// The same as squared-error sums, for the group's shares.
+    #[serde(skip)]
+    error_sums: Option<ErrorRegions>,
+    novel_pose: bool,
+    novel_view: bool,
+    relit: bool,
+}
+
+/// The mean scores of one group of test images (novel pose, novel view, relit, albedo).
+#[derive(serde::Serialize)]
+struct GroupScores {
+    group: &'static str,
+    images: usize,
+    #[serde(flatten)]
+    scores: ImageScores,
+    /// Where the group's error lies: its images' squared errors summed by region, as shares.
+    error_share: Option<ErrorRegions>,
+}
+
+/// Mean scores per group, in a fixed order; albedo renders form a group of their own.
+fn group_means(rows: &[ImageScore]) -> Vec<GroupScores> {
+    let mean = |group: &'static str, scores: Vec<ImageScores>, errors: Option<ErrorRegions>| {
+        let n = scores.len() as f64;
+        let avg = |pick: fn(&ImageScores) -> f64| scores.iter().map(pick).sum::<f64>() / n;
+        GroupScores {
+            group,
+            images: scores.len(),
+            scores: ImageScores { psnr: avg(|s| s.psnr), foreground_psnr: avg(|s| s.foreground_psnr), ssim: avg(|s| s.ssim) },
+            error_share: errors.map(|e| e.shares()),
+        }
+    };
+    let mut out = Vec::new();
+    for group in ["novel pose", "novel view", "relit", "training pose and view"] {
+        let members: Vec<&ImageScore> = rows.iter().filter(|r| r.group == group).collect();
+        if !members.is_empty() {
+            // Summed over the group's images when every one has a mask.
+            let errors = members.iter().try_fold(ErrorRegions::default(), |sum, r| r.error_sums.map(|e| sum.add(&e)));
+            out.push(mean(group, members.iter().map(|r| r.scores).collect(), errors));
+        }
+    }
+    for (group, pick) in [
+        ("albedo", (|r: &ImageScore| r.albedo) as fn(&ImageScore) -> Option<ImageScores>),
+        ("relit, per-channel scaled", |r: &ImageScore| r.relit_scaled),
+        ("albedo, per-channel scaled", |r: &ImageScore| r.albedo_scaled),
+    ] {
+        let scores: Vec<ImageScores> = rows.iter().filter_map(pick).collect();
+        if !scores.is_empty() {
+            out.push(mean(group, scores, None));
+        }
+    }
+    out
+}
+
+fn cells(s: &ImageScores, digits: usize) -> [String; 3] {
+    [format!("{:.digits$}", s.psnr), format!("{:.digits$}", s.foreground_psnr), format!("{:.4}", s.ssim)]
+}
+
+/// The columns of `metrics.csv`.
+pub const METRICS_COLUMNS: [&str; 12] = [
+    "image",
+    "light",
+    "group",
+    "psnr",
+    "foreground_psnr",
+    "ssim",
+    "albedo_psnr",
+    "albedo_foreground_psnr",
+    "albedo_ssim",
+    "error_outside_mask",
+    "error_along_silhouette",
+    "error_inside",
+];
+
+fn metrics_csv(rows: &[ImageScore]) -> String {
+    let rows = rows.iter().map(|r| {
+        let albedo = r.albedo.map(|a| cells(&a, 3)).unwrap_or_else(|| [String::new(), String::new(), String::new()]);
+        let shares = r.error_share.map(|e| share_cells(&e, 4)).unwrap_or_else(|| [String::new(), String::new(), String::new()]);
+        let mut row = vec![r.image.clone(), r.light.clone(), r.group.to_string()];
+        row.extend(cells(&r.scores, 3));
+        row.extend(albedo);
+        row.extend(shares);
+        row
+    });
+    crate::table::to_csv(&METRICS_COLUMNS, rows)
+}
+
+/// An `ErrorRegions` of shares as three cells: outside the mask, along the silhouette, inside.
+fn share_cells(e: &ErrorRegions, digits: usize) -> [String; 3] {
+    [e.outside, e.silhouette, e.inside].map(|v| format!("{v:.digits$}"))
+}
+
+fn metrics_markdown(rows: &[ImageScore], groups: &[GroupScores]) -> String {
+    let mut md = String::from(
+        "## Test images (sRGB 8-bit; foreground = ground-truth mask or any rendered pixel)\n\n| group | images | PSNR (dB) | foreground PSNR (dB) | SSIM |\n|---|---|---|---|---|\n",
+    );
+    for g in groups {
+        md += &format!("| {} | {} | {} |\n", g.group, g.images, cells(&g.scores, 2).join(" | "));
+    }
+    if groups.iter().any(|g| g.error_share.is_some()) {
+        md += "\n## Where the error lies (share of each group's squared error, sRGB 8-bit)\n\nOutside the mask: the render draws body (or a halo) where the truth has none; along the silhouette: mask pixels beside the background; inside: the rest of the body. Most of it outside and along the silhouette is a shape error, most of it inside a colour or shading error.\n\n| group | outside the mask | along the silhouette | inside |\n|---|---|---|---|\n";
+        for g in groups {
+            if let Some(e) = &g.error_share {
+                md += &format!("| {} | {} |\n", g.group, e.percentages().join(" | "));
+            }
+        }
+    }
+    md += "\n| image | light | group | PSNR (dB) | foreground PSNR (dB) | SSIM | albedo PSNR (dB) | albedo foreground PSNR (dB) | albedo SSIM |\n|---|---|---|---|---|---|---|---|---|\n";
+    for r in rows {
+        let albedo = r.albedo.map(|a| cells(&a, 2)).unwrap_or_else(|| ["-".into(), "-".into(), "-".into()]);
+        md += &format!("| {} | {} | {} | {} | {} |\n", r.image, r.light, r.group, cells(&r.scores, 2).join(" | "), albedo.join(" | "));
+    }
+    md
+}
+
+/// How far the recovered training light `k` is from the one the scene states for it
+/// (synthetic and evaluation scenes state it): degrees for a sun, metres for a point light.
+pub fn light_error(scene: &Scene, fit_light: bool, k: usize, light: &serde_json::Value) -> serde_json::Value {
+    let lights = scene.training_lights();
+    let vector = |v: &serde_json::Value| -> Option<glam::DVec3> { Some(glam::DVec3::new(v[0].as_f64()?, v[1].as_f64()?, v[2].as_f64()?)) };
+    match (lights.get(k).map(|n| &scene.lights[*n]), fit_light) {
+        (Some(crate::light::Light::Directional { direction, .. }), true) => match vector(&light["direction"]) {
+            Some(d) => json!({"direction_degrees": d.normalize().dot(*direction).clamp(-1.0, 1.0).acos().to_degrees()}),
+            None => json!(null),
+        },
+        (Some(crate::light::Light::Point { position, .. }), true) => match vector(&light["position"]) {
+            Some(p) => json!({"position_metres": (p - *position).length()}),
+            None => json!(null),
+        },
+        _ => json!(null),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::in_order_while_rendering;
+    use std::sync::atomic::{AtomicUsize, Ordering};
+
+    #[test]
+    fn results_are_taken_in_order_however_the_renders_finish() {
+        // Early items take longest, so later ones finish first on the other thread.
+        let render = |k: usize| {
+            std::thread::sleep(std::time::Duration::from_millis(((40 - k) % 7) as u64));
+            k * k
+        };
+        let mut taken = Vec::new();
+        let outcome: Result<(), ()> = in_order_while_rendering(40, render, |k, value| {
+            taken.push((k, value));
+            Ok(())
+        });
+        assert_eq!(outcome, Ok(()));
+        assert_eq!(taken, (0..40).map(|k| (k, k * k)).collect::<Vec<_>>());
+    }
+
+    #[test]
+    fn a_failed_take_stops_the_rest_and_is_returned() {
+        let started = AtomicUsize::new(0);
+        let render = |k: usize| {
+            started.fetch_add(1, Ordering::Relaxed);
+            std::thread::sleep(std::time::Duration::from_millis(5));
+            k
+        };
+        let mut taken = Vec::new();
+        let outcome = in_order_while_rendering(200, render, |k, _| {
+            taken.push(k);
+            if k == 3 {
+                Err(format!("item {k}"))
+            } else {
+                Ok(())
+            }
+        });
+        assert_eq!(outcome, Err("item 3".to_string()));
+        assert_eq!(taken, vec![0, 1, 2, 3], "nothing is taken after the failure");
+        assert!(started.load(Ordering::Relaxed) < 200, "items not yet started are skipped");
+    }
+
+    #[test]
+    fn a_groups_error_shares_sum_its_images_errors_and_need_every_mask() {
+        use super::{group_means, ErrorRegions, ImageScore, ImageScores};
+        let scores = ImageScores { psnr: 30.0, foreground_psnr: 20.0, ssim: 0.9 };
+        let row = |group: &'static str, sums: Option<ErrorRegions>| ImageScore {
+            image: String::new(),
+            light: "sun".into(),
+            group,
+            scores,
+            albedo: None,
+            relit_scaled: None,
+            albedo_scaled: None,
+            error_share: sums.map(|e| e.shares()),
+            error_sums: sums,
+            novel_pose: group == "novel pose",
+            novel_view: false,
+            relit: false,
+        };
+        // Shares of the sums, not means of the shares: (30 + 0) / 40 outside, (0 + 10) / 40 inside.
+        let rows = [
+            row("novel pose", Some(ErrorRegions { outside: 30.0, silhouette: 0.0, inside: 0.0 })),
+            row("novel pose", Some(ErrorRegions { outside: 0.0, silhouette: 0.0, inside: 10.0 })),
+            row("novel view", Some(ErrorRegions { outside: 1.0, silhouette: 1.0, inside: 2.0 })),
+            row("novel view", None),
+        ];
+        let groups = group_means(&rows);
+        assert_eq!(groups[0].error_share, Some(ErrorRegions { outside: 0.75, silhouette: 0.0, inside: 0.25 }));
+        assert_eq!(groups[1].group, "novel view");
+        assert_eq!(groups[1].error_share, None, "an image without a mask leaves its group without shares");
+    }
+}
