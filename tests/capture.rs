@@ -486,3 +486,75 @@ fn per_frame_joint_transforms_import_as_the_bvh_does() {
         import(&ImportOptions { motion: Some(capture.join("joints.json")), ..options(&capture, dir.path().join("bad")) }, &|_, _| {}).unwrap_err().to_string();
     assert!(err.contains("joints.json: frames[1].rotations[2]: not a rotation"), "{err}");
 }
+
+/// `--max-size` downscales by a whole factor (the intrinsics with it, masks by majority); a
+/// JPEG photo with the mask in a PNG and a PNG whose alpha is the mask both read.
+#[test]
+fn max_size_downscales_and_jpeg_or_alpha_photos_read() {
+    let dir = TempDir::new("capture-size");
+    let (scene_dir, capture) = scene_and_capture(dir.path());
+    let original = Scene::load(&scene_dir).unwrap();
+    let out = dir.path().join("half");
+    let report = import(&ImportOptions { max_size: Some(16), ..options(&capture, out.clone()) }, &|_, _| {}).unwrap();
+    assert!(report.assumed.iter().any(|a| a.contains("downscaled up to 2x")), "{:?}", report.assumed);
+    let half = Scene::load(&out).unwrap();
+    for view in &half.views {
+        let twin = original.views.iter().find(|v| stem(&v.path) == stem(&view.path)).unwrap();
+        let (a, b) = (&half.cameras[view.camera], &original.cameras[twin.camera]);
+        assert_eq!((a.width, a.height), (b.width / 2, b.height / 2));
+        assert!((a.fx - b.fx / 2.0).abs() < 1e-12 && (a.cx - b.cx / 2.0).abs() < 1e-12);
+        // Each pixel the mean of its 2x2 block inside the body (blacked outside).
+        let mask = view.mask.as_ref().unwrap();
+        for y in 0..a.height {
+            for x in 0..a.width {
+                if !mask.foreground[y * a.width + x] {
+                    continue;
+                }
+                let block: Vec<[f32; 3]> = (0..4).map(|q| twin.colour.get(2 * x + q % 2, 2 * y + q / 2)).collect();
+                let mean: [f32; 3] = std::array::from_fn(|c| block.iter().map(|p| p[c]).sum::<f32>() / 4.0);
+                let got = view.colour.get(x, y);
+                // Written as 8-bit sRGB: within a step of 8-bit rounding.
+                assert!((0..3).all(|c| (got[c] - mean[c]).abs() < 0.01), "({x}, {y}): {got:?} against {mean:?}");
+            }
+        }
+    }
+    // The plates as JPEG (their masks still PNG), and as PNGs carrying the mask as alpha.
+    let jpeg = dir.path().join("jpeg");
+    let alpha = dir.path().join("alpha");
+    for folder in [&jpeg, &alpha] {
+        std::fs::create_dir_all(folder.join("images")).unwrap();
+        std::fs::copy(capture.join("motion.bvh"), folder.join("motion.bvh")).unwrap();
+    }
+    copy_dir(&capture.join("masks"), &jpeg.join("masks"));
+    let mut transforms: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(capture.join("transforms.json")).unwrap()).unwrap();
+    let mut without_masks = transforms.clone();
+    for (frame, bare) in transforms["frames"].as_array_mut().unwrap().iter_mut().zip(without_masks["frames"].as_array_mut().unwrap()) {
+        let path = frame["file_path"].as_str().unwrap().to_string();
+        let plate = image::open(capture.join(&path)).unwrap().to_rgb8();
+        let jpg = path.replace(".png", ".jpg");
+        plate.save(jpeg.join(&jpg)).unwrap();
+        frame["file_path"] = serde_json::json!(jpg);
+        let mask = image::open(capture.join(frame["mask_path"].as_str().unwrap())).unwrap().to_luma8();
+        let rgba = image::RgbaImage::from_fn(plate.width(), plate.height(), |x, y| {
+            let p = plate.get_pixel(x, y);
+            image::Rgba([p[0], p[1], p[2], mask.get_pixel(x, y)[0]])
+        });
+        rgba.save(alpha.join(&path)).unwrap();
+        bare.as_object_mut().unwrap().remove("mask_path");
+    }
+    for list in ["train_filenames", "val_filenames", "test_filenames"] {
+        let renamed: Vec<String> = transforms[list].as_array().unwrap().iter().map(|n| n.as_str().unwrap().replace(".png", ".jpg")).collect();
+        transforms[list] = serde_json::json!(renamed);
+    }
+    std::fs::write(jpeg.join("transforms.json"), serde_json::to_string(&transforms).unwrap()).unwrap();
+    std::fs::write(alpha.join("transforms.json"), serde_json::to_string(&without_masks).unwrap()).unwrap();
+    let from_jpeg = import(&options(&jpeg, dir.path().join("from-jpeg")), &|_, _| {}).unwrap();
+    assert!(from_jpeg.score > 0.95, "{:?}", from_jpeg.assumed);
+    let from_alpha = import(&options(&alpha, dir.path().join("from-alpha")), &|_, _| {}).unwrap();
+    assert!(from_alpha.assumed.iter().any(|a| a.contains("0 from files") && a.contains("from the images' alpha")), "{:?}", from_alpha.assumed);
+    let from_alpha = Scene::load(&dir.path().join("from-alpha")).unwrap();
+    for view in &from_alpha.views {
+        let twin = original.views.iter().find(|v| stem(&v.path) == stem(&view.path)).unwrap();
+        assert_eq!(view.mask, twin.mask, "{}: the alpha is the mask", view.path.display());
+    }
+}

@@ -117,15 +117,22 @@ fn write_one(image: &CaptureImage, photos: &Photos, i: usize, dir: &Path) -> Res
         let undistorted = super::distortion::undistort_colour(&colour, k, &image.distortion);
         (undistorted, mask.map(|m| super::distortion::undistort_mask(&m, k, &image.distortion)))
     };
-    let f = photos.factors[i];
-    let (mut colour, mask) = (downscale_colour(&colour, f), mask.map(|m| downscale_mask(&m, f)));
-    if let Some(m) = &mask {
-        for (pixel, &inside) in colour.pixels.iter_mut().zip(&m.foreground) {
-            if !inside {
-                *pixel = [0.0; 3];
+    // The background blacked at full size, then again after downscaling: a pixel on the
+    // silhouette averages body and black, as a renderer's pixel over its area does.
+    let black_outside = |colour: &mut RgbImage, mask: &Option<Mask>| {
+        if let Some(m) = mask {
+            for (pixel, &inside) in colour.pixels.iter_mut().zip(&m.foreground) {
+                if !inside {
+                    *pixel = [0.0; 3];
+                }
             }
         }
-    }
+    };
+    let mut colour = colour;
+    black_outside(&mut colour, &mask);
+    let f = photos.factors[i];
+    let (mut colour, mask) = (downscale_colour(&colour, f), mask.map(|m| downscale_mask(&m, f)));
+    black_outside(&mut colour, &mask);
     let stem = &photos.stems[i];
     let exr = image.path.extension().is_some_and(|e| e.eq_ignore_ascii_case("exr"));
     let path = format!("images/{stem}.{}", if exr { "exr" } else { "png" });
