@@ -197,35 +197,10 @@ pub fn import(options: &ImportOptions, on: &(dyn Fn(usize, usize) + Sync)) -> Re
         return Err(input(out, "exists and is not an empty folder: import writes a new scene (nothing was written)"));
     }
     let (images, camera_file) = read_cameras(options)?;
-    let motion_file = match &options.motion {
-        Some(file) => file.clone(),
-        None if options.capture.join("joints.json").is_file() && only_file(&options.capture, "bvh", "motion").is_err() => options.capture.join("joints.json"),
-        None => only_file(&options.capture, "bvh", "motion")?,
-    };
-    // A BVH, or per-frame joint transforms as JSON (`joints`).
-    let motion = match motion_file.extension().is_some_and(|e| e.eq_ignore_ascii_case("json")) {
-        true => joints::read(&motion_file)?,
-        false => bvh::read(&motion_file)?,
-    };
+    let (motion, motion_file) = read_motion(options)?;
     let rig = bones::rig(&motion).map_err(|e| input(&motion_file, e))?;
     let mut report = ImportReport { images: images.len(), ..ImportReport::default() };
-    let units = match options.units {
-        Some(u) => {
-            report.assumed.push(format!("units: {} (--units)", u.name()));
-            u
-        }
-        None => {
-            let extent = joint_extent(&motion);
-            let u = Units::for_extent(extent);
-            report.assumed.push(format!(
-                "units: {} (inferred: the skeleton's joints span {extent:.3} file units, {:.2} m in {})",
-                u.name(),
-                extent * u.metres(),
-                u.name()
-            ));
-            u
-        }
-    };
+    let units = units_of(options, &motion, &mut report);
     let up = match options.up {
         Up::PlusY => DMat4::IDENTITY,
         // +Z up to +Y up: a quarter turn about X.
@@ -269,14 +244,8 @@ pub fn import(options: &ImportOptions, on: &(dyn Fn(usize, usize) + Sync)) -> Re
             .collect();
         let name = out.file_name().map(|f| f.to_string_lossy().into_owned()).unwrap_or_else(|| "capture".into());
         let scene = json!({
-            "format": "scene/1",
-            "name": name,
-            "generator": "umbra import",
-            "skeleton": {"bones": bones},
-            "cameras": cameras,
-            "frames": frames,
-            "lights": {light_name: light},
-            "images": image_entries,
+            "format": "scene/1", "name": name, "generator": "umbra import", "skeleton": {"bones": bones},
+            "cameras": cameras, "frames": frames, "lights": {light_name: light}, "images": image_entries,
         });
         let text = serde_json::to_string_pretty(&scene).map_err(|e| input(out, e.to_string()))?;
         crate::imageio::write_atomic(&temp.join("scene.json"), text.as_bytes()).map_err(|e| input(&temp, e.to_string()))?;
@@ -291,6 +260,35 @@ pub fn import(options: &ImportOptions, on: &(dyn Fn(usize, usize) + Sync)) -> Re
         let _ = std::fs::remove_dir_all(&temp);
     }
     result.map(|_| report)
+}
+
+/// The capture's motion: `--motion`, else its only .bvh, else its `joints.json`; a BVH, or
+/// per-frame joint transforms as JSON (`joints`).
+fn read_motion(options: &ImportOptions) -> Result<(bvh::Motion, PathBuf), ImportError> {
+    let capture = &options.capture;
+    let file = match &options.motion {
+        Some(file) => file.clone(),
+        None if capture.join("joints.json").is_file() && only_file(capture, "bvh", "motion").is_err() => capture.join("joints.json"),
+        None => only_file(capture, "bvh", "motion")?,
+    };
+    let motion = match file.extension().is_some_and(|e| e.eq_ignore_ascii_case("json")) {
+        true => joints::read(&file)?,
+        false => bvh::read(&file)?,
+    };
+    Ok((motion, file))
+}
+
+/// The capture's units: `--units`, else inferred from the joints' span; said in `report`.
+fn units_of(options: &ImportOptions, motion: &bvh::Motion, report: &mut ImportReport) -> Units {
+    let units = options.units.unwrap_or_else(|| Units::for_extent(joint_extent(motion)));
+    report.assumed.push(match options.units {
+        Some(u) => format!("units: {} (--units)", u.name()),
+        None => {
+            let extent = joint_extent(motion);
+            format!("units: {0} (inferred: the skeleton's joints span {extent:.3} file units, {1:.2} m in {0})", units.name(), extent * units.metres())
+        }
+    });
+    units
 }
 
 /// The capture check (`check`) of the scene written in `dir`: its contact sheet beside it

@@ -38,6 +38,16 @@ impl Trainer {
     /// shadows) and starts that light from the best (`sun_search`).
     fn search_one(&mut self, light: usize) -> Result<(), FitError> {
         let model = self.model()?.valid();
+        let (samples, casters) = self.surface_samples(&model, light);
+        if samples.is_empty() {
+            return Ok(());
+        }
+        self.start_from_search(&model, light, &samples, &casters)
+    }
+
+    /// Surface samples (point, normal, albedo, colour) of up to `SEARCH_FRAMES` training frames
+    /// under training light `light`, and each frame's shadow casters as the light casts them.
+    fn surface_samples(&mut self, model: &crate::avatar::Avatar, light: usize) -> (Vec<crate::sun_search::SurfaceSample>, Vec<crate::shadow::ShadowCaster>) {
         let device = self.device.clone().without_autodiff();
         let set = model.gaussians.to_set();
         let count = self.frames.len().clamp(1, Self::SEARCH_FRAMES);
@@ -102,9 +112,18 @@ impl Trainer {
             }
             casters.push(crate::shadow::ShadowCaster::new(&posed, 1e-3));
         }
-        if samples.is_empty() {
-            return Ok(());
-        }
+        (samples, casters)
+    }
+
+    /// Searches light `light` over `samples` and starts it from the best: its direction or
+    /// position, its strength, and for a sun the cone it then stays in.
+    fn start_from_search(
+        &mut self,
+        model: &crate::avatar::Avatar,
+        light: usize,
+        samples: &[crate::sun_search::SurfaceSample],
+        casters: &[crate::shadow::ShadowCaster],
+    ) -> Result<(), FitError> {
         let start = model.light_at(light).shadow_start;
         let report = match self.light_kind {
             LightKind::Point => {

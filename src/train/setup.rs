@@ -180,50 +180,60 @@ pub fn new_avatar(scene: &Scene, config: &FieldConfig, set: &GaussianSet, kind: 
     }
 }
 
+/// The scene's training views, refused when there are none or none of their masks marks any
+/// body (a segmenter that found nothing, inverted masks saved as black would fit an empty
+/// avatar without a word).
+fn training_views(scene: &Scene) -> Result<Vec<usize>, FitError> {
+    let training: Vec<usize> = (0..scene.views.len()).filter(|&i| scene.views[i].split == Split::Train).collect();
+    if training.is_empty() {
+        return Err(FitError::Input(format!("{}: no training images (split \"train\")", scene.root.join("scene.json").display())));
+    }
+    let masked = |i: &usize| scene.views[*i].mask.as_ref().is_some_and(|m| m.foreground.iter().any(|&f| f));
+    if !training.iter().any(masked) {
+        return Err(FitError::Input(format!(
+            "{}: images[*].mask: none of the {} training masks marks any pixel as body (value > 127): check the masks (inverted? empty?)",
+            scene.root.join("scene.json").display(),
+            training.len()
+        )));
+    }
+    Ok(training)
+}
+
+/// The training frames with their views, and per view of the scene the pixels a batch draws
+/// from (training views only; indices fit in 32 bits, a scene's images being at most
+/// `imageio::MAX_PIXELS`).
+fn index_training(scene: &Scene, training: &[usize], device: &Device) -> (Vec<FrameData>, Vec<ViewData>) {
+    use rayon::prelude::*;
+    let mut frames: Vec<FrameData> = Vec::new();
+    for &v in training {
+        let f = scene.views[v].frame;
+        match frames.iter_mut().find(|d| d.position == f) {
+            Some(d) => d.views.push(v),
+            None => frames.push(FrameData { position: f, pose_tensors: PoseTensors::new(&scene.frames[f].pose, &scene.skeleton, device), views: vec![v] }),
+        }
+    }
+    let views = scene
+        .views
+        .par_iter()
+        .map(|v| {
+            let mask = v.mask.as_ref().filter(|_| v.split == Split::Train);
+            ViewData {
+                foreground: mask.map(|m| (0..m.foreground.len() as u32).filter(|&k| m.foreground[k as usize]).collect()).unwrap_or_default(),
+                boundary: mask.map(|m| boundary_pixels(m, BOUNDARY_BAND)).unwrap_or_default(),
+                error_map: None,
+            }
+        })
+        .collect();
+    (frames, views)
+}
+
 impl Trainer {
     pub fn new(scene: Scene, schedule: Schedule, backend: Backend, seed: u64) -> Result<Self, FitError> {
         let device = backend.device();
         device.seed(seed);
-        let training: Vec<usize> = (0..scene.views.len()).filter(|&i| scene.views[i].split == Split::Train).collect();
-        if training.is_empty() {
-            return Err(FitError::Input(format!("{}: no training images (split \"train\")", scene.root.join("scene.json").display())));
-        }
-        // Masks that hold no body anywhere (a segmenter that found nothing, inverted masks
-        // saved as black) would fit an empty avatar without a word.
-        let masked = |i: &usize| scene.views[*i].mask.as_ref().is_some_and(|m| m.foreground.iter().any(|&f| f));
-        if !training.iter().any(masked) {
-            return Err(FitError::Input(format!(
-                "{}: images[*].mask: none of the {} training masks marks any pixel as body (value > 127): check the masks (inverted? empty?)",
-                scene.root.join("scene.json").display(),
-                training.len()
-            )));
-        }
+        let training = training_views(&scene)?;
         let TrainingLights { kind: light_kind, fit: fit_light, count: light_count, view_light } = training_lights(&scene, &schedule)?;
-        let mut frames: Vec<FrameData> = Vec::new();
-        for &v in &training {
-            let f = scene.views[v].frame;
-            match frames.iter_mut().find(|d| d.position == f) {
-                Some(d) => d.views.push(v),
-                None => frames.push(FrameData { position: f, pose_tensors: PoseTensors::new(&scene.frames[f].pose, &scene.skeleton, &device), views: vec![v] }),
-            }
-        }
-        // Only training views are drawn from; pixel indices fit in 32 bits (a scene's images are
-        // at most `imageio::MAX_PIXELS`).
-        let mut views: Vec<ViewData> = {
-            use rayon::prelude::*;
-            scene
-                .views
-                .par_iter()
-                .map(|v| {
-                    let mask = v.mask.as_ref().filter(|_| v.split == Split::Train);
-                    ViewData {
-                        foreground: mask.map(|m| (0..m.foreground.len() as u32).filter(|&k| m.foreground[k as usize]).collect()).unwrap_or_default(),
-                        boundary: mask.map(|m| boundary_pixels(m, BOUNDARY_BAND)).unwrap_or_default(),
-                        error_map: None,
-                    }
-                })
-                .collect()
-        };
+        let (frames, mut views) = index_training(&scene, &training, &device);
         let extent = scene.body_extent();
         let unit = crate::skeleton::body_length(1.0, extent);
         // Four Gaussians per bone, 5 cm wide on the reference human.
