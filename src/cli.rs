@@ -465,7 +465,8 @@ fn fit(options: &crate::fit::FitOptions) -> Result<(), String> {
         }
         TrainMessage::Checkpoint { .. } => {}
         TrainMessage::Evaluating { images } => {
-            bar.println(format!("rendering {images} test images"));
+            bar.set_what("evaluating");
+            bar.set_message(String::new());
             bar.set_length(images as u64);
             bar.set_position(0);
             bar.reset_eta();
@@ -474,7 +475,7 @@ fn fit(options: &crate::fit::FitOptions) -> Result<(), String> {
             bar.set_position(done as u64);
             bar.set_message(psnr.map(|p| format!("{name}: {p:.2} dB")).unwrap_or(name));
         }
-        TrainMessage::Meshed { done, total } => bar.set_message(format!("meshing frame {}/{total} against the scene's mesh", done + 1)),
+        TrainMessage::Meshed { done, total } => bar.println(format!("meshing frame {}/{total} against the scene's mesh", done + 1)),
         TrainMessage::Done => bar.finish_and_clear(),
     })
     .map_err(|e| e.to_string())?;
@@ -524,7 +525,7 @@ fn image_progress(bar: &crate::progress::Progress) -> impl FnMut(crate::messages
             bar.set_position(done as u64);
             bar.set_message(psnr.map(|p| format!("{name}: {p:.2} dB")).unwrap_or(name));
         }
-        TrainMessage::Meshed { done, total } => bar.set_message(format!("meshing frame {}/{total} against the scene's mesh", done + 1)),
+        TrainMessage::Meshed { done, total } => bar.println(format!("meshing frame {}/{total} against the scene's mesh", done + 1)),
         _ => {}
     }
 }

@@ -33,11 +33,11 @@ impl Progress {
     pub fn new(total: u64, what: &str) -> Self {
         let bar = std::io::stderr().is_terminal().then(|| {
             let bar = indicatif::ProgressBar::new(total);
-            let style = indicatif::ProgressStyle::with_template("{msg} [{bar:30}] {pos}/{len} {elapsed_precise} eta {eta}")
+            let style = indicatif::ProgressStyle::with_template("{prefix} [{bar:30}] {pos}/{len} {elapsed_precise} eta {eta} {msg}")
                 .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar())
                 .progress_chars("=> ");
             bar.set_style(style);
-            bar.set_message(what.to_string());
+            bar.set_prefix(what.to_string());
             bar
         });
         let now = Instant::now();
@@ -83,6 +83,15 @@ impl Progress {
                 p.last_line_position = position;
             }
         });
+    }
+
+    /// What the work now is ("evaluating" after "fitting"): the bar's label and the plain
+    /// lines' first word.
+    pub fn set_what(&self, what: &str) {
+        if let Some(bar) = &self.bar {
+            bar.set_prefix(what.to_string());
+        }
+        self.with_plain(|p| p.what = what.to_string());
     }
 
     pub fn set_message(&self, message: String) {
