@@ -156,10 +156,14 @@ pub fn parse(text: &str, file: &Path) -> Result<Motion, BvhError> {
         return Err(words.error(format!("Frame Time: expected seconds > 0, found {frame_time}")));
     }
     let per_frame: usize = joints.iter().map(|j| j.channels.len()).sum();
+    if per_frame == 0 {
+        return Err(words.error("no joint has a channel: the clip holds no motion"));
+    }
     let remaining = words.words.len() - words.at;
-    if remaining != count as usize * per_frame {
+    // Checked before anything is allocated for the frames: a header may claim any count.
+    if (count as usize).checked_mul(per_frame) != Some(remaining) {
         return Err(
-            words.error(format!("the MOTION section holds {remaining} values; {count} frames of {per_frame} channels need {}", count as usize * per_frame))
+            words.error(format!("the MOTION section holds {remaining} values; {count} frames of {per_frame} channels need {}", count * per_frame as f64))
         );
     }
     let mut frames = Vec::with_capacity(count as usize);
@@ -373,6 +377,27 @@ fn write_joint(text: &mut String, skeleton: &crate::skeleton::Skeleton, b: usize
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A header claiming absurd counts is refused before anything is allocated for it.
+    #[test]
+    fn hostile_headers_are_refused_without_allocating() {
+        let file = Path::new("hostile.bvh");
+        let joint = "HIERARCHY\nROOT a\n{\n OFFSET 0 0 0\n CHANNELS 3 Xrotation Yrotation Zrotation\n End Site\n {\n  OFFSET 0 1 0\n }\n}\n";
+        for frames in ["1e30", "18446744073709551615", "99999999999999"] {
+            let text = format!("{joint}MOTION\nFrames: {frames}\nFrame Time: 0.1\n0 0 0\n");
+            let err = parse(&text, file).unwrap_err().to_string();
+            assert!(err.contains("MOTION section holds 3 values"), "{frames}: {err}");
+        }
+        let still = joint.replace("CHANNELS 3 Xrotation Yrotation Zrotation", "CHANNELS 0");
+        let err = parse(&format!("{still}MOTION\nFrames: 1e15\nFrame Time: 0.1\n"), file).unwrap_err().to_string();
+        assert!(err.contains("no joint has a channel"), "{err}");
+        // More joints than allowed, and a truncated file, are errors too.
+        let many = "HIERARCHY\nROOT a\n{\n OFFSET 0 0 0\n CHANNELS 0\n".to_string()
+            + &(0..2000).map(|k| format!("JOINT j{k}\n{{\n OFFSET 0 0 0\n CHANNELS 0\n")).collect::<String>();
+        let err = parse(&many, file).unwrap_err().to_string();
+        assert!(err.contains("more than 1024 joints"), "{err}");
+        assert!(parse("HIERARCHY\nROOT a\n{\n OFFSET 0 0", file).unwrap_err().to_string().contains("the file ends"));
+    }
 
     #[test]
     fn zxy_angles_rebuild_the_rotation() {
