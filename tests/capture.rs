@@ -137,27 +137,7 @@ fn units_and_up_axes_give_the_same_scene() {
     }
     std::fs::write(turned.join("transforms.json"), serde_json::to_string(&transforms).unwrap()).unwrap();
     let motion = bvh::read(&capture.join("motion.bvh")).unwrap();
-    let frames: Vec<Vec<DMat4>> = (0..motion.frames.len())
-        .map(|k| {
-            motion
-                .joint_to_world(k)
-                .into_iter()
-                .map(|m| {
-                    let mut moved = to_z_up * m;
-                    moved.w_axis = (moved.w_axis.truncate() / 100.0).extend(1.0);
-                    moved
-                })
-                .collect()
-        })
-        .collect();
-    let skeleton = umbra::skeleton::Skeleton {
-        bones: motion
-            .joints
-            .iter()
-            .map(|j| umbra::skeleton::Bone { name: j.name.clone(), parent: j.parent, length: j.end_site.map(|e| e.length() / 100.0).unwrap_or(0.1) })
-            .collect(),
-    };
-    std::fs::write(turned.join("motion.bvh"), bvh::write(&skeleton, &frames, motion.frame_time, 1.0).unwrap()).unwrap();
+    std::fs::write(turned.join("motion.bvh"), rewritten_clip(&motion, |m| to_z_up * m, 1.0)).unwrap();
     let out = dir.path().join("from-metres-z-up");
     let report = import(&ImportOptions { up: Up::PlusZ, ..options(&turned, out.clone()) }, &|_, _| {}).unwrap();
     assert!(report.assumed.iter().any(|a| a.starts_with("units: m (inferred")), "{:?}", report.assumed);
@@ -177,6 +157,31 @@ fn units_and_up_axes_give_the_same_scene() {
     let small = Scene::load(&small).unwrap();
     let ratio = small.cameras[0].centre().length() / scene.cameras[0].centre().length();
     assert!((ratio - 0.01).abs() < 1e-9, "{ratio}");
+}
+
+/// `motion` (a centimetre clip) written again: each joint's frame changed by `change`, in metres
+/// times `units` per metre, leaves as long as their End Sites.
+fn rewritten_clip(motion: &bvh::Motion, change: impl Fn(DMat4) -> DMat4, units: f64) -> String {
+    let bones = motion.joints.iter().map(|j| umbra::skeleton::Bone {
+        name: j.name.clone(),
+        parent: j.parent,
+        length: j.end_site.map(|e| e.length() / 100.0).unwrap_or(0.1),
+    });
+    let skeleton = umbra::skeleton::Skeleton { bones: bones.collect() };
+    let frames: Vec<Vec<DMat4>> = (0..motion.frames.len())
+        .map(|k| {
+            motion
+                .joint_to_world(k)
+                .into_iter()
+                .map(|m| {
+                    let mut moved = change(m);
+                    moved.w_axis = (moved.w_axis.truncate() / 100.0).extend(1.0);
+                    moved
+                })
+                .collect()
+        })
+        .collect();
+    bvh::write(&skeleton, &frames, motion.frame_time, units).unwrap()
 }
 
 fn matrix(value: &serde_json::Value) -> DMat4 {
@@ -344,21 +349,6 @@ fn a_capture_whose_cameras_and_motion_disagree_is_refused_with_the_figure() {
     assert!(dir.path().join("agreeing/check.png").is_file(), "the contact sheet");
     let transforms: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(capture.join("transforms.json")).unwrap()).unwrap();
     let motion = bvh::read(&capture.join("motion.bvh")).unwrap();
-    let skeleton = umbra::skeleton::Skeleton {
-        bones: motion
-            .joints
-            .iter()
-            .map(|j| umbra::skeleton::Bone { name: j.name.clone(), parent: j.parent, length: j.end_site.map(|e| e.length() / 100.0).unwrap_or(0.1) })
-            .collect(),
-    };
-    let frames = |change: &dyn Fn(DMat4) -> DMat4| -> Vec<Vec<DMat4>> {
-        (0..motion.frames.len()).map(|k| motion.joint_to_world(k).into_iter().map(change).collect()).collect()
-    };
-    // The clip's frames are in centimetres; `bvh::write` takes metres and a unit.
-    let metres = |mut m: DMat4| {
-        m.w_axis = (m.w_axis.truncate() / 100.0).extend(1.0);
-        m
-    };
     let flip = DMat4::from_diagonal(glam::DVec4::new(1.0, -1.0, -1.0, 1.0));
     let mut opencv = transforms.clone();
     for frame in opencv["frames"].as_array_mut().unwrap() {
@@ -367,8 +357,8 @@ fn a_capture_whose_cameras_and_motion_disagree_is_refused_with_the_figure() {
     let z_up = DMat4::from_rotation_x(std::f64::consts::FRAC_PI_2);
     let cases: Vec<(&str, serde_json::Value, String)> = vec![
         ("cameras in OpenCV axes", opencv, std::fs::read_to_string(capture.join("motion.bvh")).unwrap()),
-        ("motion in metres, cameras in centimetres", transforms.clone(), bvh::write(&skeleton, &frames(&|m| metres(m)), motion.frame_time, 1.0).unwrap()),
-        ("motion +Z up, cameras +Y up", transforms.clone(), bvh::write(&skeleton, &frames(&|m| metres(z_up * m)), motion.frame_time, 100.0).unwrap()),
+        ("motion in metres, cameras in centimetres", transforms.clone(), rewritten_clip(&motion, |m| m, 1.0)),
+        ("motion +Z up, cameras +Y up", transforms.clone(), rewritten_clip(&motion, |m| z_up * m, 100.0)),
     ];
     for (what, cameras, clip) in cases {
         let broken = dir.path().join(what.replace(' ', "-").replace(',', ""));

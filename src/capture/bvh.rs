@@ -104,7 +104,7 @@ impl<'a> Words<'a> {
         self.words.get(self.at).map(|w| w.1)
     }
 
-    fn expect(&mut self, word: &str) -> Result<(), BvhError> {
+    fn keyword(&mut self, word: &str) -> Result<(), BvhError> {
         let found = self.next(word)?;
         if !found.eq_ignore_ascii_case(word) {
             self.at -= 1;
@@ -136,21 +136,21 @@ const MAX_CHANNELS: usize = 6;
 /// Parses BVH text; errors name `file` and the line.
 pub fn parse(text: &str, file: &Path) -> Result<Motion, BvhError> {
     let mut words = Words::new(text, file);
-    words.expect("HIERARCHY")?;
-    words.expect("ROOT")?;
+    words.keyword("HIERARCHY")?;
+    words.keyword("ROOT")?;
     let mut joints = Vec::new();
     joint(&mut words, None, &mut joints)?;
     if words.peek().is_some_and(|w| w.eq_ignore_ascii_case("ROOT")) {
         return Err(words.error("a second ROOT: umbra reads clips of one skeleton"));
     }
-    words.expect("MOTION")?;
-    words.expect("Frames:")?;
+    words.keyword("MOTION")?;
+    words.keyword("Frames:")?;
     let count = words.number("the frame count")?;
     if count < 1.0 || count.fract() != 0.0 {
         return Err(words.error(format!("Frames: expected a positive whole number, found {count}")));
     }
-    words.expect("Frame")?;
-    words.expect("Time:")?;
+    words.keyword("Frame")?;
+    words.keyword("Time:")?;
     let frame_time = words.number("the frame time")?;
     if frame_time <= 0.0 {
         return Err(words.error(format!("Frame Time: expected seconds > 0, found {frame_time}")));
@@ -182,10 +182,10 @@ fn joint(words: &mut Words, parent: Option<usize>, joints: &mut Vec<Joint>) -> R
     if joints.iter().any(|j: &Joint| j.name == name) {
         return Err(words.error(format!("a second joint named {name:?}")));
     }
-    words.expect("{")?;
-    words.expect("OFFSET")?;
+    words.keyword("{")?;
+    words.keyword("OFFSET")?;
     let offset = words.vector("OFFSET")?;
-    words.expect("CHANNELS")?;
+    words.keyword("CHANNELS")?;
     let count = words.number("the channel count")?;
     if !(0.0..=MAX_CHANNELS as f64).contains(&count) || count.fract() != 0.0 {
         return Err(words.error(format!("CHANNELS: expected 0 to {MAX_CHANNELS}, found {count}")));
@@ -206,11 +206,11 @@ fn joint(words: &mut Words, parent: Option<usize>, joints: &mut Vec<Joint>) -> R
             "}" => return Ok(()),
             w if w.eq_ignore_ascii_case("JOINT") => joint(words, Some(index), joints)?,
             w if w.eq_ignore_ascii_case("End") => {
-                words.expect("Site")?;
-                words.expect("{")?;
-                words.expect("OFFSET")?;
+                words.keyword("Site")?;
+                words.keyword("{")?;
+                words.keyword("OFFSET")?;
                 joints[index].end_site = Some(words.vector("End Site OFFSET")?);
-                words.expect("}")?;
+                words.keyword("}")?;
             }
             other => {
                 words.at -= 1;

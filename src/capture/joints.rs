@@ -22,12 +22,7 @@ use std::path::Path;
 
 /// Reads the joint JSON at `file` as a clip.
 pub fn read(file: &Path) -> Result<Motion, SceneError> {
-    let text = crate::files::read_text(file, crate::files::SCENE_BYTES).map_err(|e| SceneError {
-        file: file.to_path_buf(),
-        path: String::new(),
-        message: e.to_string(),
-    })?;
-    let value = crate::scene::json::parse(&text, file)?;
+    let value = crate::scene::json::parse(&crate::scene::read_capped(file)?, file)?;
     let root = At::root(&value, file);
     let frame_time = root.field("frame_time")?.positive_f64()?;
     let joint_nodes = root.field("joints")?.non_empty_array()?;
@@ -56,7 +51,7 @@ pub fn read(file: &Path) -> Result<Motion, SceneError> {
         }
         let mut world = Vec::with_capacity(names.len());
         for (r, p) in rotations.iter().zip(&positions) {
-            let m = rotation(r)?;
+            let m = r.rotation()?;
             world.push(DMat4::from_mat3_translation(m, p.vec3()?));
         }
         worlds.push(world);
@@ -98,26 +93,4 @@ pub fn read(file: &Path) -> Result<Motion, SceneError> {
         })
         .collect();
     Ok(Motion { joints, frame_time, frames })
-}
-
-/// A row-major 3x3 rotation (orthonormal, determinant +1, to 1e-3).
-fn rotation(node: &At) -> Result<DMat3, SceneError> {
-    let rows = node.array()?;
-    if rows.len() != 3 {
-        return Err(node.error(format!("expected a 3x3 rotation (3 rows), found {} rows", rows.len())));
-    }
-    let mut m = [[0.0; 3]; 3];
-    for (r, row) in rows.iter().enumerate() {
-        let cols = row.array()?;
-        if cols.len() != 3 {
-            return Err(row.error(format!("expected 3 numbers in a rotation row, found {}", cols.len())));
-        }
-        for (c, col) in cols.iter().enumerate() {
-            m[r][c] = col.f64()?;
-        }
-    }
-    let matrix = DMat3::from_cols_array_2d(&m).transpose();
-    let as_transform = DMat4::from_mat3(matrix);
-    crate::skeleton::check_rigid(&as_transform, 1e-3).map_err(|why| node.error(format!("not a rotation: {why}")))?;
-    Ok(matrix)
 }

@@ -280,14 +280,17 @@ fn read_motion(options: &ImportOptions) -> Result<(bvh::Motion, PathBuf), Import
 
 /// The capture's units: `--units`, else inferred from the joints' span; said in `report`.
 fn units_of(options: &ImportOptions, motion: &bvh::Motion, report: &mut ImportReport) -> Units {
-    let units = options.units.unwrap_or_else(|| Units::for_extent(joint_extent(motion)));
-    report.assumed.push(match options.units {
-        Some(u) => format!("units: {} (--units)", u.name()),
-        None => {
-            let extent = joint_extent(motion);
-            format!("units: {0} (inferred: the skeleton's joints span {extent:.3} file units, {1:.2} m in {0})", units.name(), extent * units.metres())
-        }
-    });
+    if let Some(u) = options.units {
+        report.assumed.push(format!("units: {} (--units)", u.name()));
+        return u;
+    }
+    let extent = joint_extent(motion);
+    let units = Units::for_extent(extent);
+    report.assumed.push(format!(
+        "units: {0} (inferred: the skeleton's joints span {extent:.3} file units, {1:.2} m in {0})",
+        units.name(),
+        extent * units.metres()
+    ));
     units
 }
 

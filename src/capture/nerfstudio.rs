@@ -21,12 +21,7 @@ pub fn flip_yz() -> DMat4 {
 /// Every image `transforms.json` lists, in order, with its intrinsics, its camera-to-world in
 /// OpenCV axes (capture units), its time, its mask and its split.
 pub fn read(file: &Path) -> Result<Vec<CaptureImage>, SceneError> {
-    let text = crate::files::read_text(file, crate::files::SCENE_BYTES).map_err(|e| SceneError {
-        file: file.to_path_buf(),
-        path: String::new(),
-        message: e.to_string(),
-    })?;
-    let value = crate::scene::json::parse(&text, file)?;
+    let value = crate::scene::json::parse(&crate::scene::read_capped(file)?, file)?;
     let root = At::root(&value, file);
     let dir = file.parent().unwrap_or(Path::new("."));
     let model = match root.opt_field("camera_model")? {

@@ -156,22 +156,9 @@ impl<'a> At<'a> {
 
     /// A row-major 4x4 matrix `[[r0],[r1],[r2],[r3]]` whose last row is `[0, 0, 0, 1]`.
     pub fn mat4(&self) -> Result<DMat4> {
-        let rows = self.array()?;
-        if rows.len() != 4 {
-            return Err(self.error(format!("expected a 4x4 matrix (4 rows), found {} rows", rows.len())));
-        }
-        let mut m = [[0.0f64; 4]; 4];
-        for (r, row) in rows.iter().enumerate() {
-            let cols = row.array()?;
-            if cols.len() != 4 {
-                return Err(row.error(format!("expected 4 numbers in a matrix row, found {}", cols.len())));
-            }
-            for (c, col) in cols.iter().enumerate() {
-                m[r][c] = col.f64()?;
-            }
-        }
+        let m = self.square::<4>()?;
         if (m[3][0].abs() + m[3][1].abs() + m[3][2].abs() + (m[3][3] - 1.0).abs()) > 1e-6 {
-            return Err(rows[3].error(format!("the last row must be [0, 0, 0, 1], found {:?}", m[3])));
+            return Err(self.array()?[3].error(format!("the last row must be [0, 0, 0, 1], found {:?}", m[3])));
         }
         // glam is column-major: column j holds m[0..4][j].
         Ok(DMat4::from_cols_array_2d(&[
@@ -180,6 +167,34 @@ impl<'a> At<'a> {
             [m[0][2], m[1][2], m[2][2], m[3][2]],
             [m[0][3], m[1][3], m[2][3], m[3][3]],
         ]))
+    }
+
+    /// A row-major N x N matrix `[[r0], ...]`, rows as written.
+    fn square<const N: usize>(&self) -> Result<[[f64; N]; N]> {
+        let rows = self.array()?;
+        if rows.len() != N {
+            return Err(self.error(format!("expected a {N}x{N} matrix ({N} rows), found {} rows", rows.len())));
+        }
+        let mut m = [[0.0f64; N]; N];
+        for (r, row) in rows.iter().enumerate() {
+            let cols = row.array()?;
+            if cols.len() != N {
+                return Err(row.error(format!("expected {N} numbers in a matrix row, found {}", cols.len())));
+            }
+            for (c, col) in cols.iter().enumerate() {
+                m[r][c] = col.f64()?;
+            }
+        }
+        Ok(m)
+    }
+
+    /// A row-major 3x3 rotation: orthonormal with determinant +1, both to 1e-3.
+    pub fn rotation(&self) -> Result<glam::DMat3> {
+        let m = glam::DMat3::from_cols_array_2d(&self.square::<3>()?).transpose();
+        if let Err(why) = crate::skeleton::check_rigid(&DMat4::from_mat3(m), 1e-3) {
+            return Err(self.error(format!("not a rotation: {why}")));
+        }
+        Ok(m)
     }
 
     /// A rigid transform: orthonormal rotation with determinant +1, both to 1e-3.

@@ -160,7 +160,7 @@ fn read_message(e: std::io::Error) -> String {
     }
 }
 
-/// Reads a scene's `scene.json` as bounded text (for tools that check a folder is a scene).
+/// Reads a scene's `scene.json`, or another JSON file a capture holds, as bounded text.
 pub fn read_capped(file: &Path) -> Result<String, SceneError> {
     crate::files::read_text(file, crate::files::SCENE_BYTES).map_err(|e| SceneError { file: file.to_path_buf(), path: String::new(), message: read_message(e) })
 }
