@@ -26,6 +26,7 @@ pub mod light;
 pub mod losses;
 pub mod messages;
 pub mod metrics;
+pub mod photo;
 pub mod plot;
 pub mod progress;
 pub mod random;

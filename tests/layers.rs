@@ -9,7 +9,23 @@ use std::path::Path;
 const LAYERS: &[&[&str]] = &[
     // files, validation, geometry, the seeded stream, the format's lights, pictures and tables,
     // the average of any module's parameters
-    &["files", "table", "backend", "scene", "skeleton", "imageio", "random", "light", "geometry", "isosurface", "metrics", "plot", "progress", "averaging"],
+    &[
+        "files",
+        "table",
+        "backend",
+        "scene",
+        "skeleton",
+        "imageio",
+        "photo",
+        "random",
+        "light",
+        "geometry",
+        "isosurface",
+        "metrics",
+        "plot",
+        "progress",
+        "averaging",
+    ],
     // captures as people have them (nerfstudio cameras, BVH motion, photos) into scene/1
     &["capture"],
     // the ray integral of posed Gaussians (both paths pinned together)

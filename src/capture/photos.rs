@@ -94,7 +94,7 @@ pub fn write(images: &[CaptureImage], photos: &Photos, dir: &Path, on: &(dyn Fn(
 }
 
 fn write_one(image: &CaptureImage, photos: &Photos, i: usize, dir: &Path) -> Result<(String, Option<String>), ImportError> {
-    let (colour, alpha) = crate::imageio::read_photo(&image.path)?;
+    let (colour, alpha) = crate::photo::read_photo(&image.path)?;
     let k = &image.intrinsics;
     if (colour.width, colour.height) != (k.width, k.height) {
         return Err(input(&image.path, format!("is {}x{}, its camera ({}) says {}x{}", colour.width, colour.height, image.json_path, k.width, k.height)));

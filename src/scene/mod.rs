@@ -55,7 +55,7 @@ pub struct View {
     pub light: String,
     pub split: Split,
     pub path: PathBuf,
-    pub colour: imageio::Photo,
+    pub colour: crate::photo::Photo,
     pub mask: Option<Mask>,
     pub albedo: Option<RgbImage>,
 }
@@ -486,12 +486,12 @@ fn decode_rgb(p: &Pending, w: usize, h: usize) -> Result<RgbImage, SceneError> {
     Ok(image)
 }
 
-/// A view's colour image, kept compact (`imageio::Photo`).
-fn decode_photo(p: &Pending, w: usize, h: usize) -> Result<imageio::Photo, SceneError> {
+/// A view's colour image, kept compact (`crate::photo::Photo`).
+fn decode_photo(p: &Pending, w: usize, h: usize) -> Result<crate::photo::Photo, SceneError> {
     check_header(p, (w, h))?;
-    let photo = imageio::read_photo_compact(&p.file).map_err(|e| pending_error(p, image_message(e, &p.relative)))?;
+    let photo = crate::photo::read_photo_compact(&p.file).map_err(|e| pending_error(p, image_message(e, &p.relative)))?;
     check_size(p, (photo.width(), photo.height()), (w, h))?;
-    if let imageio::Photo::Linear(image) = &photo {
+    if let crate::photo::Photo::Linear(image) = &photo {
         if image.pixels.iter().any(|px| px.iter().any(|c| !c.is_finite())) {
             return Err(pending_error(p, format!("{} holds a non-finite value", p.relative)));
         }
