@@ -95,9 +95,11 @@ pub enum Command {
         #[arg(long)]
         no_eval: bool,
     },
-    /// Render and score the test images of a fit (novel poses, novel views, relighting by the
-    /// scene's other suns, point lights, uniform light and environment maps, albedo) into
-    /// RUN/renders: PNGs, metrics.csv and metrics.md.
+    /// Render a fit. Without options: its test images rendered and scored (novel poses, novel
+    /// views, relighting by the scene's other lights, albedo) into RUN/renders. With --motion:
+    /// every frame of a clip (BVH or joints.json) driving the fitted bones. With --camera,
+    /// --frame, --orbit, --size or --light: those views of the scene (into --out, default
+    /// RUN/views).
     Render {
         /// The run folder `umbra fit` wrote.
         run: PathBuf,
@@ -107,6 +109,8 @@ pub enum Command {
         /// The tensor backend: `flex` (the default, fast on CPU) or `ndarray`.
         #[arg(long, value_enum, default_value_t = crate::backend::Backend::Flex)]
         backend: crate::backend::Backend,
+        #[command(flatten)]
+        views: RenderViews,
     },
     /// Score a fit: its test images (or training images) rendered and scored (PSNR over the
     /// whole image and the foreground, SSIM, per image and group), the light's error, and the
@@ -166,6 +170,16 @@ pub enum Command {
         /// per frame (orbit_fFFFF.png).
         #[arg(long, value_name = "N", conflicts_with = "camera")]
         orbit: Option<usize>,
+        /// Render at WIDTHxHEIGHT (e.g. 512x512, 1920x1080), the cameras' intrinsics scaled.
+        #[arg(long, value_name = "WxH", value_parser = crate::relight::parse_size)]
+        size: Option<(usize, usize)>,
+        /// Turn the light by DEG degrees about the world's up axis (counter-clockwise seen from
+        /// above): a sun's direction, a point light around the body, an environment map.
+        #[arg(long, value_name = "DEG", default_value_t = 0.0, allow_negative_numbers = true)]
+        rotate: f64,
+        /// Multiply the light's strength (irradiance, intensity, radiance, ambient) by X.
+        #[arg(long, value_name = "X", default_value_t = 1.0)]
+        intensity: f64,
     },
     /// Write RUN/report.html (self-contained: the recovered light against the scene's, stage
     /// times, losses, metrics, renders beside the truth, and a relighting panel: drag the sun or
@@ -332,6 +346,41 @@ pub enum BenchKind {
 }
 
 /// Runs the CLI and returns the process exit code.
+/// The views `umbra render` draws instead of the scored test images.
+#[derive(clap::Args, Debug)]
+pub struct RenderViews {
+    /// A clip to drive the fitted bones: a BVH, or per-frame joint transforms as JSON. Joints
+    /// are matched to bones by name; one PNG per clip frame (fNNNN.png) and animation.png.
+    #[arg(long, value_name = "CLIP")]
+    motion: Option<PathBuf>,
+    /// The clip's length unit (inferred from its skeleton's size when absent).
+    #[arg(long, value_enum, requires = "motion")]
+    units: Option<crate::capture::Units>,
+    /// Cameras to render, by index (default: all; with --motion one, default 0).
+    #[arg(long, value_delimiter = ',')]
+    camera: Option<Vec<usize>>,
+    /// Frames to render, by position in the scene's frames (default: all).
+    #[arg(long, value_delimiter = ',')]
+    frame: Option<Vec<usize>>,
+    /// A turntable of N views around the body (with --motion: a camera going once around every
+    /// N frames).
+    #[arg(long, value_name = "N", conflicts_with = "camera")]
+    orbit: Option<usize>,
+    /// Render at WIDTHxHEIGHT (e.g. 512x512, 1920x1080), the cameras' intrinsics scaled.
+    #[arg(long, value_name = "WxH", value_parser = crate::relight::parse_size)]
+    size: Option<(usize, usize)>,
+    /// A stated light instead of the fitted one: a light of the scene, a light .json or an
+    /// environment .exr.
+    #[arg(long)]
+    light: Option<String>,
+    /// Sky directions per pixel for environment and uniform lights.
+    #[arg(long, default_value_t = crate::scoring::SKY_SAMPLES)]
+    samples: usize,
+    /// The output folder (default: RUN/views; required with --motion).
+    #[arg(long)]
+    out: Option<PathBuf>,
+}
+
 pub fn main() -> i32 {
     let cli = Cli::parse();
     let result = match cli.command {
@@ -344,13 +393,28 @@ pub fn main() -> i32 {
             let seed = seed.or_else(|| resume.then(|| crate::fit::recorded_seed(&out)).flatten()).unwrap_or(0);
             fit(&crate::fit::FitOptions { scene, out, schedule, iterations, seed, resume, force, force_schedule, backend, evaluate: !no_eval })
         }
-        Command::Render { run, scene, backend } => render(&run, scene.as_deref(), backend),
+        Command::Render { run, scene, backend, views } => render(run, scene, backend, views),
         Command::Eval { run, scene, split, backend } => eval(&run, scene.as_deref(), split, backend),
         Command::Ablate { scene, schedules, out, iterations, seed, force, backend } => {
             ablate(&crate::ablate::AblateOptions { scene, schedules, out, iterations, seed, force, backend })
         }
-        Command::Relight { run, light, camera, frame, samples, scene, out, backend, basis, orbit } => {
-            relight(&crate::relight::RelightOptions { run, scene, light, cameras: camera, frames: frame, samples, out, backend, basis, orbit })
+        Command::Relight { run, light, camera, frame, samples, scene, out, backend, basis, orbit, size, rotate, intensity } => {
+            let light = Some(light);
+            relight(&crate::relight::RelightOptions {
+                run,
+                scene,
+                light,
+                cameras: camera,
+                frames: frame,
+                samples,
+                out,
+                backend,
+                basis,
+                orbit,
+                size,
+                rotate,
+                intensity,
+            })
         }
         Command::ExportMesh { run, frame, out, all_frames, scene, backend } => export_mesh(run, frame, out, all_frames, scene, backend),
         Command::Report { run, camera, frame, directions, scene, backend } => {
@@ -530,9 +594,50 @@ fn image_progress(bar: &crate::progress::Progress) -> impl FnMut(crate::messages
     }
 }
 
-fn render(run: &Path, scene: Option<&Path>, backend: crate::backend::Backend) -> Result<(), String> {
+fn render(run: PathBuf, scene: Option<PathBuf>, backend: crate::backend::Backend, views: RenderViews) -> Result<(), String> {
+    let RenderViews { motion, units, camera, frame, orbit, size, light, samples, out } = views;
+    if let Some(motion) = motion {
+        let camera = match camera.as_deref() {
+            None => None,
+            Some([c]) => Some(*c),
+            Some(_) => return Err("--motion renders through one --camera".into()),
+        };
+        if frame.is_some() {
+            return Err("--motion renders every frame of the clip: --frame does not apply".into());
+        }
+        let out = out.ok_or("--motion needs --out DIR: the folder for fNNNN.png and animation.png")?;
+        let options = crate::animate::AnimateOptions { run, scene, motion, units, camera, orbit, light, size, samples, out, backend };
+        let bar = progress_bar(0, "rendering the clip");
+        let animated = crate::animate::animate_run(&options, image_progress(&bar)).map_err(|e| e.to_string())?;
+        bar.finish_and_clear();
+        println!("{}", crate::animate::describe(&animated));
+        return Ok(());
+    }
+    if camera.is_some() || frame.is_some() || orbit.is_some() || size.is_some() || light.is_some() || out.is_some() {
+        let out = Some(out.unwrap_or_else(|| run.join("views")));
+        let rotate = 0.0;
+        let options = crate::relight::RelightOptions {
+            run,
+            scene,
+            light,
+            cameras: camera,
+            frames: frame,
+            samples,
+            out,
+            backend,
+            basis: None,
+            orbit,
+            size,
+            rotate,
+            intensity: 1.0,
+        };
+        return relight(&options);
+    }
+    if units.is_some() {
+        return Err("--units is the unit of a --motion clip".into());
+    }
     let bar = progress_bar(0, "rendering");
-    let evaluation = crate::scoring::render_run(run, scene, backend, image_progress(&bar)).map_err(|e| e.to_string())?;
+    let evaluation = crate::scoring::render_run(&run, scene.as_deref(), backend, image_progress(&bar)).map_err(|e| e.to_string())?;
     bar.finish_and_clear();
     print_evaluation(&evaluation);
     println!("wrote {}", run.join("renders").display());

@@ -2,6 +2,7 @@
 //! shadows by a closed-form ray integral; a staged fit recovers light, ambient and albedo.
 
 pub mod ablate;
+pub mod animate;
 pub mod avatar;
 pub mod averaging;
 pub mod backend;

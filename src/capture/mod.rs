@@ -14,6 +14,7 @@ pub mod export;
 pub mod joints;
 pub mod nerfstudio;
 mod photos;
+pub mod retarget;
 
 pub use distortion::Distortion;
 
@@ -65,7 +66,7 @@ impl Units {
         }
     }
 
-    fn name(self) -> &'static str {
+    pub fn name(self) -> &'static str {
         match self {
             Units::M => "m",
             Units::Cm => "cm",
@@ -338,7 +339,7 @@ fn rows(m: &DMat4) -> Value {
 }
 
 /// The diagonal of the box of the clip's joints in its first frame (file units).
-fn joint_extent(motion: &bvh::Motion) -> f64 {
+pub fn joint_extent(motion: &bvh::Motion) -> f64 {
     let joints = motion.joint_to_world(0);
     let points = joints.iter().map(|m| m.w_axis.truncate());
     let (lo, hi) = points.fold((DVec3::splat(f64::INFINITY), DVec3::splat(f64::NEG_INFINITY)), |(lo, hi), p| (lo.min(p), hi.max(p)));

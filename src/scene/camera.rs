@@ -60,6 +60,13 @@ impl Camera {
         Some(DVec2::new(self.fx * c.x / c.z + self.cx, self.fy * c.y / c.z + self.cy))
     }
 
+    /// The same camera with a `width x height` image: the focal lengths and principal point
+    /// scaled with each side, so every world point lands at the same fraction of the image.
+    pub fn resized(&self, width: usize, height: usize) -> Self {
+        let (sx, sy) = (width as f64 / self.width as f64, height as f64 / self.height as f64);
+        Self { width, height, fx: self.fx * sx, fy: self.fy * sy, cx: self.cx * sx, cy: self.cy * sy, ..self.clone() }
+    }
+
     /// A camera at `eye` looking at `target`, image +Y pointing as close to world -`up` as possible.
     pub fn look_at(name: &str, eye: DVec3, target: DVec3, up: DVec3, width: usize, height: usize, focal: f64) -> Self {
         let forward = (target - eye).normalize();
@@ -82,6 +89,22 @@ mod tests {
         let pixel = cam.pixel_ray(10, 40);
         let p = cam.project(pixel.at(2.5)).unwrap();
         assert!((p - DVec2::new(10.5, 40.5)).length() < 1e-9);
+    }
+
+    #[test]
+    fn a_resized_camera_sees_each_point_at_the_same_fraction_of_its_image() {
+        let mut cam = Camera::look_at("c", DVec3::new(0.3, 1.0, 3.0), DVec3::new(0.0, 1.1, 0.0), DVec3::Y, 64, 48, 80.0);
+        cam.cx = 30.5;
+        cam.fy = 83.0;
+        let big = cam.resized(256, 96);
+        for p in [DVec3::new(0.2, 1.4, 0.1), DVec3::new(-0.4, 0.7, -0.3)] {
+            let (a, b) = (cam.project(p).unwrap(), big.project(p).unwrap());
+            assert!((a.x / 64.0 - b.x / 256.0).abs() < 1e-12 && (a.y / 48.0 - b.y / 96.0).abs() < 1e-12, "{a} {b}");
+        }
+        // The ray through a pixel's centre at the new size is the old one through that place.
+        let ray = big.pixel_ray(100, 40);
+        let old = cam.ray_through(DVec2::new(100.5 * 64.0 / 256.0, 40.5 * 48.0 / 96.0));
+        assert!((ray.direction - old.direction).length() < 1e-12);
     }
 
     #[test]

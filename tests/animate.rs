@@ -1,0 +1,116 @@
+//! A fitted avatar driven by a new motion and rendered at any size: a clip written from the
+//! scene's own frames drives the bones exactly and renders what the scene's poses render; a
+//! clip of another body is retargeted; joints are matched by name; `--size` scales the cameras.
+
+mod common;
+
+use common::{short_run, succeeds, TempDir};
+use glam::DMat4;
+use std::path::Path;
+use umbra::capture::{bvh, retarget};
+use umbra::scene::Scene;
+
+fn max_difference(a: &DMat4, b: &DMat4) -> f64 {
+    (*a - *b).to_cols_array().iter().fold(0.0f64, |m, d| m.max(d.abs()))
+}
+
+/// The scene's frames `chosen` as a centimetre BVH.
+fn clip_of(scene: &Scene, chosen: &[usize]) -> String {
+    let frames: Vec<Vec<DMat4>> = chosen.iter().map(|&f| scene.frames[f].pose.bone_to_world.clone()).collect();
+    bvh::write(&scene.skeleton, &frames, 1.0 / 30.0, 100.0).unwrap()
+}
+
+#[test]
+fn a_clip_written_from_the_scenes_frames_drives_the_bones_exactly() {
+    let scene = Scene::load(&umbra_scene()).unwrap();
+    let all: Vec<usize> = (0..scene.frames.len()).collect();
+    let motion = bvh::parse(&clip_of(&scene, &all), Path::new("clip.bvh")).unwrap();
+    let driven = retarget::drive(&scene.skeleton, &scene.frames[0].pose, &motion, 0.01).unwrap();
+    assert!(driven.direct && driven.unmatched.is_empty());
+    for (pose, frame) in driven.poses.iter().zip(&scene.frames) {
+        for (a, b) in pose.bone_to_world.iter().zip(&frame.pose.bone_to_world) {
+            assert!(max_difference(a, b) < 1e-6, "{a} {b}");
+        }
+    }
+}
+
+/// A shipped scene (the walking human), for its skeleton and poses.
+fn umbra_scene() -> std::path::PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("datasets-synthetic/human-sun-128")
+}
+
+#[test]
+fn a_clip_of_another_body_is_retargeted_and_joints_match_by_plain_name() {
+    let scene = Scene::load(&umbra_scene()).unwrap();
+    let all: Vec<usize> = (0..scene.frames.len()).collect();
+    // The same motion on a body 1.25 times larger, its joints named as a Mixamo export names
+    // them, and one joint no bone is named after.
+    let mut motion = bvh::parse(&clip_of(&scene, &all), Path::new("clip.bvh")).unwrap();
+    for joint in &mut motion.joints {
+        joint.offset *= 1.25;
+        joint.end_site = joint.end_site.map(|e| e * 1.25);
+        joint.name = format!("mixamorig:{}", joint.name.to_uppercase());
+    }
+    for values in &mut motion.frames {
+        values[..3].iter_mut().for_each(|v| *v *= 1.25);
+    }
+    let mut extra = motion.joints[0].clone();
+    extra.name = "prop".into();
+    extra.parent = Some(0);
+    extra.channels.clear();
+    extra.end_site = Some(glam::DVec3::new(0.0, 10.0, 0.0));
+    motion.joints.push(extra);
+    let driven = retarget::drive(&scene.skeleton, &scene.frames[0].pose, &motion, 0.01).unwrap();
+    assert!(!driven.direct);
+    assert_eq!(driven.unmatched, vec!["prop".to_string()]);
+    assert!((driven.scale - 0.8).abs() < 1e-6, "scale {}", driven.scale);
+    // Each bone's head lies where the scene's does (the travel of the larger body scaled
+    // back), and its +Y runs along its bone in the clip: toward its bone child's head (import's
+    // bone rule), a leaf's along the scene's bone (its End Site).
+    for (pose, frame) in driven.poses.iter().zip(&scene.frames) {
+        let heads: Vec<glam::DVec3> = frame.pose.bone_to_world.iter().map(|m| m.w_axis.truncate()).collect();
+        for (b, a) in pose.bone_to_world.iter().enumerate() {
+            assert!(a.w_axis.truncate().distance(heads[b]) < 1e-6, "bone {b}: head");
+            let along = match umbra::capture::bones::bone_child(&motion.joints, b) {
+                Some(c) => (heads[c] - heads[b]).normalize(),
+                None => frame.pose.bone_to_world[b].y_axis.truncate(),
+            };
+            assert!(a.y_axis.truncate().distance(along) < 1e-6, "bone {b}: {} against {along}", a.y_axis);
+        }
+    }
+    // A bone without a joint is refused, naming it.
+    motion.joints[3].name = "elsewhere".into();
+    let error = retarget::drive(&scene.skeleton, &scene.frames[0].pose, &motion, 0.01).err().unwrap();
+    assert!(error.contains(&scene.skeleton.bones[3].name), "{error}");
+}
+
+fn read_png(path: &Path) -> umbra::imageio::RgbImage {
+    umbra::imageio::read_rgb(path).unwrap_or_else(|e| panic!("{}: {e}", path.display()))
+}
+
+#[test]
+fn a_clip_of_the_test_pose_renders_what_the_fit_renders_in_that_pose_at_any_size() {
+    let (dir, scene_dir, run) = short_run("animate");
+    let scene = Scene::load(&scene_dir).unwrap();
+    let test_frame = scene.views.iter().find(|v| v.split == umbra::scene::Split::Test).unwrap().frame;
+    let clip = dir.path().join("clip.bvh");
+    std::fs::write(&clip, clip_of(&scene, &[test_frame, 0])).unwrap();
+    let cwd = std::env::current_dir().unwrap();
+    let (motion_dir, views_dir) = (dir.path().join("motion"), dir.path().join("views"));
+    let path = |p: &Path| p.to_str().unwrap().to_string();
+    let frame = test_frame.to_string();
+    succeeds(&cwd, &["render", &path(&run), "--motion", &path(&clip), "--camera", "1", "--size", "40x32", "--out", &path(&motion_dir)]);
+    succeeds(&cwd, &["render", &path(&run), "--camera", "1", "--frame", &frame, "--size", "40x32", "--out", &path(&views_dir)]);
+    let driven = read_png(&motion_dir.join("f0000.png"));
+    let posed = read_png(&views_dir.join(format!("c01_f{test_frame:04}.png")));
+    assert_eq!((driven.width, driven.height), (40, 32));
+    assert!(motion_dir.join("f0001.png").is_file() && motion_dir.join("animation.png").is_file());
+    let psnr = umbra::metrics::score(&driven, &posed, None).psnr;
+    assert!(psnr >= 35.0, "the clip's render of the test pose against the fit's: {psnr:.2} dB");
+    // A second motion render replaces the first; a folder of someone else's is refused.
+    succeeds(&cwd, &["render", &path(&run), "--motion", &path(&clip), "--size", "16x16", "--out", &path(&motion_dir)]);
+    let theirs = TempDir::new("animate-theirs");
+    std::fs::write(theirs.path().join("notes.txt"), "mine").unwrap();
+    common::fails(&cwd, &["render", &path(&run), "--motion", &path(&clip), "--out", &path(theirs.path())]);
+    assert_eq!(std::fs::read_dir(theirs.path()).unwrap().count(), 1);
+}
