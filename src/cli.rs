@@ -225,6 +225,24 @@ pub enum Command {
         #[arg(long, value_enum, default_value_t = crate::backend::Backend::Flex)]
         backend: crate::backend::Backend,
     },
+    /// Write the fitted shadow Gaussians posed in one frame as a 3D Gaussian splatting PLY
+    /// (x y z, scale_0..2 as logs, rot_0..3, opacity as a logit, f_dc_0..2), for splat viewers.
+    ExportGaussians {
+        /// The run folder `umbra fit` wrote.
+        run: PathBuf,
+        /// The pose: a frame by position in the scene's frames.
+        #[arg(long, default_value_t = 0)]
+        frame: usize,
+        /// The PLY file to write.
+        #[arg(long)]
+        out: PathBuf,
+        /// The scene whose poses to use (default: the run's).
+        #[arg(long)]
+        scene: Option<PathBuf>,
+        /// The tensor backend: `flex` (the default, fast on CPU) or `ndarray`.
+        #[arg(long, value_enum, default_value_t = crate::backend::Backend::Flex)]
+        backend: crate::backend::Backend,
+    },
     /// Fit one scene with several schedules and compare the runs in one table: light error,
     /// PSNR of novel poses, views, relighting and albedo, time and final loss. Writes
     /// OUT/<schedule>/ per run and OUT/ablation.{csv,md,png}.
@@ -417,6 +435,9 @@ pub fn main() -> i32 {
             })
         }
         Command::ExportMesh { run, frame, out, all_frames, scene, backend } => export_mesh(run, frame, out, all_frames, scene, backend),
+        Command::ExportGaussians { run, frame, out, scene, backend } => crate::export::export_gaussians(&run, scene.as_deref(), frame, &out, backend)
+            .map(|count| println!("wrote {count} Gaussians posed in frame {frame} to {}", out.display()))
+            .map_err(|e| e.to_string()),
         Command::Report { run, camera, frame, directions, scene, backend } => {
             report(&crate::report::ReportOptions { run, scene, camera, frame, directions, backend })
         }

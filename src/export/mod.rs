@@ -1,6 +1,9 @@
-//! `umbra export-mesh`: a fitted avatar's surface (`eval::surface_mesh`) in one of its
-//! scene's poses as an OBJ mesh with vertex colours (the fitted albedo, scaled to reflectance
-//! as the renders are) and normals (the SDF's exact gradient).
+//! What leaves umbra: `umbra export-mesh`, a fitted avatar's surface (`eval::surface_mesh`)
+//! in one of its scene's poses as an OBJ mesh with vertex colours (the fitted albedo, scaled to
+//! reflectance as the renders are) and normals (the SDF's exact gradient); `umbra
+//! export-gaussians`, its shadow Gaussians posed in a frame as a splatting PLY (`ply`).
+
+pub mod ply;
 
 use crate::eval::surface_mesh;
 use crate::fit_error::{io, FitError};
@@ -95,4 +98,34 @@ pub fn export_meshes(options: &ExportOptions, mut on: impl FnMut(TrainMessage)) 
         on(TrainMessage::Rendered { done: k + 1, total: targets.len(), name: path.display().to_string(), psnr: None });
     }
     Ok(done)
+}
+
+/// Whether `path` is a file an earlier `export-gaussians` wrote (`ply::PLY_MARK` in its header).
+fn written_by_ply_export(path: &Path) -> bool {
+    use std::io::Read;
+    let mut head = [0u8; 256];
+    let read = std::fs::File::open(path).and_then(|mut f| f.read(&mut head)).unwrap_or(0);
+    path.is_file() && String::from_utf8_lossy(&head[..read]).contains(ply::PLY_MARK)
+}
+
+/// `umbra export-gaussians`: the fitted shadow Gaussians posed in `frame` (a position in the
+/// scene's frames) into `out` as a splatting PLY, written atomically; an existing file is
+/// replaced only when an earlier export wrote it. Returns how many Gaussians.
+pub fn export_gaussians(run: &Path, scene: Option<&Path>, frame: usize, out: &Path, backend: crate::backend::Backend) -> Result<usize, FitError> {
+    let restored = crate::run::restore(run, scene, backend)?;
+    let scene = &restored.scene;
+    if frame >= scene.frames.len() {
+        return Err(FitError::Input(format!("--frame {frame}: out of range, the scene has {} frames", scene.frames.len())));
+    }
+    if out.exists() && !written_by_ply_export(out) {
+        return Err(io(out, "exists and is not a PLY umbra export-gaussians wrote: choose another --out, or move it away (nothing was written)"));
+    }
+    let model = restored.fitted.model.valid();
+    let posed = model.gaussians.to_set().pose(&scene.frames[frame].pose);
+    let casters = model.light.shadow_casters_posed(&posed);
+    if let Some(parent) = out.parent().filter(|p| !p.as_os_str().is_empty()) {
+        std::fs::create_dir_all(parent).map_err(|e| io(parent, e))?;
+    }
+    crate::imageio::write_atomic(out, &ply::ply_bytes(&casters, frame)).map_err(|e| io(out, e))?;
+    Ok(casters.len())
 }

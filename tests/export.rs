@@ -1,0 +1,79 @@
+//! What leaves umbra: the posed shadow Gaussians as a splatting PLY, read back by a reader
+//! written here from the format's description.
+
+mod common;
+
+use common::{short_run, succeeds};
+use glam::{DMat3, DQuat, DVec3};
+use std::path::Path;
+
+/// A binary little-endian PLY of float vertex properties: the property names and the rows.
+fn read_ply(path: &Path) -> (Vec<String>, Vec<Vec<f32>>, String) {
+    let bytes = std::fs::read(path).unwrap();
+    let end = b"end_header\n";
+    let at = bytes.windows(end.len()).position(|w| w == end).unwrap() + end.len();
+    let header = String::from_utf8(bytes[..at].to_vec()).unwrap();
+    let mut lines = header.lines();
+    assert_eq!(lines.next(), Some("ply"));
+    assert_eq!(lines.next(), Some("format binary_little_endian 1.0"));
+    let mut count = 0;
+    let mut names = Vec::new();
+    for line in lines {
+        let words: Vec<&str> = line.split_whitespace().collect();
+        match words.as_slice() {
+            ["element", "vertex", n] => count = n.parse().unwrap(),
+            ["property", "float", name] => names.push(name.to_string()),
+            ["property", ..] => panic!("not a float property: {line}"),
+            _ => {}
+        }
+    }
+    let body = &bytes[at..];
+    assert_eq!(body.len(), count * names.len() * 4, "the body holds exactly the vertices");
+    let rows = body.chunks(names.len() * 4).map(|row| row.chunks(4).map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]])).collect()).collect();
+    (names, rows, header)
+}
+
+#[test]
+fn posed_gaussians_export_as_a_splatting_ply_that_reads_back() {
+    let (dir, scene_dir, run) = short_run("export-gaussians");
+    let cwd = std::env::current_dir().unwrap();
+    let out = dir.path().join("g.ply");
+    succeeds(&cwd, &["export-gaussians", run.to_str().unwrap(), "--frame", "1", "--out", out.to_str().unwrap()]);
+    let (names, rows, header) = read_ply(&out);
+    for name in ["x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"] {
+        assert!(names.iter().any(|n| n == name), "{name} missing from {names:?}");
+    }
+    let col = |name: &str| names.iter().position(|n| n == name).unwrap();
+    // The same Gaussians from the library: posed in frame 1, amplitudes as shadows use them.
+    let restored = umbra::run::restore(&run, None, umbra::backend::Backend::Flex).unwrap();
+    let scene = umbra::scene::Scene::load(&scene_dir).unwrap();
+    let model = &restored.fitted.model;
+    let posed = model.light.shadow_casters_posed(&model.gaussians.to_set().pose(&scene.frames[1].pose));
+    assert_eq!(rows.len(), posed.len());
+    for (row, g) in rows.iter().zip(&posed) {
+        let v = |name: &str| row[col(name)] as f64;
+        assert!(DVec3::new(v("x"), v("y"), v("z")).distance(g.mean) < 1e-5);
+        let scales = DVec3::new(v("scale_0").exp(), v("scale_1").exp(), v("scale_2").exp());
+        assert!((scales - g.scales).abs().max_element() < 1e-5 * g.scales.max_element());
+        // The quaternion's rotation spans the same covariance: R diag(s^2) R^T.
+        let r = DMat3::from_quat(DQuat::from_xyzw(v("rot_1"), v("rot_2"), v("rot_3"), v("rot_0")).normalize());
+        let covariance = |axes: DMat3| axes * DMat3::from_diagonal(g.scales * g.scales) * axes.transpose();
+        let (ours, theirs) = (covariance(r), covariance(g.axes));
+        let gap = (0..3).map(|c| (ours.col(c) - theirs.col(c)).abs().max_element()).fold(0.0, f64::max);
+        assert!(gap < 1e-5 * g.scales.max_element().powi(2), "covariance off by {gap}");
+        // Opacity: the sigmoid of the logit is 1 - exp(-tau), tau through the centre along
+        // the geometric mean of the axes.
+        let tau = g.amplitude * (2.0 * std::f64::consts::PI).sqrt() * (g.scales.x * g.scales.y * g.scales.z).cbrt();
+        let opacity = 1.0 / (1.0 + (-v("opacity")).exp());
+        assert!((opacity - (1.0 - (-tau).exp()).clamp(1e-6, 1.0 - 1e-6)).abs() < 1e-4, "opacity {opacity} for tau {tau}");
+    }
+    assert!(header.contains("comment umbra export-gaussians"));
+    // A second export replaces the first; a file of someone else's is refused and kept.
+    succeeds(&cwd, &["export-gaussians", run.to_str().unwrap(), "--out", out.to_str().unwrap()]);
+    let theirs = dir.path().join("theirs.ply");
+    std::fs::write(&theirs, "ply\nmine\n").unwrap();
+    let error = common::fails(&cwd, &["export-gaussians", run.to_str().unwrap(), "--out", theirs.to_str().unwrap()]);
+    assert!(error.contains("theirs.ply"), "{error}");
+    assert_eq!(std::fs::read_to_string(&theirs).unwrap(), "ply\nmine\n");
+    common::fails(&cwd, &["export-gaussians", run.to_str().unwrap(), "--frame", "99", "--out", dir.path().join("x.ply").to_str().unwrap()]);
+}
