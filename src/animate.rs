@@ -5,14 +5,14 @@
 
 use crate::backend::Backend;
 use crate::capture::retarget::{self, Driven};
-use crate::capture::{bvh, Units};
+use crate::capture::Units;
 use crate::eval::{render_view, Lighting};
 use crate::fit_error::{io, FitError};
 use crate::messages::TrainMessage;
 use crate::scene::{Frame, Scene};
 use burn::module::Module;
 use rayon::prelude::*;
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 
 /// What `umbra render --motion` renders.
 pub struct AnimateOptions {
@@ -46,14 +46,6 @@ pub struct Animated {
     pub unmatched: Vec<String>,
     pub scale: f64,
     pub units: Units,
-}
-
-/// Reads a clip: a BVH, or per-frame joint transforms as JSON.
-pub fn read_clip(file: &Path) -> Result<bvh::Motion, FitError> {
-    match file.extension().is_some_and(|e| e.eq_ignore_ascii_case("json")) {
-        true => crate::capture::joints::read(file).map_err(|e| FitError::Input(e.to_string())),
-        false => bvh::read(file).map_err(|e| FitError::Input(e.to_string())),
-    }
 }
 
 /// The scene with the clip's poses appended as frames (after the scene's own), the camera each
@@ -102,7 +94,7 @@ fn animated_scene(scene: &Scene, driven: &Driven, options: &AnimateOptions) -> R
 pub fn animate_run(options: &AnimateOptions, mut on: impl FnMut(TrainMessage)) -> Result<Animated, FitError> {
     let restored = crate::run::restore(&options.run, options.scene.as_deref(), options.backend)?;
     let scene = &restored.scene;
-    let motion = read_clip(&options.motion)?;
+    let motion = crate::capture::read_clip(&options.motion).map_err(|e| FitError::Input(e.to_string()))?;
     let units = options.units.unwrap_or_else(|| Units::for_extent(crate::capture::joint_extent(&motion)));
     let driven = retarget::drive(&scene.skeleton, &scene.frames[0].pose, &motion, units.metres())
         .map_err(|e| io(&options.motion, format!("{e} (nothing was written)")))?;

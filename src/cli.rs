@@ -225,6 +225,28 @@ pub enum Command {
         #[arg(long, value_enum, default_value_t = crate::backend::Backend::Flex)]
         backend: crate::backend::Backend,
     },
+    /// Write the fitted avatar as a skinned, animated glTF 2.0 binary (.glb): the surface in
+    /// the scene's first frame, a joint per bone with the field's skinning weights, vertex
+    /// colours from the albedo, animated by the scene's frames or --motion.
+    ExportAvatar {
+        /// The run folder `umbra fit` wrote.
+        run: PathBuf,
+        /// The .glb file to write.
+        #[arg(long)]
+        out: PathBuf,
+        /// A clip (BVH or joints.json) to animate with instead of the scene's frames.
+        #[arg(long, value_name = "CLIP")]
+        motion: Option<PathBuf>,
+        /// The clip's length unit (inferred from its skeleton's size when absent).
+        #[arg(long, value_enum, requires = "motion")]
+        units: Option<crate::capture::Units>,
+        /// The scene whose poses to use (default: the run's).
+        #[arg(long)]
+        scene: Option<PathBuf>,
+        /// The tensor backend: `flex` (the default, fast on CPU) or `ndarray`.
+        #[arg(long, value_enum, default_value_t = crate::backend::Backend::Flex)]
+        backend: crate::backend::Backend,
+    },
     /// Write the fitted shadow Gaussians posed in one frame as a 3D Gaussian splatting PLY
     /// (x y z, scale_0..2 as logs, rot_0..3, opacity as a logit, f_dc_0..2), for splat viewers.
     ExportGaussians {
@@ -364,6 +386,17 @@ pub enum BenchKind {
 }
 
 /// Runs the CLI and returns the process exit code.
+fn print_avatar(out: &Path, e: &crate::export::AvatarExported) {
+    println!("wrote {}: {} vertices, {} triangles, {} joints, {} animation frames", out.display(), e.vertices, e.triangles, e.bones, e.frames);
+    if let Some((frame, s)) = e.skin_check {
+        println!(
+            "skinning check in frame {frame}: the skinned mesh lies {:.1} mm (mean) from the surface meshed in that frame, which lies {:.1} mm from it",
+            s.accuracy * 1e3,
+            s.completeness * 1e3
+        );
+    }
+}
+
 /// The views `umbra render` draws instead of the scored test images.
 #[derive(clap::Args, Debug)]
 pub struct RenderViews {
@@ -435,6 +468,10 @@ pub fn main() -> i32 {
             })
         }
         Command::ExportMesh { run, frame, out, all_frames, scene, backend } => export_mesh(run, frame, out, all_frames, scene, backend),
+        Command::ExportAvatar { run, out, motion, units, scene, backend } => {
+            let options = crate::export::AvatarOptions { run, scene, motion, units, out: out.clone(), backend };
+            crate::export::export_avatar(&options).map(|e| print_avatar(&out, &e)).map_err(|e| e.to_string())
+        }
         Command::ExportGaussians { run, frame, out, scene, backend } => crate::export::export_gaussians(&run, scene.as_deref(), frame, &out, backend)
             .map(|count| println!("wrote {count} Gaussians posed in frame {frame} to {}", out.display()))
             .map_err(|e| e.to_string()),

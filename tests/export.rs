@@ -77,3 +77,71 @@ fn posed_gaussians_export_as_a_splatting_ply_that_reads_back() {
     assert_eq!(std::fs::read_to_string(&theirs).unwrap(), "ply\nmine\n");
     common::fails(&cwd, &["export-gaussians", run.to_str().unwrap(), "--frame", "99", "--out", dir.path().join("x.ply").to_str().unwrap()]);
 }
+
+/// A GLB's JSON chunk and binary chunk.
+fn read_glb(path: &Path) -> (serde_json::Value, Vec<u8>) {
+    let bytes = std::fs::read(path).unwrap();
+    let word = |at: usize| u32::from_le_bytes([bytes[at], bytes[at + 1], bytes[at + 2], bytes[at + 3]]) as usize;
+    assert_eq!(&bytes[..4], b"glTF");
+    assert_eq!(word(4), 2, "version 2");
+    assert_eq!(word(8), bytes.len(), "the header's length is the file's");
+    let json_length = word(12);
+    assert_eq!(&bytes[16..20], b"JSON");
+    assert_eq!(json_length % 4, 0);
+    let document = serde_json::from_slice(&bytes[20..20 + json_length]).unwrap();
+    let at = 20 + json_length;
+    assert_eq!(&bytes[at + 4..at + 8], b"BIN\0");
+    let bin = bytes[at + 8..at + 8 + word(at)].to_vec();
+    assert_eq!(at + 8 + bin.len(), bytes.len());
+    (document, bin)
+}
+
+/// Accessor `k`'s floats.
+fn floats(document: &serde_json::Value, bin: &[u8], k: usize) -> Vec<f32> {
+    let accessor = &document["accessors"][k];
+    assert_eq!(accessor["componentType"], 5126);
+    let view = &document["bufferViews"][accessor["bufferView"].as_u64().unwrap() as usize];
+    let (offset, length) = (view["byteOffset"].as_u64().unwrap() as usize, view["byteLength"].as_u64().unwrap() as usize);
+    bin[offset..offset + length].chunks(4).map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]])).collect()
+}
+
+#[test]
+fn the_avatar_exports_as_a_skinned_animated_gltf_binary() {
+    let (dir, scene_dir, run) = short_run("export-avatar");
+    let cwd = std::env::current_dir().unwrap();
+    let out = dir.path().join("avatar.glb");
+    succeeds(&cwd, &["export-avatar", run.to_str().unwrap(), "--out", out.to_str().unwrap()]);
+    let (document, bin) = read_glb(&out);
+    let scene = umbra::scene::Scene::load(&scene_dir).unwrap();
+    let bones = scene.skeleton.len();
+    assert_eq!(document["asset"]["version"], "2.0");
+    assert_eq!(document["skins"].as_array().unwrap().len(), 1);
+    assert_eq!(document["skins"][0]["joints"].as_array().unwrap().len(), bones);
+    assert_eq!(document["animations"].as_array().unwrap().len(), 1);
+    // Every joint's translation and rotation animated over every frame of the scene.
+    let channels = document["animations"][0]["channels"].as_array().unwrap();
+    assert_eq!(channels.len(), 2 * bones);
+    let sampler = &document["animations"][0]["samplers"][0];
+    let times = floats(&document, &bin, sampler["input"].as_u64().unwrap() as usize);
+    assert_eq!(times.len(), scene.frames.len());
+    assert!(times.windows(2).all(|w| w[1] > w[0]), "times increase: {times:?}");
+    // The inverse bind matrices undo the first frame's bones.
+    let ibm = floats(&document, &bin, document["skins"][0]["inverseBindMatrices"].as_u64().unwrap() as usize);
+    for (b, m) in scene.frames[0].pose.bone_to_world.iter().enumerate() {
+        let product = *m * glam::DMat4::from_cols_array(&std::array::from_fn(|i| ibm[16 * b + i] as f64));
+        assert!(product.abs_diff_eq(glam::DMat4::IDENTITY, 1e-4), "bone {b}: {product}");
+    }
+    // Per vertex four weights summing to 1, and a unit normal.
+    let attributes = &document["meshes"][0]["primitives"][0]["attributes"];
+    let weights = floats(&document, &bin, attributes["WEIGHTS_0"].as_u64().unwrap() as usize);
+    let normals = floats(&document, &bin, attributes["NORMAL"].as_u64().unwrap() as usize);
+    assert!(!weights.is_empty() && weights.len() % 4 == 0);
+    assert!(weights.chunks(4).all(|w| (w.iter().sum::<f32>() - 1.0).abs() < 1e-5 && w.iter().all(|&v| v >= 0.0)));
+    assert!(normals.chunks(3).all(|n| ((n[0] * n[0] + n[1] * n[1] + n[2] * n[2]).sqrt() - 1.0).abs() < 1e-4));
+    // Its own earlier export is replaced; someone else's file is refused and kept.
+    succeeds(&cwd, &["export-avatar", run.to_str().unwrap(), "--out", out.to_str().unwrap()]);
+    let theirs = dir.path().join("theirs.glb");
+    std::fs::write(&theirs, "glTF mine").unwrap();
+    common::fails(&cwd, &["export-avatar", run.to_str().unwrap(), "--out", theirs.to_str().unwrap()]);
+    assert_eq!(std::fs::read_to_string(&theirs).unwrap(), "glTF mine");
+}

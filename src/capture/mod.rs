@@ -272,11 +272,16 @@ fn read_motion(options: &ImportOptions) -> Result<(bvh::Motion, PathBuf), Import
         None if capture.join("joints.json").is_file() && only_file(capture, "bvh", "motion").is_err() => capture.join("joints.json"),
         None => only_file(capture, "bvh", "motion")?,
     };
-    let motion = match file.extension().is_some_and(|e| e.eq_ignore_ascii_case("json")) {
-        true => joints::read(&file)?,
-        false => bvh::read(&file)?,
-    };
-    Ok((motion, file))
+    Ok((read_clip(&file)?, file))
+}
+
+/// Reads a clip: a BVH, or per-frame joint transforms as JSON (`joints`) when its name ends
+/// in `.json`.
+pub fn read_clip(file: &Path) -> Result<bvh::Motion, ImportError> {
+    Ok(match file.extension().is_some_and(|e| e.eq_ignore_ascii_case("json")) {
+        true => joints::read(file)?,
+        false => bvh::read(file)?,
+    })
 }
 
 /// The capture's units: `--units`, else inferred from the joints' span; said in `report`.

@@ -39,25 +39,8 @@ fn vertex(g: &PosedGaussian) -> [f32; 17] {
     let axes = if g.axes.determinant() < 0.0 { DMat3::from_cols(g.axes.x_axis, g.axes.y_axis, -g.axes.z_axis) } else { g.axes };
     let q = DQuat::from_mat3(&axes).normalize();
     let s = g.scales.max(glam::DVec3::splat(f64::MIN_POSITIVE));
-    let v = [
-        g.mean.x,
-        g.mean.y,
-        g.mean.z,
-        0.0,
-        0.0,
-        0.0,
-        0.0,
-        0.0,
-        0.0,
-        opacity_logit(splat_optical_depth(g)),
-        s.x.ln(),
-        s.y.ln(),
-        s.z.ln(),
-        q.w,
-        q.x,
-        q.y,
-        q.z,
-    ];
+    let v =
+        [g.mean.x, g.mean.y, g.mean.z, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, opacity_logit(splat_optical_depth(g)), s.x.ln(), s.y.ln(), s.z.ln(), q.w, q.x, q.y, q.z];
     v.map(|x| x as f32)
 }
 

@@ -134,6 +134,17 @@ struct Scratch {
     weights: Vec<(f32, [f32; 3])>,
 }
 
+/// The weights the grid field blends its bones' features with at `point` (the root's learned
+/// preference aside): a softmax of the skinning's logits over the `top` nearest bones, as
+/// `(bone, weight)` ascending by bone.
+pub fn skinning_weights(config: &GridConfig, frames: &[BoneFrame], skinning: Skinning, point: [f32; 3]) -> Vec<(usize, f32)> {
+    let mut scratch = Scratch::default();
+    let skin = skin_point(config, frames, skinning, point, &mut scratch, false);
+    let chosen = &scratch.all;
+    let sum: f32 = (0..chosen.len()).map(|j| skin.logits[j].exp()).sum();
+    chosen.iter().enumerate().map(|(j, a)| (a.bone, skin.logits[j].exp() / sum)).collect()
+}
+
 /// Softmax weights of logits `sharpness d2` over `(d2, gradient of d2)` pairs, with the
 /// weights' world gradients `w_j (d logit_j - sum_k w_k d logit_k)`, into `out`.
 fn softmax_with_gradient(out: &mut Vec<(f32, [f32; 3])>, terms: impl Iterator<Item = (f32, [f32; 3])>, sharpness: f32) {

@@ -422,6 +422,20 @@ impl AvatarField {
         (sdf, gradient)
     }
 
+    /// The skinning weights at world point `point` in the pose of `frames`, as `(bone, weight)`:
+    /// the grid's (`lookup::skinning_weights`), or for a field without grids the softmax of the
+    /// skinning's logits over every bone.
+    pub fn skinning_weights(&self, frames: &[crate::skeleton::BoneFrame], point: [f32; 3]) -> Vec<(usize, f32)> {
+        let skinning = self.config.skinning();
+        if let Some(grid) = &self.grid {
+            return lookup::skinning_weights(&grid.config, frames, skinning, point);
+        }
+        let logits: Vec<f32> = frames.iter().map(|f| f.distance_squared(point) * skinning.sharpness).collect();
+        let max = logits.iter().copied().fold(f32::NEG_INFINITY, f32::max);
+        let sum: f32 = logits.iter().map(|l| (l - max).exp()).sum();
+        logits.iter().enumerate().map(|(b, l)| (b, (l - max).exp() / sum)).collect()
+    }
+
     /// The decoder's input `[N, F]` and the capsule prior SDF `[N]` of world points in a pose,
     /// by the field's encoding, with their derivatives along the world axes (`[3N, F]`
     /// axis-major and `[3, N]`) when `tangents` says.
