@@ -732,12 +732,14 @@ fn eval(run: &Path, scene: Option<&Path>, split: EvalSplit, backend: crate::back
     for frame in evaluation["geometry"].as_array().into_iter().flatten() {
         let mm = |k: &str| frame[k].as_f64().unwrap_or(f64::NAN) * 1e3;
         println!(
-            "geometry, frame {}: accuracy {:.2} mm, completeness {:.2} mm, Chamfer {:.2} mm, normal angle {:.2} degrees",
+            "geometry, frame {}: accuracy {:.2} mm, completeness {:.2} mm, Chamfer {:.2} mm, normal angle {:.2} degrees, {:.1}% within 2 cm, {}",
             frame["frame"],
             mm("accuracy"),
             mm("completeness"),
             mm("chamfer"),
-            frame["normal_angle"].as_f64().unwrap_or(f64::NAN)
+            frame["normal_angle"].as_f64().unwrap_or(f64::NAN),
+            frame["within_2cm"].as_f64().unwrap_or(f64::NAN) * 100.0,
+            if frame["closed"].as_bool() == Some(true) { "closed" } else { "not closed" }
         );
     }
     println!("wrote {} (metrics.json, metrics.md, metrics.csv, compare.png)", dir.display());
@@ -861,12 +863,15 @@ fn print_evaluation(evaluation: &serde_json::Value) {
         (!values.is_empty()).then(|| values.iter().sum::<f64>() / values.len() as f64)
     };
     if let (Some(accuracy), Some(completeness), Some(chamfer)) = (mean("accuracy"), mean("completeness"), mean("chamfer")) {
+        let closed = frames.iter().filter(|f| f["closed"].as_bool() == Some(true)).count();
         println!(
-            "surface against the scene's meshes ({} frames): accuracy {:.1} mm, completeness {:.1} mm, Chamfer {:.1} mm",
+            "surface against the scene's meshes ({} frames): accuracy {:.1} mm, completeness {:.1} mm, Chamfer {:.1} mm, {:.1}% within 2 cm, {closed} of {} closed",
             frames.len(),
             accuracy * 1e3,
             completeness * 1e3,
-            chamfer * 1e3
+            chamfer * 1e3,
+            mean("within_2cm").unwrap_or(f64::NAN) * 100.0,
+            frames.len()
         );
     }
 }

@@ -793,6 +793,24 @@ pub fn surface_mesh(
 }
 
 /// A tensor's values, which must number `expected`.
+/// The fitted surface in `scene`'s frame `frame` (`surface_mesh`, colours times `scale`), cut
+/// to the frame's visual hull (`carve`): the mesh, its colours and normals, and what the cut
+/// removed.
+pub fn frame_surface(
+    model: &Avatar,
+    scene: &Scene,
+    frame: usize,
+    scale: DVec3,
+    device: &Device,
+) -> Result<(Mesh, Vec<DVec3>, Vec<DVec3>, crate::carve::Carved), FitError> {
+    let pose = &scene.frames[frame].pose;
+    let tensors = PoseTensors::new(pose, &scene.skeleton, device);
+    let (mesh, colours, normals) = surface_mesh(model, &tensors, pose.bounds(&scene.skeleton), scene.body_extent(), scale, device)?;
+    let carved = crate::carve::carve(&mesh, scene, frame);
+    let (colours, normals) = (carved.keep(&colours), carved.keep(&normals));
+    Ok((carved.mesh.clone(), colours, normals, carved))
+}
+
 fn read<const D: usize>(values: Tensor<D>, expected: usize) -> Result<Vec<f32>, FitError> {
     let values = values.into_data().convert::<f32>().try_to_vec::<f32>().map_err(|e| FitError::Input(format!("reading the field's output: {e:?}")))?;
     if values.len() != expected {

@@ -22,7 +22,12 @@ pub struct GeometryScores {
     pub chamfer: f64,
     /// Mean angle (degrees) between fitted normals and the truth's nearest triangle's normal.
     pub normal_angle: f64,
+    /// The share of the fitted surface (by area) within `CLOSE` of the truth.
+    pub within_2cm: f64,
 }
+
+/// The distance (m) within which the fitted surface counts as on the truth (`within_2cm`).
+pub const CLOSE: f64 = 0.02;
 
 /// The largest OBJ read (a ground-truth body of a million triangles is about 60 MB).
 pub const OBJ_BYTES: u64 = 256 << 20;
@@ -212,14 +217,17 @@ pub fn compare(fitted: &Mesh, truth: &Mesh, n: usize, seed: u64) -> Option<Geome
     let (truth_index, fitted_index) = (Index::new(truth, cell(truth)), Index::new(fitted, cell(fitted)));
     let mut accuracy = 0.0;
     let mut angle = 0.0;
+    let mut close = 0usize;
     for s in &on_fitted {
         let (d, t) = truth_index.nearest(s.point);
         accuracy += d;
+        close += usize::from(d <= CLOSE);
         angle += triangle_normal(fitted, s.triangle).dot(triangle_normal(truth, t)).clamp(-1.0, 1.0).acos().to_degrees();
     }
     let completeness: f64 = on_truth.iter().map(|s| fitted_index.nearest(s.point).0).sum();
     let (accuracy, completeness) = (accuracy / n as f64, completeness / n as f64);
-    Some(GeometryScores { accuracy, completeness, chamfer: 0.5 * (accuracy + completeness), normal_angle: angle / n as f64 })
+    let within_2cm = close as f64 / n as f64;
+    Some(GeometryScores { accuracy, completeness, chamfer: 0.5 * (accuracy + completeness), normal_angle: angle / n as f64, within_2cm })
 }
 
 #[cfg(test)]

@@ -9,6 +9,7 @@ pub mod backend;
 pub mod basis;
 pub mod bench;
 pub mod capture;
+pub mod carve;
 pub mod cli;
 pub mod environment;
 pub mod error_map;

@@ -167,16 +167,18 @@ pub fn evaluate_split(scene: &Scene, fitted: &Fitted, dir: &Path, split: Split, 
     let light = light_error(scene, fitted.fit_light, 0, &model.light.report());
     let mut markdown = metrics_markdown(&rows, &groups);
     if let Some(frames) = geometry.as_array().filter(|f| !f.is_empty()) {
-        markdown += "\n## Geometry against the scene's meshes\n\n| frame | accuracy (mm) | completeness (mm) | Chamfer (mm) | normal angle (deg) |\n|---|---|---|---|---|\n";
+        markdown += "\n## Geometry against the scene's meshes\n\n| frame | accuracy (mm) | completeness (mm) | Chamfer (mm) | normal angle (deg) | within 2 cm | closed |\n|---|---|---|---|---|---|---|\n";
         for f in frames {
             let mm = |key: &str| f[key].as_f64().map(|v| format!("{:.2}", v * 1e3)).unwrap_or_else(|| "-".into());
             markdown += &format!(
-                "| {} | {} | {} | {} | {:.2} |\n",
+                "| {} | {} | {} | {} | {:.2} | {:.1}% | {} |\n",
                 f["frame"],
                 mm("accuracy"),
                 mm("completeness"),
                 mm("chamfer"),
-                f["normal_angle"].as_f64().unwrap_or(f64::NAN)
+                f["normal_angle"].as_f64().unwrap_or(f64::NAN),
+                f["within_2cm"].as_f64().unwrap_or(f64::NAN) * 100.0,
+                if f["closed"].as_bool() == Some(true) { "yes" } else { "no" }
             );
         }
     }
@@ -241,7 +243,6 @@ fn geometry_scores(
     device: &burn::tensor::Device,
     on: &mut impl FnMut(TrainMessage),
 ) -> Result<serde_json::Value, FitError> {
-    let extent = scene.body_extent();
     let with_meshes: Vec<usize> = (0..scene.frames.len()).filter(|&f| scene.frames[f].mesh.is_some()).collect();
     // Evenly spread, at most GEOMETRY_FRAMES: meshing every frame of a long capture took longer
     // than its training.
@@ -253,10 +254,13 @@ fn geometry_scores(
         let frame = &scene.frames[position];
         let Some(path) = &frame.mesh else { continue };
         let truth = crate::geometry::load_obj(path).map_err(|e| io(path, e))?;
-        let pose = crate::skeleton::PoseTensors::new(&frame.pose, &scene.skeleton, device);
-        let (fitted, _, _) = crate::eval::surface_mesh(model, &pose, frame.pose.bounds(&scene.skeleton), extent, albedo_scale, device)?;
+        let (fitted, _, _, _) = crate::eval::frame_surface(model, scene, position, albedo_scale, device)?;
         let scores = crate::geometry::compare(&fitted, &truth, GEOMETRY_SAMPLES, position as u64);
-        out.push(json!({"frame": position, "index": frame.index, "mesh": path, "accuracy": scores.map(|s| s.accuracy), "completeness": scores.map(|s| s.completeness), "chamfer": scores.map(|s| s.chamfer), "normal_angle": scores.map(|s| s.normal_angle)}));
+        out.push(json!({
+            "frame": position, "index": frame.index, "mesh": path, "accuracy": scores.map(|s| s.accuracy), "completeness": scores.map(|s| s.completeness),
+            "chamfer": scores.map(|s| s.chamfer), "normal_angle": scores.map(|s| s.normal_angle), "within_2cm": scores.map(|s| s.within_2cm),
+            "closed": fitted.is_closed_manifold(),
+        }));
     }
     Ok(json!(out))
 }

@@ -145,3 +145,35 @@ fn the_avatar_exports_as_a_skinned_animated_gltf_binary() {
     common::fails(&cwd, &["export-avatar", run.to_str().unwrap(), "--out", theirs.to_str().unwrap()]);
     assert_eq!(std::fs::read_to_string(&theirs).unwrap(), "glTF mine");
 }
+
+/// A sphere meshed on a grid of `cell`.
+fn sphere(centre: DVec3, radius: f64, cell: f64) -> umbra::isosurface::Mesh {
+    use umbra::isosurface::{bisect, extract, Grid};
+    let grid = Grid::covering(centre - DVec3::splat(radius + 2.0 * cell), centre + DVec3::splat(radius + 2.0 * cell), cell);
+    let f = |p: DVec3| (p - centre).length() - radius;
+    let values: Vec<f64> = grid.points().into_iter().map(f).collect();
+    extract(&grid, &values, |c| bisect(c, 30, |points| points.iter().map(|&p| f(p) < 0.0).collect()))
+}
+
+#[test]
+fn carving_keeps_what_lies_inside_every_mask_and_cuts_a_sheet_beside_the_body() {
+    let dir = common::TempDir::new("carve");
+    let scene_dir = common::tiny_synth(dir.path(), umbra::synth::TrainingLight::Sun, 32, 3, vec![umbra::synth::TestKind::Poses], 4);
+    let scene = umbra::scene::Scene::load(&scene_dir).unwrap();
+    let pose = &scene.frames[0].pose;
+    // A small ball at the pelvis (inside every mask), and one a metre beside the body, which
+    // the cameras see outside the masks or not at all.
+    let pelvis = pose.bone_to_world[0].w_axis.truncate();
+    let (body, beside) = (sphere(pelvis, 0.04, 0.01), sphere(pelvis + DVec3::new(1.0, 0.3, 0.0), 0.1, 0.02));
+    let offset = body.vertices.len();
+    let both = umbra::isosurface::Mesh {
+        vertices: body.vertices.iter().chain(&beside.vertices).copied().collect(),
+        triangles: body.triangles.iter().copied().chain(beside.triangles.iter().map(|t| t.map(|v| v + offset))).collect(),
+    };
+    let carved = umbra::carve::carve(&both, &scene, 0);
+    assert!(carved.views >= 3, "every camera's image of frame 0 judged: {}", carved.views);
+    assert_eq!(carved.triangles_cut, beside.triangles.len());
+    assert_eq!(carved.mesh.triangles.len(), body.triangles.len());
+    assert!(carved.kept.iter().all(|&v| v < offset), "only the ball at the pelvis is kept");
+    assert!(carved.mesh.is_closed_manifold());
+}

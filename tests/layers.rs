@@ -46,7 +46,7 @@ const LAYERS: &[&[&str]] = &[
     // the run folder: checkpoints, restore, its lock
     &["run", "run_lock"],
     // after (and around) the fit: read a run, render, score, report
-    &["fit", "scoring", "eval", "relight", "animate", "report", "basis", "export", "ablate"],
+    &["fit", "scoring", "eval", "carve", "relight", "animate", "report", "basis", "export", "ablate"],
     // tools and the command line
     &["synth", "bench", "fuzzing", "cli"],
 ];

@@ -17,6 +17,33 @@ use std::path::Path;
 /// Sky samples per pixel the benchmark renders an environment with (the figure).
 const SKY_SAMPLES: usize = 64;
 
+/// How many times its width and height the size row renders a view at (16x the pixels: a
+/// 128 x 128 capture rendered at 512 x 512).
+const ENLARGE: usize = 4;
+
+/// Seconds for one view in the fitted light at the capture's size and at `ENLARGE` times it.
+fn size_cost(
+    model: &crate::avatar::Avatar,
+    scene: &crate::scene::Scene,
+    camera: usize,
+    frame: usize,
+    device: &burn::tensor::Device,
+    budget: f64,
+) -> (f64, f64) {
+    let fitted = Lighting::Fitted(0);
+    let native = super::time(budget, || {
+        render_view(model, scene, camera, frame, VIEW_SAMPLING, device, &fitted);
+    });
+    let _ = scene.footprint();
+    let mut enlarged_scene = scene.clone();
+    let c = &scene.cameras[camera];
+    enlarged_scene.cameras[camera] = c.resized(c.width * ENLARGE, c.height * ENLARGE);
+    let enlarged = super::time(budget, || {
+        render_view(model, &enlarged_scene, camera, frame, VIEW_SAMPLING, device, &fitted);
+    });
+    (native, enlarged)
+}
+
 /// Measures `run`'s renders; writes `render.{md,csv,png}` into `out`, returns the Markdown.
 pub fn render(run: &Path, out: &Path, quick: bool) -> Result<String, FitError> {
     let restored = crate::run::restore(run, None, Backend::Flex)?;
@@ -75,6 +102,7 @@ pub fn render(run: &Path, out: &Path, quick: bool) -> Result<String, FitError> {
         render_view(&model, scene, c, f, VIEW_SAMPLING, &device, &fitted);
     });
     let together = start.elapsed().as_secs_f64() / views.len().max(1) as f64;
+    let (native, enlarged) = size_cost(&model, scene, camera, frame, &device, budget);
 
     // An area capture's refined pixels with every stratum traced, against the shortcuts every
     // render takes (`eval::Strata`), each view with its albedo as the evaluation renders it.
@@ -106,6 +134,14 @@ pub fn render(run: &Path, out: &Path, quick: bool) -> Result<String, FitError> {
         together / sequential,
         peak_rss_mib().map_or("-".to_string(), |m| format!("{m:.0}"))
     );
+    md += &format!(
+        "\nThe view in the fitted light at {ENLARGE} times its width and height ({} x {}, `--size`): {enlarged:.3} s against {native:.3} s, {:.1}x the time for {}x the pixels.\n",
+        w * ENLARGE,
+        h * ENLARGE,
+        enlarged / native,
+        ENLARGE * ENLARGE
+    );
+    csv_rows.push([format!("fitted light at {ENLARGE}x the side"), format!("{enlarged:.5}"), String::new()]);
     csv_rows.push(["views one after another".into(), format!("{sequential:.5}"), String::new()]);
     csv_rows.push(["views at once".into(), format!("{together:.5}"), String::new()]);
     match strata_times {

@@ -6,7 +6,7 @@
 pub mod gltf;
 pub mod ply;
 
-use crate::eval::surface_mesh;
+use crate::eval::frame_surface;
 use crate::fit_error::{io, FitError};
 use crate::messages::TrainMessage;
 use crate::skeleton::PoseTensors;
@@ -77,13 +77,10 @@ pub fn export_meshes(options: &ExportOptions, mut on: impl FnMut(TrainMessage)) 
     let model = restored.fitted.model.valid();
     let device = restored.fitted.device.clone().without_autodiff();
     let scale = crate::run::albedo_scale(scene, &model);
-    let extent = scene.body_extent();
     on(TrainMessage::Evaluating { images: targets.len() });
     let mut done = Vec::new();
     for (k, (frame, path)) in targets.iter().enumerate() {
-        let pose = &scene.frames[*frame].pose;
-        let (mesh, colours, normals) =
-            surface_mesh(&model, &PoseTensors::new(pose, &scene.skeleton, &device), pose.bounds(&scene.skeleton), extent, scale, &device)?;
+        let (mesh, colours, normals, _) = frame_surface(&model, scene, *frame, scale, &device)?;
         if let Some(parent) = path.parent().filter(|p| !p.as_os_str().is_empty()) {
             std::fs::create_dir_all(parent).map_err(|e| io(parent, e))?;
         }
@@ -166,9 +163,8 @@ fn skin_check(
     device: &burn::tensor::Device,
 ) -> Result<Option<crate::geometry::GeometryScores>, FitError> {
     let pose = &scene.frames[frame].pose;
-    let tensors = PoseTensors::new(pose, &scene.skeleton, device);
     let scale = crate::run::albedo_scale(scene, model);
-    let (meshed, _, _) = surface_mesh(model, &tensors, pose.bounds(&scene.skeleton), scene.body_extent(), scale, device)?;
+    let (meshed, _, _, _) = frame_surface(model, scene, frame, scale, device)?;
     let vertices = gltf::skin_vertices(skinned, &scene.frames[0].pose, pose);
     let posed = crate::isosurface::Mesh { vertices, triangles: skinned.mesh.triangles.clone() };
     Ok(crate::geometry::compare(&posed, &meshed, SKIN_CHECK_SAMPLES, 0))
@@ -213,7 +209,7 @@ pub fn skinned_mesh(model: &crate::avatar::Avatar, scene: &crate::scene::Scene, 
     let bind = &scene.frames[0].pose;
     let tensors = PoseTensors::new(bind, &scene.skeleton, device);
     let scale = crate::run::albedo_scale(scene, model);
-    let (mesh, colours, normals) = surface_mesh(model, &tensors, bind.bounds(&scene.skeleton), scene.body_extent(), scale, device)?;
+    let (mesh, colours, normals, _) = frame_surface(model, scene, 0, scale, device)?;
     let weights = mesh.vertices.iter().map(|v| gltf::four_largest(model.field.skinning_weights(&tensors.frames, v.as_vec3().to_array()))).collect();
     Ok(gltf::SkinnedMesh { mesh, normals, colours, weights })
 }
