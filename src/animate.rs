@@ -6,9 +6,10 @@
 use crate::backend::Backend;
 use crate::capture::retarget::{self, Driven};
 use crate::capture::Units;
-use crate::eval::{render_view, Lighting};
+use crate::eval::Lighting;
 use crate::fit_error::{io, FitError};
 use crate::messages::TrainMessage;
+use crate::relight::ground::Rendered;
 use crate::scene::{Frame, Scene};
 use burn::module::Module;
 use rayon::prelude::*;
@@ -33,6 +34,8 @@ pub struct AnimateOptions {
     pub samples: usize,
     pub out: PathBuf,
     pub backend: Backend,
+    /// Render over a ground that receives the shadow (RGBA PNGs).
+    pub ground: Option<crate::relight::ground::GroundOptions>,
 }
 
 /// The animated PNG a motion render writes; it marks a folder an earlier one wrote.
@@ -120,13 +123,13 @@ pub fn animate_run(options: &AnimateOptions, mut on: impl FnMut(TrainMessage)) -
     let at_once = rayon::current_num_threads().max(1);
     let views: Vec<usize> = (0..total).collect();
     let rendered = views.chunks(at_once).flat_map(|batch| {
-        batch.par_iter().map(|&k| render_view(&model, &animated, cameras[k], frames[k], crate::eval::VIEW_SAMPLING, &device, &lighting)).collect::<Vec<_>>()
+        batch.par_iter().map(|&k| Rendered::view(&model, &animated, (cameras[k], frames[k]), &device, &lighting, options.ground)).collect::<Vec<_>>()
     });
     let mut images = Vec::with_capacity(total);
-    for (k, image) in rendered.enumerate() {
+    for (k, rendered) in rendered.enumerate() {
         let name = format!("f{k:04}.png");
-        crate::run::save_png(&options.out.join(&name), &image)?;
-        images.push(image);
+        rendered.save(&options.out.join(&name))?;
+        images.push(rendered.image);
         on(TrainMessage::Rendered { done: k + 1, total, name, psnr: None });
     }
     let frame_ms = (driven.frame_time * 1000.0).round().clamp(1.0, u16::MAX as f64) as u16;

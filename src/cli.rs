@@ -180,6 +180,8 @@ pub enum Command {
         /// Multiply the light's strength (irradiance, intensity, radiance, ambient) by X.
         #[arg(long, value_name = "X", default_value_t = 1.0)]
         intensity: f64,
+        #[command(flatten)]
+        ground: GroundArgs,
     },
     /// Write RUN/report.html (self-contained: the recovered light against the scene's, stage
     /// times, losses, metrics, renders beside the truth, and a relighting panel: drag the sun or
@@ -430,6 +432,27 @@ pub struct RenderViews {
     /// The output folder (default: RUN/views; required with --motion).
     #[arg(long)]
     out: Option<PathBuf>,
+    #[command(flatten)]
+    ground: GroundArgs,
+}
+
+/// A ground under the avatar that receives its shadow.
+#[derive(clap::Args, Debug)]
+pub struct GroundArgs {
+    /// Add a ground under the avatar that receives its Gaussian shadow, at the lowest point of
+    /// the posed body in each frame; writes RGBA PNGs (alpha: the body's coverage plus the
+    /// shadow's opacity) to composite over a plate.
+    #[arg(long)]
+    ground: bool,
+    /// The ground's height (m, along the world's +Y) instead of the body's lowest point.
+    #[arg(long, value_name = "H", allow_negative_numbers = true)]
+    ground_height: Option<f64>,
+}
+
+impl GroundArgs {
+    fn options(&self) -> Option<crate::relight::ground::GroundOptions> {
+        (self.ground || self.ground_height.is_some()).then_some(crate::relight::ground::GroundOptions { height: self.ground_height })
+    }
 }
 
 pub fn main() -> i32 {
@@ -449,8 +472,9 @@ pub fn main() -> i32 {
         Command::Ablate { scene, schedules, out, iterations, seed, force, backend } => {
             ablate(&crate::ablate::AblateOptions { scene, schedules, out, iterations, seed, force, backend })
         }
-        Command::Relight { run, light, camera, frame, samples, scene, out, backend, basis, orbit, size, rotate, intensity } => {
+        Command::Relight { run, light, camera, frame, samples, scene, out, backend, basis, orbit, size, rotate, intensity, ground } => {
             let light = Some(light);
+            let ground = ground.options();
             relight(&crate::relight::RelightOptions {
                 run,
                 scene,
@@ -465,6 +489,7 @@ pub fn main() -> i32 {
                 size,
                 rotate,
                 intensity,
+                ground,
             })
         }
         Command::ExportMesh { run, frame, out, all_frames, scene, backend } => export_mesh(run, frame, out, all_frames, scene, backend),
@@ -653,7 +678,8 @@ fn image_progress(bar: &crate::progress::Progress) -> impl FnMut(crate::messages
 }
 
 fn render(run: PathBuf, scene: Option<PathBuf>, backend: crate::backend::Backend, views: RenderViews) -> Result<(), String> {
-    let RenderViews { motion, units, camera, frame, orbit, size, light, samples, out } = views;
+    let RenderViews { motion, units, camera, frame, orbit, size, light, samples, out, ground } = views;
+    let ground = ground.options();
     if let Some(motion) = motion {
         let camera = match camera.as_deref() {
             None => None,
@@ -664,14 +690,14 @@ fn render(run: PathBuf, scene: Option<PathBuf>, backend: crate::backend::Backend
             return Err("--motion renders every frame of the clip: --frame does not apply".into());
         }
         let out = out.ok_or("--motion needs --out DIR: the folder for fNNNN.png and animation.png")?;
-        let options = crate::animate::AnimateOptions { run, scene, motion, units, camera, orbit, light, size, samples, out, backend };
+        let options = crate::animate::AnimateOptions { run, scene, motion, units, camera, orbit, light, size, samples, out, backend, ground };
         let bar = progress_bar(0, "rendering the clip");
         let animated = crate::animate::animate_run(&options, image_progress(&bar)).map_err(|e| e.to_string())?;
         bar.finish_and_clear();
         println!("{}", crate::animate::describe(&animated));
         return Ok(());
     }
-    if camera.is_some() || frame.is_some() || orbit.is_some() || size.is_some() || light.is_some() || out.is_some() {
+    if camera.is_some() || frame.is_some() || orbit.is_some() || size.is_some() || light.is_some() || out.is_some() || ground.is_some() {
         let out = Some(out.unwrap_or_else(|| run.join("views")));
         let rotate = 0.0;
         let options = crate::relight::RelightOptions {
@@ -688,6 +714,7 @@ fn render(run: PathBuf, scene: Option<PathBuf>, backend: crate::backend::Backend
             size,
             rotate,
             intensity: 1.0,
+            ground,
         };
         return relight(&options);
     }

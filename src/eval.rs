@@ -250,6 +250,28 @@ pub fn render_view(model: &Avatar, scene: &Scene, camera: usize, frame: usize, s
     render_view_and_albedo(model, scene, camera, frame, samples, device, lighting, None, Strata::Shortcuts).0
 }
 
+/// `render_view` with each pixel's coverage by the body (0 where the image is background):
+/// the image is the body over black, its colour premultiplied by that coverage.
+pub fn render_view_with_coverage(
+    model: &Avatar,
+    scene: &Scene,
+    camera: usize,
+    frame: usize,
+    samples: Sampling,
+    device: &Device,
+    lighting: &Lighting,
+) -> (RgbImage, Vec<f32>) {
+    let layers = render_layers(model, scene, camera, frame, samples, device, lighting, None, Strata::Shortcuts);
+    (layers.image, layers.coverage)
+}
+
+/// A view's render, its albedo when asked, and each pixel's coverage by the body.
+pub struct ViewLayers {
+    pub image: RgbImage,
+    pub albedo: Option<RgbImage>,
+    pub coverage: Vec<f32>,
+}
+
 /// How a view of a capture whose pixels average their area finds the 3 x 3 strata of the pixels
 /// it renders over their area (`needs_area`).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -285,6 +307,23 @@ pub fn render_view_and_albedo(
     albedo_scale: Option<DVec3>,
     strata: Strata,
 ) -> (RgbImage, Option<RgbImage>) {
+    let layers = render_layers(model, scene, camera, frame, samples, device, lighting, albedo_scale, strata);
+    (layers.image, layers.albedo)
+}
+
+/// `render_view_and_albedo` with the coverage (`ViewLayers`).
+#[allow(clippy::too_many_arguments)]
+fn render_layers(
+    model: &Avatar,
+    scene: &Scene,
+    camera: usize,
+    frame: usize,
+    samples: Sampling,
+    device: &Device,
+    lighting: &Lighting,
+    albedo_scale: Option<DVec3>,
+    strata: Strata,
+) -> ViewLayers {
     let camera_index = camera;
     let camera = &scene.cameras[camera];
     let pose = &scene.frames[frame].pose;
@@ -504,15 +543,17 @@ pub fn render_view_and_albedo(
     // At a centre sample the coverage is the chance the ray meets the body: the pixel is its
     // expected value in the image's encoding (`imageio::composite_centre_sample`).
     let pixel = |c: [f32; 3], coverage: f32| if area { c } else { crate::imageio::composite_centre_sample(c, coverage) };
+    let mut coverage = vec![0.0; w * h];
     for (p, traced) in pixels.into_iter().enumerate() {
         if !area || traced.coverage > 0.5 {
             image.pixels[p] = pixel(traced.colour, traced.coverage);
+            coverage[p] = if area { 1.0 } else { traced.coverage };
             if let Some(albedo) = albedo.as_mut() {
                 albedo.pixels[p] = pixel(traced.albedo, traced.coverage);
             }
         }
     }
-    (image, albedo)
+    ViewLayers { image, albedo, coverage }
 }
 
 /// The least fitted albedo (linear, every channel) a centre may have for its shading term, its

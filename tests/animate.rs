@@ -114,3 +114,28 @@ fn a_clip_of_the_test_pose_renders_what_the_fit_renders_in_that_pose_at_any_size
     common::fails(&cwd, &["render", &path(&run), "--motion", &path(&clip), "--out", &path(theirs.path())]);
     assert_eq!(std::fs::read_dir(theirs.path()).unwrap().count(), 1);
 }
+
+#[test]
+fn a_ground_receives_the_shadow_as_rgba_to_composite() {
+    let (dir, _scene, run) = short_run("ground");
+    let cwd = std::env::current_dir().unwrap();
+    let out = dir.path().join("ground");
+    let path = |p: &Path| p.to_str().unwrap().to_string();
+    let sun = dir.path().join("sun.json");
+    // A low sun, so the shadow falls beside the body where the ground shows.
+    std::fs::write(&sun, r#"{"type": "directional", "direction": [1, 0.6, 0.3], "irradiance": [2, 2, 2], "ambient": [0.1, 0.1, 0.1]}"#).unwrap();
+    succeeds(&cwd, &["relight", &path(&run), "--light", &path(&sun), "--camera", "0", "--frame", "0", "--size", "48x48", "--ground", "--out", &path(&out)]);
+    let image = image::open(out.join("c00_f0000.png")).unwrap();
+    assert_eq!(image.color(), image::ColorType::Rgba8, "an RGBA picture to composite");
+    let pixels: Vec<[u8; 4]> = image.to_rgba8().pixels().map(|p| p.0).collect();
+    // Clear ground, body, and shadow: black, partly or wholly opaque, where no body is.
+    assert!(pixels.iter().any(|p| p[3] == 0), "some ground is clear");
+    assert!(pixels.iter().any(|p| p[3] > 0 && p[0..3] == [0, 0, 0]), "some ground is in shadow");
+    assert!(pixels.iter().any(|p| p[3] == 255 && p[0..3] != [0, 0, 0]), "the body is opaque");
+    // Without --ground the picture has no alpha.
+    let plain = dir.path().join("plain");
+    succeeds(&cwd, &["relight", &path(&run), "--light", &path(&sun), "--camera", "0", "--frame", "0", "--out", &path(&plain)]);
+    assert_eq!(image::open(plain.join("c00_f0000.png")).unwrap().color(), image::ColorType::Rgb8);
+    // A visibility basis renders the avatar alone: --ground is refused with it.
+    common::fails(&cwd, &["relight", &path(&run), "--light", &path(&sun), "--basis", "8", "--ground", "--out", &path(&dir.path().join("b"))]);
+}

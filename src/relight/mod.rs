@@ -7,6 +7,7 @@
 mod adjust;
 mod basis_view;
 mod cameras;
+pub mod ground;
 mod sampler;
 
 pub use crate::light::albedo_scale;
@@ -59,6 +60,8 @@ pub struct RelightOptions {
     pub rotate: f64,
     /// Multiply the light's strength by this.
     pub intensity: f64,
+    /// Render over a ground that receives the shadow (RGBA PNGs).
+    pub ground: Option<ground::GroundOptions>,
 }
 
 /// Reads `WxH` (`512x512`, `1920x1080`) as an image size of at least 1 x 1 and at most
@@ -201,6 +204,9 @@ fn check_sampling(options: &RelightOptions, scene: &Scene, cameras: &[usize], li
         if light.is_none() {
             return Err(FitError::Input("--basis relights by a stated light: give --light".into()));
         }
+        if options.ground.is_some() {
+            return Err(FitError::Input("--basis renders the avatar alone: leave out --ground".into()));
+        }
         // A basis holds 4 bytes per drawn pixel and direction.
         let pixels = cameras.iter().map(|&c| scene.cameras[c].width * scene.cameras[c].height).max().unwrap_or(0);
         let bytes = (pixels as f64) * (directions as f64) * 4.0;
@@ -258,9 +264,9 @@ pub fn relight_run(options: &RelightOptions, mut on: impl FnMut(TrainMessage)) -
     let render = |camera: usize, frame: usize| match (options.basis, &light) {
         (Some(directions), Some((light, _))) => {
             let (image, timing) = relight_by_basis(&model, &scene, camera, frame, light, directions, &device);
-            (image, Some(timing))
+            (ground::Rendered { image, rgba: None }, Some(timing))
         }
-        _ => (render_view(&model, &scene, camera, frame, crate::eval::VIEW_SAMPLING, &device, &lighting), None),
+        _ => (ground::Rendered::view(&model, &scene, (camera, frame), &device, &lighting, options.ground), None),
     };
     // Direct renders of as many views at once as there are threads (a basis keeps every thread
     // busy by itself, and its timings must not share the cores).
@@ -270,12 +276,12 @@ pub fn relight_run(options: &RelightOptions, mut on: impl FnMut(TrainMessage)) -
     let mut sheet = RgbImage::new(cell_w * frames.len(), cell_h * cameras.len());
     let mut timings = Vec::new();
     let mut turntables: Vec<Vec<RgbImage>> = vec![Vec::new(); frames.len()];
-    for (done, (&(row, column, camera, frame), (image, timing))) in views.iter().zip(rendered).enumerate() {
+    for (done, (&(row, column, camera, frame), (rendered, timing))) in views.iter().zip(rendered).enumerate() {
         if let Some(mut timing) = timing {
             if timings.is_empty() {
                 // The first view also through the direct estimator, as the reference.
                 let direct = render_view(&model, &scene, camera, frame, crate::eval::VIEW_SAMPLING, &device, &lighting);
-                timing.against_direct = Some(crate::metrics::score(&image, &direct, None));
+                timing.against_direct = Some(crate::metrics::score(&rendered.image, &direct, None));
             }
             timings.push(timing);
         }
@@ -283,10 +289,10 @@ pub fn relight_run(options: &RelightOptions, mut on: impl FnMut(TrainMessage)) -
             Some(_) => format!("orbit{row:03}_f{frame:04}.png"),
             None => format!("c{camera:02}_f{frame:04}.png"),
         };
-        crate::run::save_png(&out.join(&name), &image)?;
-        sheet.blit(&image, column * cell_w, row * cell_h);
+        rendered.save(&out.join(&name))?;
+        sheet.blit(&rendered.image, column * cell_w, row * cell_h);
         if options.orbit.is_some() {
-            turntables[column].push(image);
+            turntables[column].push(rendered.image);
         }
         on(TrainMessage::Rendered { done: done + 1, total, name, psnr: None });
     }

@@ -70,6 +70,22 @@ impl EnvironmentSampler {
         self.directions.is_empty()
     }
 
+    /// `shade` at a point of a surface outside the Gaussians (a ground): every Gaussian may
+    /// shadow it (none is its own), and with no `caster` nothing does.
+    pub fn shade_outside(&self, x: DVec3, n: DVec3, caster: Option<&ShadowCaster>) -> DVec3 {
+        let origin = (x + n * SHADOW_START as f64).as_vec3().to_array();
+        let mut sum = DVec3::ZERO;
+        for (d, weight) in self.directions.iter().zip(&self.weights) {
+            let cosine = n.dot(*d);
+            if cosine <= 0.0 {
+                continue;
+            }
+            let ray = ShadowRay { origin, direction: d.as_vec3().to_array(), t0: 0.0, t1: f32::INFINITY };
+            sum += *weight * cosine * caster.map_or(1.0, |c| c.transmittance(&ray, true) as f64);
+        }
+        sum / (PI * self.len().max(1) as f64)
+    }
+
     /// Outgoing radiance over albedo at each surface point (Lambertian, `1/pi` BRDF):
     /// `(1 / (pi N)) sum_i L_i max(0, n . w_i) T(x, w_i) / p_i`, T from the Gaussians.
     pub fn shade(&self, points: &[DVec3], normals: &[DVec3], casters: &[PosedGaussian]) -> Vec<DVec3> {
