@@ -10,12 +10,14 @@
 use crate::backend::Backend;
 use crate::basis::TransferBasis;
 use crate::fit_error::{io, FitError};
-use crate::imageio::{linear_to_srgb8, RgbImage};
 use crate::light::Light;
 use burn::module::Module;
 use glam::DVec3;
-use serde_json::{json, Value};
+use serde_json::Value;
 use std::path::{Path, PathBuf};
+
+mod panel;
+use panel::{panel_json, PANEL_SCRIPT};
 
 /// What `umbra report` writes about.
 pub struct ReportOptions {
@@ -24,8 +26,8 @@ pub struct ReportOptions {
     /// The view of the relighting panel.
     pub camera: usize,
     pub frame: usize,
-    /// Directions of the panel's visibility basis: 256 (cells 12.7 degrees across) keeps the
-    /// page near 1 MB at 128 x 128.
+    /// Directions of the panel's visibility basis: with 256 (cells 12.7 degrees across) the
+    /// human-sun report, its panel 256 x 256 with the ground, is 8.4 MB.
     pub directions: usize,
     pub backend: Backend,
 }
@@ -54,7 +56,9 @@ pub fn write_report(options: &ReportOptions) -> Result<(PathBuf, PathBuf), FitEr
     let model = restored.fitted.model.valid();
     let device = restored.fitted.device.clone().without_autodiff();
 
-    // The panel: one view's basis, the scene's training sun as the first light.
+    // The panel: one view's basis at PANEL_SIDE or more, the scene's training sun first.
+    let panel_scene = panel_view(scene, options.camera);
+    let scene = &panel_scene;
     let basis = TransferBasis::of_view(&model, scene, options.camera, options.frame, options.directions, &device);
     let camera = &scene.cameras[options.camera];
     let up = crate::relight::world_up(&scene.cameras);
@@ -69,8 +73,18 @@ pub fn write_report(options: &ReportOptions) -> Result<(PathBuf, PathBuf), FitEr
         _ => ((up + camera.camera_to_world.z_axis.truncate() * -0.5).normalize(), DVec3::ONE, DVec3::splat(0.25)),
     };
     let first = basis.relight(&Light::Directional { direction: sun, irradiance, ambient });
-    let skies: Vec<(String, Vec<DVec3>)> = scene.lights.iter().filter_map(|(name, light)| basis.sky_light(light).map(|cells| (name.clone(), cells))).collect();
-    let panel = panel_json(&basis, up, camera.camera_to_world.z_axis.truncate(), sun, irradiance, ambient, &skies, &first);
+    let pose = &scene.frames[options.frame].pose;
+    let (lo, hi) = pose.bounds(&scene.skeleton);
+    let centre = (lo + hi) * 0.5;
+    let turns = |light: &Light| -> Option<Vec<Vec<DVec3>>> {
+        (0..360 / panel::SKY_TURN).map(|k| basis.sky_light(&crate::relight::adjusted(light, (k * panel::SKY_TURN) as f64, 1.0, centre))).collect()
+    };
+    let skies: Vec<(String, Vec<Vec<DVec3>>)> = scene.lights.iter().filter_map(|(name, light)| turns(light).map(|cells| (name.clone(), cells))).collect();
+    let casters = model.light.shadow_casters_posed(&model.gaussians.to_set().pose(pose));
+    let height = crate::relight::ground::lowest_point(&casters);
+    let ground = panel::ground_basis(&basis.directions, camera, &casters, height, centre, scene.body_extent());
+    let forward = camera.camera_to_world.z_axis.truncate();
+    let panel = panel_json(&panel::Panel { basis: &basis, up, forward, sun, irradiance, ambient, skies, ground, first: &first });
 
     let relit_png = crate::imageio::encode_png_rgb(&first).map_err(|e| io(&run.join("report.html"), e))?;
     let relit_path = run.join("report-relit.png");
@@ -87,6 +101,17 @@ pub fn write_report(options: &ReportOptions) -> Result<(PathBuf, PathBuf), FitEr
     crate::imageio::write_atomic(&html_path, html.as_bytes()).map_err(|e| io(&html_path, e))?;
     crate::imageio::write_atomic(&md_path, md.as_bytes()).map_err(|e| io(&md_path, e))?;
     Ok((html_path, md_path))
+}
+
+/// The scene with camera `camera` enlarged by a whole factor until its short side is at least
+/// `panel::PANEL_SIDE` pixels.
+fn panel_view(scene: &crate::scene::Scene, camera: usize) -> crate::scene::Scene {
+    let _ = scene.footprint();
+    let mut enlarged = scene.clone();
+    let c = &scene.cameras[camera];
+    let factor = panel::PANEL_SIDE.div_ceil(c.width.min(c.height).max(1)).max(1);
+    enlarged.cameras[camera] = c.resized(c.width * factor, c.height * factor);
+    enlarged
 }
 
 /// The fit's headline rows: (what, value), the recovered light beside the scene's `truth`.
@@ -200,10 +225,13 @@ fn html_page(name: &str, summary: &[(String, String)], fit: &Value, images: &[(&
         }
     }
     body += r#"<h2>Relight</h2>
-<p>Drag on the image to move the sun (left-right: around, up-down: height), or pick a light.</p>
+<p>Drag on the image to move the sun (left-right: around, up-down: height), or pick a light; turn it about the up axis, scale it, and show the ground that receives the shadow.</p>
 <div><select id="light"><option value="sun">sun</option></select>
-azimuth <input id="azimuth" type="range" min="-180" max="180" step="1">
-elevation <input id="elevation" type="range" min="-10" max="90" step="1"></div>
+azimuth <input id="azimuth" type="range" min="-180" max="180" step="1"> <output id="azimuth-value"></output>
+elevation <input id="elevation" type="range" min="-10" max="90" step="1"> <output id="elevation-value"></output></div>
+<div>turn <input id="turn" type="range" min="-180" max="180" value="0"> <output id="turn-value"></output>
+intensity <input id="intensity" type="range" min="0" max="4" step="0.05" value="1"> <output id="intensity-value"></output>
+<label><input id="ground" type="checkbox"> ground</label></div>
 <canvas id="view" class="px"></canvas>
 <pre id="check"></pre>
 "#;
@@ -213,126 +241,6 @@ elevation <input id="elevation" type="range" min="-10" max="90" step="1"></div>
         panel.to_string().replace("</", "<\\/")
     )
 }
-
-/// The panel's data: the basis as little-endian arrays in base64 (pixel indices u32,
-/// reflectance and normals f32, visibility quantised to u8), the directions, the sun's frame
-/// (up, and azimuth 0 facing the camera), the first sun, the scene's skies per direction, and
-/// the mean 8-bit sRGB of the first sun's image as Rust relit it, for the page to check itself.
-#[allow(clippy::too_many_arguments)]
-fn panel_json(
-    basis: &TransferBasis,
-    up: DVec3,
-    forward: DVec3,
-    sun: DVec3,
-    irradiance: DVec3,
-    ambient: DVec3,
-    skies: &[(String, Vec<DVec3>)],
-    first: &RgbImage,
-) -> Value {
-    let (pixels, reflectance, normals, visibility, coverage) = basis.parts();
-    let u32s: Vec<u8> = pixels.iter().flat_map(|&p| (p as u32).to_le_bytes()).collect();
-    let f32s = |v: &[DVec3]| -> Vec<u8> { v.iter().flat_map(|x| x.as_vec3().to_array()).flat_map(|x| x.to_le_bytes()).collect() };
-    let quantised: Vec<u8> = visibility.iter().map(|&v| (v.clamp(0.0, 1.0) * 255.0).round() as u8).collect();
-    // Azimuth 0 is the side the camera looks from (against its forward axis, made level).
-    let toward_camera = (-forward - up * (-forward).dot(up)).try_normalize().unwrap_or_else(|| up.any_orthonormal_vector());
-    let side = up.cross(toward_camera);
-    let elevation = sun.dot(up).clamp(-1.0, 1.0).asin().to_degrees();
-    let azimuth = sun.dot(side).atan2(sun.dot(toward_camera)).to_degrees();
-    let mut sum = [0.0f64; 3];
-    for &p in pixels {
-        for (c, s) in sum.iter_mut().enumerate() {
-            *s += linear_to_srgb8(first.pixels[p][c]) as f64;
-        }
-    }
-    let mean = sum.map(|s| s / pixels.len().max(1) as f64);
-    let flat = |v: &[DVec3]| -> Vec<f64> { v.iter().flat_map(|x| x.to_array()).collect() };
-    json!({
-        "width": basis.width,
-        "height": basis.height,
-        "pixels": base64(&u32s),
-        "reflectance": base64(&f32s(reflectance)),
-        "normals": base64(&f32s(normals)),
-        "visibility": base64(&quantised),
-        "coverage": base64(&coverage.iter().flat_map(|c| c.to_le_bytes()).collect::<Vec<u8>>()),
-        "directions": flat(&basis.directions),
-        "up": up.to_array(),
-        "toward_camera": toward_camera.to_array(),
-        "side": side.to_array(),
-        "azimuth": azimuth,
-        "elevation": elevation,
-        "irradiance": irradiance.to_array(),
-        "ambient": ambient.to_array(),
-        "skies": skies.iter().map(|(name, cells)| json!({"name": name, "cells": flat(cells)})).collect::<Vec<_>>(),
-        "expected_mean_srgb8": mean,
-    })
-}
-
-/// The page's relighting, the sums of `TransferBasis::relight` over the embedded arrays: a sun
-/// blends the visibility of the directions within one lattice spacing (a tent), a sky sums its
-/// cells' light with exact cosines over pi.
-const PANEL_SCRIPT: &str = r#"
-const D = JSON.parse(document.getElementById('basis').textContent);
-const bytes = b => { const s = atob(b); const a = new Uint8Array(s.length); for (let i = 0; i < s.length; i++) a[i] = s.charCodeAt(i); return a; };
-const pix = new Uint32Array(bytes(D.pixels).buffer), refl = new Float32Array(bytes(D.reflectance).buffer);
-const nrm = new Float32Array(bytes(D.normals).buffer), vis = bytes(D.visibility), dirs = D.directions;
-const K = dirs.length / 3, P = pix.length, spacing = Math.sqrt(4 * Math.PI / K);
-const canvas = document.getElementById('view'); canvas.width = D.width; canvas.height = D.height;
-const cov = new Float32Array(bytes(D.coverage).buffer);
-const srgb = v => { v = Math.min(1, Math.max(0, v)); return v <= 0.0031308 ? 12.92 * v : 1.055 * Math.pow(v, 1 / 2.4) - 0.055; };
-// A pixel is composited as its image stores it (umbra's imageio::composite_centre_sample).
-const srgb8 = (v, a) => Math.round(255 * (a >= 1 ? srgb(v) : a > 0 ? a * srgb(v / a) : 0));
-function draw(values) {
-  const ctx = canvas.getContext('2d'), img = ctx.createImageData(D.width, D.height);
-  for (let i = 3; i < img.data.length; i += 4) img.data[i] = 255;
-  const mean = [0, 0, 0];
-  for (let p = 0; p < P; p++) for (let c = 0; c < 3; c++) { const v = srgb8(values[p * 3 + c], cov[p]); img.data[pix[p] * 4 + c] = v; mean[c] += v / Math.max(P, 1); }
-  ctx.putImageData(img, 0, 0);
-  return mean;
-}
-function sunDirection(az, el) {
-  const a = az * Math.PI / 180, e = el * Math.PI / 180, t = D.toward_camera, s = D.side, u = D.up;
-  return [0, 1, 2].map(c => Math.cos(e) * (Math.cos(a) * t[c] + Math.sin(a) * s[c]) + Math.sin(e) * u[c]);
-}
-function sun(l) {
-  const blend = []; let total = 0;
-  for (let k = 0; k < K; k++) { const c = dirs[3 * k] * l[0] + dirs[3 * k + 1] * l[1] + dirs[3 * k + 2] * l[2];
-    if (c > Math.cos(spacing)) { const w = 1 - Math.acos(Math.min(1, c)) / spacing; blend.push([k, w]); total += w; } }
-  const out = new Float32Array(P * 3);
-  for (let p = 0; p < P; p++) {
-    let v = 0; for (const [k, w] of blend) v += w / total * vis[p * K + k] / 255;
-    const cos = Math.max(0, nrm[3 * p] * l[0] + nrm[3 * p + 1] * l[1] + nrm[3 * p + 2] * l[2]);
-    for (let c = 0; c < 3; c++) out[p * 3 + c] = refl[p * 3 + c] * (D.ambient[c] + D.irradiance[c] * cos * v);
-  }
-  return out;
-}
-function sky(cells) {
-  const out = new Float32Array(P * 3);
-  for (let p = 0; p < P; p++) {
-    const n = [nrm[3 * p], nrm[3 * p + 1], nrm[3 * p + 2]]; const sum = [0, 0, 0];
-    for (let k = 0; k < K; k++) { const v = vis[p * K + k]; if (!v) continue;
-      const w = Math.max(0, n[0] * dirs[3 * k] + n[1] * dirs[3 * k + 1] + n[2] * dirs[3 * k + 2]) * v / 255;
-      for (let c = 0; c < 3; c++) sum[c] += cells[3 * k + c] * w; }
-    for (let c = 0; c < 3; c++) out[p * 3 + c] = refl[p * 3 + c] * sum[c] / Math.PI;
-  }
-  return out;
-}
-const pick = document.getElementById('light'), az = document.getElementById('azimuth'), el = document.getElementById('elevation');
-for (const s of D.skies) { const o = document.createElement('option'); o.value = o.textContent = s.name; pick.appendChild(o); }
-az.value = D.azimuth; el.value = D.elevation;
-function update() {
-  if (pick.value === 'sun') return draw(sun(sunDirection(+az.value, +el.value)));
-  return draw(sky(D.skies.find(s => s.name === pick.value).cells));
-}
-let dragging = false;
-canvas.addEventListener('pointerdown', e => { dragging = true; pick.value = 'sun'; });
-window.addEventListener('pointerup', () => dragging = false);
-canvas.addEventListener('pointermove', e => { if (!dragging) return; const r = canvas.getBoundingClientRect();
-  az.value = 360 * (e.clientX - r.left) / r.width - 180; el.value = 90 - 100 * (e.clientY - r.top) / r.height; update(); });
-for (const x of [pick, az, el]) x.addEventListener('input', update);
-const first = draw(sun(sunDirection(D.azimuth, D.elevation)));
-const off = Math.max(...first.map((m, c) => Math.abs(m - D.expected_mean_srgb8[c])));
-document.getElementById('check').textContent = 'relit in this browser: mean sRGB ' + first.map(m => m.toFixed(2)).join(' ') + '; as umbra relit it: ' + D.expected_mean_srgb8.map(m => m.toFixed(2)).join(' ') + (off < 0.5 ? '; agree' : '; DISAGREE');
-"#;
 
 /// Standard base64 with padding (RFC 4648), for images and arrays embedded in the page.
 pub fn base64(bytes: &[u8]) -> String {
