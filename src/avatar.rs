@@ -62,7 +62,7 @@ pub fn first_non_finite<M: Module>(module: &M) -> Option<String> {
             if self.found.is_some() {
                 return;
             }
-            let values = param.val().into_data().convert::<f32>().try_to_vec::<f32>().unwrap_or_default();
+            let values = crate::backend::host_values(param.val());
             if values.iter().any(|v| !v.is_finite()) {
                 self.found = Some(self.path.iter().filter(|p| !p.is_empty()).cloned().collect::<Vec<_>>().join("."));
             }

@@ -95,7 +95,7 @@ mod tests {
     use burn::tensor::{Device, TensorData};
 
     fn values<M: Module>(module: &M) -> Vec<f32> {
-        flattened(module).into_iter().flat_map(|t| t.into_data().convert::<f32>().try_to_vec::<f32>().unwrap()).collect()
+        flattened(module).into_iter().flat_map(crate::backend::host_values).collect()
     }
 
     fn linear_with(value: f32, device: &Device) -> Linear {

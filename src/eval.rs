@@ -25,7 +25,7 @@ use rayon::prelude::*;
 pub use crate::metrics::psnr_srgb8;
 
 fn values<const D: usize>(t: Tensor<D>) -> Vec<f32> {
-    t.into_data().convert::<f32>().try_to_vec::<f32>().unwrap_or_default()
+    crate::backend::host_values(t)
 }
 
 /// The light a view is rendered in.
@@ -652,8 +652,7 @@ fn strata_from_centres(
             let points: Vec<f32> = chunk.iter().flat_map(|l| l.3.as_vec3().to_array()).collect();
             let points = Tensor::<2>::from_data(TensorData::new(points, [chunk.len(), 3]), device);
             let decoded = model.field.decode(points, pose);
-            let albedo =
-                model.field.albedo_at(&decoded, None).into_data().convert::<f32>().try_to_vec::<f32>().unwrap_or_else(|_| vec![f32::NAN; 3 * chunk.len()]);
+            let albedo = crate::backend::host_values(model.field.albedo_at(&decoded, None));
             albedo.into_iter()
         })
         .collect();
@@ -853,7 +852,7 @@ pub fn frame_surface(
 }
 
 fn read<const D: usize>(values: Tensor<D>, expected: usize) -> Result<Vec<f32>, FitError> {
-    let values = values.into_data().convert::<f32>().try_to_vec::<f32>().map_err(|e| FitError::Input(format!("reading the field's output: {e:?}")))?;
+    let values = crate::backend::to_host(values).map_err(|e| FitError::Input(format!("reading the field's output: {e}")))?;
     if values.len() != expected {
         return Err(FitError::Input(format!("the field returned {} values for {expected}", values.len())));
     }

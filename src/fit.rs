@@ -415,7 +415,7 @@ fn light_path(trainer: &Trainer, history: &[(usize, StepStats)]) -> serde_json::
 /// The fitted field's kind and its VolSDF beta (m): how sharp its surface ended.
 fn field_report(trainer: &Trainer) -> serde_json::Value {
     let Ok(model) = trainer.fitted_model() else { return serde_json::Value::Null };
-    let beta = model.field.beta().into_data().convert::<f32>().try_to_vec::<f32>().ok().and_then(|v| v.first().copied());
+    let beta = Some(crate::backend::host_scalar(model.field.beta())).filter(|b| b.is_finite());
     // Where the training masks put body beyond every bone's grid box (loose clothing), the
     // root's grids reach it: how far from the root's segment, m (null: a body tight on its bones).
     let root = model.field.grid.as_ref().and_then(|g| g.config.root);

@@ -262,7 +262,7 @@ mod learnable {
     use burn::tensor::{Device, Int, Tensor, TensorData};
 
     fn values<const D: usize>(t: Tensor<D>) -> Vec<f64> {
-        t.into_data().convert::<f32>().try_to_vec::<f32>().unwrap_or_default().into_iter().map(f64::from).collect()
+        crate::backend::host_values(t).into_iter().map(f64::from).collect()
     }
 
     impl GaussianParams {

@@ -280,7 +280,7 @@ fn densities(still: &AvatarField, pose: &PoseTensors, origins: &Tensor<2>, direc
     let t = Tensor::<2>::from_data(TensorData::new(t.to_vec(), [r, s]), &origins.device());
     let points = sample_points(origins, directions, &t);
     let decoded = still.decode(points, pose);
-    let density = still.density(decoded.sdf.clone()).into_data().convert::<f32>().try_to_vec::<f32>().unwrap_or_else(|_| vec![0.0; r * s]);
+    let density = crate::backend::host_values(still.density(decoded.sdf.clone()));
     (density, decoded)
 }
 
@@ -295,7 +295,7 @@ fn densities_of(still: &AvatarField, pose: &PoseTensors, all: &RaySet, t: &[f32]
     }
     let samples: Vec<usize> = rays.iter().flat_map(|&i| i * s..(i + 1) * s).collect();
     let decoded = still.decode(points_at(all, t, s, &samples, device), pose);
-    let values = still.density(decoded.sdf.clone()).into_data().convert::<f32>().try_to_vec::<f32>().unwrap_or_else(|_| vec![0.0; rays.len() * s]);
+    let values = crate::backend::host_values(still.density(decoded.sdf.clone()));
     for (j, &i) in rays.iter().enumerate() {
         out[i * s..(i + 1) * s].copy_from_slice(&values[j * s..(j + 1) * s]);
     }
@@ -379,7 +379,7 @@ pub fn composite_albedo(field: &AvatarField, decoded: &Decoded, weights: &Tensor
         return (weights.clone().unsqueeze_dim::<3>(2) * albedo).sum_dim(1).reshape([r, 3]);
     }
     let device = weights.device();
-    let host = weights.clone().into_data().convert::<f32>().try_to_vec::<f32>().unwrap_or_default();
+    let host = crate::backend::host_values(weights.clone());
     let rows: Vec<usize> = (0..r * s).filter(|&k| host.get(k).is_none_or(|&w| w >= floor)).collect();
     if rows.is_empty() {
         return Tensor::zeros([r, 3], &device);
@@ -546,7 +546,7 @@ fn coarse_densities(still: &AvatarField, pose: &PoseTensors, rays: &RaySet, coar
             return;
         }
         let decoded = still.decode(points_at(rays, t, s, samples, device), pose);
-        let host = |v: Tensor<1>| v.into_data().convert::<f32>().try_to_vec::<f32>().unwrap_or_else(|_| vec![f32::NAN; samples.len()]);
+        let host = |v: Tensor<1>| crate::backend::host_values(v);
         let (sdf, sigma) = (host(decoded.sdf.clone()), host(still.density(decoded.sdf.clone())));
         for (j, &k) in samples.iter().enumerate() {
             (density[k], value[k], row[k]) = (sigma[j], sdf[j], decoded_rows + j as u32);
@@ -579,7 +579,7 @@ fn coarse_densities(still: &AvatarField, pose: &PoseTensors, rays: &RaySet, coar
     evaluate(&first, &mut density, &mut value, &mut row);
     let even: Vec<usize> = (0..r).flat_map(|i| (i * s..hidden_from(i, &density, &row)).filter(|k| (k % s) % 4 == 2)).collect();
     evaluate(&even, &mut density, &mut value, &mut row);
-    let beta = still.beta().into_data().convert::<f32>().try_to_vec::<f32>().ok().and_then(|b| b.first().copied()).unwrap_or(f32::NAN);
+    let beta = crate::backend::host_scalar(still.beta());
     // The most a skipped sample's optical depth can be, from a neighbour's SDF value `v` at
     // distance `gap` (VolSDF: density exp(-sdf / beta) / (2 beta) outside the body).
     let bound = |v: f32, gap: f32, delta: f32| {
@@ -689,7 +689,7 @@ pub fn render_still(
             }
             _ => field.albedo_at(&field.decode(points_at(rays, &samples.t, s, &rows, device), pose), None),
         };
-        let values = albedo_rows.into_data().convert::<f32>().try_to_vec::<f32>().unwrap_or_default();
+        let values = crate::backend::host_values(albedo_rows);
         for (j, &k) in rows.iter().enumerate() {
             for c in 0..3 {
                 albedo[3 * (k / s) + c] += weights[k] * values.get(3 * j + c).copied().unwrap_or(0.0);
@@ -713,7 +713,7 @@ pub fn render_still(
         if !carried.is_empty() {
             let points: Vec<f32> = carried.iter().flat_map(|&i| surface[3 * i..3 * i + 3].to_vec()).collect();
             let points = Tensor::<2>::from_data(TensorData::new(points, [carried.len(), 3]), device);
-            let unit = unit_rows(field.sdf_gradient(points, pose, method)).into_data().convert::<f32>().try_to_vec::<f32>().unwrap_or_default();
+            let unit = crate::backend::host_values(unit_rows(field.sdf_gradient(points, pose, method)));
             for (j, &i) in carried.iter().enumerate() {
                 normal[3 * i..3 * i + 3].copy_from_slice(unit.get(3 * j..3 * j + 3).unwrap_or(&[f32::NAN; 3]));
             }

@@ -197,8 +197,8 @@ impl FittedLight {
             LightKind::Point => self.position(),
             LightKind::Uniform => return None,
         };
-        let values = vector.into_data().convert::<f64>().try_to_vec::<f64>().ok()?;
-        Some([*values.first()?, *values.get(1)?, *values.get(2)?])
+        let values = crate::backend::to_host(vector).ok()?;
+        Some([*values.first()?, *values.get(1)?, *values.get(2)?].map(f64::from))
     }
 
     pub fn direction(&self) -> Tensor<1> {
@@ -242,14 +242,14 @@ impl FittedLight {
 
     /// The same for posed Gaussians on the CPU (rendering's sky visibility, the sun search).
     pub fn shadow_casters_posed(&self, posed: &[crate::shadow::PosedGaussian]) -> Vec<crate::shadow::PosedGaussian> {
-        let scale = self.density_scale().into_data().convert::<f64>().try_to_vec::<f64>().ok().and_then(|v| v.first().copied()).unwrap_or(1.0);
+        let scale = crate::backend::host_scalar(self.density_scale()) as f64;
         let per_metre = scale / self.unit as f64;
         posed.iter().map(|g| crate::shadow::PosedGaussian { amplitude: g.amplitude * per_metre, ..*g }).collect()
     }
 
     /// The light as plain numbers for fit.json: direction or position, ambient, intensity.
     pub fn report(&self) -> serde_json::Value {
-        let v = |t: Tensor<1>| t.into_data().convert::<f32>().try_to_vec::<f32>().unwrap_or_default();
+        let v = |t: Tensor<1>| crate::backend::host_values(t);
         let ambient = v(self.ambient());
         match self.kind {
             LightKind::Directional => {

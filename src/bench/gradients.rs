@@ -54,7 +54,7 @@ fn field_with_residual(device: &Device) -> (AvatarField, PoseTensors, Vec<f32>, 
 }
 
 fn gradient_values(field: &AvatarField, pose: &PoseTensors, points: Tensor<2>, method: GradientMethod) -> Vec<f32> {
-    field.sdf_gradient(points, pose, method).into_data().convert::<f32>().try_to_vec::<f32>().unwrap_or_default()
+    crate::backend::host_values(field.sdf_gradient(points, pose, method))
 }
 
 /// Max and median of |g - reference| / max(|reference|, 0.1) over points.

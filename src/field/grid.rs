@@ -48,7 +48,7 @@ pub struct FeatureGrid {
 /// then reports as a non-finite loss rather than a panic).
 fn host_points(points: Tensor<2>) -> (Vec<f32>, usize) {
     let [n, _] = points.dims();
-    (points.into_data().convert::<f32>().try_to_vec::<f32>().unwrap_or_else(|_| vec![f32::NAN; n * 3]), n)
+    (crate::backend::host_values(points), n)
 }
 
 /// What the grid gives a batch of points: features `[N, W]` and the prior `[N]`, with their

@@ -86,8 +86,8 @@ impl Trainer {
             let jitter: Vec<f32> = (0..rays.len() * sampling.draws()).map(|_| self.stream.uniform() as f32).collect();
             let pose_tensors = PoseTensors::new(pose, &self.scene.skeleton, &device);
             let deferred = render(&model.field, &pose_tensors, &rays, sampling, &jitter, Some(self.gradient), &device);
-            let host = |t: Tensor<2>| t.into_data().convert::<f32>().try_to_vec::<f32>().unwrap_or_default();
-            let accumulation = deferred.accumulation.into_data().convert::<f32>().try_to_vec::<f32>().unwrap_or_default();
+            let host = |t: Tensor<2>| crate::backend::host_values(t);
+            let accumulation = crate::backend::host_values(deferred.accumulation);
             let (points, albedo) = (host(deferred.surface), host(deferred.albedo));
             let normals = deferred.normal.map(host).unwrap_or_default();
             let frame = casters.len();

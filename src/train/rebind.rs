@@ -85,7 +85,7 @@ impl Trainer {
             let carried: Vec<f32> = placed.iter().flat_map(|&x| motion.iter().flat_map(move |m| m.transform_point3(x).as_vec3().to_array())).collect();
             let n = carried.len() / 3;
             let points = Tensor::<2>::from_data(TensorData::new(carried, [n, 3]), &self.device);
-            let sdf = model.field.sdf(points, &data.pose_tensors).into_data().convert::<f32>().try_to_vec::<f32>().unwrap_or_default();
+            let sdf = crate::backend::host_values(model.field.sdf(points, &data.pose_tensors));
             for (i, d) in sdf.iter().enumerate() {
                 outside[i / bone_count][i % bone_count] += (*d as f64).max(0.0) / count as f64;
             }

@@ -43,7 +43,7 @@ impl PhaseClock {
 /// The light with its sun direction rotated back onto the cone of half-angle `angle` around
 /// `axis` when a step took it outside (ambient and shadow density untouched).
 fn keep_in_cone(mut light: FittedLight, axis: glam::DVec3, angle: f64, device: &Device) -> FittedLight {
-    let values = light.vector.val().into_data().convert::<f32>().try_to_vec::<f32>().unwrap_or_default();
+    let values = crate::backend::host_values(light.vector.val());
     if values.len() != 3 {
         return light;
     }
@@ -62,7 +62,7 @@ fn keep_in_cone(mut light: FittedLight, axis: glam::DVec3, angle: f64, device: &
 }
 
 fn scalar(t: &Tensor<1>) -> f64 {
-    t.clone().into_data().convert::<f32>().try_to_vec::<f32>().ok().and_then(|v| v.first().copied()).unwrap_or(f32::NAN) as f64
+    crate::backend::host_scalar(t.clone()) as f64
 }
 
 /// The step's losses: name, weight and value, in the order they are summed.
@@ -200,7 +200,7 @@ impl Trainer {
             Some(c) => coverage + c,
             None => coverage,
         };
-        let error = error.into_data().convert::<f32>().try_to_vec::<f32>().unwrap_or_default();
+        let error = crate::backend::host_values(error);
         for (&(v, pixel, _), e) in batch.sources.iter().zip(error) {
             if let Some(map) = self.views.get_mut(v).and_then(|d| d.error_map.as_mut()) {
                 map.record(pixel, e);
