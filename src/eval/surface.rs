@@ -1,0 +1,102 @@
+//! The fitted surface in a pose as a mesh: the SDF sampled on a grid whose cell follows the
+//! body's size, its zero level set by marching tetrahedra (`isosurface`), each crossing bisected
+//! on the field, and that mesh in a scene's frame cut to the frame's visual hull (`carve`).
+
+use crate::avatar::Avatar;
+use crate::fit_error::FitError;
+use crate::isosurface::{bisect, extract, Grid, Mesh};
+use crate::scene::Scene;
+use crate::skeleton::PoseTensors;
+use burn::tensor::{Device, Tensor, TensorData};
+use glam::DVec3;
+
+/// Bisection rounds per crossing: the cell / 2^10, about 10 micrometres for a human.
+const BISECTIONS: usize = 10;
+/// Points per field evaluation.
+const CHUNK: usize = 1 << 15;
+
+/// The fitted surface in one pose (`bones`: the posed bones' box; `extent`: the body's, from
+/// `Scene::body_extent`), with per-vertex albedo (times `scale`) and unit normals.
+#[allow(clippy::type_complexity)]
+pub fn surface_mesh(
+    model: &Avatar,
+    pose: &PoseTensors,
+    bones: (DVec3, DVec3),
+    extent: f64,
+    scale: DVec3,
+    device: &Device,
+) -> Result<(Mesh, Vec<DVec3>, Vec<DVec3>), FitError> {
+    // As far as the field's grids reach (a loose body's root farther), so no surface the field
+    // can hold is cut, at their finest cell.
+    let (reach, cell) = model.field.surface_reach_and_cell(extent);
+    let reach = DVec3::splat(reach);
+    let grid = Grid::covering(bones.0 - reach, bones.1 + reach, cell);
+    let values: Vec<f64> = sdf(model, pose, &grid.points(), device)?.into_iter().map(f64::from).collect();
+    let mut failed = None;
+    let mesh = extract(&grid, &values, |crossings| {
+        bisect(crossings, BISECTIONS, |points| match sdf(model, pose, points, device) {
+            Ok(values) => values.into_iter().map(|v| v < 0.0).collect(),
+            Err(e) => {
+                failed = Some(e);
+                vec![false; points.len()]
+            }
+        })
+    });
+    if let Some(e) = failed {
+        return Err(e);
+    }
+    let mut colours = Vec::with_capacity(mesh.vertices.len());
+    let mut normals = Vec::with_capacity(mesh.vertices.len());
+    for chunk in mesh.vertices.chunks(CHUNK) {
+        let points = tensor(chunk, device);
+        let albedo = read(model.field.forward(points.clone(), pose).albedo, 3 * chunk.len())?;
+        let (_, gradient) = model.field.sdf_and_gradient(points, pose);
+        let gradient = read(gradient, 3 * chunk.len())?;
+        for (a, g) in albedo.chunks(3).zip(gradient.chunks(3)) {
+            colours.push(DVec3::new(a[0] as f64, a[1] as f64, a[2] as f64) * scale);
+            normals.push(DVec3::new(g[0] as f64, g[1] as f64, g[2] as f64).normalize_or(DVec3::Y));
+        }
+    }
+    Ok((mesh, colours, normals))
+}
+
+/// A tensor's values, which must number `expected`.
+/// The fitted surface in `scene`'s frame `frame` (`surface_mesh`, colours times `scale`), cut
+/// to the frame's visual hull (`carve`): the mesh, its colours and normals, and what the cut
+/// removed.
+pub fn frame_surface(
+    model: &Avatar,
+    scene: &Scene,
+    frame: usize,
+    scale: DVec3,
+    device: &Device,
+) -> Result<(Mesh, Vec<DVec3>, Vec<DVec3>, crate::carve::Carved), FitError> {
+    let pose = &scene.frames[frame].pose;
+    let tensors = PoseTensors::new(pose, &scene.skeleton, device);
+    let (mesh, colours, normals) = surface_mesh(model, &tensors, pose.bounds(&scene.skeleton), scene.body_extent(), scale, device)?;
+    let carved = crate::carve::carve(&mesh, scene, frame);
+    let (colours, normals) = (carved.keep(&colours), carved.keep(&normals));
+    Ok((carved.mesh.clone(), colours, normals, carved))
+}
+
+fn read<const D: usize>(values: Tensor<D>, expected: usize) -> Result<Vec<f32>, FitError> {
+    let values = crate::backend::to_host(values).map_err(|e| FitError::Input(format!("reading the field's output: {e}")))?;
+    if values.len() != expected {
+        return Err(FitError::Input(format!("the field returned {} values for {expected}", values.len())));
+    }
+    Ok(values)
+}
+
+fn tensor(points: &[DVec3], device: &Device) -> Tensor<2> {
+    let flat: Vec<f32> = points.iter().flat_map(|p| [p.x as f32, p.y as f32, p.z as f32]).collect();
+    Tensor::from_data(TensorData::new(flat, [points.len(), 3]), device)
+}
+
+/// The fitted SDF at world points, in chunks.
+fn sdf(model: &Avatar, pose: &PoseTensors, points: &[DVec3], device: &Device) -> Result<Vec<f32>, FitError> {
+    let mut out = Vec::with_capacity(points.len());
+    for chunk in points.chunks(CHUNK) {
+        out.extend(read(model.field.sdf(tensor(chunk, device), pose), chunk.len())?);
+    }
+    Ok(out)
+}
