@@ -139,3 +139,39 @@ fn a_ground_receives_the_shadow_as_rgba_to_composite() {
     // A visibility basis renders the avatar alone: --ground is refused with it.
     common::fails(&cwd, &["relight", &path(&run), "--light", &path(&sun), "--basis", "8", "--ground", "--out", &path(&dir.path().join("b"))]);
 }
+
+#[test]
+fn per_frame_joint_transforms_drive_the_bones_as_the_bvh_does() {
+    let scene = Scene::load(&umbra_scene()).unwrap();
+    let skeleton = &scene.skeleton;
+    let tips: serde_json::Map<String, serde_json::Value> = (0..skeleton.len())
+        .filter(|&b| !skeleton.bones.iter().any(|c| c.parent == Some(b)))
+        .map(|b| (skeleton.bones[b].name.clone(), serde_json::json!([0.0, skeleton.bones[b].length, 0.0])))
+        .collect();
+    let frames: Vec<serde_json::Value> = scene
+        .frames
+        .iter()
+        .map(|f| {
+            let rotations: Vec<Vec<Vec<f64>>> = f.pose.bone_to_world.iter().map(|m| (0..3).map(|r| (0..3).map(|c| m.row(r)[c]).collect()).collect()).collect();
+            let positions: Vec<[f64; 3]> = f.pose.bone_to_world.iter().map(|m| m.w_axis.truncate().to_array()).collect();
+            serde_json::json!({"rotations": rotations, "positions": positions})
+        })
+        .collect();
+    let joints = serde_json::json!({
+        "frame_time": 1.0 / 30.0,
+        "joints": skeleton.bones.iter().map(|b| serde_json::json!({"name": b.name, "parent": b.parent})).collect::<Vec<_>>(),
+        "tips": tips,
+        "frames": frames,
+    });
+    let dir = TempDir::new("animate-joints");
+    let file = dir.path().join("joints.json");
+    std::fs::write(&file, serde_json::to_string(&joints).unwrap()).unwrap();
+    let motion = umbra::capture::read_clip(&file).unwrap();
+    let driven = retarget::drive(skeleton, &scene.frames[0].pose, &motion, 1.0).unwrap();
+    assert!(driven.direct, "joint transforms in metres at the bones' own offsets drive them directly");
+    for (pose, frame) in driven.poses.iter().zip(&scene.frames) {
+        for (a, b) in pose.bone_to_world.iter().zip(&frame.pose.bone_to_world) {
+            assert!(max_difference(a, b) < 1e-6, "{a} {b}");
+        }
+    }
+}
