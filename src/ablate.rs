@@ -11,6 +11,7 @@
 use crate::backend::Backend;
 use crate::fit::FitOptions;
 use crate::fit_error::{io, FitError};
+use crate::fit_report::FitReport;
 use crate::messages::TrainMessage;
 use crate::plot::{Chart, Series};
 use crate::schedule::Schedule;
@@ -45,14 +46,14 @@ pub struct AblationRow {
 }
 
 impl AblationRow {
-    fn from_report(schedule: String, report: &serde_json::Value) -> Self {
-        let evaluation = &report["evaluation"];
+    fn from_report(schedule: String, report: &FitReport) -> Self {
+        let evaluation = &report.evaluation;
         Self {
             schedule,
-            iterations: report["iterations"].as_u64().unwrap_or(0),
-            wall_seconds: report["wall_seconds"].as_f64().unwrap_or(f64::NAN),
-            light_error_degrees: report["light_error_against_scene"]["direction_degrees"].as_f64(),
-            light_error_metres: report["light_error_against_scene"]["position_metres"].as_f64(),
+            iterations: report.iterations as u64,
+            wall_seconds: report.wall_seconds,
+            light_error_degrees: report.direction_error(),
+            light_error_metres: report.position_error(),
             novel_pose_psnr: evaluation["novel_pose_psnr"].as_f64(),
             novel_pose_foreground_psnr: evaluation["novel_pose_foreground_psnr"].as_f64(),
             novel_pose_ssim: evaluation["novel_pose_ssim"].as_f64(),
@@ -60,7 +61,7 @@ impl AblationRow {
             relit_psnr: evaluation["relit_psnr"].as_f64(),
             albedo_psnr: evaluation["albedo_psnr"].as_f64(),
             albedo_foreground_psnr: evaluation["albedo_foreground_psnr"].as_f64(),
-            final_total: report["final_total"].as_f64(),
+            final_total: Some(report.final_total),
         }
     }
 
@@ -112,7 +113,7 @@ enum RunState {
     /// A checkpoint of this schedule but no report: resume it.
     Interrupted,
     /// Finished with this schedule, iteration count and seed: its report.
-    Finished(serde_json::Value),
+    Finished(Box<FitReport>),
 }
 
 /// The state of the run in `folder` for `schedule_text`; an error when the folder holds a run
@@ -131,19 +132,19 @@ fn run_state(folder: &Path, schedule_text: &str, scene: &SceneIdentity, options:
     if copy != schedule_text {
         return Err(io(folder, "holds a run of another schedule: pass --force to replace it, or choose another --out"));
     }
-    let Some(report) = read(&folder.join("fit.json")) else {
+    let Ok(report) = FitReport::read(&folder.join("fit.json")) else {
         return Ok(RunState::Interrupted);
     };
     // Its evaluation was of the test images of the scene it names.
-    if report["scene"].as_str() != Some(scene.path.as_str()) {
-        return Err(io(folder, format!("holds a run of the scene {}: pass --force to replace it, or choose another --out", report["scene"])));
+    if report.scene != scene.path {
+        return Err(io(folder, format!("holds a run of the scene {:?}: pass --force to replace it, or choose another --out", report.scene)));
     }
-    let same_seed = report["seed"].as_u64() == Some(options.seed);
-    let same_length = options.iterations.is_none_or(|n| report["iterations"].as_u64() == Some(n as u64));
+    let same_seed = report.seed == options.seed;
+    let same_length = options.iterations.is_none_or(|n| report.iterations == n);
     if !same_seed || !same_length {
         return Err(io(folder, "holds a run with another seed or iteration count: pass --force to replace it, or choose another --out"));
     }
-    Ok(RunState::Finished(report))
+    Ok(RunState::Finished(Box::new(report)))
 }
 
 /// What a run must have been fitted on to be reused: the scene's training data and its

@@ -6,6 +6,7 @@
 use crate::avatar::Avatar;
 use crate::backend::Backend;
 use crate::fit_error::{io, FitError};
+use crate::fit_report::{FitReport, Stage};
 use crate::messages::{StepStats, TrainMessage};
 use crate::plot::{Chart, Series};
 pub use crate::run::{albedo_scale, existing_checkpoint, restore, resume_checkpoint, save_checkpoint_until, save_png, CHECKPOINT, SCHEDULE_COPY};
@@ -156,21 +157,17 @@ fn value_differences(old: &serde_json::Value, new: &serde_json::Value, at: &str)
 
 /// The evaluation a run's fit.json records (null when it has none).
 fn previous_evaluation(run: &Path) -> serde_json::Value {
-    crate::files::read_text(&run.join("fit.json"), crate::files::SCENE_BYTES)
-        .ok()
-        .and_then(|text| serde_json::from_str::<serde_json::Value>(&text).ok())
-        .map(|report| report["evaluation"].clone())
-        .unwrap_or(json!(null))
+    FitReport::read(&run.join("fit.json")).map(|report| report.evaluation).unwrap_or(json!(null))
 }
 
 /// The seed a run was started with, from its checkpoint (or, for checkpoints that predate
 /// recording it, its fit.json); `None` when neither says.
 pub fn recorded_seed(run: &Path) -> Option<u64> {
-    let from = |file: PathBuf| {
+    let from_state = |file: PathBuf| {
         let text = crate::files::read_text(&file, crate::files::STATE_BYTES).ok()?;
         serde_json::from_str::<serde_json::Value>(&text).ok()?["seed"].as_u64()
     };
-    existing_checkpoint(run).and_then(|c| from(c.join("state.json"))).or_else(|| from(run.join("fit.json")))
+    existing_checkpoint(run).and_then(|c| from_state(c.join("state.json"))).or_else(|| FitReport::read(&run.join("fit.json")).ok().map(|r| r.seed))
 }
 
 /// Whether `dir` exists and holds entries but none of a run's (checkpoint, fit.json, the
@@ -185,7 +182,7 @@ fn holds_foreign_files(dir: &Path) -> bool {
 }
 
 /// Runs the fit described by `options`, reporting through `on`; returns fit.json's content.
-pub fn fit(options: &FitOptions, mut on: impl FnMut(TrainMessage)) -> Result<serde_json::Value, FitError> {
+pub fn fit(options: &FitOptions, mut on: impl FnMut(TrainMessage)) -> Result<FitReport, FitError> {
     let wall = Instant::now();
     let scene = Scene::load(&options.scene)?;
     let (mut schedule, schedule_text) = Schedule::read(&options.schedule)?;
@@ -286,24 +283,24 @@ pub fn fit(options: &FitOptions, mut on: impl FnMut(TrainMessage)) -> Result<ser
     let light = model.light.report();
     let mut stages = Vec::new();
     let density_hold = schedule.weights.get("density").map(|r| r.hold).unwrap_or(0.0);
-    stages.push(json!({"name": "density fitting", "ran": true, "seconds": segment_seconds.get("density fitting").copied().unwrap_or(0.0)}));
-    stages.push(json!({"name": "Gaussian fitting", "ran": schedule.weights["density"].ever_active(schedule.iterations), "from": density_hold, "seconds": segment_seconds.get("Gaussian fitting").copied().unwrap_or(0.0)}));
+    let seconds = |name: &str| Some(segment_seconds.get(name).copied().unwrap_or(0.0));
+    let stage = |name: &str, ran: bool, from: Option<f64>| Stage { name: name.into(), ran, from, seconds: seconds(name), ..Stage::default() };
+    stages.push(stage("density fitting", true, None));
+    stages.push(stage("Gaussian fitting", schedule.weights["density"].ever_active(schedule.iterations), Some(density_hold)));
     let light_stage = if trainer.fit_light {
-        json!({"name": "light and RGB fitting", "ran": schedule.iterations > schedule.light_from, "from": schedule.light_from, "seconds": segment_seconds.get("light and RGB fitting").copied().unwrap_or(0.0)})
+        stage("light and RGB fitting", schedule.iterations > schedule.light_from, Some(schedule.light_from as f64))
     } else {
         let why = if trainer.light_kind == LightKind::Uniform && schedule.light != crate::schedule::LightPolicy::Off {
             "every training image is uniformly lit: no light direction, no shadow rays; RGB fits the albedo directly"
         } else {
             "the schedule sets light = \"off\""
         };
-        json!({"name": "light fitting", "ran": false, "skipped_because": why, "iterations_saved": saved})
+        Stage { name: "light fitting".into(), skipped_because: Some(why.into()), iterations_saved: Some(saved), ..Stage::default() }
     };
     stages.push(light_stage);
     // Without a light the colour is still fitted after light_from: its time is accounted too.
     if !trainer.fit_light && schedule.iterations > schedule.light_from {
-        stages.push(
-            json!({"name": "RGB fitting", "ran": true, "from": schedule.light_from, "seconds": segment_seconds.get("RGB fitting").copied().unwrap_or(0.0)}),
-        );
+        stages.push(stage("RGB fitting", true, Some(schedule.light_from as f64)));
     }
     let last = history.last().map(|(_, s)| s.clone()).unwrap_or_default();
     // Each light search's start, with its own error against the scene's light when it has one.
@@ -353,34 +350,32 @@ pub fn fit(options: &FitOptions, mut on: impl FnMut(TrainMessage)) -> Result<ser
             None => "the schedule's initial light, then gradient descent",
         },
     });
-    let report = json!({
-        // Absolute, so the run renders from any working folder.
-        "scene": std::fs::canonicalize(&options.scene).unwrap_or_else(|_| options.scene.clone()).display().to_string(),
+    let report = FitReport {
+        scene: std::fs::canonicalize(&options.scene).unwrap_or_else(|_| options.scene.clone()).display().to_string(),
         // The first training light under the one-light keys; every light by name after.
-        "light": light,
-        "lights": by_name(reports),
-        "stages": stages,
-        "iterations": schedule.iterations,
-        "seed": options.seed,
-        "schedule": options.schedule.display().to_string(),
-        "backend": options.backend,
-        "threads": rayon::current_num_threads(),
-        "final_losses": last.terms,
-        "final_total": last.total,
-        "wall_seconds": wall.elapsed().as_secs_f64(),
-        // The most memory the fit held at once (null where the system does not say).
-        "peak_memory_bytes": crate::files::peak_memory_bytes(),
-        "evaluation": evaluation,
-        "evaluation_skipped": evaluation_skipped,
-        "light_error_against_scene": light_error,
-        "light_errors_against_scene": by_name(errors),
-        "sun_search": searches.first().cloned().unwrap_or(json!(null)),
-        "light_searches": by_name(searches),
-        "light_path": light_path(&trainer, &history),
-        "capture": capture,
-        "field": field_report(&trainer),
-    });
-    write_text(&out.join("fit.json"), &serde_json::to_string_pretty(&report).unwrap_or_default())?;
+        light,
+        lights: by_name(reports),
+        stages,
+        iterations: schedule.iterations,
+        seed: options.seed,
+        schedule: options.schedule.display().to_string(),
+        backend: options.backend,
+        threads: rayon::current_num_threads(),
+        final_losses: last.terms,
+        final_total: last.total,
+        wall_seconds: wall.elapsed().as_secs_f64(),
+        peak_memory_bytes: crate::files::peak_memory_bytes(),
+        evaluation,
+        evaluation_skipped: evaluation_skipped.map(String::from),
+        light_error_against_scene: light_error,
+        light_errors_against_scene: by_name(errors),
+        sun_search: searches.first().cloned().unwrap_or(json!(null)),
+        light_searches: by_name(searches),
+        light_path: light_path(&trainer, &history),
+        capture,
+        field: field_report(&trainer),
+    };
+    report.write(&out.join("fit.json"))?;
     on(TrainMessage::Done);
     Ok(report)
 }

@@ -19,6 +19,7 @@ pub mod field;
 pub mod files;
 pub mod fit;
 pub mod fit_error;
+pub mod fit_report;
 pub mod fuzzing;
 pub mod gaussians;
 pub mod geometry;

@@ -508,9 +508,8 @@ fn recorded_scene(run: &Path) -> Result<std::path::PathBuf, FitError> {
     if !report.exists() && crate::run_lock::held_elsewhere(run) {
         return Err(io(run, "a fit is in progress in this run folder (it has no fit.json yet): wait for it to finish"));
     }
-    let text = crate::files::read_text(&report, crate::files::SCENE_BYTES).map_err(|e| io(&report, format!("{e} (pass --scene to name the scene)")))?;
-    let value: serde_json::Value = serde_json::from_str(&text).map_err(|e| io(&report, e))?;
-    value["scene"].as_str().map(std::path::PathBuf::from).ok_or_else(|| io(&report, "scene: missing (pass --scene)"))
+    let fitted = crate::fit_report::FitReport::read(&report).map_err(|e| FitError::Input(format!("{e} (pass --scene to name the scene)")))?;
+    Ok(std::path::PathBuf::from(fitted.scene))
 }
 
 /// The factor from the fitted albedo to reflectance (`relight::albedo_scale`) for a model

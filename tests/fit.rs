@@ -145,12 +145,12 @@ fn resume_continues_where_the_fit_stopped_bit_for_bit_with_either_field() {
             .replace("light = 5e-2", "light = 2.0");
         std::fs::write(&schedule_path, format!("{text}\n[field]\nkind = \"{kind}\"\n")).unwrap();
         let options = |out: &str, iterations: usize, resume: bool| fit_options(&scene_path, dir.path().join(out), &schedule_path, Some(iterations), 3, resume);
-        let straight = umbra::fit::fit(&options("straight", 40, false), |_| {}).unwrap();
+        let straight = serde_json::to_value(umbra::fit::fit(&options("straight", 40, false), |_| {}).unwrap()).unwrap();
         umbra::fit::fit(&options("resumed", 20, false), |_| {}).unwrap();
         // A second fit into the same folder without --resume is refused.
         let err = umbra::fit::fit(&options("resumed", 40, false), |_| {}).unwrap_err();
         assert!(err.to_string().contains("--resume"), "{err}");
-        let resumed = umbra::fit::fit(&options("resumed", 40, true), |_| {}).unwrap();
+        let resumed = serde_json::to_value(umbra::fit::fit(&options("resumed", 40, true), |_| {}).unwrap()).unwrap();
         let a = std::fs::read_to_string(dir.path().join("straight/losses.csv")).unwrap();
         let b = std::fs::read_to_string(dir.path().join("resumed/losses.csv")).unwrap();
         let column = |text: &str| text.lines().skip(1).map(|l| l.split(',').nth(1).unwrap().parse::<f64>().unwrap()).collect::<Vec<_>>();
@@ -199,8 +199,11 @@ fn resume_continues_where_the_fit_stopped_bit_for_bit_with_either_field() {
 fn uniform_scenes_skip_the_light_and_refuse_a_light_fitting_schedule() {
     let (dir, scene_path, schedule_path) = quick_setup("uniform", TrainingLight::Uniform, 3);
     let options = fit_options(&scene_path, dir.path().join("run"), &schedule_path, None, 0, false);
-    let report = umbra::fit::fit(&options, |_| {}).unwrap();
+    let report = serde_json::to_value(umbra::fit::fit(&options, |_| {}).unwrap()).unwrap();
     assert_eq!(report["light"]["type"], "uniform");
+    // fit.json is written and read by one type: what reads back is what the fit returned.
+    let read = umbra::fit_report::FitReport::read(&dir.path().join("run/fit.json")).unwrap();
+    assert_eq!(serde_json::to_value(read).unwrap(), report);
     let stages = report["stages"].as_array().unwrap();
     let light_stage = stages.iter().find(|s| s["name"].as_str().unwrap().starts_with("light")).unwrap();
     assert_eq!(light_stage["ran"], false);
@@ -312,7 +315,7 @@ fn evaluation_renders_and_scores_every_test_image_and_umbra_render_repeats_it() 
     let out = dir.path().join("run");
     let mut options = fit_options(&scene_path, out.clone(), &schedule_path, None, 1, false);
     options.evaluate = true;
-    let report = umbra::fit::fit(&options, |_| {}).unwrap();
+    let report = serde_json::to_value(umbra::fit::fit(&options, |_| {}).unwrap()).unwrap();
     // The prior is capped exactly where the root's grids reach loose clothing.
     let field = &report["field"];
     assert!(field.as_object().is_some_and(|f| f.contains_key("prior_capped_at") && f.contains_key("root_grids_reach_loose_body")), "{field}");
@@ -642,7 +645,7 @@ fn several_training_suns_are_fitted_jointly_and_mixed_kinds_are_refused() {
 
     // A fit of the same capture writes every light and resumes with every light's state.
     let out = dir.path().join("run");
-    let report = umbra::fit::fit(&fit_options(&scene_path, out.clone(), &schedule_path, Some(20), 1, false), |_| {}).unwrap();
+    let report = serde_json::to_value(umbra::fit::fit(&fit_options(&scene_path, out.clone(), &schedule_path, Some(20), 1, false), |_| {}).unwrap()).unwrap();
     assert_eq!(report["lights"].as_object().map(|m| m.len()), Some(3), "{}", report["lights"]);
     assert_eq!(report["light_errors_against_scene"].as_object().map(|m| m.len()), Some(3));
     let state: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(out.join("checkpoint/state.json")).unwrap()).unwrap();
@@ -685,7 +688,7 @@ fn a_run_from_before_the_albedo_decoder_renders_and_resumes_as_it_was_fitted() {
     std::fs::copy(&today, run.join("schedule.toml")).unwrap();
     let evaluation = umbra::scoring::render_run(&run, None, Backend::Flex, |_| {}).unwrap();
     assert!(evaluation["novel_pose_psnr"].as_f64().is_some_and(|p| p.is_finite()), "{evaluation}");
-    let resumed = umbra::fit::fit(&fit_options(&scene_path, run.clone(), &today, Some(14), 2, true), |_| {}).unwrap();
+    let resumed = serde_json::to_value(umbra::fit::fit(&fit_options(&scene_path, run.clone(), &today, Some(14), 2, true), |_| {}).unwrap()).unwrap();
     assert_eq!(resumed["iterations"], 14, "{resumed}");
     let state: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&state_path).unwrap()).unwrap();
     assert_eq!(state["albedo_layers"], 0, "the resumed run kept its shared decoder");

@@ -40,7 +40,7 @@ const LAYERS: &[&[&str]] = &[
     &["shading", "environment", "sun_search"],
     // losses, the schedule, the per-view maps of where the fit is still wrong that a batch draws
     // from; the shared vocabulary: the avatar module, what can stop a fit, the fit's messages
-    &["losses", "schedule", "error_map", "avatar", "fit_error", "messages"],
+    &["losses", "schedule", "error_map", "avatar", "fit_error", "fit_report", "messages"],
     // step(batch, state) -> (state, stats)
     &["train"],
     // the run folder: checkpoints, restore, its lock

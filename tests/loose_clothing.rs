@@ -93,7 +93,7 @@ fn a_loose_fit_resumes_bit_for_bit_with_its_seeded_gaussians_and_renders_from_it
     let straight = umbra::fit::fit(&options("straight", 12, false), |_| {}).expect("a straight fit");
     umbra::fit::fit(&options("resumed", 6, false), |_| {}).expect("half a fit");
     umbra::fit::fit(&options("resumed", 12, true), |_| {}).expect("the resumed half");
-    assert!(straight["capture"]["gaussians_on_loose_body"].as_u64().is_some_and(|n| n >= 8), "{}", straight["capture"]);
+    assert!(straight.capture["gaussians_on_loose_body"].as_u64().is_some_and(|n| n >= 8), "{}", straight.capture);
     let read = |run: &str, file: &str| std::fs::read(dir.join(run).join(file)).expect("a run's file");
     assert!(
         read("straight", "losses.csv") == read("resumed", "losses.csv").iter().copied().collect::<Vec<_>>() || {

@@ -101,9 +101,8 @@ fn measure(scene: &Path, run: &Path, iterations: usize) -> Result<(u64, f64), St
     if !status.success() {
         return Err(format!("the fit of {} failed", scene.display()));
     }
-    let report = crate::files::read_text(&run.join("fit.json"), crate::files::SCENE_BYTES).map_err(|e| e.to_string())?;
-    let report: Value = serde_json::from_str(&report).map_err(|e| e.to_string())?;
-    let peak = report["peak_memory_bytes"].as_u64().ok_or("fit.json: no peak_memory_bytes (this system does not report it)")?;
+    let report = crate::fit_report::FitReport::read(&run.join("fit.json")).map_err(|e| e.to_string())?;
+    let peak = report.peak_memory_bytes.ok_or("fit.json: no peak_memory_bytes (this system does not report it)")?;
     Ok((peak, seconds))
 }
 

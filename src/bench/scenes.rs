@@ -227,14 +227,13 @@ struct Row {
 }
 
 impl Row {
-    fn of(name: &str, seed: u64, report: &serde_json::Value) -> Self {
-        let error = &report["light_error_against_scene"];
-        let light = error["direction_degrees"].as_f64().map(|v| (v, "degrees")).or_else(|| error["position_metres"].as_f64().map(|v| (v, "m")));
-        let e = &report["evaluation"];
+    fn of(name: &str, seed: u64, report: &crate::fit_report::FitReport) -> Self {
+        let light = report.direction_error().map(|v| (v, "degrees")).or_else(|| report.position_error().map(|v| (v, "m")));
+        let e = &report.evaluation;
         Self {
             name: name.to_string(),
             seed,
-            wall: report["wall_seconds"].as_f64().unwrap_or(f64::NAN),
+            wall: report.wall_seconds,
             light,
             pose: e["novel_pose_foreground_psnr"].as_f64(),
             pose_ssim: e["novel_pose_ssim"].as_f64(),

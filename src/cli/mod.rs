@@ -184,7 +184,7 @@ fn fit(options: &crate::fit::FitOptions) -> Result<(), String> {
     })
     .map_err(|e| e.to_string())?;
     println!("wrote {}", options.out.join("fit.json").display());
-    if let Some(why) = report["evaluation_skipped"].as_str() {
+    if let Some(why) = &report.evaluation_skipped {
         println!("not evaluated: {why}");
     } else {
         // The report needs the renders beside the truth that the evaluation writes.
@@ -199,8 +199,8 @@ fn fit(options: &crate::fit::FitOptions) -> Result<(), String> {
         let (html, _) = crate::report::write_report(&report).map_err(|e| format!("the fit is complete (fit.json written), but its report failed: {e}"))?;
         println!("wrote {}", html.display());
     }
-    println!("light: {}", describe_light(&report["light"]));
-    if let Some(search) = report["sun_search"].as_object() {
+    println!("light: {}", describe_light(&report.light));
+    if let Some(search) = report.sun_search.as_object() {
         let start = search
             .get("error_against_scene")
             .and_then(|e| e["direction_degrees"].as_f64())
@@ -212,11 +212,11 @@ fn fit(options: &crate::fit::FitOptions) -> Result<(), String> {
             search.get("samples").and_then(|c| c.as_u64()).unwrap_or(0)
         );
     }
-    if let Some(e) = report["light_error_against_scene"]["direction_degrees"].as_f64() {
+    if let Some(e) = report.direction_error() {
         println!("light direction error against the scene's sun: {e:.2} degrees");
     }
-    print_evaluation(&report["evaluation"]);
-    println!("wall time: {:.1} s", report["wall_seconds"].as_f64().unwrap_or(0.0));
+    print_evaluation(&report.evaluation);
+    println!("wall time: {:.1} s", report.wall_seconds);
     Ok(())
 }
 

@@ -10,6 +10,7 @@
 use crate::backend::Backend;
 use crate::basis::TransferBasis;
 use crate::fit_error::{io, FitError};
+use crate::fit_report::FitReport;
 use crate::light::Light;
 use burn::module::Module;
 use glam::DVec3;
@@ -39,8 +40,10 @@ pub const PANEL_DIRECTIONS: usize = 256;
 pub fn write_report(options: &ReportOptions) -> Result<(PathBuf, PathBuf), FitError> {
     let run = &options.run;
     let fit_json = run.join("fit.json");
-    let text = std::fs::read_to_string(&fit_json).map_err(|e| io(&fit_json, format!("{e} (a report needs a finished fit)")))?;
-    let fit: Value = serde_json::from_str(&text).map_err(|e| io(&fit_json, e))?;
+    if !fit_json.is_file() {
+        return Err(io(&fit_json, "missing (a report needs a finished fit)"));
+    }
+    let fit = FitReport::read(&fit_json)?;
     let restored = crate::run::restore(run, options.scene.as_deref(), options.backend)?;
     let scene = &restored.scene;
     if options.camera >= scene.cameras.len() {
@@ -115,12 +118,12 @@ fn panel_view(scene: &crate::scene::Scene, camera: usize) -> crate::scene::Scene
 }
 
 /// The fit's headline rows: (what, value), the recovered light beside the scene's `truth`.
-fn summary_rows(fit: &Value, truth: Option<&Light>) -> Vec<(String, String)> {
+fn summary_rows(fit: &FitReport, truth: Option<&Light>) -> Vec<(String, String)> {
     let vector = |v: &Value| -> String {
         let numbers: Vec<String> = v.as_array().into_iter().flatten().filter_map(|x| x.as_f64()).map(|x| format!("{x:.3}")).collect();
         format!("({})", numbers.join(", "))
     };
-    let light = &fit["light"];
+    let light = &fit.light;
     let recovered = ["direction", "position", "ambient"]
         .iter()
         .filter(|key| light.get(**key).is_some())
@@ -135,31 +138,31 @@ fn summary_rows(fit: &Value, truth: Option<&Light>) -> Vec<(String, String)> {
         None => "unknown".into(),
     };
     let mut rows = vec![
-        ("scene".to_string(), fit["scene"].as_str().unwrap_or("?").to_string()),
-        ("iterations".into(), fit["iterations"].to_string()),
-        ("wall time".into(), format!("{:.1} s", fit["wall_seconds"].as_f64().unwrap_or(f64::NAN))),
+        ("scene".to_string(), fit.scene.clone()),
+        ("iterations".into(), fit.iterations.to_string()),
+        ("wall time".into(), format!("{:.1} s", fit.wall_seconds)),
         ("recovered light".into(), format!("{}: {recovered}", light["type"].as_str().unwrap_or("?"))),
         ("the scene's training light".into(), truth),
     ];
-    if let Some(error) = fit["light_error_against_scene"]["direction_degrees"].as_f64() {
+    if let Some(error) = fit.direction_error() {
         rows.push(("light direction error against the scene's".into(), format!("{error:.2} degrees")));
     }
-    if let Some(error) = fit["light_error_against_scene"]["position_metres"].as_f64() {
+    if let Some(error) = fit.position_error() {
         rows.push(("light position error against the scene's".into(), format!("{error:.3} m")));
     }
-    for stage in fit["stages"].as_array().into_iter().flatten() {
-        let seconds = stage["seconds"].as_f64().map_or("-".to_string(), |s| format!("{s:.1} s"));
-        let ran = if stage["ran"].as_bool().unwrap_or(false) { seconds } else { "skipped".into() };
-        rows.push((format!("stage: {}", stage["name"].as_str().unwrap_or("?")), ran));
+    for stage in &fit.stages {
+        let seconds = stage.seconds.map_or("-".to_string(), |s| format!("{s:.1} s"));
+        let ran = if stage.ran { seconds } else { "skipped".into() };
+        rows.push((format!("stage: {}", stage.name), ran));
     }
     rows
 }
 
 /// The evaluation's groups: (group, images, PSNR, foreground PSNR, SSIM, where the error lies:
 /// its shares outside the mask / along the silhouette / inside, `metrics::ErrorRegions`).
-fn group_rows(fit: &Value) -> Vec<[String; 6]> {
+fn group_rows(fit: &FitReport) -> Vec<[String; 6]> {
     let number = |v: &Value, digits: usize| v.as_f64().map_or("-".to_string(), |x| format!("{x:.digits$}"));
-    fit["evaluation"]["groups"]
+    fit.evaluation["groups"]
         .as_array()
         .into_iter()
         .flatten()
@@ -178,7 +181,7 @@ fn group_rows(fit: &Value) -> Vec<[String; 6]> {
 
 const GROUP_HEADER: [&str; 6] = ["group", "images", "PSNR (dB)", "foreground PSNR (dB)", "SSIM", "error outside the mask / along the silhouette / inside"];
 
-fn markdown_page(name: &str, summary: &[(String, String)], fit: &Value, images: &[(&str, Option<String>, &str)]) -> String {
+fn markdown_page(name: &str, summary: &[(String, String)], fit: &FitReport, images: &[(&str, Option<String>, &str)]) -> String {
     let mut md = format!("# Fit report: {name}\n\n| | |\n|---|---|\n");
     for (what, value) in summary {
         md += &format!("| {what} | {} |\n", value.replace('|', "\\|"));
@@ -203,7 +206,7 @@ fn escape(text: &str) -> String {
     text.replace('&', "&amp;").replace('<', "&lt;").replace('>', "&gt;").replace('"', "&quot;")
 }
 
-fn html_page(name: &str, summary: &[(String, String)], fit: &Value, images: &[(&str, Option<String>, &str)], panel: &Value) -> String {
+fn html_page(name: &str, summary: &[(String, String)], fit: &FitReport, images: &[(&str, Option<String>, &str)], panel: &Value) -> String {
     let mut body = format!("<h1>Fit report: {}</h1>\n<table>\n", escape(name));
     for (what, value) in summary {
         body += &format!("<tr><th>{}</th><td>{}</td></tr>\n", escape(what), escape(value));
