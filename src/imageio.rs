@@ -61,7 +61,82 @@ impl RgbImage {
 pub struct Mask {
     pub width: usize,
     pub height: usize,
-    pub foreground: Vec<bool>,
+    pub foreground: Bits,
+}
+
+/// Booleans packed 64 to a word: a mask costs a bit a pixel, not a byte. Reads as a slice of
+/// `bool` does (`bits[k]`, `len`, `iter`), is collected from booleans.
+#[derive(Clone, Default, PartialEq, Eq)]
+pub struct Bits {
+    words: Vec<u64>,
+    len: usize,
+}
+
+impl Bits {
+    pub fn len(&self) -> usize {
+        self.len
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.len == 0
+    }
+
+    pub fn get(&self, k: usize) -> bool {
+        k < self.len && self.words[k / 64] >> (k % 64) & 1 == 1
+    }
+
+    pub fn iter(&self) -> impl Iterator<Item = &bool> + '_ {
+        (0..self.len).map(|k| if self.get(k) { &true } else { &false })
+    }
+}
+
+impl std::ops::Index<usize> for Bits {
+    type Output = bool;
+
+    /// Bit `k`; out of range panics, as a slice's index does.
+    fn index(&self, k: usize) -> &bool {
+        assert!(k < self.len, "bit {k} of {}", self.len);
+        if self.get(k) {
+            &true
+        } else {
+            &false
+        }
+    }
+}
+
+impl FromIterator<bool> for Bits {
+    fn from_iter<I: IntoIterator<Item = bool>>(values: I) -> Self {
+        let mut bits = Bits::default();
+        for (k, value) in values.into_iter().enumerate() {
+            if k % 64 == 0 {
+                bits.words.push(0);
+            }
+            bits.words[k / 64] |= (value as u64) << (k % 64);
+            bits.len = k + 1;
+        }
+        bits
+    }
+}
+
+impl From<Vec<bool>> for Bits {
+    fn from(values: Vec<bool>) -> Self {
+        values.into_iter().collect()
+    }
+}
+
+impl<'a> IntoIterator for &'a Bits {
+    type Item = &'a bool;
+    type IntoIter = Box<dyn Iterator<Item = &'a bool> + 'a>;
+
+    fn into_iter(self) -> Self::IntoIter {
+        Box::new(self.iter())
+    }
+}
+
+impl std::fmt::Debug for Bits {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "Bits({} of {} set)", self.iter().filter(|&&b| b).count(), self.len)
+    }
 }
 
 /// Why an image could not be read; the scene reader adds the file and JSON path.

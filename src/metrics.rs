@@ -300,7 +300,7 @@ mod tests {
     fn foreground_is_the_mask_or_anything_drawn() {
         let truth = image(3, 1, |x, _, _| if x == 0 { 50 } else { 0 });
         let rendered = image(3, 1, |x, _, _| if x == 2 { 9 } else { 0 });
-        let mask = Mask { width: 3, height: 1, foreground: vec![false, true, false] };
+        let mask = Mask { width: 3, height: 1, foreground: vec![false, true, false].into() };
         assert_eq!(foreground(&rendered, &truth, Some(&mask)), vec![false, true, true]);
         assert_eq!(foreground(&rendered, &truth, None), vec![true, false, true]);
     }

@@ -12,14 +12,87 @@ use std::path::Path;
 /// those of the decoded image), anything else (16-bit PNG, EXR) as linear floats.
 #[derive(Clone, Debug, PartialEq)]
 pub enum Photo {
-    Srgb8 { width: usize, height: usize, bytes: Vec<[u8; 3]> },
+    Srgb8 {
+        width: usize,
+        height: usize,
+        bytes: Vec<[u8; 3]>,
+    },
+    /// An 8-bit image whose black pixels are not kept (a scene's background is black): only
+    /// the runs of other pixels, row-major, with where each run's bytes begin. Lossless.
+    Runs(Runs),
     Linear(RgbImage),
+}
+
+/// The runs of an image's pixels that are not black (`Photo::Runs`).
+#[derive(Clone, Debug, PartialEq)]
+pub struct Runs {
+    width: usize,
+    height: usize,
+    /// Each run's first pixel and one past its last (row-major indices), ascending.
+    starts: Vec<u32>,
+    ends: Vec<u32>,
+    /// Where each run's pixels begin in `bytes`.
+    offsets: Vec<u32>,
+    bytes: Vec<[u8; 3]>,
+}
+
+impl Runs {
+    /// `bytes` (row-major, `width x height`) without its black pixels.
+    pub fn of(width: usize, height: usize, bytes: &[[u8; 3]]) -> Runs {
+        let mut runs = Runs { width, height, starts: Vec::new(), ends: Vec::new(), offsets: Vec::new(), bytes: Vec::new() };
+        let mut p = 0;
+        while p < bytes.len() {
+            if bytes[p] == [0; 3] {
+                p += 1;
+                continue;
+            }
+            let start = p;
+            while p < bytes.len() && bytes[p] != [0; 3] {
+                p += 1;
+            }
+            runs.starts.push(start as u32);
+            runs.ends.push(p as u32);
+            runs.offsets.push(runs.bytes.len() as u32);
+            runs.bytes.extend_from_slice(&bytes[start..p]);
+        }
+        runs
+    }
+
+    /// Pixel `p`'s bytes (black where no run holds it).
+    fn get(&self, p: usize) -> [u8; 3] {
+        let k = self.starts.partition_point(|&s| s as usize <= p);
+        match k {
+            0 => [0; 3],
+            _ if p < self.ends[k - 1] as usize => self.bytes[self.offsets[k - 1] as usize + p - self.starts[k - 1] as usize],
+            _ => [0; 3],
+        }
+    }
+
+    /// Bytes it holds in memory.
+    fn size(&self) -> usize {
+        3 * self.bytes.len() + 12 * self.starts.len()
+    }
+
+    /// Every pixel's bytes, row-major.
+    fn walk(&self) -> impl Iterator<Item = [u8; 3]> + '_ {
+        let mut run = 0;
+        (0..self.width * self.height).map(move |p| {
+            while run < self.ends.len() && self.ends[run] as usize <= p {
+                run += 1;
+            }
+            match run < self.starts.len() && self.starts[run] as usize <= p {
+                true => self.bytes[self.offsets[run] as usize + p - self.starts[run] as usize],
+                false => [0; 3],
+            }
+        })
+    }
 }
 
 impl Photo {
     pub fn width(&self) -> usize {
         match self {
             Photo::Srgb8 { width, .. } => *width,
+            Photo::Runs(runs) => runs.width,
             Photo::Linear(image) => image.width,
         }
     }
@@ -27,6 +100,7 @@ impl Photo {
     pub fn height(&self) -> usize {
         match self {
             Photo::Srgb8 { height, .. } => *height,
+            Photo::Runs(runs) => runs.height,
             Photo::Linear(image) => image.height,
         }
     }
@@ -38,6 +112,10 @@ impl Photo {
                 let table = srgb8_table();
                 bytes[p].map(|c| table[c as usize])
             }
+            Photo::Runs(runs) => {
+                let table = srgb8_table();
+                runs.get(p).map(|c| table[c as usize])
+            }
             Photo::Linear(image) => image.pixels[p],
         }
     }
@@ -47,24 +125,31 @@ impl Photo {
         self.pixel(y * self.width() + x)
     }
 
-    /// Every pixel in linear RGB, row by row.
-    pub fn pixels(&self) -> impl Iterator<Item = [f32; 3]> + '_ {
-        (0..self.width() * self.height()).map(|p| self.pixel(p))
+    /// Every pixel in linear RGB, row by row (runs walked in order, not searched).
+    pub fn pixels(&self) -> Box<dyn Iterator<Item = [f32; 3]> + '_> {
+        match self {
+            Photo::Runs(runs) => {
+                let table = srgb8_table();
+                Box::new(runs.walk().map(move |b| b.map(|c| table[c as usize])))
+            }
+            _ => Box::new((0..self.width() * self.height()).map(|p| self.pixel(p))),
+        }
     }
 
     /// The image in linear RGB, for what works on whole images (scores, contact sheets).
     pub fn to_rgb(&self) -> RgbImage {
         match self {
             Photo::Linear(image) => image.clone(),
-            Photo::Srgb8 { width, height, .. } => RgbImage { width: *width, height: *height, pixels: self.pixels().collect() },
+            _ => RgbImage { width: self.width(), height: self.height(), pixels: self.pixels().collect() },
         }
     }
 
-    /// Bytes a pixel takes in memory.
-    pub fn bytes_per_pixel(&self) -> usize {
+    /// Bytes it holds in memory.
+    pub fn size(&self) -> usize {
         match self {
-            Photo::Srgb8 { .. } => 3,
-            Photo::Linear(_) => 12,
+            Photo::Srgb8 { bytes, .. } => 3 * bytes.len(),
+            Photo::Runs(runs) => runs.size(),
+            Photo::Linear(image) => 12 * image.pixels.len(),
         }
     }
 }
@@ -82,8 +167,13 @@ pub fn read_photo_compact(path: &Path) -> Result<Photo, ImageError> {
         return Ok(Photo::Linear(linear(img)));
     }
     let (width, height) = (img.width() as usize, img.height() as usize);
-    let bytes = img.into_rgb8().pixels().map(|p| p.0).collect();
-    Ok(Photo::Srgb8 { width, height, bytes })
+    let bytes: Vec<[u8; 3]> = img.into_rgb8().pixels().map(|p| p.0).collect();
+    // A scene's black background need not be kept: the runs of the rest, when smaller.
+    let runs = Runs::of(width, height, &bytes);
+    Ok(match runs.size() < 3 * bytes.len() {
+        true => Photo::Runs(runs),
+        false => Photo::Srgb8 { width, height, bytes },
+    })
 }
 
 /// Reads a photograph of a capture: an 8- or 16-bit sRGB PNG or a JPEG to linear RGB, with its
@@ -110,4 +200,23 @@ pub fn read_photo(path: &Path) -> Result<(RgbImage, Option<Mask>), ImageError> {
     let (width, height) = (img.width() as usize, img.height() as usize);
     let alpha = img.color().has_alpha().then(|| Mask { width, height, foreground: img.to_rgba8().pixels().map(|p| p.0[3] > 127).collect() });
     Ok((linear(img), alpha))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn runs_keep_every_pixel_and_drop_only_black() {
+        let (w, h) = (20, 5);
+        let bytes: Vec<[u8; 3]> = (0..w * h).map(|p| if (p / 10) % 3 == 0 || p == w * h - 1 { [p as u8, 1, 2] } else { [0; 3] }).collect();
+        let dense = Photo::Srgb8 { width: w, height: h, bytes: bytes.clone() };
+        let runs = Photo::Runs(Runs::of(w, h, &bytes));
+        assert_eq!(runs.to_rgb(), dense.to_rgb());
+        assert!(runs.pixels().eq(dense.pixels()) && (0..w * h).all(|p| runs.pixel(p) == dense.pixel(p)));
+        assert!(runs.size() < dense.size());
+        let black = Runs::of(w, h, &vec![[0; 3]; w * h]);
+        assert_eq!(Photo::Runs(black.clone()).pixel(12), [0.0; 3]);
+        assert_eq!(black.size(), 0);
+    }
 }

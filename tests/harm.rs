@@ -343,7 +343,7 @@ fn training_masks_that_hold_no_body_are_refused() {
     let dir = TempDir::new("empty-masks");
     let scene = common::tiny_synth(dir.path(), TrainingLight::Sun, 24, 2, vec![TestKind::Poses], 9);
     let json = read_json(&scene.join("scene.json"));
-    let empty = umbra::imageio::Mask { width: 24, height: 24, foreground: vec![false; 24 * 24] };
+    let empty = umbra::imageio::Mask { width: 24, height: 24, foreground: vec![false; 24 * 24].into() };
     for image in json["images"].as_array().unwrap().iter().filter(|i| i["split"] == "train") {
         std::fs::write(scene.join(image["mask"].as_str().unwrap()), umbra::imageio::encode_png_mask(&empty).unwrap()).unwrap();
     }

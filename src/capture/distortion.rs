@@ -73,6 +73,6 @@ pub fn undistort_mask(mask: &Mask, camera: &Intrinsics, distortion: &Distortion)
             let (x, y) = (u.floor(), v.floor());
             x >= 0.0 && y >= 0.0 && x < w as f64 && y < h as f64 && mask.foreground[y as usize * w + x as usize]
         })
-        .collect();
-    Mask { width: w, height: h, foreground }
+        .collect::<Vec<bool>>();
+    Mask { width: w, height: h, foreground: foreground.into() }
 }

@@ -491,7 +491,7 @@ pub fn render_view(
             foreground.push(m);
         }
     }
-    Rendered { colour, mask: Mask { width: w, height: h, foreground }, albedo }
+    Rendered { colour, mask: Mask { width: w, height: h, foreground: foreground.into() }, albedo }
 }
 
 fn matrix_rows(m: &DMat4) -> Value {

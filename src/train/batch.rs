@@ -17,7 +17,7 @@ pub(super) const BOUNDARY_BAND: usize = 2;
 /// of the body whose window holds fewer body pixels than in-image pixels, or one outside it whose
 /// window holds any; each window's count from a summed-area table, so the cost does not grow
 /// with the band.
-pub(super) fn boundary_pixels(mask: &crate::imageio::Mask, band: usize) -> Vec<u32> {
+pub(super) fn boundary_pixels(mask: &crate::imageio::Mask, band: usize) -> super::pixels::PixelRuns {
     let (w, h) = (mask.width, mask.height);
     // table[(y * (w + 1)) + x]: body pixels above and left of (x, y).
     let mut table = vec![0u32; (w + 1) * (h + 1)];
@@ -126,6 +126,7 @@ impl Trainer {
         let mut colours = Vec::with_capacity(pixel_count * 3);
         let mut masks = Vec::with_capacity(pixel_count);
         let mut sources = Vec::with_capacity(pixel_count);
+        let anywhere = super::pixels::PixelRuns::default();
         for k in 0..pixel_count {
             let v = same_light[self.stream.below(same_light.len())];
             let view = &self.scene.views[v];
@@ -135,7 +136,7 @@ impl Trainer {
             let pool = match k % 3 {
                 0 => &self.views[v].foreground,
                 1 => &self.views[v].boundary,
-                _ => &Vec::new(),
+                _ => &anywhere,
             };
             let j = k / 3;
             // Of the third drawn anywhere, every (1 / error_rays)-th where the fit is wrong.
@@ -147,7 +148,7 @@ impl Trainer {
             let pixel = match wrong {
                 Some(p) => p,
                 None if pool.is_empty() => self.stream.below(pixels),
-                None => pool[self.stream.below(pool.len())] as usize,
+                None => pool.get(self.stream.below(pool.len())) as usize,
             };
             let mask = view.mask.as_ref().map(|m| m.foreground[pixel] as u8 as f32).unwrap_or(0.0);
             let ray = camera.pixel_ray(pixel % camera.width, pixel / camera.width);
@@ -201,7 +202,7 @@ mod tests {
         let mut stream = crate::random::Stream::new(7, 1, 0);
         for (w, h, band) in [(17, 11, 2), (5, 9, 1), (30, 30, 3), (1, 1, 2)] {
             let foreground: Vec<bool> = (0..w * h).map(|_| stream.uniform() < 0.4).collect();
-            let mask = crate::imageio::Mask { width: w, height: h, foreground };
+            let mask = crate::imageio::Mask { width: w, height: h, foreground: foreground.into() };
             let b = band as i64;
             let expected: Vec<u32> = (0..w * h)
                 .filter(|&p| {
@@ -215,7 +216,7 @@ mod tests {
                 })
                 .map(|p| p as u32)
                 .collect();
-            assert_eq!(boundary_pixels(&mask, band), expected, "{w}x{h}, band {band}");
+            assert_eq!(boundary_pixels(&mask, band), expected.into_iter().collect(), "{w}x{h}, band {band}");
         }
     }
 

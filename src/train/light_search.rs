@@ -70,7 +70,7 @@ impl Trainer {
                 if pool.is_empty() {
                     continue;
                 }
-                let pixel = pool[self.stream.below(pool.len())] as usize;
+                let pixel = pool.get(self.stream.below(pool.len())) as usize;
                 let view = &self.scene.views[v];
                 let camera = &self.scene.cameras[view.camera];
                 let ray = camera.pixel_ray(pixel % camera.width, pixel / camera.width);

@@ -12,6 +12,7 @@
 mod batch;
 pub mod body;
 mod light_search;
+mod pixels;
 mod rebind;
 mod setup;
 mod step;
@@ -79,9 +80,9 @@ struct FrameData {
 
 /// Per training view: pixel indices for balanced ray sampling.
 struct ViewData {
-    foreground: Vec<u32>,
+    foreground: pixels::PixelRuns,
     /// Pixels within `BOUNDARY_BAND` pixels of the silhouette's edge, on either side.
-    boundary: Vec<u32>,
+    boundary: pixels::PixelRuns,
     /// Where the fit is still wrong in this view, when the schedule draws rays by it
     /// (`Schedule::error_rays`; training views with a mask only).
     error_map: Option<crate::error_map::ErrorMap>,
