@@ -160,6 +160,27 @@ fn previous_evaluation(run: &Path) -> serde_json::Value {
     FitReport::read(&run.join("fit.json")).map(|report| report.evaluation).unwrap_or(json!(null))
 }
 
+/// Loads the scene on a thread of its own, telling `on` how many images are decoded as they are
+/// (the decoding threads report over a channel; `on` runs here).
+fn load_scene(path: &Path, on: &mut impl FnMut(TrainMessage)) -> Result<Scene, FitError> {
+    let (send, receive) = std::sync::mpsc::channel();
+    std::thread::scope(|scope| {
+        let loading = scope.spawn(move || {
+            Scene::load_reporting(path, &move |done, total| {
+                // A closed receiver only means nobody watches.
+                let _ = send.send((done, total));
+            })
+        });
+        for (done, total) in receive {
+            on(TrainMessage::Loading { done, total });
+        }
+        match loading.join() {
+            Ok(scene) => Ok(scene?),
+            Err(_) => Err(FitError::Input(format!("{}: loading the scene failed (a decoding thread stopped)", path.display()))),
+        }
+    })
+}
+
 /// The seed a run was started with, from its checkpoint (or, for checkpoints that predate
 /// recording it, its fit.json); `None` when neither says.
 pub fn recorded_seed(run: &Path) -> Option<u64> {
@@ -184,7 +205,7 @@ fn holds_foreign_files(dir: &Path) -> bool {
 /// Runs the fit described by `options`, reporting through `on`; returns fit.json's content.
 pub fn fit(options: &FitOptions, mut on: impl FnMut(TrainMessage)) -> Result<FitReport, FitError> {
     let wall = Instant::now();
-    let scene = Scene::load(&options.scene)?;
+    let scene = load_scene(&options.scene, &mut on)?;
     let (mut schedule, schedule_text) = Schedule::read(&options.schedule)?;
     if let Some(n) = options.iterations {
         schedule.iterations = crate::schedule::check_iterations(n).map_err(FitError::Input)?;

@@ -7,6 +7,11 @@ use std::collections::BTreeMap;
 /// What the fit tells whoever runs it.
 #[derive(Clone, Debug)]
 pub enum TrainMessage {
+    /// Images of the scene decoded so far.
+    Loading {
+        done: usize,
+        total: usize,
+    },
     Loaded {
         scene: String,
         training_images: usize,

@@ -297,3 +297,13 @@ fn walk(dir: &std::path::Path) -> Vec<std::path::PathBuf> {
     out.sort();
     out
 }
+
+#[test]
+fn loading_tells_how_many_images_are_decoded() {
+    let seen = std::sync::Mutex::new(Vec::new());
+    let scene = umbra::scene::Scene::load_reporting(&common::example_scene(), &|done, total| seen.lock().unwrap().push((done, total))).unwrap();
+    let mut seen = seen.into_inner().unwrap();
+    seen.sort();
+    let n = scene.views.len();
+    assert_eq!(seen, (1..=n).map(|k| (k, n)).collect::<Vec<_>>(), "one report per image, each of the total");
+}

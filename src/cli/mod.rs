@@ -147,7 +147,13 @@ fn fit(options: &crate::fit::FitOptions) -> Result<(), String> {
     use crate::messages::TrainMessage;
     let bar = progress_bar(0, "fitting");
     let report = crate::fit::fit(options, |message| match message {
+        TrainMessage::Loading { done, total } => {
+            bar.set_what("loading images");
+            bar.set_length(total as u64);
+            bar.set_position(done as u64);
+        }
         TrainMessage::Loaded { scene, training_images, frames, light } => {
+            bar.set_what("fitting");
             let light = match light {
                 crate::shading::LightKind::Directional => "a sun",
                 crate::shading::LightKind::Point => "a point light",

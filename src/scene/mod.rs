@@ -87,6 +87,11 @@ pub fn scene_file(path: &Path) -> PathBuf {
 impl Scene {
     /// Reads, validates and decodes a whole scene (every image, mask and environment map).
     pub fn load(path: &Path) -> Result<Scene, SceneError> {
+        Scene::load_reporting(path, &|_, _| {})
+    }
+
+    /// `load`, telling `on(done, total)` as each image is decoded (from the decoding threads).
+    pub fn load_reporting(path: &Path, on: &(dyn Fn(usize, usize) + Sync)) -> Result<Scene, SceneError> {
         let file = scene_file(path);
         let root = file.parent().map(Path::to_path_buf).unwrap_or_default();
         let text = crate::files::read_text(&file, crate::files::SCENE_BYTES).map_err(|e| SceneError {
@@ -96,7 +101,7 @@ impl Scene {
         })?;
         let value = json::parse(&text, &file)?;
         let doc = At::root(&value, &file);
-        Reader { root: &root, file: &file }.scene(&doc)
+        Reader { root: &root, file: &file, on_image: Some(on) }.scene(&doc)
     }
 
     pub fn views_in(&self, split: Split) -> impl Iterator<Item = &View> {
@@ -139,7 +144,7 @@ pub fn load_light(file: &Path) -> Result<Light, SceneError> {
         message: read_message(e),
     })?;
     let value = json::parse(&text, file)?;
-    Reader { root: &root, file }.light(&At::root(&value, file))
+    Reader { root: &root, file, on_image: None }.light(&At::root(&value, file))
 }
 
 /// What is wrong with an environment map's radiance, if anything: a value not finite, or
@@ -168,6 +173,8 @@ pub fn read_capped(file: &Path) -> Result<String, SceneError> {
 struct Reader<'a> {
     root: &'a Path,
     file: &'a Path,
+    /// Told `(done, total)` as each image is decoded.
+    on_image: Option<&'a (dyn Fn(usize, usize) + Sync)>,
 }
 
 /// An image path to decode later, with the JSON path that named it.
@@ -433,6 +440,7 @@ impl Reader<'_> {
             });
         }
         // Decoding is the slow part of loading: do it in parallel, report the first failure in order.
+        let (total, done) = (records.len(), std::sync::atomic::AtomicUsize::new(0));
         records
             .into_par_iter()
             .map(|r| {
@@ -440,6 +448,9 @@ impl Reader<'_> {
                 let colour = decode_photo(&r.colour, w, h)?;
                 let mask = r.mask.as_ref().map(|m| decode_mask(m, w, h)).transpose()?;
                 let albedo = r.albedo.as_ref().map(|a| decode_rgb(a, w, h)).transpose()?;
+                if let Some(on) = self.on_image {
+                    on(done.fetch_add(1, std::sync::atomic::Ordering::Relaxed) + 1, total);
+                }
                 Ok(View { camera: r.camera, frame: r.frame, light: r.light, split: r.split, path: r.colour.file, colour, mask, albedo })
             })
             .collect()
