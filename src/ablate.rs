@@ -118,14 +118,14 @@ enum RunState {
 
 /// The state of the run in `folder` for `schedule_text`; an error when the folder holds a run
 /// of another schedule, iteration count or seed (unless `force`, which starts afresh).
-fn run_state(folder: &Path, schedule_text: &str, scene: &SceneIdentity, options: &AblateOptions, force: bool) -> Result<RunState, FitError> {
+fn run_state(folder: &Path, schedule_text: &str, scene: &SceneIdentity<'_>, options: &AblateOptions, force: bool) -> Result<RunState, FitError> {
     let Some(checkpoint) = crate::run::existing_checkpoint(folder) else { return Ok(RunState::Fresh) };
     if force {
         return Ok(RunState::Fresh);
     }
     let read = |file: &Path| crate::files::read_text(file, crate::files::STATE_BYTES).ok().and_then(|t| serde_json::from_str::<serde_json::Value>(&t).ok());
     let state = read(&checkpoint.join("state.json")).unwrap_or_default();
-    if state["training_data"].as_str() != Some(scene.training.as_str()) {
+    if !state["training_data"].as_str().is_some_and(|recorded| scene.is_recorded(recorded)) {
         return Err(io(folder, "holds a run fitted on other training data than this scene's: pass --force to replace it, or choose another --out"));
     }
     let copy = crate::files::read_text(&folder.join(crate::run::SCHEDULE_COPY), crate::files::SMALL_TEXT_BYTES).unwrap_or_default();
@@ -149,9 +149,18 @@ fn run_state(folder: &Path, schedule_text: &str, scene: &SceneIdentity, options:
 
 /// What a run must have been fitted on to be reused: the scene's training data and its
 /// folder (fit.json records it absolute).
-struct SceneIdentity {
+struct SceneIdentity<'a> {
     training: String,
+    /// For runs that recorded the first (unversioned) training identity.
+    scene: &'a crate::scene::Scene,
     path: String,
+}
+
+impl SceneIdentity<'_> {
+    /// Whether a run's recorded training identity is this scene's, in either version.
+    fn is_recorded(&self, recorded: &str) -> bool {
+        self.scene.is_training_identity(recorded, &self.training)
+    }
 }
 
 /// Whether `out` holds anything but what ablations write: their tables and run folders.
@@ -196,6 +205,7 @@ pub fn ablate(options: &AblateOptions, mut on: impl FnMut(usize, &str, TrainMess
     }
     let identity = SceneIdentity {
         training: scene.training_identity(),
+        scene: &scene,
         path: std::fs::canonicalize(&options.scene).unwrap_or_else(|_| options.scene.clone()).display().to_string(),
     };
     let light = scene.training_lights().first().map(|name| scene.lights[*name].casts_shadows()).unwrap_or(false);
@@ -252,7 +262,7 @@ pub fn ablate(options: &AblateOptions, mut on: impl FnMut(usize, &str, TrainMess
 }
 
 /// The rows of every run in `options.out` that has finished with its schedule.
-fn finished_rows(options: &AblateOptions, scene: &SceneIdentity, names: &[String], texts: &[String]) -> Vec<AblationRow> {
+fn finished_rows(options: &AblateOptions, scene: &SceneIdentity<'_>, names: &[String], texts: &[String]) -> Vec<AblationRow> {
     names
         .iter()
         .zip(texts)

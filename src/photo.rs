@@ -136,6 +136,20 @@ impl Photo {
         }
     }
 
+    /// The pixels that are not black, with their indices, in order (a scene's background is
+    /// black: for an image kept as runs, only what it holds is visited).
+    pub fn lit_pixels(&self) -> Box<dyn Iterator<Item = (usize, [f32; 3])> + '_> {
+        match self {
+            Photo::Runs(runs) => {
+                let table = srgb8_table();
+                Box::new(runs.starts.iter().zip(&runs.ends).zip(&runs.offsets).flat_map(move |((&start, &end), &offset)| {
+                    (start as usize..end as usize).map(move |p| (p, runs.bytes[offset as usize + p - start as usize].map(|c| table[c as usize])))
+                }))
+            }
+            _ => Box::new(self.pixels().enumerate().filter(|(_, c)| c.iter().any(|&v| v != 0.0))),
+        }
+    }
+
     /// The image in linear RGB, for what works on whole images (scores, contact sheets).
     pub fn to_rgb(&self) -> RgbImage {
         match self {
@@ -214,6 +228,7 @@ mod tests {
         let runs = Photo::Runs(Runs::of(w, h, &bytes));
         assert_eq!(runs.to_rgb(), dense.to_rgb());
         assert!(runs.pixels().eq(dense.pixels()) && (0..w * h).all(|p| runs.pixel(p) == dense.pixel(p)));
+        assert!(runs.lit_pixels().eq(dense.lit_pixels()) && runs.lit_pixels().count() == bytes.iter().filter(|b| **b != [0; 3]).count());
         assert!(runs.size() < dense.size());
         let black = Runs::of(w, h, &vec![[0; 3]; w * h]);
         assert_eq!(Photo::Runs(black.clone()).pixel(12), [0.0; 3]);

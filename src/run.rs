@@ -255,7 +255,7 @@ fn verified_state(dir: &Path, scene: &Scene, training_identity: Option<&str>) ->
     }
     if let Some(identity) = training_identity {
         if let Some(data) = state["training_data"].as_str() {
-            if data != identity {
+            if !scene.is_training_identity(data, identity) {
                 return Err(io(
                     &state_path,
                     format!(

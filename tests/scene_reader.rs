@@ -307,3 +307,43 @@ fn loading_tells_how_many_images_are_decoded() {
     let n = scene.views.len();
     assert_eq!(seen, (1..=n).map(|k| (k, n)).collect::<Vec<_>>(), "one report per image, each of the total");
 }
+
+/// The first training identity, computed here from its description: FNV-1a 64 over the
+/// skeleton (name, parent or -1, length per bone) and then, image after image, its camera
+/// (name, fx, fy, cx, cy, camera-to-world by columns), its frame's bone transforms, its light
+/// and every pixel's linear RGB as f32 bits.
+fn first_training_identity(scene: &Scene) -> String {
+    use umbra::scene::identity::Fingerprint;
+    let mut f = Fingerprint::default();
+    for bone in &scene.skeleton.bones {
+        f = f.text(&bone.name).number(bone.parent.map_or(-1.0, |p| p as f64)).number(bone.length);
+    }
+    for view in scene.views.iter().filter(|v| v.split == Split::Train) {
+        let c = &scene.cameras[view.camera];
+        f = f.text(&c.name).number(c.fx).number(c.fy).number(c.cx).number(c.cy);
+        for v in c.camera_to_world.to_cols_array().into_iter().chain(scene.frames[view.frame].pose.bone_to_world.iter().flat_map(|m| m.to_cols_array())) {
+            f = f.number(v);
+        }
+        f = f.text(&view.light);
+        for p in view.colour.pixels() {
+            for c in p {
+                f = f.bytes(&c.to_bits().to_le_bytes());
+            }
+        }
+    }
+    f.hex()
+}
+
+#[test]
+fn a_checkpoint_of_the_first_training_identity_still_matches_its_scene() {
+    let scene = Scene::load(&example_scene()).unwrap();
+    let current = scene.training_identity();
+    assert!(current.starts_with("v2:"), "{current}");
+    assert!(scene.is_training_identity(&current, &current));
+    let first = first_training_identity(&scene);
+    assert!(scene.is_training_identity(&first, &current), "an unversioned identity is checked as the first one");
+    let mut other = first.clone();
+    other.replace_range(0..1, if first.starts_with('0') { "1" } else { "0" });
+    assert!(!scene.is_training_identity(&other, &current));
+    assert!(!scene.is_training_identity("v2:0000000000000000", &current));
+}

@@ -4,6 +4,9 @@
 
 use super::{Scene, Split};
 
+/// The version `Scene::training_identity` writes before its hex.
+pub const TRAINING_IDENTITY_VERSION: &str = "v2";
+
 /// FNV-1a, 64 bits.
 #[derive(Clone, Copy, Debug)]
 pub struct Fingerprint(u64);
@@ -50,28 +53,72 @@ impl Scene {
     }
 
     /// The skeleton and every training image (its camera, pose, light and pixels): a fit
-    /// resumes only on the data it started on.
+    /// resumes only on the data it started on. Each image is hashed on its own thread (its
+    /// pixels that are not black, `lit_fingerprint`) and the images' fingerprints are hashed in
+    /// order after the skeleton's; the text says its version
+    /// (`TRAINING_IDENTITY_VERSION`), so a checkpoint of an earlier one is checked by that one.
     pub fn training_identity(&self) -> String {
-        let mut f = self.skeleton_fingerprint();
-        for view in self.views.iter().filter(|v| v.split == Split::Train) {
-            let camera = &self.cameras[view.camera];
-            f = f.text(&camera.name).number(camera.fx).number(camera.fy).number(camera.cx).number(camera.cy);
-            for v in camera.camera_to_world.to_cols_array() {
-                f = f.number(v);
-            }
-            for m in &self.frames[view.frame].pose.bone_to_world {
-                for v in m.to_cols_array() {
-                    f = f.number(v);
-                }
-            }
-            f = f.text(&view.light);
-            for p in view.colour.pixels() {
-                for c in p {
-                    f = f.bytes(&c.to_bits().to_le_bytes());
-                }
+        use rayon::prelude::*;
+        let training: Vec<&super::View> = self.views.iter().filter(|v| v.split == Split::Train).collect();
+        let views: Vec<u64> = training.par_iter().map(|view| self.lit_fingerprint(view)).collect();
+        let f = views.iter().fold(self.skeleton_fingerprint(), |f, v| f.bytes(&v.to_le_bytes()));
+        format!("{TRAINING_IDENTITY_VERSION}:{}", f.hex())
+    }
+
+    /// Whether `recorded` (a checkpoint's `training_data`) is this scene's training data:
+    /// `current` is `training_identity`'s; a recorded identity without a version is the
+    /// first one (every image hashed one after another in a single stream).
+    pub fn is_training_identity(&self, recorded: &str, current: &str) -> bool {
+        match recorded.split_once(':') {
+            Some(_) => recorded == current,
+            None => recorded == self.serial_training_identity(),
+        }
+    }
+
+    /// The first training identity: the skeleton and every training image in one stream.
+    fn serial_training_identity(&self) -> String {
+        let training = self.views.iter().filter(|v| v.split == Split::Train);
+        training.fold(self.skeleton_fingerprint(), |f, view| self.view_fingerprint(view, f)).hex()
+    }
+
+    /// One training image's fingerprint: its camera, pose and light as `view_fingerprint`
+    /// hashes them, then each pixel that is not black, its index and its value (the black
+    /// background says nothing a mask does not).
+    fn lit_fingerprint(&self, view: &super::View) -> u64 {
+        let mut f = self.view_header(view, Fingerprint::default());
+        for (p, c) in view.colour.lit_pixels() {
+            f = f.bytes(&(p as u64).to_le_bytes());
+            for v in c {
+                f = f.bytes(&v.to_bits().to_le_bytes());
             }
         }
-        f.hex()
+        f.0
+    }
+
+    /// `f` continued over a training image's camera, its frame's pose and its light.
+    fn view_header(&self, view: &super::View, mut f: Fingerprint) -> Fingerprint {
+        let camera = &self.cameras[view.camera];
+        f = f.text(&camera.name).number(camera.fx).number(camera.fy).number(camera.cx).number(camera.cy);
+        for v in camera.camera_to_world.to_cols_array() {
+            f = f.number(v);
+        }
+        for m in &self.frames[view.frame].pose.bone_to_world {
+            for v in m.to_cols_array() {
+                f = f.number(v);
+            }
+        }
+        f.text(&view.light)
+    }
+
+    /// `f` continued over one training image: its camera, its frame's pose, its light, its pixels.
+    fn view_fingerprint(&self, view: &super::View, f: Fingerprint) -> Fingerprint {
+        let mut f = self.view_header(view, f);
+        for p in view.colour.pixels() {
+            for c in p {
+                f = f.bytes(&c.to_bits().to_le_bytes());
+            }
+        }
+        f
     }
 
     fn skeleton_fingerprint(&self) -> Fingerprint {
