@@ -8,7 +8,7 @@ use crate::eval::{render_view_and_albedo, Lighting};
 use crate::fit_error::{io, FitError};
 use crate::imageio::RgbImage;
 use crate::messages::TrainMessage;
-use crate::metrics::{score, ErrorRegions, ImageScores};
+use crate::metrics::{score, ImageScores};
 use crate::run::{albedo_scale, restore, save_png, write_text};
 use crate::run_lock::RunLock;
 use crate::scene::{Scene, Split};
@@ -16,6 +16,10 @@ use burn::module::Module;
 use serde_json::json;
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
+
+mod tables;
+pub use tables::METRICS_COLUMNS;
+use tables::*;
 
 /// Renders and scores the test images of a finished (or checkpointed) fit in `run`, with the
 /// scene it was fitted on or `scene`; writes `run/renders/` and returns the evaluation.
@@ -144,44 +148,12 @@ pub fn evaluate_split(scene: &Scene, fitted: &Fitted, dir: &Path, split: Split, 
     let cells: Vec<Vec<&RgbImage>> = compare.iter().map(|row| row.iter().collect()).collect();
     save_png(&dir.join("compare.png"), &RgbImage::tiled(&cells))?;
     let groups = group_means(&rows);
-    let group = |g: &str| groups.iter().find(|m| m.group == g);
-    let field = |g: &str, pick: fn(&ImageScores) -> f64| group(g).map(|m| json!(pick(&m.scores))).unwrap_or(json!(null));
     write_text(&dir.join("metrics.csv"), &metrics_csv(&rows))?;
-    let mut evaluation = serde_json::Map::new();
-    for (key, g) in [
-        ("novel_pose", "novel pose"),
-        ("novel_view", "novel view"),
-        ("relit", "relit"),
-        ("albedo", "albedo"),
-        ("relit_scaled", "relit, per-channel scaled"),
-        ("albedo_scaled", "albedo, per-channel scaled"),
-    ] {
-        evaluation.insert(format!("{key}_psnr"), field(g, |s| s.psnr));
-        evaluation.insert(format!("{key}_foreground_psnr"), field(g, |s| s.foreground_psnr));
-        evaluation.insert(format!("{key}_ssim"), field(g, |s| s.ssim));
-    }
-    evaluation.insert("groups".into(), json!(groups));
-    evaluation.insert("albedo_scale".into(), json!(albedo_scale.to_array()));
-    evaluation.insert("images".into(), json!(rows));
+    let mut evaluation = evaluation_json(&rows, &groups, albedo_scale);
     let geometry = geometry_scores(scene, &model, albedo_scale, &device, on)?;
     let light = light_error(scene, fitted.fit_light, 0, &model.light.report());
     let mut markdown = metrics_markdown(&rows, &groups);
-    if let Some(frames) = geometry.as_array().filter(|f| !f.is_empty()) {
-        markdown += "\n## Geometry against the scene's meshes\n\n| frame | accuracy (mm) | completeness (mm) | Chamfer (mm) | normal angle (deg) | within 2 cm | closed |\n|---|---|---|---|---|---|---|\n";
-        for f in frames {
-            let mm = |key: &str| f[key].as_f64().map(|v| format!("{:.2}", v * 1e3)).unwrap_or_else(|| "-".into());
-            markdown += &format!(
-                "| {} | {} | {} | {} | {:.2} | {:.1}% | {} |\n",
-                f["frame"],
-                mm("accuracy"),
-                mm("completeness"),
-                mm("chamfer"),
-                f["normal_angle"].as_f64().unwrap_or(f64::NAN),
-                f["within_2cm"].as_f64().unwrap_or(f64::NAN) * 100.0,
-                if f["closed"].as_bool() == Some(true) { "yes" } else { "no" }
-            );
-        }
-    }
+    markdown += &geometry_markdown(geometry.as_array().map(|f| f.as_slice()).unwrap_or_default());
     write_text(&dir.join("metrics.md"), &markdown)?;
     evaluation.insert("geometry".into(), geometry);
     evaluation.insert("light_error".into(), light);
@@ -350,135 +322,6 @@ pub fn score_view(
 fn render_name(scene: &Scene, view: &crate::scene::View) -> String {
     let relative = view.path.strip_prefix(&scene.root).unwrap_or(&view.path).with_extension("png");
     relative.to_string_lossy().replace(['/', '\\'], "_")
-}
-
-/// The score of one rendered test image (and of its albedo, when the scene has one).
-#[derive(serde::Serialize)]
-struct ImageScore {
-    image: String,
-    light: String,
-    group: &'static str,
-    #[serde(flatten)]
-    scores: ImageScores,
-    albedo: Option<ImageScores>,
-    /// A relit image's scores after its per-channel least-squares scale.
-    relit_scaled: Option<ImageScores>,
-    /// The albedo's scores after its per-channel least-squares scale.
-    albedo_scaled: Option<ImageScores>,
-    /// Where the image's error lies, as shares (`metrics::ErrorRegions`; with a mask only).
-    error_share: Option<ErrorRegions>,
-    /// The same as squared-error sums, for the group's shares.
-    #[serde(skip)]
-    error_sums: Option<ErrorRegions>,
-    novel_pose: bool,
-    novel_view: bool,
-    relit: bool,
-}
-
-/// The mean scores of one group of test images (novel pose, novel view, relit, albedo).
-#[derive(serde::Serialize)]
-struct GroupScores {
-    group: &'static str,
-    images: usize,
-    #[serde(flatten)]
-    scores: ImageScores,
-    /// Where the group's error lies: its images' squared errors summed by region, as shares.
-    error_share: Option<ErrorRegions>,
-}
-
-/// Mean scores per group, in a fixed order; albedo renders form a group of their own.
-fn group_means(rows: &[ImageScore]) -> Vec<GroupScores> {
-    let mean = |group: &'static str, scores: Vec<ImageScores>, errors: Option<ErrorRegions>| {
-        let n = scores.len() as f64;
-        let avg = |pick: fn(&ImageScores) -> f64| scores.iter().map(pick).sum::<f64>() / n;
-        GroupScores {
-            group,
-            images: scores.len(),
-            scores: ImageScores { psnr: avg(|s| s.psnr), foreground_psnr: avg(|s| s.foreground_psnr), ssim: avg(|s| s.ssim) },
-            error_share: errors.map(|e| e.shares()),
-        }
-    };
-    let mut out = Vec::new();
-    for group in ["novel pose", "novel view", "relit", "training pose and view"] {
-        let members: Vec<&ImageScore> = rows.iter().filter(|r| r.group == group).collect();
-        if !members.is_empty() {
-            // Summed over the group's images when every one has a mask.
-            let errors = members.iter().try_fold(ErrorRegions::default(), |sum, r| r.error_sums.map(|e| sum.add(&e)));
-            out.push(mean(group, members.iter().map(|r| r.scores).collect(), errors));
-        }
-    }
-    for (group, pick) in [
-        ("albedo", (|r: &ImageScore| r.albedo) as fn(&ImageScore) -> Option<ImageScores>),
-        ("relit, per-channel scaled", |r: &ImageScore| r.relit_scaled),
-        ("albedo, per-channel scaled", |r: &ImageScore| r.albedo_scaled),
-    ] {
-        let scores: Vec<ImageScores> = rows.iter().filter_map(pick).collect();
-        if !scores.is_empty() {
-            out.push(mean(group, scores, None));
-        }
-    }
-    out
-}
-
-fn cells(s: &ImageScores, digits: usize) -> [String; 3] {
-    [format!("{:.digits$}", s.psnr), format!("{:.digits$}", s.foreground_psnr), format!("{:.4}", s.ssim)]
-}
-
-/// The columns of `metrics.csv`.
-pub const METRICS_COLUMNS: [&str; 12] = [
-    "image",
-    "light",
-    "group",
-    "psnr",
-    "foreground_psnr",
-    "ssim",
-    "albedo_psnr",
-    "albedo_foreground_psnr",
-    "albedo_ssim",
-    "error_outside_mask",
-    "error_along_silhouette",
-    "error_inside",
-];
-
-fn metrics_csv(rows: &[ImageScore]) -> String {
-    let rows = rows.iter().map(|r| {
-        let albedo = r.albedo.map(|a| cells(&a, 3)).unwrap_or_else(|| [String::new(), String::new(), String::new()]);
-        let shares = r.error_share.map(|e| share_cells(&e, 4)).unwrap_or_else(|| [String::new(), String::new(), String::new()]);
-        let mut row = vec![r.image.clone(), r.light.clone(), r.group.to_string()];
-        row.extend(cells(&r.scores, 3));
-        row.extend(albedo);
-        row.extend(shares);
-        row
-    });
-    crate::table::to_csv(&METRICS_COLUMNS, rows)
-}
-
-/// An `ErrorRegions` of shares as three cells: outside the mask, along the silhouette, inside.
-fn share_cells(e: &ErrorRegions, digits: usize) -> [String; 3] {
-    [e.outside, e.silhouette, e.inside].map(|v| format!("{v:.digits$}"))
-}
-
-fn metrics_markdown(rows: &[ImageScore], groups: &[GroupScores]) -> String {
-    let mut md = String::from(
-        "## Test images (sRGB 8-bit; foreground = ground-truth mask or any rendered pixel)\n\n| group | images | PSNR (dB) | foreground PSNR (dB) | SSIM |\n|---|---|---|---|---|\n",
-    );
-    for g in groups {
-        md += &format!("| {} | {} | {} |\n", g.group, g.images, cells(&g.scores, 2).join(" | "));
-    }
-    if groups.iter().any(|g| g.error_share.is_some()) {
-        md += "\n## Where the error lies (share of each group's squared error, sRGB 8-bit)\n\nOutside the mask: the render draws body (or a halo) where the truth has none; along the silhouette: mask pixels beside the background; inside: the rest of the body. Most of it outside and along the silhouette is a shape error, most of it inside a colour or shading error.\n\n| group | outside the mask | along the silhouette | inside |\n|---|---|---|---|\n";
-        for g in groups {
-            if let Some(e) = &g.error_share {
-                md += &format!("| {} | {} |\n", g.group, e.percentages().join(" | "));
-            }
-        }
-    }
-    md += "\n| image | light | group | PSNR (dB) | foreground PSNR (dB) | SSIM | albedo PSNR (dB) | albedo foreground PSNR (dB) | albedo SSIM |\n|---|---|---|---|---|---|---|---|---|\n";
-    for r in rows {
-        let albedo = r.albedo.map(|a| cells(&a, 2)).unwrap_or_else(|| ["-".into(), "-".into(), "-".into()]);
-        md += &format!("| {} | {} | {} | {} | {} |\n", r.image, r.light, r.group, cells(&r.scores, 2).join(" | "), albedo.join(" | "));
-    }
-    md
 }
 
 /// How far the recovered training light `k` is from the one the scene states for it
