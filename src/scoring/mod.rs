@@ -387,7 +387,8 @@ mod tests {
 
     #[test]
     fn a_groups_error_shares_sum_its_images_errors_and_need_every_mask() {
-        use super::{group_means, ErrorRegions, ImageScore, ImageScores};
+        use super::tables::{group_means, ImageScore};
+        use crate::metrics::{ErrorRegions, ImageScores};
         let scores = ImageScores { psnr: 30.0, foreground_psnr: 20.0, ssim: 0.9 };
         let row = |group: &'static str, sums: Option<ErrorRegions>| ImageScore {
             image: String::new(),

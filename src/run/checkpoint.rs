@@ -1,83 +1,16 @@
-//! The run folder: where a fit's checkpoint lives and how it is written (atomically, swapped
-//! in whole) and read back (verified against the scene and schedule it came from), the model
-//! restored from it for rendering, the losses it records, and the images written into it.
-//! Below every command that reads a run (fit, eval, relight, report, export).
+//! A run's checkpoint: written atomically with its checksums, verified against the scene and
+//! the schedule it was fitted with, and loaded to resume a fit.
 
-use crate::avatar::{Avatar, Fitted};
+use super::*;
 use crate::fit_error::{io, FitError};
 use crate::messages::StepStats;
 use crate::random::Stream;
 use crate::scene::identity::file_checksum;
 use crate::scene::Scene;
-use crate::schedule::Schedule;
-use crate::shading::LightKind;
 use crate::train::Trainer;
 use burn::module::Module;
 use serde_json::json;
 use std::path::{Path, PathBuf};
-
-pub const CHECKPOINT: &str = "checkpoint";
-
-/// Where the previous checkpoint waits while a new one is swapped in.
-pub(crate) const OLD_CHECKPOINT: &str = ".checkpoint.old";
-
-/// The schedule a run was fitted with, copied into the run (rendering rebuilds the model
-/// from it; the original file may have moved).
-pub const SCHEDULE_COPY: &str = "schedule.toml";
-
-/// What a run's report writes into the run folder.
-pub const REPORT_FILES: [&str; 3] = ["report.html", "report.md", "report-relit.png"];
-
-/// What a fit writes beside its checkpoint (besides the evaluation's folders and the report).
-pub const FIT_FILES: [&str; 4] = ["fit.json", "gaussians.json", "losses.csv", "losses.png"];
-
-/// The folders an evaluation renders into.
-pub const RENDER_FOLDERS: [&str; 2] = ["renders", "renders-train"];
-
-/// Removes from `dir` what an earlier evaluation wrote there (the images its `metrics.csv`
-/// lists with their albedos, `compare.png`, `metrics.*`), and `dir` itself when that leaves it
-/// empty: another scene's or an earlier fit's renders must not stand beside a new table. Any
-/// other file, a user's, stays.
-pub fn clear_renders(dir: &Path) -> Result<(), FitError> {
-    let listed = crate::files::read_text(&dir.join("metrics.csv"), crate::files::STATE_BYTES)
-        .ok()
-        .and_then(|text| crate::table::read_csv(&text).ok())
-        .map(|(_, rows)| rows.into_iter().filter_map(|row| row.into_iter().next()).collect::<Vec<String>>())
-        .unwrap_or_default();
-    // A render's name is one plain file name (`render_name`); anything else is not ours.
-    let plain = |name: &String| !name.is_empty() && !name.starts_with('.') && !name.contains(['/', '\\']) && name.ends_with(".png");
-    let renders = listed.iter().filter(|n| plain(n)).flat_map(|n| [n.clone(), n.replace(".png", "-albedo.png")]);
-    let own = ["compare.png", "metrics.csv", "metrics.md", "metrics.json"].map(String::from);
-    for name in renders.chain(own) {
-        let path = dir.join(&name);
-        if std::fs::symlink_metadata(&path).is_ok_and(|m| m.is_file()) {
-            std::fs::remove_file(&path).map_err(|e| io(&path, e))?;
-        }
-    }
-    let _ = std::fs::remove_dir(dir);
-    Ok(())
-}
-
-/// Removes what an earlier fit's evaluation and report left in `run` (its renders, report,
-/// and with `fit_outputs` also fit.json, gaussians.json and the losses), so that a fit that
-/// replaces it or ends without evaluating leaves nothing that describes another fit.
-pub fn clear_run_outputs(run: &Path, fit_outputs: bool) -> Result<(), FitError> {
-    for folder in RENDER_FOLDERS {
-        clear_renders(&run.join(folder))?;
-    }
-    let files = REPORT_FILES.iter().chain(if fit_outputs { FIT_FILES.iter() } else { [].iter() });
-    for name in files {
-        let path = run.join(name);
-        if path.is_file() {
-            std::fs::remove_file(&path).map_err(|e| io(&path, e))?;
-        }
-    }
-    Ok(())
-}
-
-pub(crate) fn write_text(path: &Path, text: &str) -> Result<(), FitError> {
-    crate::imageio::write_atomic(path, text.as_bytes()).map_err(|e| io(path, e))
-}
 
 pub(crate) fn save_checkpoint(trainer: &Trainer, out: &Path, history: &[(usize, StepStats)]) -> Result<(), FitError> {
     save_checkpoint_until(trainer, out, history, usize::MAX).map(|_| ())
@@ -182,11 +115,11 @@ pub fn save_checkpoint_until(trainer: &Trainer, out: &Path, history: &[(usize, S
 }
 
 /// The last step's parameters in a checkpoint whose `model.bpk` holds the field's average.
-const TRAINING_MODEL: &str = "training-model.bpk";
+pub(super) const TRAINING_MODEL: &str = "training-model.bpk";
 
 /// The files of a checkpoint that hold parameters: the model (and the last step's, while the
 /// field is averaged) and one per optimizer.
-fn checkpoint_files(trainer: &Trainer) -> Vec<String> {
+pub(super) fn checkpoint_files(trainer: &Trainer) -> Vec<String> {
     let training = trainer.average.is_some().then(|| TRAINING_MODEL.to_string());
     std::iter::once("model.bpk".to_string())
         .chain(training)
@@ -195,7 +128,7 @@ fn checkpoint_files(trainer: &Trainer) -> Vec<String> {
 }
 
 /// The checksum of a checkpoint's `state.json`, beside it: state.json holds the others.
-const STATE_CHECKSUM: &str = "state.checksum";
+pub(super) const STATE_CHECKSUM: &str = "state.checksum";
 
 /// A checkpoint's `state.json`, read bounded and checked against the checksum beside it (a
 /// checkpoint that records its files' checksums must have one for its state too), with the
@@ -241,7 +174,7 @@ pub(crate) fn read_state(dir: &Path) -> Result<serde_json::Value, FitError> {
 /// Reads a checkpoint's `state.json` and checks it against `scene` (the skeleton, and the
 /// training data when `resuming`) and the checksums of the files it lists. Checkpoints written
 /// before these were recorded pass unchecked.
-fn verified_state(dir: &Path, scene: &Scene, training_identity: Option<&str>) -> Result<serde_json::Value, FitError> {
+pub(super) fn verified_state(dir: &Path, scene: &Scene, training_identity: Option<&str>) -> Result<serde_json::Value, FitError> {
     let state_path = dir.join("state.json");
     let state = read_state(dir)?;
     let scene_file = crate::scene::scene_file(&scene.root);
@@ -388,12 +321,12 @@ pub(crate) fn load_checkpoint(trainer: &mut Trainer, out: &Path) -> Result<Vec<(
     Ok(parse_losses_csv(&csv))
 }
 
-fn cone_json(cone: Option<(glam::DVec3, f64)>) -> serde_json::Value {
+pub(super) fn cone_json(cone: Option<(glam::DVec3, f64)>) -> serde_json::Value {
     cone.map_or(json!(null), |(axis, angle)| json!({"axis": axis.to_array(), "angle_radians": angle}))
 }
 
 /// A sun's cone from a checkpoint's `state.json` (`key` names it in errors); null: none.
-fn parse_cone(cone: &serde_json::Value, state_path: &Path, key: &str) -> Result<Option<(glam::DVec3, f64)>, FitError> {
+pub(super) fn parse_cone(cone: &serde_json::Value, state_path: &Path, key: &str) -> Result<Option<(glam::DVec3, f64)>, FitError> {
     if cone.is_null() {
         return Ok(None);
     }
@@ -409,7 +342,7 @@ fn parse_cone(cone: &serde_json::Value, state_path: &Path, key: &str) -> Result<
 }
 
 /// Replaces the trainer's model by the one saved in checkpoint folder `dir`.
-fn load_model(trainer: &mut Trainer, dir: &Path) -> Result<(), FitError> {
+pub(super) fn load_model(trainer: &mut Trainer, dir: &Path) -> Result<(), FitError> {
     let state_path = dir.join("state.json");
     let state = read_state(dir)?;
     // A loose body fitted before Gaussians were seeded on it has only the bones' Gaussians.
@@ -428,136 +361,4 @@ fn load_model(trainer: &mut Trainer, dir: &Path) -> Result<(), FitError> {
         trainer.set_gaussian_bones(&bones).map_err(|e| io(&state_path, format!("gaussian_bones: {e}")))?;
     }
     Ok(())
-}
-
-/// A finished (or checkpointed) run as `restore` rebuilds it: the scene it is rendered on, its
-/// schedule copy and the fitted avatar.
-pub struct FittedRun {
-    pub scene: Scene,
-    pub schedule: Schedule,
-    pub fitted: Fitted,
-}
-
-/// A run rebuilt from its folder (its schedule copy and last checkpoint), on the scene it was
-/// fitted on (from `fit.json`) or on `scene`: the avatar's shape from what the checkpoint
-/// records (the field, the Gaussians' bones), its parameters from `model.bpk`. Nothing of the
-/// training (optimisers, error maps, the body's analysis) is rebuilt.
-pub fn restore(run: &Path, scene: Option<&Path>, backend: crate::backend::Backend) -> Result<FittedRun, FitError> {
-    if !run.join(SCHEDULE_COPY).is_file() {
-        let what = if run.is_dir() { "is not an umbra run (it has no schedule.toml)" } else { "does not exist" };
-        return Err(io(run, format!("{what}: name the --out folder of an `umbra fit`")));
-    }
-    let mut schedule = Schedule::load(&run.join(SCHEDULE_COPY))?;
-    let scene_path = match scene {
-        Some(path) => path.to_path_buf(),
-        None => recorded_scene(run)?,
-    };
-    let scene = Scene::load(&scene_path)?;
-    apply_recorded_field(run, scene.skeleton.len(), &mut schedule.field)?;
-    let checkpoint = existing_checkpoint(run).ok_or_else(|| io(run, "holds no checkpoint"))?;
-    let state = verified_state(&checkpoint, &scene, None)?;
-    let state_path = checkpoint.join("state.json");
-    let lights = crate::train::training_lights(&scene, &schedule)?;
-    let device = backend.device();
-    device.seed(0);
-    let extent = scene.body_extent();
-    // The field is recorded (or predates the root's skinning): the masks are never searched.
-    let config = crate::train::field_config(&schedule.field, &scene.skeleton, extent as f32, |_, _| None);
-    // The Gaussians' bones, when recorded; before, each stayed on its bone, four a bone.
-    let bones: Vec<usize> = match state.get("gaussian_bones") {
-        Some(bones) => serde_json::from_value(bones.clone()).map_err(|e| io(&state_path, format!("gaussian_bones: {e}")))?,
-        None => (0..scene.skeleton.len()).flat_map(|b| [b; 4]).collect(),
-    };
-    if let Some(b) = bones.iter().find(|&&b| b >= scene.skeleton.len()) {
-        return Err(io(&state_path, format!("gaussian_bones: bone {b} is not in the skeleton's {}", scene.skeleton.len())));
-    }
-    let unit = crate::skeleton::body_length(1.0, extent);
-    let gaussian = |bone: usize| crate::gaussians::Gaussian { bone, mean: [0.0; 3], rotation: [0.0, 0.0, 0.0, 1.0], scales: [unit; 3], amplitude: 1.0 };
-    let set = crate::gaussians::GaussianSet { gaussians: bones.iter().map(|&b| gaussian(b)).collect() };
-    let shell = crate::train::new_avatar(&scene, &config, &set, lights.kind, lights.count, &device, 0);
-    let model_path = checkpoint.join("model.bpk");
-    // burn checks every tensor's shape against the shell's: a wrong count of bones is refused.
-    let model = shell.try_load_file(&model_path).map_err(|e| {
-        io(
-            &model_path,
-            format!("cannot load the fitted model as {}'s gaussian_bones ({} Gaussians) and field describe it: {e}", state_path.display(), bones.len()),
-        )
-    })?;
-    let iteration = state["iteration"].as_u64().unwrap_or(0) as usize;
-    let footprint = schedule.footprint.unwrap_or_else(|| scene.footprint().footprint);
-    let fitted = Fitted { model, device, light_kind: lights.kind, fit_light: lights.fit, footprint, iteration };
-    Ok(FittedRun { scene, schedule, fitted })
-}
-
-/// A trainer rebuilt from a run folder on the scene it was fitted on, its model loaded from the
-/// last checkpoint (optimisers fresh): what the step benchmarks time on a formed surface.
-pub fn restore_trainer(run: &Path, backend: crate::backend::Backend) -> Result<Trainer, FitError> {
-    let mut schedule = Schedule::load(&run.join(SCHEDULE_COPY))?;
-    let scene = Scene::load(&recorded_scene(run)?)?;
-    apply_recorded_field(run, scene.skeleton.len(), &mut schedule.field)?;
-    let mut trainer = Trainer::new(scene, schedule, backend, 0)?;
-    let checkpoint = existing_checkpoint(run).ok_or_else(|| io(run, "holds no checkpoint"))?;
-    verified_state(&checkpoint, &trainer.scene, None)?;
-    load_model(&mut trainer, &checkpoint)?;
-    Ok(trainer)
-}
-
-/// The scene a run was fitted on, as its `fit.json` records it.
-fn recorded_scene(run: &Path) -> Result<std::path::PathBuf, FitError> {
-    let report = run.join("fit.json");
-    if !report.exists() && crate::run_lock::held_elsewhere(run) {
-        return Err(io(run, "a fit is in progress in this run folder (it has no fit.json yet): wait for it to finish"));
-    }
-    let fitted = crate::fit_report::FitReport::read(&report).map_err(|e| FitError::Input(format!("{e} (pass --scene to name the scene)")))?;
-    Ok(std::path::PathBuf::from(fitted.scene))
-}
-
-/// The factor from the fitted albedo to reflectance (`relight::albedo_scale`) for a model
-/// fitted on `scene`.
-pub fn albedo_scale(scene: &Scene, model: &Avatar) -> glam::DVec3 {
-    let fitted_intensity = (model.light.kind == LightKind::Point).then(|| model.light.intensity().into_scalar::<f32>() as f64);
-    scene.training_lights().first().map(|name| crate::light::albedo_scale(&scene.lights[*name], fitted_intensity)).unwrap_or(glam::DVec3::ONE)
-}
-
-/// The columns of `losses.csv` after the loss terms: the first training light's direction or
-/// position (`StepStats::light`), empty when none is fitted.
-const LIGHT_COLUMNS: [&str; 3] = ["light_x", "light_y", "light_z"];
-
-pub(crate) fn losses_csv(history: &[(usize, StepStats)]) -> String {
-    let header: Vec<&str> = ["iteration", "total", "seconds"].into_iter().chain(crate::schedule::TERMS).chain(LIGHT_COLUMNS).collect();
-    let rows = history.iter().map(|(it, s)| {
-        let mut row = vec![it.to_string(), format!("{:.6e}", s.total), format!("{:.4}", s.seconds)];
-        row.extend(crate::schedule::TERMS.iter().map(|t| s.terms.get(*t).map(|v| format!("{v:.6e}")).unwrap_or_default()));
-        row.extend((0..3).map(|k| s.light.map(|v| format!("{:.7}", v[k])).unwrap_or_default()));
-        row
-    });
-    crate::table::to_csv(&header, rows)
-}
-
-fn parse_losses_csv(text: &str) -> Vec<(usize, StepStats)> {
-    let mut rows = Vec::new();
-    let table = crate::table::read_csv(text).map(|(_, rows)| rows).unwrap_or_default();
-    for line in &table {
-        let cells: Vec<&str> = line.iter().map(String::as_str).collect();
-        let (Some(it), Some(total), Some(seconds)) =
-            (cells.first().and_then(|c| c.parse().ok()), cells.get(1).and_then(|c| c.parse().ok()), cells.get(2).and_then(|c| c.parse().ok()))
-        else {
-            continue;
-        };
-        let terms =
-            crate::schedule::TERMS.iter().enumerate().filter_map(|(k, t)| cells.get(3 + k).and_then(|c| c.parse().ok()).map(|v| (t.to_string(), v))).collect();
-        // Runs before the light's columns have none: their rows read back without it.
-        let light_cell = |k: usize| cells.get(3 + crate::schedule::TERMS.len() + k).and_then(|c| c.parse::<f64>().ok());
-        let light = match (light_cell(0), light_cell(1), light_cell(2)) {
-            (Some(x), Some(y), Some(z)) => Some([x, y, z]),
-            _ => None,
-        };
-        rows.push((it, StepStats { total, terms, seconds, phases: Vec::new(), light }));
-    }
-    rows
-}
-
-pub fn save_png(path: &Path, image: &crate::imageio::RgbImage) -> Result<(), FitError> {
-    let png = crate::imageio::encode_png_rgb(image).map_err(|e| io(path, e))?;
-    crate::imageio::write_atomic(path, &png).map_err(|e| io(path, e))
 }
