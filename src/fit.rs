@@ -205,11 +205,12 @@ fn holds_foreign_files(dir: &Path) -> bool {
 /// Runs the fit described by `options`, reporting through `on`; returns fit.json's content.
 pub fn fit(options: &FitOptions, mut on: impl FnMut(TrainMessage)) -> Result<FitReport, FitError> {
     let wall = Instant::now();
-    let scene = load_scene(&options.scene, &mut on)?;
+    // The schedule is read first: a mistake in it is found before the images are decoded.
     let (mut schedule, schedule_text) = Schedule::read(&options.schedule)?;
     if let Some(n) = options.iterations {
         schedule.iterations = crate::schedule::check_iterations(n).map_err(FitError::Input)?;
     }
+    let scene = load_scene(&options.scene, &mut on)?;
     let out = &options.out;
     if out.exists() && !out.is_dir() {
         return Err(io(out, "exists and is not a folder: --out names the run's folder (nothing was written)"));

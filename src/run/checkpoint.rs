@@ -224,13 +224,6 @@ pub(crate) fn apply_recorded_field(run: &Path, bones: usize, settings: &mut crat
     let state_path = checkpoint.join("state.json");
     let state = read_state(&checkpoint)?;
     if let Some(field) = state.get("field") {
-        // A run fitted with the removed knee in its capped prior cannot be rebuilt as it was.
-        if field["grid"]["root"]["prior_knee"] == serde_json::Value::Bool(true) {
-            return Err(io(
-                &state_path,
-                "field.grid.root.prior_knee: this run was fitted with [field] prior_knee, which was removed (docs/measurements.md): fit it again",
-            ));
-        }
         let config: crate::field::FieldConfig = serde_json::from_value(field.clone()).map_err(|e| io(&state_path, format!("field: {e}")))?;
         config.check(bones).map_err(|e| io(&state_path, format!("field.{e}")))?;
         settings.recorded = Some(config);
