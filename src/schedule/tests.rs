@@ -1,4 +1,3 @@
-
 use super::*;
 
 const DEFAULT: &str = DEFAULT_TEXT;
