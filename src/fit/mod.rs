@@ -22,6 +22,10 @@ use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
+mod record;
+
+use record::{capture_report, field_report, light_path, light_searches, losses_chart, stages};
+
 #[derive(Clone, Debug)]
 pub struct FitOptions {
     pub scene: PathBuf,
@@ -52,33 +56,6 @@ fn segment(schedule: &Schedule, iteration: usize, fit_light: bool) -> &'static s
     } else {
         "RGB fitting"
     }
-}
-
-/// Running mean over `window` points: per-batch losses are noisy, trends are what one reads.
-fn smooth(points: Vec<(f64, f64)>, window: usize) -> Vec<(f64, f64)> {
-    (0..points.len())
-        .map(|k| {
-            let lo = k.saturating_sub(window - 1);
-            let mean = points[lo..=k].iter().map(|p| p.1).sum::<f64>() / (k + 1 - lo) as f64;
-            (points[k].0, mean)
-        })
-        .collect()
-}
-
-fn losses_chart(history: &[(usize, StepStats)]) -> Chart {
-    let window = (history.len() / 60).max(1);
-    let mut series = vec![Series {
-        name: "total (weighted)".into(),
-        points: smooth(history.iter().map(|(i, s)| (*i as f64 + 1.0, s.total)).collect(), window),
-        lines: true,
-    }];
-    for term in crate::schedule::TERMS {
-        let points: Vec<(f64, f64)> = history.iter().filter_map(|(i, s)| s.terms.get(term).map(|v| (*i as f64 + 1.0, *v))).collect();
-        if !points.is_empty() {
-            series.push(Series { name: term.into(), points: smooth(points, window), lines: true });
-        }
-    }
-    Chart { title: format!("losses (running mean of {window})"), x_label: "iteration".into(), y_label: "loss".into(), log_x: false, log_y: true, series }
 }
 
 /// A `--resume` must continue the run as it was scheduled: the same schedule text and the same
@@ -212,19 +189,7 @@ pub fn fit(options: &FitOptions, mut on: impl FnMut(TrainMessage)) -> Result<Fit
     }
     let scene = load_scene(&options.scene, &mut on)?;
     let out = &options.out;
-    if out.exists() && !out.is_dir() {
-        return Err(io(out, "exists and is not a folder: --out names the run's folder (nothing was written)"));
-    }
-    if existing_checkpoint(out).is_some() && !options.resume && !options.force {
-        return Err(io(out, "holds a checkpoint of an earlier fit: pass --resume to continue it, --force to replace it, or choose another --out"));
-    }
-    if options.resume && existing_checkpoint(out).is_none() {
-        return Err(io(out, "holds no checkpoint to resume (nothing was written)"));
-    }
-    // A folder holding files but no run is the user's: it is not written into without --force.
-    if !options.resume && !options.force && holds_foreign_files(out) {
-        return Err(io(out, "exists, is not empty and is not an umbra run (no checkpoint, fit.json or schedule.toml): pass --force to write into it anyway, or choose another --out"));
-    }
+    check_out_folder(options)?;
     // A resumed run keeps the field it was fitted with (the schedule text is compared below).
     let mut built = schedule.clone();
     if options.resume {
@@ -256,122 +221,20 @@ pub fn fit(options: &FitOptions, mut on: impl FnMut(TrainMessage)) -> Result<Fit
     let training_images = trainer.scene.views_in(Split::Train).count();
     on(TrainMessage::Loaded { scene: trainer.scene.display_name(), training_images, frames: trainer.scene.frames.len(), light: trainer.light_kind });
     on(TrainMessage::Started { first: trainer.iteration, iterations: schedule.iterations });
-    let mut segment_seconds: BTreeMap<&str, f64> = BTreeMap::new();
-    while trainer.iteration < schedule.iterations {
-        let it = trainer.iteration;
-        let stats = trainer.iterate().map_err(|e| match e {
-            FitError::NonFinite { iteration, what, .. } => {
-                let saved = std::fs::read_to_string(out.join(CHECKPOINT).join("state.json"))
-                    .ok()
-                    .and_then(|text| serde_json::from_str::<serde_json::Value>(&text).ok())
-                    .and_then(|state| state["iteration"].as_u64());
-                let checkpoint = match saved {
-                    Some(at) => format!("the last good checkpoint (iteration {at}) is kept in {}", out.join(CHECKPOINT).display()),
-                    None => "no checkpoint had been written yet".into(),
-                };
-                FitError::NonFinite { iteration, what, checkpoint }
-            }
-            other => other,
-        })?;
-        *segment_seconds.entry(segment(&schedule, it, trainer.fit_light)).or_default() += stats.seconds;
-        history.push((it, stats.clone()));
-        on(TrainMessage::Step { iteration: it, stats });
-        if trainer.iteration % schedule.checkpoint_every == 0 || trainer.iteration == schedule.iterations {
-            save_checkpoint(&trainer, out, &history)?;
-            on(TrainMessage::Checkpoint { iteration: trainer.iteration });
-        }
-    }
-    let set = trainer.model()?.gaussians.to_set();
-    set.save(&out.join("gaussians.json")).map_err(|e| io(&out.join("gaussians.json"), e))?;
-    write_text(&out.join("losses.csv"), &losses_csv(&history))?;
-    losses_chart(&history).render(800, 500).save_png(&out.join("losses.png")).map_err(|e| io(&out.join("losses.png"), e))?;
-    let has_tests = trainer.scene.views_in(Split::Test).next().is_some();
-    let evaluation = if options.evaluate && has_tests {
-        evaluate(&trainer.scene, &trainer.fitted()?, out, &mut on)?
-    } else if trainer.iteration == first_iteration_here {
-        // Nothing was trained: the run's own evaluation (if any) still describes it.
-        previous_evaluation(out)
-    } else {
-        // Renders and a report of fewer iterations would describe another fit.
-        crate::run::clear_run_outputs(out, false)?;
-        json!(null)
-    };
-    let evaluation_skipped = match (options.evaluate, has_tests) {
-        (_, false) => Some("the scene has no test images (split \"test\"): nothing to evaluate"),
-        (false, true) => Some("--no-eval"),
-        (true, true) => None,
-    };
+    let segment_seconds = train(&mut trainer, &schedule, out, &mut history, &mut on)?;
+    write_results(&trainer, out, &history)?;
+    let (evaluation, evaluation_skipped) = evaluation(&trainer, options, trainer.iteration > first_iteration_here, &mut on)?;
     let model: &Avatar = trainer.model()?;
     let light = model.light.report();
-    let mut stages = Vec::new();
-    let density_hold = schedule.weights.get("density").map(|r| r.hold).unwrap_or(0.0);
-    let seconds = |name: &str| Some(segment_seconds.get(name).copied().unwrap_or(0.0));
-    let stage = |name: &str, ran: bool, from: Option<f64>| Stage { name: name.into(), ran, from, seconds: seconds(name), ..Stage::default() };
-    stages.push(stage("density fitting", true, None));
-    stages.push(stage("Gaussian fitting", schedule.weights["density"].ever_active(schedule.iterations), Some(density_hold)));
-    let light_stage = if trainer.fit_light {
-        stage("light and RGB fitting", schedule.iterations > schedule.light_from, Some(schedule.light_from as f64))
-    } else {
-        let why = if trainer.light_kind == LightKind::Uniform && schedule.light != crate::schedule::LightPolicy::Off {
-            "every training image is uniformly lit: no light direction, no shadow rays; RGB fits the albedo directly"
-        } else {
-            "the schedule sets light = \"off\""
-        };
-        Stage { name: "light fitting".into(), skipped_because: Some(why.into()), iterations_saved: Some(saved), ..Stage::default() }
-    };
-    stages.push(light_stage);
-    // Without a light the colour is still fitted after light_from: its time is accounted too.
-    if !trainer.fit_light && schedule.iterations > schedule.light_from {
-        stages.push(stage("RGB fitting", true, Some(schedule.light_from as f64)));
-    }
+    let stages = stages(&trainer, &schedule, &segment_seconds, saved);
     let last = history.last().map(|(_, s)| s.clone()).unwrap_or_default();
-    // Each light search's start, with its own error against the scene's light when it has one.
-    let searches: Vec<serde_json::Value> = trainer
-        .searches
-        .iter()
-        .enumerate()
-        .map(|(k, search)| match search {
-            None => json!(null),
-            Some(r) => {
-                let mut value = serde_json::to_value(r).unwrap_or(json!(null));
-                let start = match r.best.position {
-                    Some(position) => json!({"position": position}),
-                    None => json!({"direction": r.best.direction}),
-                };
-                value["error_against_scene"] = light_error(&trainer.scene, trainer.fit_light, k, &start);
-                value
-            }
-        })
-        .collect();
+    let searches = light_searches(&trainer);
     let names = trainer.scene.training_lights();
     let by_name = |values: Vec<serde_json::Value>| -> serde_json::Map<String, serde_json::Value> { names.iter().map(|n| n.to_string()).zip(values).collect() };
     let reports: Vec<serde_json::Value> = (0..model.light_count()).map(|k| model.light_at(k).report()).collect();
     let errors: Vec<serde_json::Value> = reports.iter().enumerate().map(|(k, r)| light_error(&trainer.scene, trainer.fit_light, k, r)).collect();
     let light_error = errors.first().cloned().unwrap_or(json!(null));
-    // One schedule serves every capture: with one camera the sun search is what keeps the
-    // light from sliding behind the body (fit.json says which case this was).
-    let training_cameras: std::collections::BTreeSet<usize> = trainer.scene.views_in(crate::scene::Split::Train).map(|v| v.camera).collect();
-    let capture = json!({
-        "pixel_footprint": {
-            "modelled": trainer.footprint,
-            "read_off_the_images": trainer.footprint_estimate,
-        },
-        // Rays drawn where the fit is wrong: the share of each batch's anywhere-third
-        // (`Schedule::error_rays`; under `auto`, half for a loose body, none for a tight one).
-        "error_rays": trainer.error_rays,
-        // The Gaussians' density also fitted at the shadows' scale (`Schedule::density_at_shadow_scale`;
-        // under `auto`, for a loose body alone).
-        "density_at_shadow_scale": trainer.density_at_shadow_scale,
-        // Gaussians seeded on the body the masks show beyond every bone (a loose body's root).
-        "gaussians_on_loose_body": trainer.loose_gaussians(),
-        "training_cameras": training_cameras.len(),
-        "monocular": training_cameras.len() == 1,
-        "light_start": match trainer.searches.first().and_then(|s| s.as_ref()) {
-            Some(r) if r.best.position.is_some() => "point light search over directions and distances around the body, then gradient descent",
-            Some(_) => "sun search over the sphere, then gradient descent within a cone around its best",
-            None => "the schedule's initial light, then gradient descent",
-        },
-    });
+    let capture = capture_report(&trainer);
     let report = FitReport {
         scene: std::fs::canonicalize(&options.scene).unwrap_or_else(|_| options.scene.clone()).display().to_string(),
         // The first training light under the one-light keys; every light by name after.
@@ -388,7 +251,7 @@ pub fn fit(options: &FitOptions, mut on: impl FnMut(TrainMessage)) -> Result<Fit
         wall_seconds: wall.elapsed().as_secs_f64(),
         peak_memory_bytes: crate::files::peak_memory_bytes(),
         evaluation,
-        evaluation_skipped: evaluation_skipped.map(String::from),
+        evaluation_skipped,
         light_error_against_scene: light_error,
         light_errors_against_scene: by_name(errors),
         sun_search: searches.first().cloned().unwrap_or(json!(null)),
@@ -402,42 +265,93 @@ pub fn fit(options: &FitOptions, mut on: impl FnMut(TrainMessage)) -> Result<Fit
     Ok(report)
 }
 
-/// Points of `light_path` over a whole fit (about).
-const LIGHT_PATH_POINTS: usize = 50;
-
-/// The first training light about `LIGHT_PATH_POINTS` times over the fit and after its last step (a
-/// sun's direction or a point light's position, with its error against the scene's light when
-/// the scene states it): where the light went, e.g. whether it settled or passed the truth on
-/// its way to a biased rest. Empty when no light is fitted.
-fn light_path(trainer: &Trainer, history: &[(usize, StepStats)]) -> serde_json::Value {
-    let key = if trainer.light_kind == LightKind::Point { "position" } else { "direction" };
-    let last = history.last().map(|(it, _)| *it);
-    let every = (trainer.schedule.iterations / LIGHT_PATH_POINTS).max(1);
-    let points: Vec<serde_json::Value> = history
-        .iter()
-        .filter(|(it, _)| (it + 1) % every == 0 || Some(*it) == last)
-        .filter_map(|(it, stats)| {
-            let location = json!({ key: stats.light? });
-            let mut point = json!({"after_iteration": it + 1, key: location[key]});
-            let error = light_error(&trainer.scene, trainer.fit_light, 0, &location);
-            if !error.is_null() {
-                point["error_against_scene"] = error;
-            }
-            Some(point)
-        })
-        .collect();
-    json!(points)
+/// The fitted Gaussians, the losses as a table and as a chart.
+fn write_results(trainer: &Trainer, out: &Path, history: &[(usize, StepStats)]) -> Result<(), FitError> {
+    let set = trainer.model()?.gaussians.to_set();
+    set.save(&out.join("gaussians.json")).map_err(|e| io(&out.join("gaussians.json"), e))?;
+    write_text(&out.join("losses.csv"), &losses_csv(history))?;
+    losses_chart(history).render(800, 500).save_png(&out.join("losses.png")).map_err(|e| io(&out.join("losses.png"), e))
 }
 
-/// The fitted field's kind and its VolSDF beta (m): how sharp its surface ended.
-fn field_report(trainer: &Trainer) -> serde_json::Value {
-    let Ok(model) = trainer.fitted_model() else { return serde_json::Value::Null };
-    let beta = Some(crate::backend::host_scalar(model.field.beta())).filter(|b| b.is_finite());
-    // Where the training masks put body beyond every bone's grid box (loose clothing), the
-    // root's grids reach it: how far from the root's segment, m (null: a body tight on its bones).
-    let root = model.field.grid.as_ref().and_then(|g| g.config.root);
-    let loose = root.filter(|r| r.features_reach_body).map(|r| r.reach);
-    // And the capsule prior stops at the root's cap (m, null: uncapped).
-    let skinning = model.field.config.skinning();
-    json!({"kind": if model.field.grid.is_some() { "grid" } else { "mlp" }, "beta": beta, "root_grids_reach_loose_body": loose, "prior_capped_at": skinning.prior_cap})
+/// The fit's evaluation on the scene's test images (fit.json's `evaluation`), or why there is
+/// none. A run that trained nothing keeps its own; one that trained without evaluating loses
+/// the renders and report of its fewer iterations, which would describe another fit.
+fn evaluation(
+    trainer: &Trainer,
+    options: &FitOptions,
+    trained: bool,
+    on: &mut impl FnMut(TrainMessage),
+) -> Result<(serde_json::Value, Option<String>), FitError> {
+    let out = &options.out;
+    let has_tests = trainer.scene.views_in(Split::Test).next().is_some();
+    let evaluation = if options.evaluate && has_tests {
+        evaluate(&trainer.scene, &trainer.fitted()?, out, on)?
+    } else if !trained {
+        previous_evaluation(out)
+    } else {
+        crate::run::clear_run_outputs(out, false)?;
+        json!(null)
+    };
+    let skipped = match (options.evaluate, has_tests) {
+        (_, false) => Some("the scene has no test images (split \"test\"): nothing to evaluate"),
+        (false, true) => Some("--no-eval"),
+        (true, true) => None,
+    };
+    Ok((evaluation, skipped.map(String::from)))
+}
+
+/// Refuses an `--out` that a fit must not write into, before anything is written.
+fn check_out_folder(options: &FitOptions) -> Result<(), FitError> {
+    let out = &options.out;
+    if out.exists() && !out.is_dir() {
+        return Err(io(out, "exists and is not a folder: --out names the run's folder (nothing was written)"));
+    }
+    if existing_checkpoint(out).is_some() && !options.resume && !options.force {
+        return Err(io(out, "holds a checkpoint of an earlier fit: pass --resume to continue it, --force to replace it, or choose another --out"));
+    }
+    if options.resume && existing_checkpoint(out).is_none() {
+        return Err(io(out, "holds no checkpoint to resume (nothing was written)"));
+    }
+    // A folder holding files but no run is the user's: it is not written into without --force.
+    if !options.resume && !options.force && holds_foreign_files(out) {
+        return Err(io(out, "exists, is not empty and is not an umbra run (no checkpoint, fit.json or schedule.toml): pass --force to write into it anyway, or choose another --out"));
+    }
+    Ok(())
+}
+
+/// Trains from the trainer's iteration to the schedule's last, checkpointing as the schedule
+/// says; returns the seconds spent in each of the schedule's segments.
+fn train(
+    trainer: &mut Trainer,
+    schedule: &Schedule,
+    out: &Path,
+    history: &mut Vec<(usize, StepStats)>,
+    on: &mut impl FnMut(TrainMessage),
+) -> Result<BTreeMap<&'static str, f64>, FitError> {
+    let mut segment_seconds: BTreeMap<&'static str, f64> = BTreeMap::new();
+    while trainer.iteration < schedule.iterations {
+        let it = trainer.iteration;
+        let stats = trainer.iterate().map_err(|e| match e {
+            FitError::NonFinite { iteration, what, .. } => {
+                let saved = std::fs::read_to_string(out.join(CHECKPOINT).join("state.json"))
+                    .ok()
+                    .and_then(|text| serde_json::from_str::<serde_json::Value>(&text).ok())
+                    .and_then(|state| state["iteration"].as_u64());
+                let checkpoint = match saved {
+                    Some(at) => format!("the last good checkpoint (iteration {at}) is kept in {}", out.join(CHECKPOINT).display()),
+                    None => "no checkpoint had been written yet".into(),
+                };
+                FitError::NonFinite { iteration, what, checkpoint }
+            }
+            other => other,
+        })?;
+        *segment_seconds.entry(segment(schedule, it, trainer.fit_light)).or_default() += stats.seconds;
+        history.push((it, stats.clone()));
+        on(TrainMessage::Step { iteration: it, stats });
+        if trainer.iteration % schedule.checkpoint_every == 0 || trainer.iteration == schedule.iterations {
+            save_checkpoint(trainer, out, history)?;
+            on(TrainMessage::Checkpoint { iteration: trainer.iteration });
+        }
+    }
+    Ok(segment_seconds)
 }
