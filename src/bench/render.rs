@@ -57,16 +57,9 @@ pub fn render(run: &Path, out: &Path, quick: bool) -> Result<String, FitError> {
         .or(scene.views.first())
         .ok_or_else(|| FitError::Input(format!("{}: the scene has no images", scene.root.display())))?;
     let (camera, frame) = (view.camera, view.frame);
-    let (lo, hi) = scene.frames[frame].pose.bounds(&scene.skeleton);
-    let extent = scene.body_extent();
-    let up = crate::relight::world_up(&scene.cameras);
-    let sun = Light::Directional { direction: (up + DVec3::new(0.4, 0.0, 0.3)).normalize(), irradiance: DVec3::ONE, ambient: DVec3::splat(0.1) };
-    let lamp = Light::Point {
-        position: (lo + hi) * 0.5 + (up + DVec3::new(0.5, 0.0, 0.5)).normalize() * extent,
-        intensity: DVec3::splat(extent * extent),
-        ambient: DVec3::splat(0.1),
-    };
-    let sky = Light::Environment { path: "synthetic sky".into(), scale: 1.0, map: crate::synth::synthetic_sky(128, 64) };
+    let budget = if quick { 0.0 } else { 2.0 };
+    let threads = rayon::current_num_threads();
+    let (sun, lamp, sky) = lights(scene, frame);
     let known = |light| Lighting::Known { light, albedo_scale, samples: SKY_SAMPLES };
     let cases: [(&str, Lighting); 4] = [
         ("fitted light (sun with Gaussian shadows)", Lighting::Fitted(0)),
@@ -74,9 +67,7 @@ pub fn render(run: &Path, out: &Path, quick: bool) -> Result<String, FitError> {
         ("a point light", known(&lamp)),
         ("an environment, 64 samples per pixel", known(&sky)),
     ];
-    let budget = if quick { 0.0 } else { 2.0 };
     let one_thread = rayon::ThreadPoolBuilder::new().num_threads(1).build().map_err(|e| FitError::Input(format!("a one-thread pool: {e}")))?;
-    let threads = rayon::current_num_threads();
     let mut rows: Vec<(String, f64, f64)> = Vec::new();
     for (name, lighting) in &cases {
         let all = super::time(budget, || {
@@ -117,20 +108,60 @@ pub fn render(run: &Path, out: &Path, quick: bool) -> Result<String, FitError> {
             start.elapsed().as_secs_f64() / strata_views.len().max(1) as f64
         })
     });
-    let (w, h) = (scene.cameras[camera].width, scene.cameras[camera].height);
+    let timings = Timings { rows, views: views.len(), sequential, together, native, enlarged, strata: strata_times.map(|t| (t, strata_views.len())) };
+    write_tables(run, out, &scene.cameras[camera], (camera, frame), &timings)
+}
+
+/// What `render` measured, in seconds per view.
+struct Timings {
+    /// Per light: all threads, one thread.
+    rows: Vec<(String, f64, f64)>,
+    /// Test views rendered one after another, and at once.
+    views: usize,
+    sequential: f64,
+    together: f64,
+    /// The view at its size and at `ENLARGE` times it.
+    native: f64,
+    enlarged: f64,
+    /// An area capture's views with every stratum traced and with the shortcuts, and how many.
+    strata: Option<([f64; 2], usize)>,
+}
+
+/// A sun, a point light and a sky placed for the body in `frame`.
+fn lights(scene: &crate::scene::Scene, frame: usize) -> (Light, Light, Light) {
+    let (lo, hi) = scene.frames[frame].pose.bounds(&scene.skeleton);
+    let extent = scene.body_extent();
+    let up = crate::relight::world_up(&scene.cameras);
+    let sun = Light::Directional { direction: (up + DVec3::new(0.4, 0.0, 0.3)).normalize(), irradiance: DVec3::ONE, ambient: DVec3::splat(0.1) };
+    let lamp = Light::Point {
+        position: (lo + hi) * 0.5 + (up + DVec3::new(0.5, 0.0, 0.5)).normalize() * extent,
+        intensity: DVec3::splat(extent * extent),
+        ambient: DVec3::splat(0.1),
+    };
+    let sky = Light::Environment { path: "synthetic sky".into(), scale: 1.0, map: crate::synth::synthetic_sky(128, 64) };
+    (sun, lamp, sky)
+}
+
+/// render.md, render.csv and render.png; the Markdown.
+fn write_tables(run: &Path, out: &Path, camera: &crate::scene::Camera, (camera_index, frame): (usize, usize), t: &Timings) -> Result<String, FitError> {
+    let threads = rayon::current_num_threads();
+    let (w, h) = (camera.width, camera.height);
+    let camera = camera_index;
+    let Timings { rows, views, sequential, together, native, enlarged, .. } = t;
+    let (sequential, together, native, enlarged) = (*sequential, *together, *native, *enlarged);
     let mut md = format!(
         "## Render time per view: {} ({w} x {h}, camera {camera}, frame {frame}; {threads} threads)\n\n| light | s per view, all threads | s per view, one thread | ratio |\n|---|---|---|---|\n",
         run.display()
     );
     let mut csv_rows: Vec<[String; 3]> = Vec::new();
-    for (name, all, one) in &rows {
+    for (name, all, one) in rows {
         md += &format!("| {name} | {all:.3} | {one:.3} | {:.2}x |\n", all / one);
         csv_rows.push([name.to_string(), format!("{all:.5}"), format!("{one:.5}")]);
     }
     md += &format!(
         "\n{} test views of the fitted light, as the evaluation renders them: {sequential:.3} s per view one after another, {together:.3} s per view {} at once ({:.2}x). Peak memory {} MiB.\n",
-        views.len(),
-        views.len(),
+        views,
+        views,
         together / sequential,
         peak_rss_mib().map_or("-".to_string(), |m| format!("{m:.0}"))
     );
@@ -144,11 +175,11 @@ pub fn render(run: &Path, out: &Path, quick: bool) -> Result<String, FitError> {
     csv_rows.push([format!("fitted light at {ENLARGE}x the side"), format!("{enlarged:.5}"), String::new()]);
     csv_rows.push(["views one after another".into(), format!("{sequential:.5}"), String::new()]);
     csv_rows.push(["views at once".into(), format!("{together:.5}"), String::new()]);
-    match strata_times {
-        Some([traced, shortcuts]) => {
+    match t.strata {
+        Some(([traced, shortcuts], strata_views)) => {
             md += &format!(
                 "\nPixels rendered over their area (an area capture), {} test views with their albedos at once: {traced:.3} s per view with every stratum traced, {shortcuts:.3} s with the strata interpolated inside the body and searched near their neighbours' depths along silhouettes ({:.2}x).\n",
-                strata_views.len(),
+                strata_views,
                 shortcuts / traced
             );
             csv_rows.push(["views with albedo every stratum traced".into(), format!("{traced:.5}"), String::new()]);

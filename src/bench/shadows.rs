@@ -92,65 +92,67 @@ pub fn shadows(out: &Path, quick: bool) -> Result<String, String> {
     std::fs::create_dir_all(out).map_err(|e| format!("{}: {e}", out.display()))?;
     let budget = if quick { 0.05 } else { 0.3 };
     let sizes: &[usize] = if quick { &[24, 96] } else { &[24, 96, 1000, 10000] };
+    let rows: Vec<Row> = sizes.iter().flat_map(|&n| throughput(n, quick, budget)).collect();
+    let trade = accuracy(quick, budget);
+    write_tables(out, &rows, &trade)
+}
+
+/// Every method's throughput on a body of `n` Gaussians.
+fn throughput(n: usize, quick: bool, budget: f64) -> Vec<Row> {
     let device = Device::flex();
     let kernel = crate::shadow::lanes::kernel_build().name();
     let mut rows = Vec::new();
-    for &n in sizes {
-        let gaussians = body_cloud(n, 1);
-        let rays = sun_rays(if quick { 256 } else { 2048 }, 2);
-        let caster = ShadowCaster::new(&gaussians, 1e-5);
-        let mut push = |method: String, rays_timed: usize, seconds: f64, scalar_share: Option<f64>| {
-            rows.push(Row {
-                method,
-                gaussians: n,
-                rays: rays_timed,
-                seconds,
-                pairs_per_second: (rays_timed * n) as f64 / seconds,
-                max_error: None,
-                scalar_share,
-            });
-        };
-        for cull in [false, true] {
-            let on = if cull { "on" } else { "off" };
-            let seconds = time(budget, || {
-                std::hint::black_box(caster.transmittance_all_scalar(&rays, cull));
-            });
-            push(format!("closed form, scalar, culling {on}"), rays.len(), seconds, None);
-            let seconds = time(budget, || {
-                std::hint::black_box(caster.transmittance_all(&rays, cull));
-            });
-            let (integrated, scalar) = rays.iter().map(|r| caster.collect(r, cull)).fold((0, 0), |(i, s), c| (i + c.integrated, s + c.scalar));
-            push(format!("closed form, {kernel}, culling {on}"), rays.len(), seconds, Some(scalar as f64 / integrated.max(1) as f64));
-        }
-        // The blocks' spheres each tested on their own, without the groups above them.
-        let flat = ShadowCaster::new(&gaussians, 1e-5).with_group_size(1);
+    let gaussians = body_cloud(n, 1);
+    let rays = sun_rays(if quick { 256 } else { 2048 }, 2);
+    let caster = ShadowCaster::new(&gaussians, 1e-5);
+    let mut push = |method: String, rays_timed: usize, seconds: f64, scalar_share: Option<f64>| {
+        rows.push(Row { method, gaussians: n, rays: rays_timed, seconds, pairs_per_second: (rays_timed * n) as f64 / seconds, max_error: None, scalar_share });
+    };
+    for cull in [false, true] {
+        let on = if cull { "on" } else { "off" };
         let seconds = time(budget, || {
-            std::hint::black_box(flat.transmittance_all(&rays, true));
+            std::hint::black_box(caster.transmittance_all_scalar(&rays, cull));
         });
-        push(format!("closed form, {kernel}, culling on, no groups of blocks"), rays.len(), seconds, None);
-        // The slower builds the CPU also runs, for the ratio each instruction set buys.
-        for build in crate::shadow::lanes::Build::ALL.into_iter().filter(|&b| b.available() && b != crate::shadow::lanes::kernel_build()) {
-            let seconds = time(budget, || {
-                use rayon::prelude::*;
-                std::hint::black_box(rays.par_iter().map(|r| caster.collect_built(build, r, false).map_or(0.0, |c| c.depth)).collect::<Vec<f32>>());
-            });
-            push(format!("closed form, {} build, culling off", build.name()), rays.len(), seconds, None);
-        }
-        let tensor_rays = &rays[..rays.len().min((4_000_000 / n).max(16))];
-        let g = GaussianTensors::from_posed(&gaussians, &device);
-        let segments = RaySegments {
-            origins: Tensor::from_data(TensorData::new(tensor_rays.iter().flat_map(|r| r.origin).collect::<Vec<f32>>(), [tensor_rays.len(), 3]), &device),
-            directions: Tensor::from_data(TensorData::new(tensor_rays.iter().flat_map(|r| r.direction).collect::<Vec<f32>>(), [tensor_rays.len(), 3]), &device),
-            t0: Tensor::zeros([tensor_rays.len()], &device),
-            t1: None,
-        };
+        push(format!("closed form, scalar, culling {on}"), rays.len(), seconds, None);
         let seconds = time(budget, || {
-            std::hint::black_box(transmittance(&g, &segments).into_data());
+            std::hint::black_box(caster.transmittance_all(&rays, cull));
         });
-        push("burn tensor (flex), forward, no culling".into(), tensor_rays.len(), seconds, None);
+        let (integrated, scalar) = rays.iter().map(|r| caster.collect(r, cull)).fold((0, 0), |(i, s), c| (i + c.integrated, s + c.scalar));
+        push(format!("closed form, {kernel}, culling {on}"), rays.len(), seconds, Some(scalar as f64 / integrated.max(1) as f64));
     }
-    // Accuracy against the f64 closed form (every Gaussian, no culling) on the 96-Gaussian body:
-    // the closed form and ray marching both in f32, both over the Gaussians culling keeps.
+    // The blocks' spheres each tested on their own, without the groups above them.
+    let flat = ShadowCaster::new(&gaussians, 1e-5).with_group_size(1);
+    let seconds = time(budget, || {
+        std::hint::black_box(flat.transmittance_all(&rays, true));
+    });
+    push(format!("closed form, {kernel}, culling on, no groups of blocks"), rays.len(), seconds, None);
+    // The slower builds the CPU also runs, for the ratio each instruction set buys.
+    for build in crate::shadow::lanes::Build::ALL.into_iter().filter(|&b| b.available() && b != crate::shadow::lanes::kernel_build()) {
+        let seconds = time(budget, || {
+            use rayon::prelude::*;
+            std::hint::black_box(rays.par_iter().map(|r| caster.collect_built(build, r, false).map_or(0.0, |c| c.depth)).collect::<Vec<f32>>());
+        });
+        push(format!("closed form, {} build, culling off", build.name()), rays.len(), seconds, None);
+    }
+    let tensor_rays = &rays[..rays.len().min((4_000_000 / n).max(16))];
+    let g = GaussianTensors::from_posed(&gaussians, &device);
+    let segments = RaySegments {
+        origins: Tensor::from_data(TensorData::new(tensor_rays.iter().flat_map(|r| r.origin).collect::<Vec<f32>>(), [tensor_rays.len(), 3]), &device),
+        directions: Tensor::from_data(TensorData::new(tensor_rays.iter().flat_map(|r| r.direction).collect::<Vec<f32>>(), [tensor_rays.len(), 3]), &device),
+        t0: Tensor::zeros([tensor_rays.len()], &device),
+        t1: None,
+    };
+    let seconds = time(budget, || {
+        std::hint::black_box(transmittance(&g, &segments).into_data());
+    });
+    push("burn tensor (flex), forward, no culling".into(), tensor_rays.len(), seconds, None);
+    rows
+}
+
+/// The closed form and ray marching against the f64 closed form (every Gaussian, no culling)
+/// on the 96-Gaussian body: both in f32, both over the Gaussians culling keeps.
+fn accuracy(quick: bool, budget: f64) -> Vec<Row> {
+    let kernel = crate::shadow::lanes::kernel_build().name();
     use rayon::prelude::*;
     let gaussians = body_cloud(96, 1);
     let rays = sun_rays(if quick { 128 } else { 512 }, 3);
@@ -178,6 +180,11 @@ pub fn shadows(out: &Path, quick: bool) -> Result<String, String> {
     for steps in [16, 64, 256] {
         measure(format!("ray marching f32, {steps} steps, culled"), &|| rays.par_iter().map(|r| marched_transmittance(&caster, r, steps)).collect());
     }
+    trade
+}
+
+/// shadows.md, shadows.csv and shadows.png of the throughput and accuracy rows; the Markdown.
+fn write_tables(out: &Path, rows: &[Row], trade: &[Row]) -> Result<String, String> {
     let (peak, peak_text) = machine_peak_flops();
     let mut md = String::from(
         "## Shadow casting throughput\n\n(ray, Gaussian) pairs per second counted over every pair, culled or not; the ratio is \
@@ -197,7 +204,7 @@ pub fn shadows(out: &Path, quick: bool) -> Result<String, String> {
             scalar_share,
         ]
     };
-    for r in &rows {
+    for r in rows {
         let baseline = rows
             .iter()
             .find(|b| b.gaussians == r.gaussians && b.method == "closed form, scalar, culling off")
@@ -218,7 +225,7 @@ pub fn shadows(out: &Path, quick: bool) -> Result<String, String> {
     }
     md += "\n## Closed form against ray marching (96 Gaussians, culling tolerance 1e-6, max error against the unculled f64 closed form)\n\n| method | time (ms) | speed vs closed form | max abs transmittance error |\n|---|---|---|---|\n";
     let closed_seconds = trade[0].seconds;
-    for r in &trade {
+    for r in trade {
         md += &format!("| {} | {:.3} | {:.2}x | {:.2e} |\n", r.method, r.seconds * 1e3, closed_seconds / r.seconds, r.max_error.unwrap_or(f64::NAN));
         csv_rows.push(csv_row("accuracy", r, r.max_error.unwrap_or(f64::NAN).to_string(), String::new()));
     }

@@ -56,79 +56,44 @@ fn time_steps(trainer: &mut Trainer, budget: f64) -> Result<f64, FitError> {
     }
 }
 
+/// The stages a step is timed in: from the start, and 200 iterations into the light's.
+const STAGES: [&str; 2] = ["silhouette stage", "light stage"];
+
+/// The step variants timed, the first each stage's baseline.
+fn variants(scene: &Scene) -> Vec<Variant> {
+    let grid = |top_bones: Option<usize>| FieldSettings { top_bones, ..FieldSettings::of(FieldKind::Grid) };
+    let mlp = FieldSettings::of(FieldKind::Mlp);
+    // [render missed rays, composite lookup, one render thread, every sample differentiated]
+    let v = |name: &'static str, field: FieldSettings, [render_missed_rays, composite_lookup, one_render_thread, every_sample]: [bool; 4]| Variant {
+        name,
+        field,
+        render_missed_rays,
+        composite_lookup,
+        one_render_thread,
+        every_sample,
+    };
+    vec![
+        v("mlp, every ray rendered (before), one render thread", mlp.clone(), [true, false, true, false]),
+        v("mlp, missed rays skipped, one render thread", mlp.clone(), [false, false, true, false]),
+        v("mlp, missed rays skipped", mlp, [false, false, false, false]),
+        v(
+            "grid, nearest 8 bones (the most a lookup takes), composite lookup",
+            grid(Some(scene.skeleton.len().min(crate::field::grid::MAX_TOP_BONES))),
+            [false, true, false, false],
+        ),
+        v("grid, nearest 3 bones, composite lookup", grid(None), [false, true, false, false]),
+        v("grid, nearest 3 bones, fused lookup op, one render thread", grid(None), [false, false, true, false]),
+        v("grid, nearest 3 bones, fused lookup op, every sample differentiated", grid(None), [false, false, false, true]),
+        v("grid, nearest 3 bones, fused lookup op", grid(None), [false, false, false, false]),
+    ]
+}
+
 /// Times the variants on `scene`; writes `steps.{md,csv,png}` into `out`, returns the table.
 pub fn steps(scene_path: &Path, schedule_path: &Path, out: &Path, quick: bool, run: Option<&Path>) -> Result<String, FitError> {
     let scene = Scene::load(scene_path)?;
     let schedule = Schedule::load(schedule_path)?;
-    let grid = |top_bones: Option<usize>| FieldSettings { top_bones, ..FieldSettings::of(FieldKind::Grid) };
-    let mlp = FieldSettings::of(FieldKind::Mlp);
-    let variants = [
-        Variant {
-            name: "mlp, every ray rendered (before), one render thread",
-            field: mlp.clone(),
-            render_missed_rays: true,
-            composite_lookup: false,
-            one_render_thread: true,
-            every_sample: false,
-        },
-        Variant {
-            name: "mlp, missed rays skipped, one render thread",
-            field: mlp.clone(),
-            render_missed_rays: false,
-            composite_lookup: false,
-            one_render_thread: true,
-            every_sample: false,
-        },
-        Variant {
-            name: "mlp, missed rays skipped",
-            field: mlp,
-            render_missed_rays: false,
-            composite_lookup: false,
-            one_render_thread: false,
-            every_sample: false,
-        },
-        Variant {
-            name: "grid, nearest 8 bones (the most a lookup takes), composite lookup",
-            field: grid(Some(scene.skeleton.len().min(crate::field::grid::MAX_TOP_BONES))),
-            render_missed_rays: false,
-            composite_lookup: true,
-            one_render_thread: false,
-            every_sample: false,
-        },
-        Variant {
-            name: "grid, nearest 3 bones, composite lookup",
-            field: grid(None),
-            render_missed_rays: false,
-            composite_lookup: true,
-            one_render_thread: false,
-            every_sample: false,
-        },
-        Variant {
-            name: "grid, nearest 3 bones, fused lookup op, one render thread",
-            field: grid(None),
-            render_missed_rays: false,
-            composite_lookup: false,
-            one_render_thread: true,
-            every_sample: false,
-        },
-        Variant {
-            name: "grid, nearest 3 bones, fused lookup op, every sample differentiated",
-            field: grid(None),
-            render_missed_rays: false,
-            composite_lookup: false,
-            one_render_thread: false,
-            every_sample: true,
-        },
-        Variant {
-            name: "grid, nearest 3 bones, fused lookup op",
-            field: grid(None),
-            render_missed_rays: false,
-            composite_lookup: false,
-            one_render_thread: false,
-            every_sample: false,
-        },
-    ];
-    let stages = [("silhouette stage", 0), ("light stage", schedule.light_from + 200)];
+    let variants = variants(&scene);
+    let stages = [(STAGES[0], 0), (STAGES[1], schedule.light_from + 200)];
     let budget = if quick { 1.0 } else { 8.0 };
     std::fs::create_dir_all(out).map_err(|e| crate::fit_error::io(out, e))?;
     let mut rows = Vec::new();
@@ -153,6 +118,12 @@ pub fn steps(scene_path: &Path, schedule_path: &Path, out: &Path, quick: bool, r
             rows.push((fitted, name, ms, ms / base));
         }
     }
+    write_tables(out, scene_path, &schedule, &rows, run)
+}
+
+/// steps.md, steps.csv and steps.png of the rows (stage, variant, ms per step, ratio); the Markdown.
+fn write_tables(out: &Path, scene_path: &Path, schedule: &Schedule, rows: &[(&str, &str, f64, f64)], run: Option<&Path>) -> Result<String, FitError> {
+    let stages = STAGES;
     let mut md = format!(
         "## Training step cost: {} ({} rays per batch, {} coarse + {} fine samples per ray)\n\n| stage | variant | ms per step | vs baseline |\n|---|---|---|---|\n",
         scene_path.display(),
@@ -160,7 +131,7 @@ pub fn steps(scene_path: &Path, schedule_path: &Path, out: &Path, quick: bool, r
         schedule.samples_per_ray,
         schedule.fine_samples_per_ray
     );
-    for (stage, name, ms, ratio) in &rows {
+    for (stage, name, ms, ratio) in rows {
         md += &format!("| {stage} | {name} | {ms:.1} | {ratio:.2}x |\n");
     }
     let csv = crate::table::to_csv(
@@ -174,7 +145,7 @@ pub fn steps(scene_path: &Path, schedule_path: &Path, out: &Path, quick: bool, r
     let write = |name: &str, text: &str| crate::imageio::write_atomic(&out.join(name), text.as_bytes()).map_err(|e| crate::fit_error::io(&out.join(name), e));
     write("steps.md", &md)?;
     write("steps.csv", &csv)?;
-    let mut names: Vec<&str> = stages.iter().map(|(stage, _)| *stage).collect();
+    let mut names: Vec<&str> = stages.to_vec();
     if run.is_some() {
         names.push("fitted field");
     }

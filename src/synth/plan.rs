@@ -115,18 +115,21 @@ impl SynthOptions {
     pub fn plan(&self) -> Result<Plan, SynthError> {
         self.check()?;
         let character = Character::new(self.character).with_pattern(self.pattern).scaled(self.scale);
-        let mut stream = Stream::new(self.seed, 0xCA3E_4A5, 0);
         let (target, extent) = match self.character {
             Kind::Human | Kind::Dressed => (DVec3::new(0.0, 0.9, 0.0), 1.05),
             Kind::Quadruped => (DVec3::new(0.0, 0.45, 0.0), 0.75),
         };
         let (target, extent) = (target * self.scale, extent * self.scale);
-        // A lamp scaled with the body, its intensity with the square of its distance.
-        let lamp = |position: [f64; 3], intensity: [f64; 3], ambient: [f64; 3]| Light::Point {
-            position: DVec3::from_array(position) * self.scale,
-            intensity: DVec3::from_array(intensity) * (self.scale * self.scale),
-            ambient: DVec3::from_array(ambient),
-        };
+        let cameras = self.cameras(target, extent);
+        let frames = self.frames(&character);
+        let lights = self.lights(target);
+        let views = self.views(&frames, &lights);
+        Ok(Plan { character, cameras, frames, lights, views })
+    }
+
+    /// The ring of training cameras around `target`, seeded, and the held-out one.
+    fn cameras(&self, target: DVec3, extent: f64) -> Vec<Camera> {
+        let mut stream = Stream::new(self.seed, 0xCA3E_4A5, 0);
         let focal = 1.2 * self.size as f64;
         let distance = focal * extent / (0.45 * self.size as f64);
         let ring = |name: String, azimuth: f64, elevation: f64| {
@@ -144,6 +147,11 @@ impl SynthOptions {
             let azimuth = 0.35 + std::f64::consts::PI / self.cameras as f64;
             cameras.push(ring("heldout".into(), azimuth, 32f64.to_radians()));
         }
+        cameras
+    }
+
+    /// The training frames (JSON frame `10 k`) and the test poses after them (`1000 + j`).
+    fn frames(&self, character: &Character) -> Vec<(i64, f64, Pose)> {
         // A monocular capture needs the character to turn so the one camera sees all sides.
         let turns = if self.cameras == 1 { 1.0 } else { 0.0 };
         let pose_at = |phase: f64| character.pose(phase, 2.0 * std::f64::consts::PI * turns * phase, DVec3::ZERO);
@@ -153,7 +161,6 @@ impl SynthOptions {
             frames.push((10 * k as i64, phase, pose_at(phase)));
         }
         let test_poses = self.test.contains(&TestKind::Poses) || self.test.contains(&TestKind::Relight);
-        let first_test_frame = frames.len();
         if test_poses {
             for j in 0..self.test_frames {
                 // Halfway between training phases: a pose never seen in training.
@@ -161,6 +168,17 @@ impl SynthOptions {
                 frames.push((1000 + j as i64, phase, pose_at(phase)));
             }
         }
+        frames
+    }
+
+    /// The training lights, then those the relighting tests use.
+    fn lights(&self, target: DVec3) -> Vec<(String, Light)> {
+        // A lamp scaled with the body, its intensity with the square of its distance.
+        let lamp = |position: [f64; 3], intensity: [f64; 3], ambient: [f64; 3]| Light::Point {
+            position: DVec3::from_array(position) * self.scale,
+            intensity: DVec3::from_array(intensity) * (self.scale * self.scale),
+            ambient: DVec3::from_array(ambient),
+        };
         let (train_name, train_light) = match self.light {
             TrainingLight::Sun => {
                 let direction = match self.sun_direction.as_deref() {
@@ -188,16 +206,23 @@ impl SynthOptions {
         for (name, direction, irradiance, ambient) in EXTRA_SUNS.iter().take(self.suns - 1) {
             lights.push((name.to_string(), sun(*direction, *irradiance, *ambient)));
         }
-        let training_lights: Vec<String> = lights.iter().map(|(n, _)| n.clone()).collect();
-        let lit_by = |camera: usize, frame: usize| training_lights[(camera + frame) % training_lights.len()].clone();
-        let relight = self.test.contains(&TestKind::Relight);
-        if relight {
+        if self.test.contains(&TestKind::Relight) {
             lights.push(("sun2".into(), sun([-0.6, 0.55, -0.35], [0.9, 0.75, 0.6], [0.15, 0.17, 0.25])));
             if self.light != TrainingLight::Point {
                 lights.push(("lamp".into(), lamp([-1.3, 2.0, 1.2], [4.2, 4.2, 4.6], [0.1, 0.1, 0.12])));
             }
             lights.push(("sky".into(), Light::Environment { path: PathBuf::from("lights/sky.exr"), scale: 1.0, map: synthetic_sky(64, 32) }));
         }
+        lights
+    }
+
+    /// The images to render: every training camera in every training frame, then the tests.
+    fn views(&self, frames: &[(i64, f64, Pose)], lights: &[(String, Light)]) -> Vec<PlannedView> {
+        let novel_view = self.test.contains(&TestKind::Views);
+        let relight = self.test.contains(&TestKind::Relight);
+        let first_test_frame = self.frames;
+        let training_lights: Vec<String> = lights.iter().take(self.suns).map(|(n, _)| n.clone()).collect();
+        let lit_by = |camera: usize, frame: usize| training_lights[(camera + frame) % training_lights.len()].clone();
         let mut views = Vec::new();
         let mut add = |camera: usize, frame: usize, light: &str, split: Split| {
             let name = format!("c{camera:02}_f{:04}_{light}", frames[frame].0);
@@ -235,6 +260,6 @@ impl SynthOptions {
                 add(j % self.cameras, frame, name, Split::Test);
             }
         }
-        Ok(Plan { character, cameras, frames, lights, views })
+        views
     }
 }
