@@ -292,6 +292,7 @@ fn write_tables(out: &Path, rows: &[AblationRow]) -> Result<(), FitError> {
         log_x: false,
         log_y: false,
         series,
+        marks: Vec::new(),
     };
     chart.render(720, 480).save_png(&out.join("ablation.png")).map_err(|e| io(&out.join("ablation.png"), e))
 }

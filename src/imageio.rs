@@ -34,20 +34,6 @@ impl RgbImage {
         }
     }
 
-    /// Images laid out in rows (missing cells stay black), each cell as large as the largest.
-    pub fn tiled(rows: &[Vec<&RgbImage>]) -> RgbImage {
-        let cell_w = rows.iter().flatten().map(|i| i.width).max().unwrap_or(0);
-        let cell_h = rows.iter().flatten().map(|i| i.height).max().unwrap_or(0);
-        let columns = rows.iter().map(Vec::len).max().unwrap_or(0);
-        let mut sheet = RgbImage::new(cell_w * columns, cell_h * rows.len());
-        for (r, row) in rows.iter().enumerate() {
-            for (c, image) in row.iter().enumerate() {
-                sheet.blit(image, c * cell_w, r * cell_h);
-            }
-        }
-        sheet
-    }
-
     /// `gain` times the absolute difference to `other` per channel, clamped to 1 (both the
     /// same size), so that small errors show in a side-by-side sheet.
     pub fn difference(&self, other: &RgbImage, gain: f32) -> RgbImage {
@@ -453,14 +439,9 @@ mod tests {
     }
 
     #[test]
-    fn tiles_place_each_image_at_its_cell_and_differences_are_amplified_and_clamped() {
+    fn differences_are_amplified_and_clamped() {
         let mut a = RgbImage::new(2, 1);
         a.set(1, 0, [0.5, 0.1, 0.0]);
-        let b = RgbImage::new(1, 2);
-        let sheet = RgbImage::tiled(&[vec![&a, &b], vec![&b]]);
-        assert_eq!((sheet.width, sheet.height), (4, 4), "cells as large as the largest image");
-        assert_eq!(sheet.get(1, 0), [0.5, 0.1, 0.0]);
-        assert_eq!(sheet.get(3, 3), [0.0; 3]);
         let d = a.difference(&RgbImage::new(2, 1), 4.0);
         assert_eq!(d.get(1, 0), [1.0, 0.4, 0.0]);
     }

@@ -174,6 +174,7 @@ pub fn environment(out: &Path, quick: bool) -> Result<String, String> {
         log_x: true,
         log_y: true,
         series,
+        marks: Vec::new(),
     };
     chart.render(800, 500).save_png(&out.join("environment.png"))?;
     Ok(md)

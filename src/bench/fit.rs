@@ -385,6 +385,7 @@ fn write_outputs(out: &Path, scene: &Path, points: &[CurvePoint]) -> Result<Stri
             log_x: false,
             log_y: false,
             series,
+            marks: Vec::new(),
         };
         chart.render(800, 500).save_png(&out.join(file)).map_err(|e| crate::fit_error::io(&out.join(file), e))?;
     }

@@ -141,7 +141,15 @@ pub fn gradients(out: &Path, quick: bool, scene: Option<&Path>) -> Result<String
             lines: true,
         })
         .collect();
-    let chart = Chart { title: "Eikonal term: time vs points".into(), x_label: "points".into(), y_label: "time ms".into(), log_x: true, log_y: true, series };
+    let chart = Chart {
+        title: "Eikonal term: time vs points".into(),
+        x_label: "points".into(),
+        y_label: "time ms".into(),
+        log_x: true,
+        log_y: true,
+        series,
+        marks: Vec::new(),
+    };
     chart.render(720, 480).save_png(&out.join("gradients.png"))?;
     Ok(md)
 }

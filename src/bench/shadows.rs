@@ -243,6 +243,7 @@ fn write_tables(out: &Path, rows: &[Row], trade: &[Row]) -> Result<String, Strin
             .iter()
             .map(|r| Series { name: r.method.clone(), points: vec![(r.seconds * 1e3, r.max_error.unwrap_or(f64::NAN).max(1e-9))], lines: false })
             .collect(),
+        marks: Vec::new(),
     };
     chart.render(720, 480).save_png(&out.join("shadows.png"))?;
     Ok(md)

@@ -164,6 +164,7 @@ fn write_tables(out: &Path, scene_path: &Path, schedule: &Schedule, rows: &[(&st
         log_x: false,
         log_y: false,
         series,
+        marks: Vec::new(),
     };
     chart.render(800, 500).save_png(&out.join("steps.png")).map_err(|e| crate::fit_error::io(&out.join("steps.png"), e))?;
     Ok(md)

@@ -75,7 +75,7 @@ pub fn contact_sheet(scene: &Scene, check: &CaptureCheck) -> Canvas {
     let largest = firsts.iter().map(|&v| scene.views[v].colour.width().max(scene.views[v].colour.height())).max().unwrap_or(1);
     let zoom = (256 / largest).max(1);
     let tile = largest * zoom;
-    let label = 14;
+    let label = crate::plot::TextSize::Small.height() as usize + 6;
     let columns = firsts.len().clamp(1, 6);
     let rows = firsts.len().div_ceil(columns).max(1);
     let mut sheet = Canvas::new(columns * (tile + 4), rows * (tile + label + 4));
@@ -84,7 +84,7 @@ pub fn contact_sheet(scene: &Scene, check: &CaptureCheck) -> Canvas {
         draw_view(&mut sheet, scene, v, (x0, y0 + label), zoom);
         let camera = &scene.cameras[scene.views[v].camera];
         let score = check.per_camera.iter().find(|(name, _)| *name == camera.name).map(|(_, s)| *s).unwrap_or(0.0);
-        sheet.text(x0 as i64 + 2, y0 as i64 + 2, &format!("{} {:.0}%", camera.name, 100.0 * score), 2, [0, 0, 0]);
+        sheet.text(x0 as i64 + 2, y0 as i64 + 2, &format!("{} {:.0}%", camera.name, 100.0 * score), crate::plot::TextSize::Small, [0, 0, 0]);
     }
     sheet
 }

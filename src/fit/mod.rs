@@ -8,7 +8,7 @@ use crate::backend::Backend;
 use crate::fit_error::{io, FitError};
 use crate::fit_report::{FitReport, Stage};
 use crate::messages::{StepStats, TrainMessage};
-use crate::plot::{Chart, Series};
+use crate::plot::{Chart, Mark, Series};
 pub use crate::run::{albedo_scale, existing_checkpoint, restore, resume_checkpoint, save_checkpoint_until, save_png, CHECKPOINT, SCHEDULE_COPY};
 use crate::run::{apply_recorded_field, load_checkpoint, losses_csv, save_checkpoint, write_text, OLD_CHECKPOINT};
 use crate::run_lock::RunLock;
@@ -270,7 +270,7 @@ fn write_results(trainer: &Trainer, out: &Path, history: &[(usize, StepStats)]) 
     let set = trainer.model()?.gaussians.to_set();
     set.save(&out.join("gaussians.json")).map_err(|e| io(&out.join("gaussians.json"), e))?;
     write_text(&out.join("losses.csv"), &losses_csv(history))?;
-    losses_chart(history).render(800, 500).save_png(&out.join("losses.png")).map_err(|e| io(&out.join("losses.png"), e))
+    losses_chart(history, &trainer.schedule, trainer.fit_light).render(900, 520).save_png(&out.join("losses.png")).map_err(|e| io(&out.join("losses.png"), e))
 }
 
 /// The fit's evaluation on the scene's test images (fit.json's `evaluation`), or why there is

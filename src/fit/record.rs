@@ -14,7 +14,7 @@ pub(super) fn smooth(points: Vec<(f64, f64)>, window: usize) -> Vec<(f64, f64)> 
         .collect()
 }
 
-pub(super) fn losses_chart(history: &[(usize, StepStats)]) -> Chart {
+pub(super) fn losses_chart(history: &[(usize, StepStats)], schedule: &Schedule, fit_light: bool) -> Chart {
     let window = (history.len() / 60).max(1);
     let mut series = vec![Series {
         name: "total (weighted)".into(),
@@ -27,7 +27,33 @@ pub(super) fn losses_chart(history: &[(usize, StepStats)]) -> Chart {
             series.push(Series { name: term.into(), points: smooth(points, window), lines: true });
         }
     }
-    Chart { title: format!("losses (running mean of {window})"), x_label: "iteration".into(), y_label: "loss".into(), log_x: false, log_y: true, series }
+    Chart {
+        title: format!("losses (running mean of {window})"),
+        x_label: "iteration".into(),
+        y_label: "loss".into(),
+        log_x: false,
+        log_y: true,
+        series,
+        marks: stage_marks(schedule, fit_light),
+    }
+}
+
+/// Where the schedule's stages begin, as fit.json names them, and where the field's learning
+/// rates start to fall.
+fn stage_marks(schedule: &Schedule, fit_light: bool) -> Vec<Mark> {
+    let mut marks = Vec::new();
+    let density = &schedule.weights["density"];
+    if density.ever_active(schedule.iterations) && density.hold > 0.0 {
+        marks.push(Mark { x: density.hold + 1.0, label: "Gaussians".into() });
+    }
+    if schedule.light_from > 0 && schedule.light_from < schedule.iterations {
+        let label = if fit_light { "light and RGB" } else { "RGB" };
+        marks.push(Mark { x: schedule.light_from as f64 + 1.0, label: label.into() });
+    }
+    if schedule.field_lr_decay < 1.0 && schedule.field_lr_decay_from > 0 && schedule.field_lr_decay_from < schedule.iterations {
+        marks.push(Mark { x: schedule.field_lr_decay_from as f64 + 1.0, label: "rates fall".into() });
+    }
+    marks
 }
 
 /// fit.json's stages, each with the seconds it took; a stage that did not run says why.

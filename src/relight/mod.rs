@@ -272,8 +272,7 @@ pub fn relight_run(options: &RelightOptions, mut on: impl FnMut(TrainMessage)) -
     // busy by itself, and its timings must not share the cores).
     let at_once = if options.basis.is_some() { 1 } else { rayon::current_num_threads().max(1) };
     let rendered = views.chunks(at_once).flat_map(|batch| batch.par_iter().map(|&(_, _, camera, frame)| render(camera, frame)).collect::<Vec<_>>());
-    let (cell_w, cell_h) = cameras.iter().map(|&c| (scene.cameras[c].width, scene.cameras[c].height)).fold((0, 0), |a, b| (a.0.max(b.0), a.1.max(b.1)));
-    let mut sheet = RgbImage::new(cell_w * frames.len(), cell_h * cameras.len());
+    let mut cells: Vec<Vec<Option<RgbImage>>> = vec![vec![None; frames.len()]; cameras.len()];
     let mut timings = Vec::new();
     let mut turntables: Vec<Vec<RgbImage>> = vec![Vec::new(); frames.len()];
     for (done, (&(row, column, camera, frame), (rendered, timing))) in views.iter().zip(rendered).enumerate() {
@@ -290,13 +289,22 @@ pub fn relight_run(options: &RelightOptions, mut on: impl FnMut(TrainMessage)) -
             None => format!("c{camera:02}_f{frame:04}.png"),
         };
         rendered.save(&out.join(&name))?;
-        sheet.blit(&rendered.image, column * cell_w, row * cell_h);
         if options.orbit.is_some() {
-            turntables[column].push(rendered.image);
+            turntables[column].push(rendered.image.clone());
         }
+        cells[row][column] = Some(rendered.image);
         on(TrainMessage::Rendered { done: done + 1, total, name, psnr: None });
     }
-    crate::run::save_png(&out.join(SHEET), &sheet)?;
+    let row_label = |row: usize, camera: usize| match options.orbit {
+        Some(_) => format!("orbit {row}"),
+        None => scene.cameras[camera].name.clone(),
+    };
+    let sheet = crate::plot::Sheet {
+        title: format!("{label}: cameras down, frames across"),
+        columns: frames.iter().map(|f| format!("frame {f}")).collect(),
+        rows: cameras.iter().enumerate().map(|(row, &camera)| (row_label(row, camera), cells[row].iter().map(Option::as_ref).collect())).collect(),
+    };
+    sheet.render().save_png(&out.join(SHEET)).map_err(FitError::Input)?;
     for (views, frame) in turntables.iter().zip(&frames).filter(|(views, _)| !views.is_empty()) {
         save_apng(&out.join(format!("orbit_f{frame:04}.png")), views, TURNTABLE_FRAME_MS)?;
     }

@@ -16,26 +16,26 @@ use crate::scene::Footprint;
 #[derive(Deserialize, Default)]
 #[serde(deny_unknown_fields)]
 struct ScheduleFile {
-    iterations: Option<usize>,
-    rays_per_batch: Option<usize>,
-    samples_per_ray: Option<usize>,
-    fine_samples_per_ray: Option<usize>,
-    probe_samples_per_ray: Option<usize>,
+    iterations: Option<Count>,
+    rays_per_batch: Option<Count>,
+    samples_per_ray: Option<Count>,
+    fine_samples_per_ray: Option<Count>,
+    probe_samples_per_ray: Option<Count>,
     cull_samples: Option<bool>,
-    density_points: Option<usize>,
-    regulariser_points: Option<usize>,
-    checkpoint_every: Option<usize>,
+    density_points: Option<Count>,
+    regulariser_points: Option<Count>,
+    checkpoint_every: Option<Count>,
     light: Option<LightPolicy>,
-    light_from: Option<usize>,
-    light_stage_iterations: Option<usize>,
+    light_from: Option<Count>,
+    light_stage_iterations: Option<Count>,
     ambient_target: Option<f64>,
     curvature_epsilon: Option<f64>,
     light_lr_decay: Option<f64>,
     field_lr_decay: Option<f64>,
-    field_lr_decay_from: Option<usize>,
+    field_lr_decay_from: Option<Count>,
     field_average_half_life: Option<f64>,
-    sun_search: Option<usize>,
-    rebind_every: Option<usize>,
+    sun_search: Option<Count>,
+    rebind_every: Option<Count>,
     density_at_shadow_scale: Option<Switch>,
     error_rays: Option<ErrorRays>,
     footprint: Option<FootprintChoice>,
@@ -109,6 +109,25 @@ struct RampTable {
     ramp: Option<f64>,
 }
 
+/// A count as written: a whole number, or a float with no fraction (`2e3`), checked against its
+/// range by the validation (so the error says the range).
+#[derive(Clone, Copy)]
+struct Count(f64);
+
+impl<'de> Deserialize<'de> for Count {
+    fn deserialize<D: Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+        d.deserialize_any(OneOf { number: Some(Count), ..OneOf::new("a whole number") })
+    }
+}
+
+impl Count {
+    /// The count when it is whole and within `min..=max`.
+    fn within(self, min: usize, max: usize) -> Option<usize> {
+        let v = self.0;
+        (v.fract() == 0.0 && v >= min as f64 && v <= max as f64).then_some(v as usize)
+    }
+}
+
 /// A visitor for the values a schedule writes as one of a few TOML types: each reading that is
 /// `None` refuses its type with `expecting` in the message.
 struct OneOf<T> {
@@ -180,15 +199,15 @@ impl<'de> Deserialize<'de> for ErrorRays {
 #[serde(deny_unknown_fields)]
 struct FieldFile {
     kind: Option<FieldKind>,
-    levels: Option<usize>,
-    table_log2: Option<u32>,
-    top_bones: Option<usize>,
-    features: Option<usize>,
-    finest_per_extent: Option<usize>,
-    albedo_layers: Option<usize>,
+    levels: Option<Count>,
+    table_log2: Option<Count>,
+    top_bones: Option<Count>,
+    features: Option<Count>,
+    finest_per_extent: Option<Count>,
+    albedo_layers: Option<Count>,
     reach_per_extent: Option<f64>,
-    fine_levels_from: Option<usize>,
-    fine_levels_until: Option<usize>,
+    fine_levels_from: Option<Count>,
+    fine_levels_until: Option<Count>,
     root_skinning: Option<bool>,
 }
 
@@ -232,10 +251,9 @@ fn located(text: &str, message: &str, span: Option<std::ops::Range<usize>>) -> S
 
 /// The schedule a file asks for, its defaults filled in and its values checked.
 fn validate(written: ScheduleFile, file: &Path) -> Result<Schedule, ScheduleError> {
-    let count = |key: &str, value: Option<usize>, default: usize, min: usize| match value {
+    let count = |key: &str, value: Option<Count>, default: usize, min: usize| match value {
         None => Ok(default),
-        Some(v) if (min..=MAX_COUNT).contains(&v) => Ok(v),
-        Some(v) => Err(err(file, key, format!("must be a whole number from {min} to {MAX_COUNT}, found {v}"))),
+        Some(v) => v.within(min, MAX_COUNT).ok_or_else(|| err(file, key, format!("must be a whole number from {min} to {MAX_COUNT}, found {}", v.0))),
     };
     let finite = |key: &str, value: Option<f64>| match value {
         Some(v) if !v.is_finite() => Err(err(file, key, format!("must be finite, found {v}"))),
@@ -359,9 +377,11 @@ fn check_points(schedule: &Schedule) -> Result<(), ScheduleError> {
 /// `[field]`, checked: shapes within bounds, the grid's keys only on a grid.
 fn field(written: FieldFile, file: &Path) -> Result<FieldSettings, ScheduleError> {
     let kind = written.kind.unwrap_or(FieldKind::Mlp);
-    let within = |key: &str, value: Option<usize>, lo: usize, hi: usize| match value {
-        Some(v) if v < lo || v > hi => Err(err(file, &format!("field.{key}"), format!("must be a whole number within {lo}..={hi}, found {v}"))),
-        other => Ok(other),
+    let within = |key: &str, value: Option<Count>, lo: usize, hi: usize| match value {
+        None => Ok(None),
+        Some(v) => {
+            v.within(lo, hi).map(Some).ok_or_else(|| err(file, &format!("field.{key}"), format!("must be a whole number within {lo}..={hi}, found {}", v.0)))
+        }
     };
     if kind == FieldKind::Mlp {
         let grid_only = [
@@ -382,7 +402,7 @@ fn field(written: FieldFile, file: &Path) -> Result<FieldSettings, ScheduleError
     Ok(FieldSettings {
         kind,
         levels: within("levels", written.levels, 1, 16)?,
-        table_log2: within("table_log2", written.table_log2.map(|v| v as usize), 8, 22)?.map(|v| v as u32),
+        table_log2: within("table_log2", written.table_log2, 8, 22)?.map(|v| v as u32),
         top_bones: within("top_bones", written.top_bones, 1, 8)?,
         features: within("features", written.features, 1, 8)?,
         finest_per_extent: within("finest_per_extent", written.finest_per_extent, 10, 4096)?,
@@ -391,7 +411,10 @@ fn field(written: FieldFile, file: &Path) -> Result<FieldSettings, ScheduleError
             Some(v) if !(v > 0.0 && v <= 1.0) => return Err(err(file, "field.reach_per_extent", format!("must be within (0, 1], found {v}"))),
             other => other,
         },
-        fine_levels: match (written.fine_levels_from, written.fine_levels_until) {
+        fine_levels: match (
+            within("fine_levels_from", written.fine_levels_from, 0, MAX_COUNT)?,
+            within("fine_levels_until", written.fine_levels_until, 0, MAX_COUNT)?,
+        ) {
             (None, None) => None,
             (Some(from), Some(until)) if until >= from => Some((from, until)),
             (Some(_), Some(_)) => return Err(err(file, "field.fine_levels_until", "must not come before fine_levels_from")),

@@ -62,6 +62,15 @@ pub const COMPARE_GAIN: f32 = 4.0;
 /// Samples of the sky per view when relighting by an environment or uniform light.
 pub const SKY_SAMPLES: usize = 256;
 
+/// `compare.png`: a row per image, labelled with its name, group and foreground PSNR: the
+/// truth, the render, their difference, then the same for its albedo.
+fn compare_sheet(rows: &[(String, Vec<RgbImage>)]) -> crate::plot::Canvas {
+    let difference = format!("difference x{COMPARE_GAIN}");
+    let columns = ["truth", "render", &difference, "albedo truth", "albedo", &difference].map(String::from).to_vec();
+    let rows = rows.iter().map(|(label, cells)| (label.clone(), cells.iter().map(Some).collect())).collect();
+    crate::plot::Sheet { title: "Renders beside the truth (foreground PSNR)".into(), columns, rows }.render()
+}
+
 /// The evaluation `fit` ends with and `render` and `eval` run: `evaluate_split` of the test
 /// images into `RUN/renders`.
 pub fn evaluate(scene: &Scene, fitted: &Fitted, out: &Path, on: &mut impl FnMut(TrainMessage)) -> Result<serde_json::Value, FitError> {
@@ -95,7 +104,7 @@ pub fn evaluate_split(scene: &Scene, fitted: &Fitted, dir: &Path, split: Split, 
     let device = fitted.device.clone().without_autodiff();
     let albedo_scale = albedo_scale(scene, &model);
     let mut rows = Vec::new();
-    let mut compare: Vec<Vec<RgbImage>> = Vec::new();
+    let mut compare: Vec<(String, Vec<RgbImage>)> = Vec::new();
     // As many views at once as there are threads (one view's render keeps about one busy);
     // each view's samples are seeded by its own camera and frame, so the images do not depend
     // on the schedule.
@@ -117,7 +126,8 @@ pub fn evaluate_split(scene: &Scene, fitted: &Fitted, dir: &Path, split: Split, 
                 row.extend([truth.clone(), albedo.clone(), albedo.difference(truth, COMPARE_GAIN)]);
             }
         }
-        compare.push(row);
+        let label = format!("{} {}: {:.1} dB", name.trim_start_matches("images_").trim_end_matches(".png"), group, scored.scores.foreground_psnr);
+        compare.push((label, row));
         // Relit images and albedos again after one per-channel least-squares scale: what is
         // left when the absolute scale the fit cannot know is forgiven.
         let relit_scaled = relit.then(|| crate::metrics::score_scaled(&scored.image, &truth, view.mask.as_ref()).0);
@@ -145,8 +155,7 @@ pub fn evaluate_split(scene: &Scene, fitted: &Fitted, dir: &Path, split: Split, 
         });
         Ok::<(), FitError>(())
     })?;
-    let cells: Vec<Vec<&RgbImage>> = compare.iter().map(|row| row.iter().collect()).collect();
-    save_png(&dir.join("compare.png"), &RgbImage::tiled(&cells))?;
+    compare_sheet(&compare).save_png(&dir.join("compare.png")).map_err(FitError::Input)?;
     let groups = group_means(&rows);
     write_text(&dir.join("metrics.csv"), &metrics_csv(&rows))?;
     let mut evaluation = evaluation_json(&rows, &groups, albedo_scale);
