@@ -51,14 +51,19 @@ const LAYERS: &[&[&str]] = &[
     &["synth", "bench", "fuzzing", "cli"],
 ];
 
-/// `text` without `#[cfg(test)] mod name { ... }` blocks and without `//` comments.
+/// `text` without `#[cfg(test)] mod name { ... }` blocks (or `mod name;`) and without `//` comments.
 fn library_code(text: &str) -> String {
     let mut out = String::new();
     let mut rest = text;
     while let Some(at) = rest.find("#[cfg(test)]") {
         out.push_str(&rest[..at]);
         let after = &rest[at..];
-        let open = after.find('{').expect("a test module opens");
+        // A test module in a file of its own (`mod tests;`) ends at its semicolon.
+        let semicolon = after.find(';').unwrap_or(after.len());
+        let Some(open) = after.find('{').filter(|&open| open < semicolon) else {
+            rest = &after[(semicolon + 1).min(after.len())..];
+            continue;
+        };
         let mut depth = 0usize;
         let mut end = after.len();
         for (i, c) in after[open..].char_indices() {

@@ -11,7 +11,9 @@ use std::f64::consts::PI;
 #[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum, serde::Serialize, serde::Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum Kind {
+    /// A human walking, in tight clothes (17 bones).
     Human,
+    /// A four-legged animal trotting (12 bones).
     Quadruped,
     /// The human in loose clothes: a bell skirt, a backpack and a bun 15-30 cm from any bone.
     Dressed,
