@@ -274,9 +274,8 @@ fn a_non_finite_parameter_or_loss_stops_the_fit_and_keeps_the_last_good_checkpoi
     let scene = umbra::scene::Scene::load(&scene_path).unwrap();
     let mut trainer = Trainer::new(scene, schedule.clone(), Backend::Flex, 1).unwrap();
     trainer.iterate().unwrap();
-    let mut model = trainer.model.take().unwrap();
+    let model = trainer.model_mut().unwrap();
     model.light.log_intensity = poisoned(&model.light.log_intensity);
-    trainer.model = Some(model);
     let err = trainer.iterate().unwrap_err().to_string();
     assert!(err.contains("iteration 1") && err.contains("light.log_intensity"), "{err}");
 
@@ -286,7 +285,7 @@ fn a_non_finite_parameter_or_loss_stops_the_fit_and_keeps_the_last_good_checkpoi
     let out = dir.path().join("run");
     umbra::fit::fit(&fit_options(&scene_path, out.clone(), &schedule_path, Some(4), 2, false), |_| {}).unwrap();
     let scene = umbra::scene::Scene::load(&scene_path).unwrap();
-    let mut model = Trainer::new(scene, schedule, Backend::Flex, 2).unwrap().model.take().unwrap();
+    let mut model = Trainer::new(scene, schedule, Backend::Flex, 2).unwrap().model().unwrap().clone();
     model.light.vector = poisoned(&model.light.vector);
     let bpk = out.join("checkpoint/model.bpk");
     model.save_file(&bpk).unwrap();
@@ -806,7 +805,7 @@ fn gaussians_move_to_the_bones_that_carry_them_and_a_run_keeps_their_bones() {
     // Every Gaussian handed to the last bone (a foot), where it is not carried: the rebinding
     // gives each limb its own back, and nothing moves where nothing is wrong.
     let last = started.iter().max().copied().unwrap();
-    trainer.model.as_mut().unwrap().gaussians.rebind(&vec![last; started.len()], &pose);
+    trainer.model_mut().unwrap().gaussians.rebind(&vec![last; started.len()], &pose);
     let moved = trainer.rebind_gaussians().unwrap();
     let bones = trainer.model().unwrap().gaussians.bones.clone();
     let back = bones.iter().zip(&started).filter(|(a, b)| a == b).count();

@@ -414,7 +414,7 @@ fn a_checkpoint_swap_interrupted_at_every_step_leaves_a_complete_checkpoint() {
         let _ = std::fs::remove_dir_all(&run);
         copy_tree(&pristine, &run);
         let mut trainer = umbra::run::restore_trainer(&run, umbra::backend::Backend::Flex).unwrap();
-        trainer.iteration = 7;
+        trainer.set_iteration(7).unwrap();
         let finished = umbra::fit::save_checkpoint_until(&trainer, &run, &[], steps).unwrap();
         // Killed after `steps` steps: the run still loads, from the old checkpoint or the new.
         let on_disk = iteration_on_disk(&run);

@@ -31,7 +31,7 @@ struct Part {
 fn training_parts(scene: &Scene, schedule: &Schedule, stage: &str, iteration: usize, steps: usize) -> Result<Vec<Part>, FitError> {
     let mut trainer = Trainer::new(scene.clone(), schedule.clone(), Backend::Flex, 0)?;
     // Past the sun search (a one-off, timed on its own below).
-    trainer.iteration = iteration + 1;
+    trainer.set_iteration(iteration + 1)?;
     trainer_parts(&mut trainer, stage, steps)
 }
 
@@ -122,7 +122,7 @@ pub fn breakdown(scene_path: &Path, schedule_path: &Path, out: &Path, quick: boo
     }
     // The sun search runs once per fit, at light_from.
     let mut trainer = Trainer::new(scene.clone(), schedule.clone(), Backend::Flex, 0)?;
-    trainer.iteration = schedule.light_from;
+    trainer.set_iteration(schedule.light_from)?;
     let stats = trainer.iterate()?;
     if let Some((_, seconds)) = stats.phases.iter().find(|(name, _)| *name == PHASES[0]) {
         parts.push(Part { stage: "once per fit".into(), part: "sun search".into(), ms: seconds * 1e3, peak_mib: peak_rss_mib() });

@@ -174,7 +174,7 @@ impl Curve {
     }
 
     fn finished(&self) -> bool {
-        self.trainer.iteration >= self.iterations
+        self.trainer.iteration() >= self.iterations
     }
 
     /// One training step (timed); the scores if it ends at a mark.
@@ -182,7 +182,7 @@ impl Curve {
         let step = Instant::now();
         self.trainer.iterate()?;
         self.train_seconds += step.elapsed().as_secs_f64();
-        let iteration = self.trainer.iteration;
+        let iteration = self.trainer.iteration();
         if !self.marks.contains(&iteration) {
             return Ok(None);
         }

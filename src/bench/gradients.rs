@@ -161,7 +161,7 @@ fn training_steps(scene_path: &Path, steps: usize) -> Result<Vec<Row>, String> {
     let scene = crate::scene::Scene::load(scene_path).map_err(|e| e.to_string())?;
     let schedule = crate::schedule::Schedule::load(Path::new("schedules/default.toml")).map_err(|e| e.to_string())?;
     let mut trainer = crate::train::Trainer::new(scene, schedule, crate::backend::Backend::Flex, 1).map_err(|e| e.to_string())?;
-    trainer.iteration = trainer.schedule.light_from + 300;
+    trainer.set_iteration(trainer.schedule.light_from + 300).map_err(|e| e.to_string())?;
     let methods = [GradientMethod::Tangents, CENTRAL];
     let mut seconds = [0.0f64; 2];
     for round in 0..steps + 1 {

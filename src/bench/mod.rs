@@ -58,6 +58,6 @@ pub(crate) fn machine_peak_flops() -> (f64, String) {
 /// surface has formed, where a fresh field's is as soft as its starting beta.
 fn fitted_trainer(run: &std::path::Path) -> Result<crate::train::Trainer, crate::fit_error::FitError> {
     let mut trainer = crate::run::restore_trainer(run, crate::backend::Backend::Flex)?;
-    trainer.iteration = trainer.schedule.iterations.saturating_sub(100).max(trainer.schedule.light_from + 1);
+    trainer.set_iteration(trainer.schedule.iterations.saturating_sub(100).max(trainer.schedule.light_from + 1))?;
     Ok(trainer)
 }

@@ -38,7 +38,7 @@ fn step_ms(scene: &Scene, schedule: &Schedule, variant: &Variant, iteration: usi
     if variant.one_render_thread {
         trainer.render_threads = 1;
     }
-    trainer.iteration = iteration;
+    trainer.set_iteration(iteration)?;
     time_steps(&mut trainer, budget)
 }
 

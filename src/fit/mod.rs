@@ -215,15 +215,15 @@ pub fn fit(options: &FitOptions, mut on: impl FnMut(TrainMessage)) -> Result<Fit
         crate::run::clear_run_outputs(out, true)?;
     }
     let mut history = if options.resume { load_checkpoint(&mut trainer, out)? } else { Vec::new() };
-    let first_iteration_here = trainer.iteration;
+    let first_iteration_here = trainer.iteration();
     crate::imageio::write_atomic(&out.join(SCHEDULE_COPY), schedule_text.as_bytes()).map_err(|e| io(&out.join(SCHEDULE_COPY), e))?;
-    history.retain(|(i, _)| *i < trainer.iteration);
+    history.retain(|(i, _)| *i < trainer.iteration());
     let training_images = trainer.scene.views_in(Split::Train).count();
     on(TrainMessage::Loaded { scene: trainer.scene.display_name(), training_images, frames: trainer.scene.frames.len(), light: trainer.light_kind });
-    on(TrainMessage::Started { first: trainer.iteration, iterations: schedule.iterations });
+    on(TrainMessage::Started { first: trainer.iteration(), iterations: schedule.iterations });
     let segment_seconds = train(&mut trainer, &schedule, out, &mut history, &mut on)?;
     write_results(&trainer, out, &history)?;
-    let (evaluation, evaluation_skipped) = evaluation(&trainer, options, trainer.iteration > first_iteration_here, &mut on)?;
+    let (evaluation, evaluation_skipped) = evaluation(&trainer, options, trainer.iteration() > first_iteration_here, &mut on)?;
     let model: &Avatar = trainer.model()?;
     let light = model.light.report();
     let stages = stages(&trainer, &schedule, &segment_seconds, saved);
@@ -329,8 +329,8 @@ fn train(
     on: &mut impl FnMut(TrainMessage),
 ) -> Result<BTreeMap<&'static str, f64>, FitError> {
     let mut segment_seconds: BTreeMap<&'static str, f64> = BTreeMap::new();
-    while trainer.iteration < schedule.iterations {
-        let it = trainer.iteration;
+    while trainer.iteration() < schedule.iterations {
+        let it = trainer.iteration();
         let stats = trainer.iterate().map_err(|e| match e {
             FitError::NonFinite { iteration, what, .. } => {
                 let saved = std::fs::read_to_string(out.join(CHECKPOINT).join("state.json"))
@@ -348,9 +348,9 @@ fn train(
         *segment_seconds.entry(segment(schedule, it, trainer.fit_light)).or_default() += stats.seconds;
         history.push((it, stats.clone()));
         on(TrainMessage::Step { iteration: it, stats });
-        if trainer.iteration % schedule.checkpoint_every == 0 || trainer.iteration == schedule.iterations {
+        if trainer.iteration() % schedule.checkpoint_every == 0 || trainer.iteration() == schedule.iterations {
             save_checkpoint(trainer, out, history)?;
-            on(TrainMessage::Checkpoint { iteration: trainer.iteration });
+            on(TrainMessage::Checkpoint { iteration: trainer.iteration() });
         }
     }
     Ok(segment_seconds)

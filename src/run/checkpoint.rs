@@ -39,13 +39,13 @@ pub fn save_checkpoint_until(trainer: &Trainer, out: &Path, history: &[(usize, S
     // `model.bpk` is the fitted model (what renders and evaluations load); while the field's
     // parameters are averaged, the last step's, which training resumes from, go beside it.
     trainer.fitted_model()?.save_file(temp.join("model.bpk")).map_err(|e| io(&temp.join("model.bpk"), format!("{e}")))?;
-    if trainer.average.is_some() {
+    if trainer.state()?.average.is_some() {
         trainer.model()?.clone().save_file(temp.join(TRAINING_MODEL)).map_err(|e| io(&temp.join(TRAINING_MODEL), format!("{e}")))?;
     }
     if step() {
         return Ok(false);
     }
-    for (name, optimizer) in trainer.optimisers.named() {
+    for (name, optimizer) in trainer.state()?.optimisers.named() {
         let path = temp.join(format!("optimizer-{name}.bpk"));
         optimizer.save(&path).map_err(|e| io(&path, format!("{e}")))?;
         if step() {
@@ -64,7 +64,7 @@ pub fn save_checkpoint_until(trainer: &Trainer, out: &Path, history: &[(usize, S
         "skeleton": trainer.scene.skeleton_identity(),
         "training_data": trainer.training_identity(),
         "checksums": checksums,
-        "iteration": trainer.iteration,
+        "iteration": trainer.iteration(),
         "seed": trainer.seed,
         "iterations_total": trainer.schedule.iterations,
         "stream": trainer.stream.state().to_string(),
@@ -120,11 +120,10 @@ pub(super) const TRAINING_MODEL: &str = "training-model.bpk";
 /// The files of a checkpoint that hold parameters: the model (and the last step's, while the
 /// field is averaged) and one per optimizer.
 pub(super) fn checkpoint_files(trainer: &Trainer) -> Vec<String> {
-    let training = trainer.average.is_some().then(|| TRAINING_MODEL.to_string());
-    std::iter::once("model.bpk".to_string())
-        .chain(training)
-        .chain(trainer.optimisers.named().into_iter().map(|(name, _)| format!("optimizer-{name}.bpk")))
-        .collect()
+    let averaged = trainer.state().is_ok_and(|s| s.average.is_some());
+    let training = averaged.then(|| TRAINING_MODEL.to_string());
+    // The optimisers are named after the parameter groups (`Optimisers::named`).
+    std::iter::once("model.bpk".to_string()).chain(training).chain(crate::schedule::GROUPS.iter().map(|name| format!("optimizer-{name}.bpk"))).collect()
 }
 
 /// The checksum of a checkpoint's `state.json`, beside it: state.json holds the others.
@@ -250,7 +249,7 @@ pub fn existing_checkpoint(out: &Path) -> Option<PathBuf> {
 /// --resume` does (the entry the checkpoint fuzz target drives); returns the iteration reached.
 pub fn resume_checkpoint(trainer: &mut Trainer, out: &Path) -> Result<usize, FitError> {
     load_checkpoint(trainer, out)?;
-    Ok(trainer.iteration)
+    Ok(trainer.iteration())
 }
 
 pub(crate) fn load_checkpoint(trainer: &mut Trainer, out: &Path) -> Result<Vec<(usize, StepStats)>, FitError> {
@@ -262,14 +261,15 @@ pub(crate) fn load_checkpoint(trainer: &mut Trainer, out: &Path) -> Result<Vec<(
     load_model(trainer, &dir)?;
     // A checkpoint taken while the field was averaged: `model.bpk` holds the average, the
     // last step's parameters are beside it.
-    trainer.average = None;
+    let training = trainer.state_mut()?;
+    training.average = None;
     if dir.join(TRAINING_MODEL).is_file() {
-        let fitted = trainer.model.take().ok_or_else(|| FitError::Input("no model".into()))?;
-        trainer.average = Some(crate::averaging::ParameterAverage::start(&fitted.field));
+        let fitted = training.model.clone();
+        training.average = Some(crate::averaging::ParameterAverage::start(&fitted.field));
         let path = dir.join(TRAINING_MODEL);
-        trainer.model = Some(fitted.try_load_file(&path).map_err(|e| io(&path, format!("cannot load the model being trained: {e}")))?);
+        training.model = fitted.try_load_file(&path).map_err(|e| io(&path, format!("cannot load the model being trained: {e}")))?;
     }
-    for (name, optimizer) in trainer.optimisers.named_mut() {
+    for (name, optimizer) in training.optimisers.named_mut() {
         let path = dir.join(format!("optimizer-{name}.bpk"));
         // Checkpoints from before the feature tables had their own optimizer have no file for it.
         if name == "features" && !path.exists() {
@@ -277,7 +277,7 @@ pub(crate) fn load_checkpoint(trainer: &mut Trainer, out: &Path) -> Result<Vec<(
         }
         *optimizer = optimizer.clone().load(&path).map_err(|e| io(&path, format!("{e}")))?;
     }
-    trainer.iteration = iteration;
+    trainer.set_iteration(iteration)?;
     trainer.stream = Stream::from_state(stream);
     let lights = trainer.cones.len();
     let mut searches = vec![serde_json::from_value(state["sun_search"].clone()).map_err(|e| io(&state_path, format!("sun_search: {e}")))?];
@@ -344,9 +344,9 @@ pub(super) fn load_model(trainer: &mut Trainer, dir: &Path) -> Result<(), FitErr
     if let Some(count) = recorded.filter(|&n| trainer.loose_gaussians() > 0 && n < starts) {
         trainer.without_loose_gaussians(count).map_err(|e| io(&state_path, format!("gaussian_bones: {e}")))?;
     }
-    let model = trainer.model.take().ok_or_else(|| FitError::Input("no model".into()))?;
+    let model = trainer.model()?.clone();
     let model = model.try_load_file(dir.join("model.bpk")).map_err(|e| io(&dir.join("model.bpk"), format!("cannot load the fitted model: {e}")))?;
-    trainer.model = Some(model);
+    *trainer.model_mut()? = model;
     // The Gaussians' bones, when the fit moved them (`Trainer::rebind_gaussians`); before they
     // were recorded, each stayed on the bone it started on.
     if let Some(bones) = state.get("gaussian_bones") {

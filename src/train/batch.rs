@@ -84,7 +84,7 @@ impl Trainer {
     /// Draws the next batch (`pixels`) and every random number its step uses, in the stream's
     /// order: the pixels, the samples' jitter, the density loss's samples, the regularisers'.
     pub fn draw_batch(&mut self) -> Result<Batch, FitError> {
-        let it = self.iteration;
+        let it = self.iteration();
         let set = self.model()?.gaussians.to_set();
         let mut batch = self.pixels(&set);
         let rendered = if self.render_missed_rays { batch.rays.len() } else { batch.hits.max(1) };
@@ -141,7 +141,7 @@ impl Trainer {
             let j = k / 3;
             // Of the third drawn anywhere, every (1 / error_rays)-th where the fit is wrong.
             let by_error = k % 3 == 2 && takes_share(j, self.error_rays);
-            let wrong = match &self.views[v].error_map {
+            let wrong = match self.state.as_ref().and_then(|s| s.error_maps.get(v)).and_then(|m| m.as_ref()) {
                 Some(map) if by_error => Some(map.draw(self.stream.uniform(), self.stream.uniform())),
                 _ => None,
             };

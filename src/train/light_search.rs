@@ -132,7 +132,8 @@ impl Trainer {
             }
             _ => crate::sun_search::search(&samples, &casters, self.schedule.sun_search, 64, start),
         };
-        let mut model = self.model.take().ok_or_else(|| FitError::Input("the model was lost by an interrupted step".into()))?;
+        let mut state = self.state.take().ok_or_else(|| FitError::Input("the training state was lost by an interrupted step".into()))?;
+        let model = &mut state.model;
         let device = self.device.clone();
         let vector = match report.best.position {
             Some(position) => position.map(|c| (c / self.body_unit()) as f32),
@@ -154,7 +155,7 @@ impl Trainer {
         if let Some(log) = log_strength {
             target.log_intensity = target.log_intensity.clone().map(|_| Tensor::from_data(TensorData::new(vec![log], [1]), &device).require_grad());
         }
-        self.model = Some(model);
+        self.state = Some(state);
         if self.light_kind == LightKind::Directional {
             // Gradient descent refines the direction within SUN_CONE_SPACINGS lattice spacings
             // of the search's best and no farther: with one camera it otherwise slides back to

@@ -1,9 +1,11 @@
-//! The fit's trainer: the state one training step changes (model, named optimisers, iteration,
-//! the seeded stream, error maps, the light search's cones) and the scene data it draws from.
-//! Each job has a room: `setup` (the body measured, the model placed), `body` (loose body from
-//! the masks), `batch` (drawing a batch and every random number a step uses), `step` (forward,
-//! losses, backward, updates), `rebind` (Gaussians to the bones that carry them) and
-//! `light_search`. `iterate` runs one iteration: the stage's events, a batch, a step.
+//! The fit's trainer: the scene data a fit draws from, what the steps only read (the schedule,
+//! the body's measures, the light search's cones) and the `TrainState` a step takes and gives
+//! back (model, named optimisers, iteration, the field's average, error maps); the seeded stream
+//! is the batches'. Each job has a room: `setup` (the body measured, the model placed), `body`
+//! (loose body from the masks), `batch` (drawing a batch and every random number a step uses),
+//! `step` (`step(batch, state) -> (state, stats)`: forward, losses, backward, updates), `rebind`
+//! (Gaussians to the bones that carry them) and `light_search`. `iterate` runs one iteration:
+//! the stage's events, a batch, a step.
 //!
 //! It skips what a scene does not need: a uniformly lit capture gets no light, no shadow rays and
 //! no light-fitting stage. A capture under several lights of one kind fits them jointly, each
@@ -83,22 +85,32 @@ struct ViewData {
     foreground: pixels::PixelRuns,
     /// Pixels within `BOUNDARY_BAND` pixels of the silhouette's edge, on either side.
     boundary: pixels::PixelRuns,
-    /// Where the fit is still wrong in this view, when the schedule draws rays by it
+}
+
+/// What one training step changes (`Trainer::step` takes it and gives it back): the model, its
+/// named optimisers, the iteration, the field's moving average and the error maps.
+pub struct TrainState {
+    pub model: Avatar,
+    pub optimisers: Optimisers,
+    pub iteration: usize,
+    /// The moving average of the field's parameters, once the schedule's
+    /// `field_average_half_life` has started it (`fitted_model`).
+    pub average: Option<crate::averaging::ParameterAverage>,
+    /// Per scene view, where the fit is still wrong in it, when the schedule draws rays by it
     /// (`Schedule::error_rays`; training views with a mask only).
-    error_map: Option<crate::error_map::ErrorMap>,
+    pub error_maps: Vec<Option<crate::error_map::ErrorMap>>,
 }
 
 pub struct Trainer {
     pub scene: Scene,
     pub schedule: Schedule,
     pub device: Device,
-    pub model: Option<Avatar>,
-    pub optimisers: Optimisers,
+    /// What the steps change; out of the trainer only while a step runs.
+    state: Option<TrainState>,
     frames: Vec<FrameData>,
     views: Vec<ViewData>,
     pub fit_light: bool,
     pub light_kind: LightKind,
-    pub iteration: usize,
     /// The seed the fit was started with (a resumed fit keeps it).
     pub seed: u64,
     pub stream: Stream,
@@ -138,9 +150,6 @@ pub struct Trainer {
     /// footprint the fit models (the schedule's, else that).
     pub footprint_estimate: crate::scene::FootprintEstimate,
     pub footprint: crate::scene::Footprint,
-    /// The moving average of the field's parameters, once the schedule's
-    /// `field_average_half_life` has started it (`fitted_model`).
-    pub average: Option<crate::averaging::ParameterAverage>,
     /// The share of the anywhere-third drawn by the error maps: the schedule's, or under
     /// `auto` what the body's looseness asks (`ErrorRays::share`).
     pub error_rays: f64,
@@ -153,13 +162,15 @@ impl Trainer {
     /// Each training view's error map (`Schedule::error_rays`) by the view's index: what a
     /// checkpoint keeps so that a resumed fit draws its rays as the uninterrupted one does.
     pub fn error_maps(&self) -> Vec<(usize, Vec<f32>)> {
-        self.views.iter().enumerate().filter_map(|(v, d)| d.error_map.as_ref().map(|m| (v, m.errors().to_vec()))).collect()
+        let maps = self.state.as_ref().map(|s| s.error_maps.as_slice()).unwrap_or_default();
+        maps.iter().enumerate().filter_map(|(v, m)| m.as_ref().map(|m| (v, m.errors().to_vec()))).collect()
     }
 
     /// Restores `error_maps`' output; refused when a view has no map or a map's size differs.
     pub fn set_error_maps(&mut self, maps: Vec<(usize, Vec<f32>)>) -> Result<(), String> {
+        let state = self.state_mut().map_err(|e| e.to_string())?;
         for (v, errors) in maps {
-            let map = self.views.get_mut(v).and_then(|d| d.error_map.as_mut()).ok_or_else(|| format!("view {v} has no error map in this fit"))?;
+            let map = state.error_maps.get_mut(v).and_then(|m| m.as_mut()).ok_or_else(|| format!("view {v} has no error map in this fit"))?;
             map.set_errors(errors).map_err(|e| format!("view {v}: {e}"))?;
         }
         Ok(())
@@ -168,20 +179,42 @@ impl Trainer {
     /// Runs the grid's lookup as the composite of tensor ops instead of the fused op (for the
     /// step benchmark's comparison; a no-op for the `mlp` field).
     pub fn set_composite_lookup(&mut self, composite: bool) {
-        if let Some(grid) = self.model.as_mut().and_then(|m| m.field.grid.as_mut()) {
+        if let Some(grid) = self.state.as_mut().and_then(|s| s.model.field.grid.as_mut()) {
             grid.composite = composite;
         }
     }
 
-    /// The current model (it is only out of the trainer while a step runs).
     /// `Scene::training_identity` of the trainer's scene, hashed on first use.
     pub fn training_identity(&self) -> &str {
         self.training_identity.get_or_init(|| self.scene.training_identity())
     }
 
+    /// What the steps change.
+    pub fn state(&self) -> Result<&TrainState, FitError> {
+        self.state.as_ref().ok_or_else(|| FitError::Input("the training state was lost by an interrupted step".into()))
+    }
+
+    pub fn state_mut(&mut self) -> Result<&mut TrainState, FitError> {
+        self.state.as_mut().ok_or_else(|| FitError::Input("the training state was lost by an interrupted step".into()))
+    }
+
     /// The model being trained: the last step's parameters.
     pub fn model(&self) -> Result<&Avatar, FitError> {
-        self.model.as_ref().ok_or_else(|| FitError::Input("the model was lost by an interrupted step".into()))
+        self.state().map(|s| &s.model)
+    }
+
+    pub fn model_mut(&mut self) -> Result<&mut Avatar, FitError> {
+        self.state_mut().map(|s| &mut s.model)
+    }
+
+    /// The iteration the next step takes.
+    pub fn iteration(&self) -> usize {
+        self.state.as_ref().map_or(0, |s| s.iteration)
+    }
+
+    /// Sets the iteration the next step takes (a resumed fit's, or a benchmark's stage).
+    pub fn set_iteration(&mut self, iteration: usize) -> Result<(), FitError> {
+        self.state_mut().map(|s| s.iteration = iteration)
     }
 
     /// The fit as it stands, for rendering and scoring (`fitted_model`).
@@ -192,7 +225,7 @@ impl Trainer {
             light_kind: self.light_kind,
             fit_light: self.fit_light,
             footprint: self.footprint,
-            iteration: self.iteration,
+            iteration: self.iteration(),
         })
     }
 
@@ -200,7 +233,7 @@ impl Trainer {
     /// parameters replaced by their moving average once that has started.
     pub fn fitted_model(&self) -> Result<Avatar, FitError> {
         let mut model = self.model()?.clone();
-        if let Some(average) = &self.average {
+        if let Some(average) = &self.state()?.average {
             model.field =
                 average.applied(model.field).ok_or_else(|| FitError::Input("the field's parameter average does not match the field's layout".into()))?;
         }
@@ -234,7 +267,10 @@ impl Trainer {
         let drawing = Instant::now();
         let batch = self.draw_batch()?;
         phases.push((crate::messages::PHASES[1], drawing.elapsed().as_secs_f64()));
-        let mut stats = self.step(batch)?;
+        let state = self.state.take().ok_or_else(|| FitError::Input("the training state was lost by an interrupted step".into()))?;
+        let (state, stats) = self.step(batch, state);
+        self.state = Some(state);
+        let mut stats = stats?;
         phases.append(&mut stats.phases);
         stats.phases = phases;
         stats.seconds = start.elapsed().as_secs_f64();
@@ -243,13 +279,13 @@ impl Trainer {
 
     /// Whether this iteration starts the light stage with a search for the training lights.
     fn searches_lights_now(&self) -> bool {
-        let it = self.iteration;
+        let it = self.iteration();
         it == self.schedule.light_from && self.fit_light && self.light_kind != LightKind::Uniform && self.schedule.sun_search > 0
     }
 
     /// Whether the Gaussians are rebound to their bones before this iteration's batch.
     fn rebinds_now(&self) -> bool {
-        let (it, every) = (self.iteration, self.schedule.rebind_every);
+        let (it, every) = (self.iteration(), self.schedule.rebind_every);
         every > 0 && it > 0 && it % every == 0 && it <= self.schedule.light_from && self.schedule.weight("density", it) > 0.0
     }
 }

@@ -69,7 +69,7 @@ impl Trainer {
     /// own if it is one, else goes to the one nearest it; but a bone keeps at least one of its
     /// Gaussians (`keep_every_bone`). Returns how many moved.
     pub fn rebind_gaussians(&mut self) -> Result<usize, FitError> {
-        let model = self.model.as_ref().ok_or_else(|| FitError::Input("the model was lost by an interrupted step".into()))?;
+        let model = self.state.as_ref().map(|s| &s.model).ok_or_else(|| FitError::Input("the model was lost by an interrupted step".into()))?;
         let set = model.gaussians.to_set();
         let bone_count = self.scene.skeleton.len();
         let count = self.frames.len().clamp(1, Self::SEARCH_FRAMES);
@@ -109,7 +109,7 @@ impl Trainer {
         let bones = keep_every_bone(bones, &current, &outside);
         let moved = bones.iter().zip(&set.gaussians).filter(|(b, g)| **b != g.bone).count();
         if moved > 0 {
-            if let Some(model) = self.model.as_mut() {
+            if let Some(model) = self.state.as_mut().map(|s| &mut s.model) {
                 model.gaussians.rebind(&bones, &reference);
             }
             self.mean_targets = mean_targets(&bones, &self.anchors, self.loose_root, self.rebinding_reference(), &self.scene.skeleton, &self.device);
@@ -121,7 +121,7 @@ impl Trainer {
     /// size and the skeleton.
     pub fn set_gaussian_bones(&mut self, bones: &[usize]) -> Result<(), String> {
         let bone_count = self.scene.skeleton.len();
-        let model = self.model.as_mut().ok_or("no model")?;
+        let model = self.state.as_mut().map(|s| &mut s.model).ok_or("no model")?;
         if bones.len() != model.gaussians.len() {
             return Err(format!("expected {} Gaussians' bones, found {}", model.gaussians.len(), bones.len()));
         }
@@ -147,7 +147,7 @@ impl Trainer {
     /// only the bones' (`count` of them).
     pub fn without_loose_gaussians(&mut self, count: usize) -> Result<(), String> {
         let seeded = self.loose_gaussians();
-        let model = self.model.as_mut().ok_or("no model")?;
+        let model = self.state.as_mut().map(|s| &mut s.model).ok_or("no model")?;
         if count + seeded != model.gaussians.len() {
             return Err(format!("{count} Gaussians recorded, this scene starts {} ({seeded} on loose body)", model.gaussians.len()));
         }

@@ -220,7 +220,6 @@ fn index_training(scene: &Scene, training: &[usize], device: &Device) -> (Vec<Fr
             ViewData {
                 foreground: mask.map(|m| (0..m.foreground.len() as u32).filter(|&k| m.foreground[k as usize]).collect()).unwrap_or_default(),
                 boundary: mask.map(|m| boundary_pixels(m, BOUNDARY_BAND)).unwrap_or_default(),
-                error_map: None,
             }
         })
         .collect();
@@ -233,7 +232,7 @@ impl Trainer {
         device.seed(seed);
         let training = training_views(&scene)?;
         let TrainingLights { kind: light_kind, fit: fit_light, count: light_count, view_light } = training_lights(&scene, &schedule)?;
-        let (frames, mut views) = index_training(&scene, &training, &device);
+        let (frames, views) = index_training(&scene, &training, &device);
         let extent = scene.body_extent();
         let unit = crate::skeleton::body_length(1.0, extent);
         // Four Gaussians per bone, 5 cm wide on the reference human.
@@ -273,13 +272,14 @@ impl Trainer {
         // under `auto`; each training view with a mask then keeps an error map.
         let error_rays = schedule.error_rays.share(root.is_some());
         let density_at_shadow_scale = schedule.density_at_shadow_scale.on(root.is_some());
-        if error_rays > 0.0 {
-            for (data, view) in views.iter_mut().zip(&scene.views) {
-                if let (Some(mask), Split::Train) = (&view.mask, view.split) {
-                    data.error_map = Some(crate::error_map::ErrorMap::new(mask.width, mask.height));
-                }
-            }
-        }
+        let error_maps = scene
+            .views
+            .iter()
+            .map(|view| match (&view.mask, view.split) {
+                (Some(mask), Split::Train) if error_rays > 0.0 => Some(crate::error_map::ErrorMap::new(mask.width, mask.height)),
+                _ => None,
+            })
+            .collect();
         let model = new_avatar(&scene, &field_config, &set, light_kind, light_count, &device, seed);
         let reference = frames.first().map(|f| &scene.frames[f.position].pose);
         let mean_targets = mean_targets(&set.gaussians.iter().map(|g| g.bone).collect::<Vec<_>>(), &anchors, root, reference, &scene.skeleton, &device);
@@ -290,13 +290,11 @@ impl Trainer {
             scene,
             schedule,
             device,
-            model: Some(model),
-            optimisers: super::Optimisers::new(),
+            state: Some(super::TrainState { model, optimisers: super::Optimisers::new(), iteration: 0, average: None, error_maps }),
             frames,
             views,
             fit_light,
             light_kind,
-            iteration: 0,
             seed,
             stream: Stream::new(seed, 0x7AA1, 0),
             gradient: crate::field::GRADIENT,
@@ -313,7 +311,6 @@ impl Trainer {
             loose_root: root,
             footprint_estimate,
             footprint,
-            average: None,
             error_rays,
             density_at_shadow_scale,
         })

@@ -1,7 +1,7 @@
 //! One training step: forward, the schedule's weighted losses, backward, one Adam step per named
 //! parameter group, the light kept in its cone, the field's moving average updated.
 
-use super::{Batch, Trainer};
+use super::{Batch, TrainState, Trainer};
 use crate::avatar::{first_non_finite, Avatar};
 use crate::field::AvatarField;
 use crate::fit_error::FitError;
@@ -69,19 +69,19 @@ fn scalar(t: &Tensor<1>) -> f64 {
 type Terms<'a> = Vec<(&'a str, f64, Tensor<1>)>;
 
 impl Trainer {
-    /// One step on `batch`: forward, the weighted losses, backward, one Adam step per group. The
-    /// batch carries every random number the step uses (`draw_batch`).
-    pub fn step(&mut self, batch: Batch) -> Result<StepStats, FitError> {
+    /// One step on `batch` from `state`: forward, the weighted losses, backward, one Adam step
+    /// per group. The batch carries every random number the step uses (`draw_batch`). The state
+    /// comes back whatever happens: unchanged but for its error maps when the step fails.
+    pub fn step(&self, batch: Batch, mut state: TrainState) -> (TrainState, Result<StepStats, FitError>) {
         let start = Instant::now();
         let mut clock = PhaseClock::start();
-        let it = self.iteration;
-        let mut model = self.model.take().ok_or_else(|| FitError::Input("the model was lost by an interrupted step".into()))?;
+        let it = state.iteration;
         // Coarse-to-fine protects the light's recovery: without a light to fit, every level
         // works from the start.
-        if let Some(grid) = model.field.grid.as_mut() {
+        if let Some(grid) = state.model.field.grid.as_mut() {
             grid.active_levels = if self.fit_light { self.schedule.active_levels(grid.config.levels, it) } else { grid.config.levels as f32 };
         }
-        let (terms, forks) = self.losses(&model, &batch, &mut clock);
+        let (terms, forks) = self.losses(&state.model, &batch, it, &mut state.error_maps, &mut clock);
         let mut total = terms[0].2.clone() * terms[0].1;
         for (_, weight, value) in terms.iter().skip(1) {
             total = total + value.clone() * *weight;
@@ -90,33 +90,37 @@ impl Trainer {
         clock.mark(7);
         if !stats.total.is_finite() {
             let bad = stats.terms.iter().find(|(_, v)| !v.is_finite()).map(|(n, _)| format!("the {n} loss")).unwrap_or_else(|| "the total loss".into());
-            self.model = Some(model);
-            return Err(FitError::NonFinite { iteration: it, what: bad, checkpoint: String::new() });
+            return (state, Err(FitError::NonFinite { iteration: it, what: bad, checkpoint: String::new() }));
         }
         let grads = total.backward();
         clock.mark(8);
-        let model = self.update(model, grads, forks, batch.light);
+        let model = state.model;
+        state.model = self.update(model, grads, forks, batch.light, &mut state.optimisers, it);
         if self.fit_light {
-            stats.light = model.light.location();
+            stats.light = state.model.light.location();
         }
-        let poisoned = first_non_finite(&model);
-        self.model = Some(model);
-        if let Some(name) = poisoned {
-            return Err(FitError::NonFinite { iteration: it, what: format!("the parameter {name} after the update"), checkpoint: String::new() });
+        if let Some(name) = first_non_finite(&state.model) {
+            return (state, Err(FitError::NonFinite { iteration: it, what: format!("the parameter {name} after the update"), checkpoint: String::new() }));
         }
-        self.iteration += 1;
-        self.update_average();
+        state.iteration += 1;
+        self.update_average(&mut state);
         clock.mark(9);
         stats.phases = clock.spans;
         stats.seconds = start.elapsed().as_secs_f64();
-        Ok(stats)
+        (state, Ok(stats))
     }
 
     /// The forward pass and the schedule's losses on `batch` (the colour loss records each
     /// pixel's error in its view's error map), with the forks of the field that rendered parts
     /// of the batch on other threads.
-    fn losses<'a>(&mut self, model: &Avatar, batch: &Batch, clock: &mut PhaseClock) -> (Terms<'a>, Vec<AvatarField>) {
-        let it = self.iteration;
+    fn losses<'a>(
+        &self,
+        model: &Avatar,
+        batch: &Batch,
+        it: usize,
+        error_maps: &mut [Option<crate::error_map::ErrorMap>],
+        clock: &mut PhaseClock,
+    ) -> (Terms<'a>, Vec<AvatarField>) {
         let device = self.device.clone();
         let schedule = self.schedule.clone();
         let w = |name: &str| schedule.weight(name, it);
@@ -166,15 +170,15 @@ impl Trainer {
         }
         clock.mark(5);
         if self.error_rays > 0.0 {
-            self.record_errors(batch, (accumulation.clone().detach() - mask.clone()).abs(), colour_error);
+            record_errors(error_maps, batch, (accumulation.clone().detach() - mask.clone()).abs(), colour_error);
         }
         terms.push(("mask", w("mask"), crate::losses::mask(accumulation, mask.clone())));
         if w("grey") > 0.0 {
             terms.push(("grey", w("grey"), crate::losses::grey(albedo, mask)));
         }
-        self.gaussian_terms(model, batch, &deferred, posed, &mut terms);
+        self.gaussian_terms(model, batch, it, &deferred, posed, &mut terms);
         clock.mark(6);
-        self.regulariser_terms(model, batch, &deferred, &mut terms);
+        self.regulariser_terms(model, batch, it, &deferred, &mut terms);
         (terms, forks)
     }
 
@@ -194,24 +198,18 @@ impl Trainer {
         batch_light.shade_weighted(deferred.albedo.clone(), deferred.surface.clone(), normal.clone(), &casters, weights.as_ref())
     }
 
-    /// Each pixel's error (coverage, and colour once it is fitted) into its view's error map.
-    fn record_errors(&mut self, batch: &Batch, coverage: Tensor<1>, colour: Option<Tensor<1>>) {
-        let error = match colour {
-            Some(c) => coverage + c,
-            None => coverage,
-        };
-        let error = crate::backend::host_values(error);
-        for (&(v, pixel, _), e) in batch.sources.iter().zip(error) {
-            if let Some(map) = self.views.get_mut(v).and_then(|d| d.error_map.as_mut()) {
-                map.record(pixel, e);
-            }
-        }
-    }
-
     /// The Gaussians' losses: their fit to the field's density, their widths, their means, and
     /// the light's ambient prior.
-    fn gaussian_terms(&self, model: &Avatar, batch: &Batch, deferred: &Deferred, posed: Option<crate::shadow::tensor::GaussianTensors>, terms: &mut Terms) {
-        let w = |name: &str| self.schedule.weight(name, self.iteration);
+    fn gaussian_terms(
+        &self,
+        model: &Avatar,
+        batch: &Batch,
+        it: usize,
+        deferred: &Deferred,
+        posed: Option<crate::shadow::tensor::GaussianTensors>,
+        terms: &mut Terms,
+    ) {
+        let w = |name: &str| self.schedule.weight(name, it);
         if let Some(posed) = posed {
             let count = batch.density_samples.len();
             let idx = Tensor::<1, Int>::from_data(TensorData::new(batch.density_samples.clone(), [count]), &self.device);
@@ -253,12 +251,12 @@ impl Trainer {
 
     /// The SDF's regularisers at the batch's regulariser samples: Eikonal, and curvature between
     /// each sample and its offset.
-    fn regulariser_terms(&self, model: &Avatar, batch: &Batch, deferred: &Deferred, terms: &mut Terms) {
+    fn regulariser_terms(&self, model: &Avatar, batch: &Batch, it: usize, deferred: &Deferred, terms: &mut Terms) {
         let q = batch.regulariser_samples.len();
         if q == 0 {
             return;
         }
-        let w = |name: &str| self.schedule.weight(name, self.iteration);
+        let w = |name: &str| self.schedule.weight(name, it);
         let pose = &self.frames[batch.frame].pose_tensors;
         let idx = Tensor::<1, Int>::from_data(TensorData::new(batch.regulariser_samples.clone(), [q]), &self.device);
         let points = deferred.sample_points.clone().detach().select(0, idx);
@@ -277,8 +275,15 @@ impl Trainer {
     /// Backward's gradients applied: one Adam step per group, the light only when its stage
     /// has started (and only the batch's light, the only one in the graph), a sun kept in its
     /// search's cone.
-    fn update(&mut self, model: Avatar, mut grads: burn::tensor::Gradients, forks: Vec<AvatarField>, light_index: usize) -> Avatar {
-        let it = self.iteration;
+    fn update(
+        &self,
+        model: Avatar,
+        mut grads: burn::tensor::Gradients,
+        forks: Vec<AvatarField>,
+        light_index: usize,
+        optimisers: &mut super::Optimisers,
+        it: usize,
+    ) -> Avatar {
         let light_active = self.fit_light && it >= self.schedule.light_from;
         let Avatar { mut field, gaussians, light, mut other_lights } = model;
         let mut light = if light_index == 0 { light } else { std::mem::replace(&mut other_lights[light_index - 1], light) };
@@ -299,7 +304,6 @@ impl Trainer {
         let g_gaussians = GradientsParams::from_module(&mut grads, &gaussians);
         let g_light = GradientsParams::from_module(&mut grads, &light);
         let lr = |g: &str| self.schedule.learning_rate(g, it);
-        let optimisers = &mut self.optimisers;
         let mut field = optimisers.field.step(lr("field"), field, g_field);
         field.grid = match (grid, g_grid) {
             (Some(grid), Some(g)) => Some(optimisers.features.step(lr("features"), grid, g)),
@@ -319,15 +323,28 @@ impl Trainer {
 
     /// Moves the field's average toward the parameters of the step just taken, or starts it at
     /// them on the first step of the learning rates' decay (`field_average_half_life`).
-    fn update_average(&mut self) {
+    fn update_average(&self, state: &mut TrainState) {
         let half_life = self.schedule.field_average_half_life;
-        let Some(model) = self.model.as_ref() else { return };
-        if half_life <= 0.0 || self.iteration <= self.schedule.field_lr_decay_from {
+        if half_life <= 0.0 || state.iteration <= self.schedule.field_lr_decay_from {
             return;
         }
-        match &mut self.average {
-            Some(average) => average.update(&model.field, crate::averaging::ParameterAverage::keep_for_half_life(half_life)),
-            None => self.average = Some(crate::averaging::ParameterAverage::start(&model.field)),
+        match &mut state.average {
+            Some(average) => average.update(&state.model.field, crate::averaging::ParameterAverage::keep_for_half_life(half_life)),
+            None => state.average = Some(crate::averaging::ParameterAverage::start(&state.model.field)),
+        }
+    }
+}
+
+/// Each pixel's error (coverage, and colour once it is fitted) into its view's error map.
+fn record_errors(error_maps: &mut [Option<crate::error_map::ErrorMap>], batch: &Batch, coverage: Tensor<1>, colour: Option<Tensor<1>>) {
+    let error = match colour {
+        Some(c) => coverage + c,
+        None => coverage,
+    };
+    let error = crate::backend::host_values(error);
+    for (&(v, pixel, _), e) in batch.sources.iter().zip(error) {
+        if let Some(map) = error_maps.get_mut(v).and_then(|m| m.as_mut()) {
+            map.record(pixel, e);
         }
     }
 }
