@@ -58,7 +58,7 @@ fn label(v: f64) -> String {
     let a = v.abs();
     if v == 0.0 {
         "0".into()
-    } else if a >= 1e5 || a < 1e-3 {
+    } else if !(1e-3..1e5).contains(&a) {
         format!("{v:.0e}")
     } else if a >= 100.0 || (v.fract() == 0.0 && a >= 1.0) {
         format!("{v:.0}")
