@@ -702,14 +702,14 @@ fn a_run_from_before_the_albedo_decoder_renders_and_resumes_as_it_was_fitted() {
 }
 
 /// The first test view of a trainer's scene in its fitted light and its albedo, rendered from
-/// one trace (`render_view_and_albedo`) and each on its own (`render_view`).
+/// one trace (`render_view_layers`) and each on its own (`render_view`).
 fn view_and_albedo(trainer: &Trainer) -> (umbra::imageio::RgbImage, umbra::imageio::RgbImage, umbra::imageio::RgbImage, umbra::imageio::RgbImage) {
-    use umbra::eval::{render_view, render_view_and_albedo, Lighting, Strata, VIEW_SAMPLING};
+    use umbra::eval::{render_view, render_view_layers, Lighting, Strata, VIEW_SAMPLING};
     let (model, scene, device) = (trainer.model().unwrap(), &trainer.scene, &trainer.device);
     let view = scene.views.iter().find(|v| v.split == umbra::scene::Split::Test).unwrap();
     let scale = glam::DVec3::new(1.0, 0.9, 1.1);
-    let (image, albedo) =
-        render_view_and_albedo(model, scene, view.camera, view.frame, VIEW_SAMPLING, device, &Lighting::Fitted(0), Some(scale), Strata::Shortcuts);
+    let layers = render_view_layers(model, scene, view.camera, view.frame, VIEW_SAMPLING, device, &Lighting::Fitted(0), Some(scale), Strata::Shortcuts);
+    let (image, albedo) = (layers.image, layers.albedo);
     let alone = render_view(model, scene, view.camera, view.frame, VIEW_SAMPLING, device, &Lighting::Fitted(0));
     let albedo_alone = render_view(model, scene, view.camera, view.frame, VIEW_SAMPLING, device, &Lighting::Albedo { albedo_scale: scale });
     (image, albedo.unwrap(), alone, albedo_alone)
@@ -758,11 +758,14 @@ fn an_anti_aliased_capture_is_read_as_one_and_rendered_over_each_pixels_area() {
     // neighbours' depths along silhouettes, against every one traced: the same picture to
     // within a quarter of an 8-bit step on average, and the silhouette within 1% of its pixels.
     {
-        use umbra::eval::{render_view_and_albedo, Lighting, Strata, VIEW_SAMPLING};
+        use umbra::eval::{render_view_layers, Lighting, Strata, VIEW_SAMPLING};
         let (model, scene, device) = (trainer.model().unwrap(), &trainer.scene, &trainer.device);
         let view = scene.views.iter().find(|v| v.split == umbra::scene::Split::Test).unwrap();
         let scale = Some(glam::DVec3::new(1.0, 0.9, 1.1));
-        let render = |strata| render_view_and_albedo(model, scene, view.camera, view.frame, VIEW_SAMPLING, device, &Lighting::Fitted(0), scale, strata);
+        let render = |strata| {
+            let layers = render_view_layers(model, scene, view.camera, view.frame, VIEW_SAMPLING, device, &Lighting::Fitted(0), scale, strata);
+            (layers.image, layers.albedo)
+        };
         let ((fast, fast_albedo), (traced, traced_albedo)) = (render(Strata::Shortcuts), render(Strata::Traced));
         for (a, b) in [(&fast, &traced), (&fast_albedo.unwrap(), &traced_albedo.unwrap())] {
             let drawn = |p: &[f32; 3]| p.iter().any(|&v| v > 0.0);

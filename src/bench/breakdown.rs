@@ -8,7 +8,7 @@
 
 use super::fit::peak_rss_mib;
 use crate::backend::Backend;
-use crate::eval::{render_view, render_view_and_albedo, Lighting, VIEW_SAMPLING};
+use crate::eval::{render_view, render_view_layers, Lighting, VIEW_SAMPLING};
 use crate::fit_error::{io, FitError};
 use crate::messages::PHASES;
 use crate::plot::BarChart;
@@ -98,7 +98,7 @@ fn render_parts(scene: &Scene, schedule: &Schedule, repeats: usize) -> Result<Ve
     let apart = start.elapsed().as_secs_f64() / repeats as f64 * 1e3;
     let start = Instant::now();
     for _ in 0..repeats {
-        render_view_and_albedo(&model, scene, view.camera, view.frame, VIEW_SAMPLING, &device, &sun, Some(scale), crate::eval::Strata::Shortcuts);
+        render_view_layers(&model, scene, view.camera, view.frame, VIEW_SAMPLING, &device, &sun, Some(scale), crate::eval::Strata::Shortcuts);
     }
     let together = start.elapsed().as_secs_f64() / repeats as f64 * 1e3;
     for (part, ms) in [("sun-lit image and its albedo, two renders", apart), ("sun-lit image and its albedo, one trace (as the evaluation does)", together)] {

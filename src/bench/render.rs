@@ -5,7 +5,7 @@
 
 use super::fit::peak_rss_mib;
 use crate::backend::Backend;
-use crate::eval::{render_view, render_view_and_albedo, Lighting, Strata, VIEW_SAMPLING};
+use crate::eval::{render_view, render_view_layers, Lighting, Strata, VIEW_SAMPLING};
 use crate::fit_error::{io, FitError};
 use crate::light::Light;
 use crate::plot::BarChart;
@@ -103,7 +103,7 @@ pub fn render(run: &Path, out: &Path, quick: bool) -> Result<String, FitError> {
         [Strata::Traced, Strata::Shortcuts].map(|strata| {
             let start = std::time::Instant::now();
             strata_views.par_iter().for_each(|&(c, f)| {
-                render_view_and_albedo(&model, scene, c, f, VIEW_SAMPLING, &device, &fitted, Some(albedo_scale), strata);
+                render_view_layers(&model, scene, c, f, VIEW_SAMPLING, &device, &fitted, Some(albedo_scale), strata);
             });
             start.elapsed().as_secs_f64() / strata_views.len().max(1) as f64
         })

@@ -27,7 +27,7 @@ mod strata;
 mod surface;
 mod view;
 
-use view::render_layers;
+pub use view::render_view_layers;
 
 pub use surface::{frame_surface, surface_mesh};
 
@@ -75,25 +75,11 @@ pub const VIEW_PIXEL_RAYS: usize = 9;
 
 /// Renders the scene's `camera` in `frame`, sampled as `samples` says, under `lighting`.
 pub fn render_view(model: &Avatar, scene: &Scene, camera: usize, frame: usize, samples: Sampling, device: &Device, lighting: &Lighting) -> RgbImage {
-    render_view_and_albedo(model, scene, camera, frame, samples, device, lighting, None, Strata::Shortcuts).0
+    render_view_layers(model, scene, camera, frame, samples, device, lighting, None, Strata::Shortcuts).image
 }
 
-/// `render_view` with each pixel's coverage by the body (0 where the image is background):
-/// the image is the body over black, its colour premultiplied by that coverage.
-pub fn render_view_with_coverage(
-    model: &Avatar,
-    scene: &Scene,
-    camera: usize,
-    frame: usize,
-    samples: Sampling,
-    device: &Device,
-    lighting: &Lighting,
-) -> (RgbImage, Vec<f32>) {
-    let layers = render_layers(model, scene, camera, frame, samples, device, lighting, None, Strata::Shortcuts);
-    (layers.image, layers.coverage)
-}
-
-/// A view's render, its albedo when asked, and each pixel's coverage by the body.
+/// A view's render, its albedo when asked, and each pixel's coverage by the body (0 where the
+/// image is background: the image is the body over black, its colour premultiplied by it).
 pub struct ViewLayers {
     pub image: RgbImage,
     pub albedo: Option<RgbImage>,
@@ -116,27 +102,6 @@ pub enum Strata {
     /// / albedo against 27.43 / 22.89) at 0.47x its time, before silhouettes' windows widened
     /// to `SILHOUETTE_SLOPE` and strata were read off their quadrants. What every render does.
     Shortcuts,
-}
-
-/// `render_view`, and with `albedo_scale` also the view's albedo (as `Lighting::Albedo` renders
-/// it) from the same rays: the field is traced once for both. Over an area capture's pixels
-/// the two share the pixels rendered over their area, those either needs (`needs_area`), whose
-/// strata are found as `strata` says (`bench render` times both ways; a test pins one to the
-/// other).
-#[allow(clippy::too_many_arguments)]
-pub fn render_view_and_albedo(
-    model: &Avatar,
-    scene: &Scene,
-    camera: usize,
-    frame: usize,
-    samples: Sampling,
-    device: &Device,
-    lighting: &Lighting,
-    albedo_scale: Option<DVec3>,
-    strata: Strata,
-) -> (RgbImage, Option<RgbImage>) {
-    let layers = render_layers(model, scene, camera, frame, samples, device, lighting, albedo_scale, strata);
-    (layers.image, layers.albedo)
 }
 
 /// The rays through continuous pixel positions `at` that meet a Gaussian's bound (their

@@ -159,9 +159,13 @@ impl<'a> View<'a> {
     }
 }
 
-/// `render_view_and_albedo` with the coverage (`ViewLayers`).
+/// The scene's `camera` in `frame` under `lighting` (`ViewLayers`), and with `albedo_scale`
+/// also its albedo (as `Lighting::Albedo` renders it) from the same rays: the field is traced
+/// once for both. Over an area capture's pixels the two share the pixels rendered over their
+/// area, those either needs (`needs_area`), whose strata are found as `strata` says (`bench
+/// render` times both ways; a test pins one to the other).
 #[allow(clippy::too_many_arguments)]
-pub(super) fn render_layers(
+pub fn render_view_layers(
     model: &Avatar,
     scene: &Scene,
     camera: usize,

@@ -182,7 +182,9 @@ pub fn render_on_ground(
     lighting: &Lighting,
     height: Option<f64>,
 ) -> OnGround {
-    let (image, coverage) = crate::eval::render_view_with_coverage(model, scene, camera, frame, crate::eval::VIEW_SAMPLING, device, lighting);
+    let layers =
+        crate::eval::render_view_layers(model, scene, camera, frame, crate::eval::VIEW_SAMPLING, device, lighting, None, crate::eval::Strata::Shortcuts);
+    let (image, coverage) = (layers.image, layers.coverage);
     let posed = model.gaussians.to_set().pose(&scene.frames[frame].pose);
     let fitted = match lighting {
         Lighting::Fitted(k) => model.light_at(*k),

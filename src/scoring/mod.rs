@@ -4,7 +4,7 @@
 //! scene's; and the `render` and `eval` commands that restore a run to do it.
 
 use crate::avatar::{Avatar, Fitted};
-use crate::eval::{render_view_and_albedo, Lighting};
+use crate::eval::{render_view_layers, Lighting};
 use crate::fit_error::{io, FitError};
 use crate::imageio::RgbImage;
 use crate::messages::TrainMessage;
@@ -308,17 +308,9 @@ pub fn score_view(
 ) -> ScoredView {
     // The image and its albedo from one trace of the field.
     let wants_albedo = view.albedo.is_some().then_some(albedo_scale);
-    let (image, albedo) = render_view_and_albedo(
-        model,
-        scene,
-        view.camera,
-        view.frame,
-        crate::eval::VIEW_SAMPLING,
-        device,
-        lighting,
-        wants_albedo,
-        crate::eval::Strata::Shortcuts,
-    );
+    let layers =
+        render_view_layers(model, scene, view.camera, view.frame, crate::eval::VIEW_SAMPLING, device, lighting, wants_albedo, crate::eval::Strata::Shortcuts);
+    let (image, albedo) = (layers.image, layers.albedo);
     let scores = score(&image, &view.colour.to_rgb(), view.mask.as_ref());
     let albedo = view.albedo.as_ref().zip(albedo).map(|(truth, albedo)| {
         let s = score(&albedo, truth, view.mask.as_ref());

@@ -57,13 +57,16 @@ impl Optimisers {
         }
     }
 
-    /// Each optimiser with its group's name (a checkpoint's `optimizer-NAME.bpk`).
+    /// Each optimiser with its group's name (`schedule::GROUPS`, in its order; a checkpoint's
+    /// `optimizer-NAME.bpk`).
     pub fn named(&self) -> [(&'static str, &ModuleOptimizer); 4] {
-        [("field", &self.field), ("gaussians", &self.gaussians), ("light", &self.light), ("features", &self.features)]
+        let [field, gaussians, light, features] = crate::schedule::GROUPS;
+        [(field, &self.field), (gaussians, &self.gaussians), (light, &self.light), (features, &self.features)]
     }
 
     pub fn named_mut(&mut self) -> [(&'static str, &mut ModuleOptimizer); 4] {
-        [("field", &mut self.field), ("gaussians", &mut self.gaussians), ("light", &mut self.light), ("features", &mut self.features)]
+        let [field, gaussians, light, features] = crate::schedule::GROUPS;
+        [(field, &mut self.field), (gaussians, &mut self.gaussians), (light, &mut self.light), (features, &mut self.features)]
     }
 }
 
