@@ -453,6 +453,8 @@ fn evaluation_renders_and_scores_every_test_image_and_umbra_render_repeats_it() 
             "--disable-background-networking",
             "--disable-component-update",
             "--disable-sync",
+            // The page inflates its arrays asynchronously: let its work finish before the dump.
+            "--virtual-time-budget=20000",
         ];
         let dom = std::process::Command::new("/usr/bin/chromium")
             .args(flags)

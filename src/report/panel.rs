@@ -79,7 +79,7 @@ pub struct Panel<'a> {
     pub first: &'a RgbImage,
 }
 
-/// The panel's data: the basis as little-endian arrays in base64 (pixel indices u32,
+/// The panel's data: the basis as gzipped little-endian arrays in base64 (pixel indices u32,
 /// reflectance and normals f32, visibility quantised to u8), the directions, the sun's frame
 /// (up, and azimuth 0 facing the camera), the first sun, the skies per direction and turn, the
 /// ground's blocks and visibility, and the mean 8-bit sRGB of the first sun's image.
@@ -104,15 +104,17 @@ pub fn panel_json(panel: &Panel) -> Value {
     }
     let mean = sum.map(|s| s / pixels.len().max(1) as f64);
     let flat = |v: &[DVec3]| -> Vec<f64> { v.iter().flat_map(|x| x.to_array()).collect() };
-    let skies: Vec<Value> = panel.skies.iter().map(|(name, turns)| json!({"name": name, "turns": turns.iter().map(|c| flat(c)).collect::<Vec<_>>()})).collect();
+    // A sky's turns one after another, each its cells' RGB per direction (f32).
+    let skies: Vec<Value> =
+        panel.skies.iter().map(|(name, turns)| json!({"name": name, "turns": turns.len(), "cells": packed(&f32s(&turns.concat()))})).collect();
     json!({
         "width": basis.width,
         "height": basis.height,
-        "pixels": base64(&u32s(&mut pixels.iter().map(|&p| p as u32))),
-        "reflectance": base64(&f32s(reflectance)),
-        "normals": base64(&f32s(normals)),
-        "visibility": base64(&quantised),
-        "coverage": base64(&coverage.iter().flat_map(|c| c.to_le_bytes()).collect::<Vec<u8>>()),
+        "pixels": packed(&u32s(&mut pixels.iter().map(|&p| p as u32))),
+        "reflectance": packed(&f32s(reflectance)),
+        "normals": packed(&f32s(normals)),
+        "visibility": packed(&quantised),
+        "coverage": packed(&coverage.iter().flat_map(|c| c.to_le_bytes()).collect::<Vec<u8>>()),
         "directions": flat(&basis.directions),
         "up": up.to_array(),
         "toward_camera": toward_camera.to_array(),
@@ -125,12 +127,21 @@ pub fn panel_json(panel: &Panel) -> Value {
         "sky_turn": SKY_TURN,
         "ground": {
             "block": GROUND_BLOCK,
-            "blocks": base64(&u32s(&mut panel.ground.blocks.iter().copied())),
+            "blocks": packed(&u32s(&mut panel.ground.blocks.iter().copied())),
             "upper": panel.ground.upper,
-            "visibility": base64(&panel.ground.visibility),
+            "visibility": packed(&panel.ground.visibility),
         },
         "expected_mean_srgb8": mean,
     })
+}
+
+/// Gzipped and in base64: the page inflates it with the browser's `DecompressionStream`.
+fn packed(bytes: &[u8]) -> String {
+    use std::io::Write;
+    let mut encoder = flate2::write::GzEncoder::new(Vec::new(), flate2::Compression::best());
+    // Writing to a Vec cannot fail.
+    let zipped = encoder.write_all(bytes).and_then(|_| encoder.finish()).unwrap_or_default();
+    base64(&zipped)
 }
 
 /// The page's relighting, the sums of `TransferBasis::relight` over the embedded arrays: a sun
@@ -140,12 +151,17 @@ pub fn panel_json(panel: &Panel) -> Value {
 pub const PANEL_SCRIPT: &str = r#"
 const D = JSON.parse(document.getElementById('basis').textContent);
 const bytes = b => { const s = atob(b); const a = new Uint8Array(s.length); for (let i = 0; i < s.length; i++) a[i] = s.charCodeAt(i); return a; };
-const pix = new Uint32Array(bytes(D.pixels).buffer), refl = new Float32Array(bytes(D.reflectance).buffer);
-const nrm = new Float32Array(bytes(D.normals).buffer), vis = bytes(D.visibility), dirs = D.directions;
+const unzip = async b => new Uint8Array(await new Response(new Blob([bytes(b)]).stream().pipeThrough(new DecompressionStream('gzip'))).arrayBuffer());
+(async () => {
+const G = D.ground;
+const [pixB, reflB, nrmB, vis, covB, gblocksB, gvis] = await Promise.all([D.pixels, D.reflectance, D.normals, D.visibility, D.coverage, G.blocks, G.visibility].map(unzip));
+const pix = new Uint32Array(pixB.buffer), refl = new Float32Array(reflB.buffer), nrm = new Float32Array(nrmB.buffer), dirs = D.directions;
 const K = dirs.length / 3, P = pix.length, spacing = Math.sqrt(4 * Math.PI / K);
-const G = D.ground, gblocks = new Uint32Array(bytes(G.blocks).buffer), gvis = bytes(G.visibility), U = G.upper.length;
+const gblocks = new Uint32Array(gblocksB.buffer), U = G.upper.length;
 const canvas = document.getElementById('view'); canvas.width = D.width; canvas.height = D.height;
-const cov = new Float32Array(bytes(D.coverage).buffer);
+const cov = new Float32Array(covB.buffer);
+const skies = await Promise.all(D.skies.map(async s => { const all = new Float32Array((await unzip(s.cells)).buffer);
+  return { name: s.name, turns: Array.from({ length: s.turns }, (_, t) => all.subarray(t * 3 * K, (t + 1) * 3 * K)) }; }));
 const srgb = v => { v = Math.min(1, Math.max(0, v)); return v <= 0.0031308 ? 12.92 * v : 1.055 * Math.pow(v, 1 / 2.4) - 0.055; };
 // A pixel is composited as its image stores it (umbra's imageio::composite_centre_sample).
 const srgb8 = (v, a) => Math.round(255 * (a >= 1 ? srgb(v) : a > 0 ? a * srgb(v / a) : 0));
@@ -207,14 +223,14 @@ function skyShadow(cells) {
 }
 const $ = id => document.getElementById(id);
 const pick = $('light'), az = $('azimuth'), el = $('elevation'), turn = $('turn'), gain = $('intensity'), ground = $('ground');
-for (const s of D.skies) { const o = document.createElement('option'); o.value = o.textContent = s.name; pick.appendChild(o); }
+for (const s of skies) { const o = document.createElement('option'); o.value = o.textContent = s.name; pick.appendChild(o); }
 az.value = D.azimuth; el.value = D.elevation; turn.step = D.sky_turn;
 function update() {
   const rotation = +turn.value, scale = +gain.value;
   $('azimuth-value').textContent = (+az.value).toFixed(0) + '\u00b0'; $('elevation-value').textContent = (+el.value).toFixed(0) + '\u00b0';
   $('turn-value').textContent = rotation.toFixed(0) + '\u00b0'; $('intensity-value').textContent = scale.toFixed(2) + 'x';
   if (pick.value === 'sun') { const l = sunDirection(+az.value + rotation, +el.value); return draw(sun(l, scale), ground.checked ? sunShadow(l) : null); }
-  const turns = D.skies.find(s => s.name === pick.value).turns;
+  const turns = skies.find(s => s.name === pick.value).turns;
   const cells = turns[((Math.round(rotation / D.sky_turn) % turns.length) + turns.length) % turns.length];
   return draw(sky(cells, scale), ground.checked ? skyShadow(cells) : null);
 }
@@ -228,4 +244,5 @@ const first = draw(sun(sunDirection(D.azimuth, D.elevation), 1), null);
 update();
 const off = Math.max(...first.map((m, c) => Math.abs(m - D.expected_mean_srgb8[c])));
 $('check').textContent = 'relit in this browser: mean sRGB ' + first.map(m => m.toFixed(2)).join(' ') + '; as umbra relit it: ' + D.expected_mean_srgb8.map(m => m.toFixed(2)).join(' ') + (off < 0.5 ? '; agree' : '; DISAGREE');
+})();
 "#;

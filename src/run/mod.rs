@@ -93,18 +93,17 @@ pub(crate) fn losses_csv(history: &[(usize, StepStats)]) -> String {
 
 fn parse_losses_csv(text: &str) -> Vec<(usize, StepStats)> {
     let mut rows = Vec::new();
-    let table = crate::table::read_csv(text).map(|(_, rows)| rows).unwrap_or_default();
+    let (header, table) = crate::table::read_csv(text).unwrap_or_default();
+    // Columns by name: a run from before a term or the light's columns existed reads back
+    // without them.
+    let column = |name: &str| header.iter().position(|h| h == name);
     for line in &table {
-        let cells: Vec<&str> = line.iter().map(String::as_str).collect();
-        let (Some(it), Some(total), Some(seconds)) =
-            (cells.first().and_then(|c| c.parse().ok()), cells.get(1).and_then(|c| c.parse().ok()), cells.get(2).and_then(|c| c.parse().ok()))
-        else {
+        let cell = |k: Option<usize>| k.and_then(|k| line.get(k)).and_then(|c| c.parse::<f64>().ok());
+        let (Some(it), Some(total), Some(seconds)) = (line.first().and_then(|c| c.parse().ok()), cell(Some(1)), cell(Some(2))) else {
             continue;
         };
-        let terms =
-            crate::schedule::TERMS.iter().enumerate().filter_map(|(k, t)| cells.get(3 + k).and_then(|c| c.parse().ok()).map(|v| (t.to_string(), v))).collect();
-        // Runs before the light's columns have none: their rows read back without it.
-        let light_cell = |k: usize| cells.get(3 + crate::schedule::TERMS.len() + k).and_then(|c| c.parse::<f64>().ok());
+        let terms = crate::schedule::TERMS.iter().filter_map(|t| cell(column(t)).map(|v| (t.to_string(), v))).collect();
+        let light_cell = |k: usize| cell(column(LIGHT_COLUMNS[k]));
         let light = match (light_cell(0), light_cell(1), light_cell(2)) {
             (Some(x), Some(y), Some(z)) => Some([x, y, z]),
             _ => None,
@@ -117,4 +116,33 @@ fn parse_losses_csv(text: &str) -> Vec<(usize, StepStats)> {
 pub fn save_png(path: &Path, image: &crate::imageio::RgbImage) -> Result<(), FitError> {
     let png = crate::imageio::encode_png_rgb(image).map_err(|e| io(path, e))?;
     crate::imageio::write_atomic(path, &png).map_err(|e| io(path, e))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// `losses.csv` reads back what it wrote, and reads its columns by name: a run from before
+    /// the light's columns, or with its columns in another order, loses nothing it holds.
+    #[test]
+    fn losses_csv_reads_back_by_column_name() {
+        let stats = |light| StepStats {
+            total: 0.5,
+            terms: [("rgb".to_string(), 0.25), ("eikonal".to_string(), 0.125)].into(),
+            seconds: 0.75,
+            phases: Vec::new(),
+            light,
+        };
+        let history = vec![(0, stats(None)), (10, stats(Some([0.0, 0.6, 0.8])))];
+        let back = parse_losses_csv(&losses_csv(&history));
+        assert_eq!(back.len(), 2);
+        for ((it, s), (it_back, b)) in history.iter().zip(&back) {
+            assert_eq!((it, s.total, &s.terms, s.seconds, s.light), (it_back, b.total, &b.terms, b.seconds, b.light));
+        }
+        let old = "iteration,total,seconds,eikonal,rgb\n7,1.5,0.25,0.5,0.125\n";
+        let back = parse_losses_csv(old);
+        assert_eq!(back[0].0, 7);
+        assert_eq!(back[0].1.terms, [("eikonal".to_string(), 0.5), ("rgb".to_string(), 0.125)].into());
+        assert_eq!(back[0].1.light, None);
+    }
 }
