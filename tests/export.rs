@@ -170,10 +170,31 @@ fn carving_keeps_what_lies_inside_every_mask_and_cuts_a_sheet_beside_the_body() 
         vertices: body.vertices.iter().chain(&beside.vertices).copied().collect(),
         triangles: body.triangles.iter().copied().chain(beside.triangles.iter().map(|t| t.map(|v| v + offset))).collect(),
     };
-    let carved = umbra::carve::carve(&both, &scene, 0);
+    let carved = umbra::carve::carve(&both, &scene, 0, None);
     assert!(carved.views >= 3, "every camera's image of frame 0 judged: {}", carved.views);
     assert_eq!(carved.triangles_cut, beside.triangles.len());
     assert_eq!(carved.mesh.triangles.len(), body.triangles.len());
     assert!(carved.kept.iter().all(|&v| v < offset), "only the ball at the pelvis is kept");
     assert!(carved.mesh.is_closed_manifold());
+
+    // A test pose with no image of its own: its own hull says nothing, and the training frames'
+    // hulls, the vertices moved there with the pelvis, cut the same ball and keep the other.
+    let mut training = scene.clone();
+    training.views.retain(|v| v.split == umbra::scene::Split::Train);
+    let test = (0..training.frames.len()).find(|&f| umbra::carve::needs_skinning(&training, f)).expect("a test pose");
+    let pose = &training.frames[test].pose;
+    let pelvis = pose.bone_to_world[0].w_axis.truncate();
+    let side = pose.bone_to_world[0].transform_vector3(DVec3::new(1.0, 0.3, 0.0));
+    let (body, beside) = (sphere(pelvis, 0.04, 0.01), sphere(pelvis + side, 0.1, 0.02));
+    let both = umbra::isosurface::Mesh {
+        vertices: body.vertices.iter().chain(&beside.vertices).copied().collect(),
+        triangles: body.triangles.iter().copied().chain(beside.triangles.iter().map(|t| t.map(|v| v + offset))).collect(),
+    };
+    assert_eq!(umbra::carve::carve(&both, &training, test, None).triangles_cut, 0, "no image of the test pose judges it");
+    let skinning: Vec<Vec<(usize, f32)>> = both.vertices.iter().map(|_| vec![(0, 1.0)]).collect();
+    let carved = umbra::carve::carve(&both, &training, test, Some(&skinning));
+    let training_images = training.views.iter().filter(|v| v.mask.is_some()).count();
+    assert_eq!((carved.views, carved.training_views), (0, training_images));
+    assert_eq!(carved.triangles_cut, beside.triangles.len());
+    assert!(carved.kept.iter().all(|&v| v < offset) && carved.mesh.is_closed_manifold());
 }

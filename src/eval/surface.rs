@@ -74,7 +74,10 @@ pub fn frame_surface(
     let pose = &scene.frames[frame].pose;
     let tensors = PoseTensors::new(pose, &scene.skeleton, device);
     let (mesh, colours, normals) = surface_mesh(model, &tensors, pose.bounds(&scene.skeleton), scene.body_extent(), scale, device)?;
-    let carved = crate::carve::carve(&mesh, scene, frame);
+    // A pose without training images is judged in the training frames too, by its skinning.
+    let skinning: Option<Vec<Vec<(usize, f32)>>> = crate::carve::needs_skinning(scene, frame)
+        .then(|| mesh.vertices.iter().map(|v| model.field.skinning_weights(&tensors.frames, v.as_vec3().to_array())).collect());
+    let carved = crate::carve::carve(&mesh, scene, frame, skinning.as_deref());
     let (colours, normals) = (carved.keep(&colours), carved.keep(&normals));
     Ok((carved.mesh.clone(), colours, normals, carved))
 }
