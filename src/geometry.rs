@@ -24,7 +24,15 @@ pub struct GeometryScores {
     pub normal_angle: f64,
     /// The share of the fitted surface (by area) within `CLOSE` of the truth.
     pub within_2cm: f64,
+    /// Given which points the capture's cameras see: the share of the fitted surface they see,
+    /// and the share of that within `CLOSE` of the truth. What no image shows (under a skirt,
+    /// between arm and body) the images cannot place.
+    pub seen: Option<f64>,
+    pub seen_within_2cm: Option<f64>,
 }
+
+/// Whether a surface point (with its outward normal) is seen: `seen::Seen::sees`.
+pub type SeenTest<'a> = &'a dyn Fn(DVec3, DVec3) -> bool;
 
 /// The distance (m) within which the fitted surface counts as on the truth (`within_2cm`).
 pub const CLOSE: f64 = 0.02;
@@ -205,8 +213,9 @@ impl<'a> Index<'a> {
     }
 }
 
-/// Scores `fitted` against `truth` with `n` samples on each; `None` when either has no area.
-pub fn compare(fitted: &Mesh, truth: &Mesh, n: usize, seed: u64) -> Option<GeometryScores> {
+/// Scores `fitted` against `truth` with `n` samples on each (and, given `seen`, the part of the
+/// fitted surface it says is seen); `None` when either has no area.
+pub fn compare(fitted: &Mesh, truth: &Mesh, n: usize, seed: u64, seen: Option<SeenTest>) -> Option<GeometryScores> {
     let area = |m: &Mesh| -> f64 { m.triangles.iter().map(|t| triangle_area(m, t)).sum() };
     if n == 0 || !(area(fitted) > 0.0) || !(area(truth) > 0.0) {
         return None;
@@ -218,16 +227,26 @@ pub fn compare(fitted: &Mesh, truth: &Mesh, n: usize, seed: u64) -> Option<Geome
     let mut accuracy = 0.0;
     let mut angle = 0.0;
     let mut close = 0usize;
+    let (mut seen_count, mut seen_close) = (0usize, 0usize);
     for s in &on_fitted {
         let (d, t) = truth_index.nearest(s.point);
         accuracy += d;
         close += usize::from(d <= CLOSE);
-        angle += triangle_normal(fitted, s.triangle).dot(triangle_normal(truth, t)).clamp(-1.0, 1.0).acos().to_degrees();
+        let normal = triangle_normal(fitted, s.triangle);
+        angle += normal.dot(triangle_normal(truth, t)).clamp(-1.0, 1.0).acos().to_degrees();
+        if seen.is_some_and(|sees| sees(s.point, normal)) {
+            seen_count += 1;
+            seen_close += usize::from(d <= CLOSE);
+        }
     }
     let completeness: f64 = on_truth.iter().map(|s| fitted_index.nearest(s.point).0).sum();
     let (accuracy, completeness) = (accuracy / n as f64, completeness / n as f64);
     let within_2cm = close as f64 / n as f64;
-    Some(GeometryScores { accuracy, completeness, chamfer: 0.5 * (accuracy + completeness), normal_angle: angle / n as f64, within_2cm })
+    let (seen, seen_within_2cm) = match seen {
+        Some(_) => (Some(seen_count as f64 / n as f64), (seen_count > 0).then(|| seen_close as f64 / seen_count as f64)),
+        None => (None, None),
+    };
+    Some(GeometryScores { accuracy, completeness, chamfer: 0.5 * (accuracy + completeness), normal_angle: angle / n as f64, within_2cm, seen, seen_within_2cm })
 }
 
 #[cfg(test)]
@@ -245,12 +264,12 @@ mod tests {
     #[test]
     fn concentric_spheres_are_their_radii_apart_with_aligned_normals() {
         let (inner, outer) = (sphere(0.30, DVec3::ZERO, 0.02), sphere(0.32, DVec3::ZERO, 0.03));
-        let s = compare(&inner, &outer, 4000, 1).unwrap();
+        let s = compare(&inner, &outer, 4000, 1, None).unwrap();
         // Faceting: chords of a 2-3 cm grid sit inside the true sphere by well under 1 mm.
         assert!((s.accuracy - 0.02).abs() < 1.5e-3 && (s.completeness - 0.02).abs() < 1.5e-3, "{s:?}");
         assert!(s.normal_angle < 6.0, "{s:?}");
-        let same = compare(&inner, &inner, 4000, 2).unwrap();
-        assert!(compare(&inner, &Mesh::default(), 4000, 2).is_none());
+        let same = compare(&inner, &inner, 4000, 2, None).unwrap();
+        assert!(compare(&inner, &Mesh::default(), 4000, 2, None).is_none());
         assert!(same.chamfer < 2e-4 && same.normal_angle < 1e-6, "{same:?}");
     }
 
@@ -263,9 +282,32 @@ mod tests {
         let base = truth.vertices.len();
         truth.vertices.extend(far.vertices);
         truth.triangles.extend(far.triangles.iter().map(|t| t.map(|i| i + base)));
-        let s = compare(&fitted, &truth, 4000, 3).unwrap();
+        let s = compare(&fitted, &truth, 4000, 3, None).unwrap();
         assert!(s.accuracy < 2e-4, "{s:?}");
         assert!(s.completeness > 0.05, "{s:?}");
+        assert_eq!((s.seen, s.seen_within_2cm), (None, None));
+    }
+
+    /// Seen scores count only the samples the test passes: half a sphere seen (the side facing
+    /// +z), and of it what lies near a truth that holds only that side's cap.
+    #[test]
+    fn the_seen_part_is_scored_on_its_own() {
+        let fitted = sphere(0.2, DVec3::ZERO, 0.01);
+        let facing = |_: DVec3, n: DVec3| n.z > 0.0;
+        let s = compare(&fitted, &fitted, 8000, 4, Some(&facing)).unwrap();
+        assert!((s.seen.unwrap() - 0.5).abs() < 0.02 && s.seen_within_2cm == Some(1.0), "{s:?}");
+        // The truth's cap above z = 0.1 is half the seen half's area (2 pi r h); within 2 cm of
+        // it, a rim about 1.7 cm high more (0.59 of the seen half).
+        let cap = Mesh {
+            vertices: fitted.vertices.clone(),
+            triangles: fitted.triangles.iter().copied().filter(|t| t.iter().all(|&v| fitted.vertices[v].z > 0.1)).collect(),
+        };
+        let s = compare(&fitted, &cap, 8000, 5, Some(&facing)).unwrap();
+        let (seen_close, all_close) = (s.seen_within_2cm.unwrap(), s.within_2cm);
+        // Every close sample is seen (the cap is on the seen side), so the seen share is the
+        // whole's over a half.
+        assert!((seen_close - all_close / s.seen.unwrap()).abs() < 1e-12, "{s:?}");
+        assert!(seen_close > 0.5 && seen_close < 0.7, "{s:?}");
     }
 
     #[test]

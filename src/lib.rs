@@ -41,6 +41,7 @@ pub mod run_lock;
 pub mod scene;
 pub mod schedule;
 pub mod scoring;
+pub mod seen;
 pub mod shading;
 pub mod shadow;
 pub mod skeleton;

@@ -21,6 +21,7 @@ const LAYERS: &[&[&str]] = &[
         "light",
         "geometry",
         "isosurface",
+        "seen",
         "metrics",
         "plot",
         "progress",

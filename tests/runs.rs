@@ -387,6 +387,9 @@ fn eval_scores_test_and_training_images_and_the_surface_against_the_scenes_meshe
         assert!(accuracy > 1e-4 && accuracy < 0.2 && completeness > 1e-4 && completeness < 0.2, "{f}");
         assert!((chamfer - 0.5 * (accuracy + completeness)).abs() < 1e-12);
         assert!((0.0..=180.0).contains(&f["normal_angle"].as_f64().unwrap()));
+        // The training cameras see part of the surface (a ring of cameras: not its underside).
+        let (seen, seen_close) = (f["seen"].as_f64().unwrap(), f["seen_within_2cm"].as_f64().unwrap());
+        assert!(seen > 0.3 && seen < 1.0 && (0.0..=1.0).contains(&seen_close), "{f}");
     }
     assert!(metrics["light_error"]["direction_degrees"].is_number() || metrics["light_error"].is_null());
     // Relit images and albedos are scored again after a per-channel least-squares scale, which

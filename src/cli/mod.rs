@@ -322,13 +322,15 @@ fn eval(run: &Path, scene: Option<&Path>, split: EvalSplit, backend: crate::back
     for frame in evaluation["geometry"].as_array().into_iter().flatten() {
         let mm = |k: &str| frame[k].as_f64().unwrap_or(f64::NAN) * 1e3;
         println!(
-            "geometry, frame {}: accuracy {:.2} mm, completeness {:.2} mm, Chamfer {:.2} mm, normal angle {:.2} degrees, {:.1}% within 2 cm, {}",
+            "geometry, frame {}: accuracy {:.2} mm, completeness {:.2} mm, Chamfer {:.2} mm, normal angle {:.2} degrees, {:.1}% within 2 cm ({:.1}% of the {:.1}% the training cameras see), {}",
             frame["frame"],
             mm("accuracy"),
             mm("completeness"),
             mm("chamfer"),
             frame["normal_angle"].as_f64().unwrap_or(f64::NAN),
             frame["within_2cm"].as_f64().unwrap_or(f64::NAN) * 100.0,
+            frame["seen_within_2cm"].as_f64().unwrap_or(f64::NAN) * 100.0,
+            frame["seen"].as_f64().unwrap_or(f64::NAN) * 100.0,
             if frame["closed"].as_bool() == Some(true) { "closed" } else { "not closed" }
         );
     }

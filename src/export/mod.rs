@@ -167,7 +167,7 @@ fn skin_check(
     let (meshed, _, _, _) = frame_surface(model, scene, frame, scale, device)?;
     let vertices = gltf::skin_vertices(skinned, &scene.frames[0].pose, pose);
     let posed = crate::isosurface::Mesh { vertices, triangles: skinned.mesh.triangles.clone() };
-    Ok(crate::geometry::compare(&posed, &meshed, SKIN_CHECK_SAMPLES, 0))
+    Ok(crate::geometry::compare(&posed, &meshed, SKIN_CHECK_SAMPLES, 0, None))
 }
 
 /// Whether `path` is a GLB an earlier `export-avatar` wrote (its JSON chunk's generator).

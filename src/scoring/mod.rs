@@ -229,6 +229,12 @@ fn geometry_scores(
     // than its training.
     let count = with_meshes.len().min(GEOMETRY_FRAMES);
     let chosen: Vec<usize> = (0..count).map(|k| with_meshes[k * with_meshes.len() / count]).collect();
+    // The capture's training cameras judge what of a pose's surface is seen (a rig: every pose
+    // as if they all looked at it).
+    let mut cameras: Vec<usize> = scene.views_in(Split::Train).map(|v| v.camera).collect();
+    cameras.sort_unstable();
+    cameras.dedup();
+    let training_cameras: Vec<crate::scene::Camera> = cameras.iter().map(|&c| scene.cameras[c].clone()).collect();
     let mut out = Vec::new();
     for (done, &position) in chosen.iter().enumerate() {
         on(TrainMessage::Meshed { done, total: chosen.len() });
@@ -236,10 +242,13 @@ fn geometry_scores(
         let Some(path) = &frame.mesh else { continue };
         let truth = crate::geometry::load_obj(path).map_err(|e| io(path, e))?;
         let (fitted, _, _, _) = crate::eval::frame_surface(model, scene, position, albedo_scale, device)?;
-        let scores = crate::geometry::compare(&fitted, &truth, GEOMETRY_SAMPLES, position as u64);
+        let seen = crate::seen::Seen::new(&fitted, &training_cameras);
+        let sees = |p, n| seen.sees(p, n);
+        let scores = crate::geometry::compare(&fitted, &truth, GEOMETRY_SAMPLES, position as u64, Some(&sees));
         out.push(json!({
             "frame": position, "index": frame.index, "mesh": path, "accuracy": scores.map(|s| s.accuracy), "completeness": scores.map(|s| s.completeness),
             "chamfer": scores.map(|s| s.chamfer), "normal_angle": scores.map(|s| s.normal_angle), "within_2cm": scores.map(|s| s.within_2cm),
+            "seen": scores.and_then(|s| s.seen), "seen_within_2cm": scores.and_then(|s| s.seen_within_2cm),
             "closed": fitted.is_closed_manifold(),
         }));
     }

@@ -162,17 +162,20 @@ pub(super) fn geometry_markdown(frames: &[Value]) -> String {
     if frames.is_empty() {
         return String::new();
     }
-    let mut markdown = "\n## Geometry against the scene's meshes\n\n| frame | accuracy (mm) | completeness (mm) | Chamfer (mm) | normal angle (deg) | within 2 cm | closed |\n|---|---|---|---|---|---|---|\n".to_string();
+    let mut markdown = "\n## Geometry against the scene's meshes\n\n| frame | accuracy (mm) | completeness (mm) | Chamfer (mm) | normal angle (deg) | within 2 cm | seen | seen within 2 cm | closed |\n|---|---|---|---|---|---|---|---|---|\n".to_string();
     for f in frames {
         let mm = |key: &str| f[key].as_f64().map(|v| format!("{:.2}", v * 1e3)).unwrap_or_else(|| "-".into());
+        let percent = |key: &str| f[key].as_f64().map(|v| format!("{:.1}%", v * 100.0)).unwrap_or_else(|| "-".into());
         markdown += &format!(
-            "| {} | {} | {} | {} | {:.2} | {:.1}% | {} |\n",
+            "| {} | {} | {} | {} | {:.2} | {:.1}% | {} | {} | {} |\n",
             f["frame"],
             mm("accuracy"),
             mm("completeness"),
             mm("chamfer"),
             f["normal_angle"].as_f64().unwrap_or(f64::NAN),
             f["within_2cm"].as_f64().unwrap_or(f64::NAN) * 100.0,
+            percent("seen"),
+            percent("seen_within_2cm"),
             if f["closed"].as_bool() == Some(true) { "yes" } else { "no" }
         );
     }
