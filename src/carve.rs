@@ -17,7 +17,7 @@
 use crate::imageio::Mask;
 use crate::isosurface::Mesh;
 use crate::scene::{Scene, Split, View};
-use glam::{DMat4, DVec3};
+use glam::DVec3;
 
 /// How many pixels beyond a mask's edge still count as inside (a silhouette's antialiased edge
 /// and the fit's sub-pixel offsets).
@@ -126,21 +126,8 @@ fn outside_training_hulls(vertices: &[DVec3], skinning: &Skinning, scene: &Scene
     training_frames.sort_unstable();
     training_frames.dedup();
     for target in training_frames {
-        let to = &scene.frames[target].pose;
-        let moves: Vec<DMat4> = to.bone_to_world.iter().zip(&from.bone_to_world).map(|(t, f)| *t * f.inverse()).collect();
-        let moved: Vec<DVec3> = vertices
-            .iter()
-            .zip(skinning)
-            .map(|(v, weights)| {
-                let total: f32 = weights.iter().map(|w| w.1).sum();
-                let blend: DVec3 = weights.iter().filter_map(|&(b, w)| moves.get(b).map(|m| m.transform_point3(*v) * w as f64)).sum();
-                if total > 0.0 {
-                    blend / total as f64
-                } else {
-                    *v
-                }
-            })
-            .collect();
+        let moves = from.moves_to(&scene.frames[target].pose);
+        let moved: Vec<DVec3> = vertices.iter().zip(skinning).map(|(v, weights)| crate::skeleton::skin_point(*v, weights, &moves)).collect();
         let training = scene.views.iter().filter(|v| v.frame == target && v.split == Split::Train);
         for verdicts in training.filter_map(|view| judge(&moved, scene, view)) {
             views += 1;

@@ -24,14 +24,14 @@ pub struct GeometryScores {
     pub normal_angle: f64,
     /// The share of the fitted surface (by area) within `CLOSE` of the truth.
     pub within_2cm: f64,
-    /// Given which points the capture's cameras see: the share of the fitted surface they see,
+    /// Given which points the training images saw: the share of the fitted surface they saw,
     /// and the share of that within `CLOSE` of the truth. What no image shows (under a skirt,
     /// between arm and body) the images cannot place.
     pub seen: Option<f64>,
     pub seen_within_2cm: Option<f64>,
 }
 
-/// Whether a surface point (with its outward normal) is seen: `seen::Seen::sees`.
+/// Whether a surface point (with its outward normal) is seen (`seen::SeenInFrames::sees`).
 pub type SeenTest<'a> = &'a dyn Fn(DVec3, DVec3) -> bool;
 
 /// The distance (m) within which the fitted surface counts as on the truth (`within_2cm`).

@@ -3,11 +3,13 @@
 //! triangle, as perspective does). A point is seen by a camera when it faces the camera, lands
 //! in its image and lies no more than `TOLERANCE` buffer pixels' footprints behind the nearest
 //! surface there (a point on a slanted triangle is off its pixel's centre, where the buffer
-//! holds the depth).
+//! holds the depth). What a capture saw of a pose (`SeenInFrames`): the surface carried into
+//! every training frame by its skinning, and seen there by that frame's training cameras.
 
 use crate::isosurface::Mesh;
-use crate::scene::Camera;
-use glam::{DVec2, DVec3};
+use crate::scene::{Camera, Scene, Split};
+use crate::skeleton::{skin_direction, skin_point};
+use glam::{DMat4, DVec2, DVec3};
 
 /// Buffer pixels per image pixel, along each side.
 pub const OVERSAMPLE: usize = 4;
@@ -49,6 +51,37 @@ impl Seen {
             let nearest = depth[p.y as usize * camera.width + p.x as usize];
             z <= nearest + TOLERANCE * z / camera.fx.min(camera.fy)
         })
+    }
+}
+
+/// What a capture's training images saw of one pose's surface: per training frame, the bones'
+/// moves there and the surface carried there (linear blend skinning) as its cameras see it.
+pub struct SeenInFrames {
+    frames: Vec<(Vec<DMat4>, Seen)>,
+}
+
+impl SeenInFrames {
+    /// `mesh` of `scene`'s frame `frame`, with its vertices' skinning weights `(bone, weight)`.
+    pub fn new(mesh: &Mesh, skinning: &[Vec<(usize, f32)>], scene: &Scene, frame: usize) -> Self {
+        let from = &scene.frames[frame].pose;
+        let mut training: Vec<(usize, usize)> = scene.views_in(Split::Train).map(|v| (v.frame, v.camera)).collect();
+        training.sort_unstable();
+        training.dedup();
+        let mut frames = Vec::new();
+        for target in training.iter().map(|t| t.0).collect::<std::collections::BTreeSet<_>>() {
+            let moves = from.moves_to(&scene.frames[target].pose);
+            let vertices = mesh.vertices.iter().zip(skinning).map(|(v, w)| skin_point(*v, w, &moves)).collect();
+            let moved = Mesh { vertices, triangles: mesh.triangles.clone() };
+            let cameras: Vec<Camera> = training.iter().filter(|t| t.0 == target).map(|t| scene.cameras[t.1].clone()).collect();
+            frames.push((moves, Seen::new(&moved, &cameras)));
+        }
+        Self { frames }
+    }
+
+    /// Whether some training image saw the surface point `point` (outward normal `normal`,
+    /// skinning `weights`), carried into its frame.
+    pub fn sees(&self, point: DVec3, normal: DVec3, weights: &[(usize, f32)]) -> bool {
+        self.frames.iter().any(|(moves, seen)| seen.sees(skin_point(point, weights, moves), skin_direction(normal, weights, moves)))
     }
 }
 

@@ -71,6 +71,30 @@ impl Pose {
         self.bone_to_world[bone].transform_vector3(local)
     }
 
+    /// Each bone's move from this pose into `to` (`to`'s bone-to-world after this one's inverse).
+    pub fn moves_to(&self, to: &Pose) -> Vec<DMat4> {
+        to.bone_to_world.iter().zip(&self.bone_to_world).map(|(t, f)| *t * f.inverse()).collect()
+    }
+}
+
+/// Linear blend skinning: `point` moved by each bone's move (`Pose::moves_to`) in proportion
+/// to its weight `(bone, weight)`; weights need not sum to one (they are normalised), and a
+/// point without weight stays where it is.
+pub fn skin_point(point: DVec3, weights: &[(usize, f32)], moves: &[DMat4]) -> DVec3 {
+    let total: f64 = weights.iter().filter(|&&(b, _)| b < moves.len()).map(|w| w.1 as f64).sum();
+    if !(total > 0.0) {
+        return point;
+    }
+    weights.iter().filter(|&&(b, _)| b < moves.len()).map(|&(b, w)| moves[b].transform_point3(point) * (w as f64 / total)).sum()
+}
+
+/// A direction moved with the same blend (each bone's rotation), made unit again.
+pub fn skin_direction(direction: DVec3, weights: &[(usize, f32)], moves: &[DMat4]) -> DVec3 {
+    let blend: DVec3 = weights.iter().filter(|&&(b, _)| b < moves.len()).map(|&(b, w)| moves[b].transform_vector3(direction) * w as f64).sum();
+    blend.normalize_or(direction)
+}
+
+impl Pose {
     /// World-space head and tail joint of a bone.
     pub fn segment(&self, skeleton: &Skeleton, bone: usize) -> (DVec3, DVec3) {
         let head = self.to_world(bone, DVec3::ZERO);
@@ -202,6 +226,24 @@ mod tests {
         let p = DVec3::new(0.2, -0.7, 1.5);
         let back = pose.to_local(0, pose.to_world(0, p));
         assert!((back - p).length() < 1e-12);
+    }
+
+    /// A point on one bone moves with it as its bone-local coordinates say; weights split
+    /// between two bones blend the two moves; a point without weight stays.
+    #[test]
+    fn skinning_moves_a_point_with_its_bones() {
+        let turn = glam::DQuat::from_euler(glam::EulerRot::XYZ, 0.4, 0.9, -0.2);
+        let from = Pose { bone_to_world: vec![DMat4::from_translation(DVec3::new(0.0, 1.0, 0.0)), DMat4::IDENTITY] };
+        let to = Pose { bone_to_world: vec![DMat4::from_rotation_translation(turn, DVec3::new(1.0, 0.0, 2.0)), DMat4::from_translation(DVec3::X)] };
+        let moves = from.moves_to(&to);
+        let p = DVec3::new(0.3, 1.2, -0.4);
+        let on_first = skin_point(p, &[(0, 2.0)], &moves);
+        assert!((on_first - to.to_world(0, from.to_local(0, p))).length() < 1e-12);
+        let blended = skin_point(p, &[(0, 0.25), (1, 0.75)], &moves);
+        assert!((blended - (on_first * 0.25 + (p + DVec3::X) * 0.75)).length() < 1e-12);
+        assert_eq!(skin_point(p, &[], &moves), p);
+        let n = DVec3::new(0.0, 0.6, 0.8);
+        assert!((skin_direction(n, &[(0, 1.0)], &moves) - turn * n).length() < 1e-12);
     }
 
     #[test]

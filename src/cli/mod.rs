@@ -322,7 +322,7 @@ fn eval(run: &Path, scene: Option<&Path>, split: EvalSplit, backend: crate::back
     for frame in evaluation["geometry"].as_array().into_iter().flatten() {
         let mm = |k: &str| frame[k].as_f64().unwrap_or(f64::NAN) * 1e3;
         println!(
-            "geometry, frame {}: accuracy {:.2} mm, completeness {:.2} mm, Chamfer {:.2} mm, normal angle {:.2} degrees, {:.1}% within 2 cm ({:.1}% of the {:.1}% the training cameras see), {}",
+            "geometry, frame {}: accuracy {:.2} mm, completeness {:.2} mm, Chamfer {:.2} mm, normal angle {:.2} degrees, {:.1}% within 2 cm ({:.1}% of the {:.1}% the training images saw), {}",
             frame["frame"],
             mm("accuracy"),
             mm("completeness"),

@@ -58,7 +58,7 @@ pub fn print_evaluation(evaluation: &serde_json::Value) {
     if let (Some(accuracy), Some(completeness), Some(chamfer)) = (mean("accuracy"), mean("completeness"), mean("chamfer")) {
         let closed = frames.iter().filter(|f| f["closed"].as_bool() == Some(true)).count();
         println!(
-            "surface against the scene's meshes ({} frames): accuracy {:.1} mm, completeness {:.1} mm, Chamfer {:.1} mm, {:.1}% within 2 cm ({:.1}% of what the training cameras see), {closed} of {} closed",
+            "surface against the scene's meshes ({} frames): accuracy {:.1} mm, completeness {:.1} mm, Chamfer {:.1} mm, {:.1}% within 2 cm ({:.1}% of what the training images saw), {closed} of {} closed",
             frames.len(),
             accuracy * 1e3,
             completeness * 1e3,

@@ -7,7 +7,7 @@
 
 use crate::isosurface::Mesh;
 use crate::skeleton::{Pose, Skeleton};
-use glam::{DMat4, DVec3};
+use glam::DVec3;
 use serde_json::{json, Value};
 
 /// The surface in the bind pose and what skins it.
@@ -203,12 +203,6 @@ pub fn glb_bytes(skeleton: &Skeleton, skinned: &SkinnedMesh, bind: &Pose, motion
 
 /// Linear blend skinning of the bind-pose vertices into `pose`, as a viewer poses the file.
 pub fn skin_vertices(skinned: &SkinnedMesh, bind: &Pose, pose: &Pose) -> Vec<DVec3> {
-    let moves: Vec<DMat4> = pose.bone_to_world.iter().zip(&bind.bone_to_world).map(|(p, b)| *p * b.inverse()).collect();
-    skinned
-        .mesh
-        .vertices
-        .iter()
-        .zip(&skinned.weights)
-        .map(|(v, w)| w.iter().map(|&(bone, weight)| moves[bone].transform_point3(*v) * weight as f64).sum())
-        .collect()
+    let moves = bind.moves_to(pose);
+    skinned.mesh.vertices.iter().zip(&skinned.weights).map(|(v, w)| crate::skeleton::skin_point(*v, w, &moves)).collect()
 }

@@ -12,7 +12,9 @@ use crate::metrics::{score, ImageScores};
 use crate::run::{albedo_scale, restore, save_png, write_text};
 use crate::run_lock::RunLock;
 use crate::scene::{Scene, Split};
+use crate::skeleton::PoseTensors;
 use burn::module::Module;
+use glam::DVec3;
 use serde_json::json;
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -229,12 +231,6 @@ fn geometry_scores(
     // than its training.
     let count = with_meshes.len().min(GEOMETRY_FRAMES);
     let chosen: Vec<usize> = (0..count).map(|k| with_meshes[k * with_meshes.len() / count]).collect();
-    // The capture's training cameras judge what of a pose's surface is seen (a rig: every pose
-    // as if they all looked at it).
-    let mut cameras: Vec<usize> = scene.views_in(Split::Train).map(|v| v.camera).collect();
-    cameras.sort_unstable();
-    cameras.dedup();
-    let training_cameras: Vec<crate::scene::Camera> = cameras.iter().map(|&c| scene.cameras[c].clone()).collect();
     let mut out = Vec::new();
     for (done, &position) in chosen.iter().enumerate() {
         on(TrainMessage::Meshed { done, total: chosen.len() });
@@ -242,8 +238,12 @@ fn geometry_scores(
         let Some(path) = &frame.mesh else { continue };
         let truth = crate::geometry::load_obj(path).map_err(|e| io(path, e))?;
         let (fitted, _, _, _) = crate::eval::frame_surface(model, scene, position, albedo_scale, device)?;
-        let seen = crate::seen::Seen::new(&fitted, &training_cameras);
-        let sees = |p, n| seen.sees(p, n);
+        // What the training images saw of it: carried into their frames by its skinning.
+        let bones = PoseTensors::new(&frame.pose, &scene.skeleton, device).frames;
+        let skinning = |p: DVec3| model.field.skinning_weights(&bones, p.as_vec3().to_array());
+        let vertex_skinning: Vec<_> = fitted.vertices.iter().map(|&v| skinning(v)).collect();
+        let seen = crate::seen::SeenInFrames::new(&fitted, &vertex_skinning, scene, position);
+        let sees = |p: DVec3, n: DVec3| seen.sees(p, n, &skinning(p));
         let scores = crate::geometry::compare(&fitted, &truth, GEOMETRY_SAMPLES, position as u64, Some(&sees));
         out.push(json!({
             "frame": position, "index": frame.index, "mesh": path, "accuracy": scores.map(|s| s.accuracy), "completeness": scores.map(|s| s.completeness),
