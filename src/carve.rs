@@ -41,6 +41,8 @@ pub struct Carved {
     /// How many training images judged the vertices moved into their frames (0 for a frame
     /// with training images of its own).
     pub training_views: usize,
+    /// The kept vertices' skinning, when the carve was given it.
+    pub skinning: Option<Vec<Vec<(usize, f32)>>>,
 }
 
 /// Per vertex of a mesh, its skinning weights `(bone, weight)` in the meshed pose.
@@ -122,12 +124,8 @@ fn outside_training_hulls(vertices: &[DVec3], skinning: &Skinning, scene: &Scene
     let (mut outside, mut judged) = (vec![0u32; vertices.len()], vec![0u32; vertices.len()]);
     let mut views = 0;
     let from = &scene.frames[frame].pose;
-    let mut training_frames: Vec<usize> = scene.views.iter().filter(|v| v.split == Split::Train && v.mask.is_some()).map(|v| v.frame).collect();
-    training_frames.sort_unstable();
-    training_frames.dedup();
-    for target in training_frames {
-        let moves = from.moves_to(&scene.frames[target].pose);
-        let moved: Vec<DVec3> = vertices.iter().zip(skinning).map(|(v, weights)| crate::skeleton::skin_point(*v, weights, &moves)).collect();
+    for target in scene.training_frames() {
+        let moved = crate::skeleton::skin_points(vertices, skinning, &from.moves_to(&scene.frames[target].pose));
         let training = scene.views.iter().filter(|v| v.frame == target && v.split == Split::Train);
         for verdicts in training.filter_map(|view| judge(&moved, scene, view)) {
             views += 1;
@@ -165,5 +163,6 @@ pub fn carve(mesh: &Mesh, scene: &Scene, frame: usize, skinning: Option<&Skinnin
     }
     let vertices = kept.iter().map(|&v| mesh.vertices[v]).collect();
     let triangles = triangles.iter().map(|t| t.map(|v| index[v])).collect();
-    Carved { mesh: Mesh { vertices, triangles }, kept, triangles_cut, views, training_views }
+    let skinning = skinning.filter(|s| s.len() == mesh.vertices.len()).map(|s| kept.iter().map(|&v| s[v].clone()).collect());
+    Carved { mesh: Mesh { vertices, triangles }, kept, triangles_cut, views, training_views, skinning }
 }

@@ -8,7 +8,7 @@
 
 use crate::isosurface::Mesh;
 use crate::scene::{Camera, Scene, Split};
-use crate::skeleton::{skin_direction, skin_point};
+use crate::skeleton::{skin_direction, skin_point, skin_points};
 use glam::{DMat4, DVec2, DVec3};
 
 /// Buffer pixels per image pixel, along each side.
@@ -64,15 +64,14 @@ impl SeenInFrames {
     /// `mesh` of `scene`'s frame `frame`, with its vertices' skinning weights `(bone, weight)`.
     pub fn new(mesh: &Mesh, skinning: &[Vec<(usize, f32)>], scene: &Scene, frame: usize) -> Self {
         let from = &scene.frames[frame].pose;
-        let mut training: Vec<(usize, usize)> = scene.views_in(Split::Train).map(|v| (v.frame, v.camera)).collect();
-        training.sort_unstable();
-        training.dedup();
         let mut frames = Vec::new();
-        for target in training.iter().map(|t| t.0).collect::<std::collections::BTreeSet<_>>() {
+        for target in scene.training_frames() {
             let moves = from.moves_to(&scene.frames[target].pose);
-            let vertices = mesh.vertices.iter().zip(skinning).map(|(v, w)| skin_point(*v, w, &moves)).collect();
-            let moved = Mesh { vertices, triangles: mesh.triangles.clone() };
-            let cameras: Vec<Camera> = training.iter().filter(|t| t.0 == target).map(|t| scene.cameras[t.1].clone()).collect();
+            let moved = Mesh { vertices: skin_points(&mesh.vertices, skinning, &moves), triangles: mesh.triangles.clone() };
+            let mut cameras: Vec<usize> = scene.views_in(Split::Train).filter(|v| v.frame == target).map(|v| v.camera).collect();
+            cameras.sort_unstable();
+            cameras.dedup();
+            let cameras: Vec<Camera> = cameras.iter().map(|&c| scene.cameras[c].clone()).collect();
             frames.push((moves, Seen::new(&moved, &cameras)));
         }
         Self { frames }

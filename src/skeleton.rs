@@ -88,6 +88,11 @@ pub fn skin_point(point: DVec3, weights: &[(usize, f32)], moves: &[DMat4]) -> DV
     weights.iter().filter(|&&(b, _)| b < moves.len()).map(|&(b, w)| moves[b].transform_point3(point) * (w as f64 / total)).sum()
 }
 
+/// `skin_point` of every point, each with its own weights.
+pub fn skin_points<W: AsRef<[(usize, f32)]>>(points: &[DVec3], weights: &[W], moves: &[DMat4]) -> Vec<DVec3> {
+    points.iter().zip(weights).map(|(p, w)| skin_point(*p, w.as_ref(), moves)).collect()
+}
+
 /// A direction moved with the same blend (each bone's rotation), made unit again.
 pub fn skin_direction(direction: DVec3, weights: &[(usize, f32)], moves: &[DMat4]) -> DVec3 {
     let blend: DVec3 = weights.iter().filter(|&&(b, _)| b < moves.len()).map(|&(b, w)| moves[b].transform_vector3(direction) * w as f64).sum();

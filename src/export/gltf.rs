@@ -203,6 +203,5 @@ pub fn glb_bytes(skeleton: &Skeleton, skinned: &SkinnedMesh, bind: &Pose, motion
 
 /// Linear blend skinning of the bind-pose vertices into `pose`, as a viewer poses the file.
 pub fn skin_vertices(skinned: &SkinnedMesh, bind: &Pose, pose: &Pose) -> Vec<DVec3> {
-    let moves = bind.moves_to(pose);
-    skinned.mesh.vertices.iter().zip(&skinned.weights).map(|(v, w)| crate::skeleton::skin_point(*v, w, &moves)).collect()
+    crate::skeleton::skin_points(&skinned.mesh.vertices, &skinned.weights, &bind.moves_to(pose))
 }

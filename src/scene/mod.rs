@@ -109,6 +109,14 @@ impl Scene {
         self.views.iter().filter(move |v| v.split == split)
     }
 
+    /// The frames (positions) with a training image, in order.
+    pub fn training_frames(&self) -> Vec<usize> {
+        let mut frames: Vec<usize> = self.views_in(Split::Train).map(|v| v.frame).collect();
+        frames.sort_unstable();
+        frames.dedup();
+        frames
+    }
+
     /// The names of the lights used by training views.
     pub fn training_lights(&self) -> Vec<&str> {
         let mut names: Vec<&str> = self.views_in(Split::Train).map(|v| v.light.as_str()).collect();

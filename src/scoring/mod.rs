@@ -237,11 +237,12 @@ fn geometry_scores(
         let frame = &scene.frames[position];
         let Some(path) = &frame.mesh else { continue };
         let truth = crate::geometry::load_obj(path).map_err(|e| io(path, e))?;
-        let (fitted, _, _, _) = crate::eval::frame_surface(model, scene, position, albedo_scale, device)?;
-        // What the training images saw of it: carried into their frames by its skinning.
+        let (fitted, _, _, carved) = crate::eval::frame_surface(model, scene, position, albedo_scale, device)?;
+        // What the training images saw of it: carried into their frames by its skinning (the
+        // carve's, when it needed it too).
         let bones = PoseTensors::new(&frame.pose, &scene.skeleton, device).frames;
         let skinning = |p: DVec3| model.field.skinning_weights(&bones, p.as_vec3().to_array());
-        let vertex_skinning: Vec<_> = fitted.vertices.iter().map(|&v| skinning(v)).collect();
+        let vertex_skinning = carved.skinning.unwrap_or_else(|| fitted.vertices.iter().map(|&v| skinning(v)).collect());
         let seen = crate::seen::SeenInFrames::new(&fitted, &vertex_skinning, scene, position);
         let sees = |p: DVec3, n: DVec3| seen.sees(p, n, &skinning(p));
         let scores = crate::geometry::compare(&fitted, &truth, GEOMETRY_SAMPLES, position as u64, Some(&sees));
