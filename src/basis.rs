@@ -59,6 +59,10 @@ pub struct TransferBasis {
 /// radius (under one spacing) and a table cell of the table's nearest direction to it.
 const NEIGHBOUR_SPACINGS: f64 = 2.0;
 
+/// `TransferBasis::parts`: covered pixel indices, reflectance, unit normals, visibility rows
+/// and coverage.
+pub type BasisParts<'a> = (&'a [usize], &'a [DVec3], &'a [DVec3], &'a [f32], &'a [f32]);
+
 impl TransferBasis {
     /// The basis of one view (`camera`, `frame`) of a fitted avatar: its surfels as the view
     /// renders draw them (`eval::surfels`), the fitted light's shadow casters in that pose.
@@ -216,7 +220,7 @@ impl TransferBasis {
     /// The basis's arrays, for a viewer that relights it elsewhere (`report`): covered pixel
     /// indices, reflectance, unit normals, the visibility rows (pixel after pixel) and the
     /// coverage each pixel's value is composited with.
-    pub fn parts(&self) -> (&[usize], &[DVec3], &[DVec3], &[f32], &[f32]) {
+    pub fn parts(&self) -> BasisParts<'_> {
         (&self.pixels, &self.reflectance, &self.normals, &self.visibility, &self.coverage)
     }
 

@@ -39,6 +39,15 @@ pub fn read_text(path: &Path, limit: u64) -> std::io::Result<String> {
     Ok(text)
 }
 
+/// The most memory this process has held at once (its peak resident set, `VmHWM` in
+/// `/proc/self/status`), in bytes; `None` where the system does not say (not Linux).
+pub fn peak_memory_bytes() -> Option<u64> {
+    let status = read_text(Path::new("/proc/self/status"), SMALL_TEXT_BYTES).ok()?;
+    let line = status.lines().find(|l| l.starts_with("VmHWM:"))?;
+    let kib: u64 = line.split_whitespace().nth(1)?.parse().ok()?;
+    Some(kib * 1024)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -58,13 +67,4 @@ mod tests {
         }
         let _ = std::fs::remove_dir_all(&dir);
     }
-}
-
-/// The most memory this process has held at once (its peak resident set, `VmHWM` in
-/// `/proc/self/status`), in bytes; `None` where the system does not say (not Linux).
-pub fn peak_memory_bytes() -> Option<u64> {
-    let status = read_text(Path::new("/proc/self/status"), SMALL_TEXT_BYTES).ok()?;
-    let line = status.lines().find(|l| l.starts_with("VmHWM:"))?;
-    let kib: u64 = line.split_whitespace().nth(1)?.parse().ok()?;
-    Some(kib * 1024)
 }

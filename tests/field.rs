@@ -158,9 +158,9 @@ fn the_eikonal_loss_trains_through_the_tangents() {
     let points = points_near(&character, &pose, 64, 9);
     let (_, gradient) = field.sdf_and_gradient(to_tensor(&points, &device), &pose_tensors);
     let loss = umbra::losses::eikonal(gradient);
-    let mut grads = loss.backward();
-    let first = field.hidden[0].weight.grad(&mut grads).map(values).unwrap();
-    let out = field.output.weight.grad(&mut grads).map(values).unwrap();
+    let grads = loss.backward();
+    let first = field.hidden[0].weight.grad(&grads).map(values).unwrap();
+    let out = field.output.weight.grad(&grads).map(values).unwrap();
     // The same loss in f64 from the reference, differentiated by central differences in one
     // weight at a time.
     let reference = Reference::new(&field);

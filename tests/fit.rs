@@ -525,6 +525,7 @@ fn ablate_compares_schedules_in_one_table_and_checks_them_all_first() {
     std::fs::write(out.join("no-eikonal/.lock"), format!("{} fit", holder.id())).unwrap();
     let shared = umbra::ablate::ablate(&options(vec![base.clone(), no_eikonal.clone()], out.clone()), |_, _, _| {});
     let _ = holder.kill();
+    let _ = holder.wait();
     let shared = shared.unwrap();
     assert_eq!((shared.fitted, shared.rows.len(), shared.elsewhere.clone()), (0, 1, vec!["no-eikonal".to_string()]));
     // A folder holding a run of another schedule needs --force.

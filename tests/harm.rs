@@ -36,7 +36,7 @@ fn copy_tree(from: &Path, to: &Path) {
 
 const TINY_SYNTH: [&str; 8] = ["--size", "8", "--cameras", "1", "--frames", "1", "--test-frames", "1"];
 
-fn synth_args<'a>(out: &'a str, force: bool) -> Vec<&'a str> {
+fn synth_args(out: &str, force: bool) -> Vec<&str> {
     let mut args = vec!["synth", "--out", out];
     if force {
         args.push("--force");
@@ -135,7 +135,8 @@ fn a_checkpoint_state_is_checksummed_and_its_sizes_validated() {
     let stderr = fails(&cwd(), &["render", s(&run)]);
     assert!(stderr.contains("state.json") && stderr.contains("checksum"), "{stderr}");
     // Edits with their checksum recomputed: each refused by validation, naming the key.
-    let cases: Vec<(&str, Box<dyn Fn(&mut Value)>)> = vec![
+    type Edit = Box<dyn Fn(&mut Value)>;
+    let cases: Vec<(&str, Edit)> = vec![
         ("coarsest_cell", Box::new(|s: &mut Value| s["field"]["grid"]["coarsest_cell"] = json!(0.0))),
         ("bone_lengths[1]", Box::new(|s: &mut Value| s["field"]["grid"]["bone_lengths"][1] = json!(-0.2))),
         ("table_log2", Box::new(|s: &mut Value| s["field"]["grid"]["table_log2"] = json!(40))),

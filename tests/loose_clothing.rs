@@ -96,7 +96,7 @@ fn a_loose_fit_resumes_bit_for_bit_with_its_seeded_gaussians_and_renders_from_it
     assert!(straight.capture["gaussians_on_loose_body"].as_u64().is_some_and(|n| n >= 8), "{}", straight.capture);
     let read = |run: &str, file: &str| std::fs::read(dir.join(run).join(file)).expect("a run's file");
     assert!(
-        read("straight", "losses.csv") == read("resumed", "losses.csv").iter().copied().collect::<Vec<_>>() || {
+        read("straight", "losses.csv") == read("resumed", "losses.csv").to_vec() || {
             // The seconds column differs; every loss must not.
             let losses = |run: &str| {
                 String::from_utf8_lossy(&read(run, "losses.csv"))

@@ -81,12 +81,13 @@ impl Case {
         let (u0, u1) = (self.t0 - centre, self.t1 - centre);
         let lo = u0.max(-40.0 * sigma);
         let hi = u1.min(lo.max(0.0) + 40.0 * sigma);
-        if !(hi > lo) {
+        if hi.partial_cmp(&lo) != Some(std::cmp::Ordering::Greater) {
             return 0.0;
         }
         // x(t) - mean at t = centre + u, in double-double so that a far origin cancels exactly.
         let position = |u: f64| -> DVec3 {
             let mut v = [0.0; 3];
+            #[allow(clippy::needless_range_loop)] // one index into four arrays
             for i in 0..3 {
                 let (a, a_err) = two_sum(self.origin[i], -self.mean[i]);
                 let (b, b_err) = two_product(centre, self.direction[i]);
@@ -129,7 +130,7 @@ fn cases(n: usize, seed: u64) -> Vec<(String, Case)> {
     for i in 0..n {
         let scales = DVec3::new(log_uniform(&mut s, 1e-4, 10.0), log_uniform(&mut s, 1e-4, 10.0), log_uniform(&mut s, 1e-4, 10.0));
         let scales = if i % 3 == 0 { DVec3::splat(scales.x) * DVec3::new(1.0, 1.5, 0.7) } else { scales };
-        let rotation = DQuat::from_axis_angle(unit(&mut s), s.uniform() * 6.28);
+        let rotation = DQuat::from_axis_angle(unit(&mut s), s.uniform() * std::f64::consts::TAU);
         let axes = DMat3::from_quat(rotation);
         let mean = (unit(&mut s)) * s.uniform() * 3.0;
         let amplitude = log_uniform(&mut s, 1e-2, 1e3);

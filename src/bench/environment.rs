@@ -107,6 +107,9 @@ impl Research {
     }
 }
 
+/// A shading method under comparison: its label and a run of it over the probes.
+type ShadingMethod<'a> = (&'static str, Box<dyn Fn() -> Vec<DVec3> + 'a>);
+
 struct Row {
     sky: &'static str,
     method: &'static str,
@@ -133,7 +136,7 @@ pub fn environment(out: &Path, quick: bool) -> Result<String, String> {
         for samples in [16, 64, 256] {
             let mis = MisEstimator::new(&map, 1.0, samples, 5);
             let shared = EnvironmentSampler::new(&map, 1.0, samples, 5);
-            let methods: [(&'static str, Box<dyn Fn() -> Vec<DVec3> + '_>); 3] = [
+            let methods: [ShadingMethod<'_>; 3] = [
                 ("per-pixel MIS (map + cosine, balance heuristic)", Box::new(|| mis.shade(&points, &normals, &ids, &casters))),
                 ("shared luminance directions (previous)", Box::new(|| shared.shade(&points, &normals, &casters))),
                 ("brightest texel + cosine rays on a 32x64 blur (research code)", Box::new(|| research.shade(&points, &normals, samples, 5, &casters))),

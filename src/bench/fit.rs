@@ -16,6 +16,9 @@ use burn::module::Module;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
+/// A chart of the fit curves: its file, its y label and what it plots of each point.
+type CurveChart = (&'static str, &'static str, fn(&CurvePoint) -> Option<f64>);
+
 #[derive(Clone, Debug)]
 pub struct FitBenchOptions {
     pub scene: PathBuf,
@@ -361,7 +364,7 @@ fn write_outputs(out: &Path, scene: &Path, points: &[CurvePoint]) -> Result<Stri
     }
     write("fit-curves.csv", &csv)?;
     write("fit-curves.md", &md)?;
-    let charts: [(&str, &str, fn(&CurvePoint) -> Option<f64>); 3] = [
+    let charts: [CurveChart; 3] = [
         ("fit-foreground-psnr.png", "novel pose foreground PSNR (dB)", |p| Some(p.novel_pose_foreground_psnr)),
         ("fit-albedo-psnr.png", "albedo PSNR (dB)", |p| p.albedo_psnr),
         ("fit-light-error.png", "light direction error (degrees)", |p| p.light_error_degrees),

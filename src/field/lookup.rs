@@ -301,8 +301,8 @@ fn skin_point(config: &GridConfig, frames: &[BoneFrame], skinning: Skinning, poi
     for (a, &(weight, d_weight)) in chosen.iter().zip(&scratch.weights) {
         let distance = (a.d2 + 1e-8).sqrt();
         skin.prior += weight * distance;
-        for x in 0..3 {
-            skin.prior_tangent[x] += d_weight[x] * distance + weight * a.gradient[x] / (2.0 * distance);
+        for ((tangent, d_weight), gradient) in skin.prior_tangent.iter_mut().zip(d_weight).zip(a.gradient) {
+            *tangent += d_weight * distance + weight * gradient / (2.0 * distance);
         }
     }
     if let Some(cap) = skinning.prior_cap {

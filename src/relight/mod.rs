@@ -136,7 +136,7 @@ fn chosen(flag: &str, picked: &Option<Vec<usize>>, count: usize) -> Result<Vec<u
 /// The light a relight renders in, turned and scaled as asked, and the label of its folder;
 /// `None` for the fitted light.
 fn chosen_light(scene: &Scene, options: &RelightOptions, pivot: glam::DVec3) -> Result<Option<(Light, String)>, FitError> {
-    if !options.rotate.is_finite() || !(options.intensity.is_finite() && options.intensity >= 0.0) {
+    if !options.rotate.is_finite() || !options.intensity.is_finite() || options.intensity < 0.0 {
         return Err(FitError::Input(format!("--rotate {} --intensity {}: need a finite angle and an intensity >= 0", options.rotate, options.intensity)));
     }
     let Some(spec) = &options.light else {

@@ -146,9 +146,10 @@ pub(super) fn transmittance_before(samples: &Samples, density: &[f32], r: usize)
     let mut out = Vec::with_capacity(r * s);
     for i in 0..r {
         let mut transmittance = 1.0f32;
-        for k in i * s..(i + 1) * s {
+        let ray = i * s..(i + 1) * s;
+        for (density, delta) in density[ray.clone()].iter().zip(&samples.delta[ray]) {
             out.push(transmittance);
-            let alpha = 1.0 - (-density[k] * samples.delta[k]).exp();
+            let alpha = 1.0 - (-density * delta).exp();
             transmittance *= 1.0 - alpha;
         }
     }

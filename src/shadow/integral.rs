@@ -142,6 +142,7 @@ pub fn optical_depth_whitened<R: Real>(g: &WhitenedGaussian<R>, origin: [R; 3], 
 ///
 /// Exact up to rounding: relative error below 1e-9 over the ranges the tests sweep (scales
 /// 1e-4..10 m, origins inside, behind and 1e3 m away, grazing and axis-parallel rays).
+#[allow(clippy::too_many_arguments)] // a Gaussian's four parts and a segment's four, as the maths names them
 pub fn optical_depth(
     mean: [f64; 3],
     rotation_columns: [[f64; 3]; 3],
@@ -156,6 +157,7 @@ pub fn optical_depth(
 }
 
 /// The same integral in f32, as used by the rendering hot loops.
+#[allow(clippy::too_many_arguments)] // as `optical_depth`
 pub fn optical_depth_f32(
     mean: [f32; 3],
     rotation_columns: [[f32; 3]; 3],

@@ -63,7 +63,7 @@ pub struct RaySegments {
 /// from elementwise ops so that autodiff differentiates it and no branch yields a NaN.
 pub fn erfc_nonnegative(x: Tensor<3>) -> Tensor<3> {
     const C: [f32; 10] =
-        [-1.265_512_2, 1.000_023_7, 0.374_091_96, 0.096_784_18, -0.186_288_06, 0.278_868_07, -1.135_203_98, 1.488_515_87, -0.822_152_23, 0.170_872_77];
+        [-1.265_512_2, 1.000_023_7, 0.374_091_96, 0.096_784_18, -0.186_288_06, 0.278_868_07, -1.135_204, 1.488_515_9, -0.822_152_23, 0.170_872_77];
     let t = (x.clone() * 0.5 + 1.0).recip();
     let mut poly = t.clone() * C[9];
     for &c in C[1..9].iter().rev() {

@@ -211,6 +211,10 @@ pub struct Rendered {
 /// `pixel_samples` x `pixel_samples` stratified rays per pixel (1: the pixel's centre) whose
 /// colour and albedo are averaged; the mask is coverage above one half, and pixels outside it
 /// are black in colour and albedo.
+/// A traced pixel: colour, mask, albedo.
+type TracedPixel = ([f32; 3], bool, [f32; 3]);
+
+#[allow(clippy::too_many_arguments)] // what a view needs and the two seeds of its noise
 pub fn render_view(
     character: &Character,
     pose: &Pose,
@@ -224,7 +228,7 @@ pub fn render_view(
     let traced = Traced::new(character, pose);
     let (w, h) = (camera.width, camera.height);
     let n = pixel_samples.max(1);
-    let rows: Vec<Vec<([f32; 3], bool, [f32; 3])>> = (0..h)
+    let rows: Vec<Vec<TracedPixel>> = (0..h)
         .into_par_iter()
         .map(|j| {
             (0..w)

@@ -104,7 +104,7 @@ impl SynthOptions {
             if self.light != TrainingLight::Point {
                 return bad("--lamp-distance needs --light point");
             }
-            if !(d >= 0.5 && d <= 20.0) {
+            if !(0.5..=20.0).contains(&d) {
                 return bad("--lamp-distance must be within 0.5..=20 metres (nearer, the lamp would sit inside the body)");
             }
         }
@@ -129,7 +129,7 @@ impl SynthOptions {
 
     /// The ring of training cameras around `target`, seeded, and the held-out one.
     fn cameras(&self, target: DVec3, extent: f64) -> Vec<Camera> {
-        let mut stream = Stream::new(self.seed, 0xCA3E_4A5, 0);
+        let mut stream = Stream::new(self.seed, 0x0CA3_E4A5, 0);
         let focal = 1.2 * self.size as f64;
         let distance = focal * extent / (0.45 * self.size as f64);
         let ring = |name: String, azimuth: f64, elevation: f64| {

@@ -128,9 +128,9 @@ impl Trainer {
         let report = match self.light_kind {
             LightKind::Point => {
                 let directions = (self.schedule.sun_search / 2).max(1);
-                crate::sun_search::search_point(&samples, &casters, self.body_centre, self.body_extent, directions, 32, start)
+                crate::sun_search::search_point(samples, casters, self.body_centre, self.body_extent, directions, 32, start)
             }
-            _ => crate::sun_search::search(&samples, &casters, self.schedule.sun_search, 64, start),
+            _ => crate::sun_search::search(samples, casters, self.schedule.sun_search, 64, start),
         };
         let mut state = self.state.take().ok_or_else(|| FitError::Input("the training state was lost by an interrupted step".into()))?;
         let model = &mut state.model;
