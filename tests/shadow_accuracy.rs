@@ -81,7 +81,8 @@ impl Case {
         let (u0, u1) = (self.t0 - centre, self.t1 - centre);
         let lo = u0.max(-40.0 * sigma);
         let hi = u1.min(lo.max(0.0) + 40.0 * sigma);
-        if hi.partial_cmp(&lo) != Some(std::cmp::Ordering::Greater) {
+        #[allow(clippy::neg_cmp_op_on_partial_ord)] // NaN bounds too: as in the library
+        if !(hi > lo) {
             return 0.0;
         }
         // x(t) - mean at t = centre + u, in double-double so that a far origin cancels exactly.
