@@ -56,6 +56,26 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         }
     }
 
+    // A capture as people deliver one: its clip, its transforms.json, and a COLMAP model of
+    // three cameras in a folder each (with and without lines of 2D points).
+    let capture = out.join("seed-capture");
+    let options = umbra::synth::SynthOptions {
+        size: 24,
+        cameras: 2,
+        frames: 2,
+        test_frames: 1,
+        samples: 2,
+        export: Some(umbra::synth::Export::Nerfstudio),
+        ..umbra::synth::SynthOptions::default()
+    };
+    umbra::synth::generate(&options, &capture, true, |_, _| {})?;
+    write("clip", "motion.bvh", &std::fs::read(capture.join("motion.bvh"))?)?;
+    write("transforms", "transforms.json", &std::fs::read(capture.join("transforms.json"))?)?;
+    let cameras = b"# CAMERA_ID MODEL WIDTH HEIGHT PARAMS\n1 PINHOLE 24 24 30 30 12 12\n2 OPENCV 24 24 30 30 12 12 -0.05 0.01 0.001 0\n3 SIMPLE_RADIAL 24 24 28 12 12 0.02\n";
+    let images = b"# IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME\n1 1 0 0 0 0 0 3 1 cam01/000000.png\n10.5 3.25 -1 4 5 17\n2 0.7071068 0 0.7071068 0 0 0 3 2 cam02/000000.png\n\n3 1 0 0 0 0.1 0 3 3 cam03/000001.png\n";
+    let model = Folder { files: vec![("cameras.txt".into(), cameras.to_vec()), ("images.txt".into(), images.to_vec())] };
+    write("colmap", "rig", &model.encode())?;
+
     // A two-iteration fit of the independent fixture: its checkpoint, with and without the
     // checksums (without, a damaged model file reaches burn's reader instead of the checksum).
     // Its grid is small (4 levels of 2^8 entries: a checkpoint of 0.2 MB, not 25), so that

@@ -38,7 +38,12 @@ pub struct AnimateOptions {
     pub ground: Option<crate::relight::ground::GroundOptions>,
 }
 
-/// The animated PNG a motion render writes; it marks a folder an earlier one wrote.
+/// The file of the clip's frame `k`.
+fn frame_file(k: usize) -> String {
+    format!("f{k:04}.png")
+}
+
+/// The animated PNG a motion render writes.
 pub const ANIMATION: &str = "animation.png";
 
 /// What the clip did: how it drove the bones, and what it left unmatched.
@@ -67,10 +72,11 @@ fn animated_scene(scene: &Scene, driven: &Driven, options: &AnimateOptions) -> R
     }));
     let frames: Vec<usize> = (first..animated.frames.len()).collect();
     let cameras: Vec<usize> = match (options.orbit, options.camera) {
-        (Some(0), _) => return Err(FitError::Input("--orbit needs at least 1 view".into())),
         (Some(count), _) => {
+            let count = crate::relight::orbit_views(count)?;
             let at = animated.cameras.len();
-            let orbit = crate::relight::orbit_cameras(&animated, first, count);
+            // Only the views the clip's frames look through are made (one per frame at most).
+            let orbit: Vec<_> = crate::relight::orbit_cameras(&animated, first, count).take(frames.len()).collect();
             animated.cameras.extend(orbit);
             (0..frames.len()).map(|k| at + k % count).collect()
         }
@@ -102,6 +108,9 @@ pub fn animate_run(options: &AnimateOptions, mut on: impl FnMut(TrainMessage)) -
     let driven = retarget::drive(&scene.skeleton, &scene.frames[0].pose, &motion, units.metres())
         .map_err(|e| io(&options.motion, format!("{e} (nothing was written)")))?;
     let (animated, cameras, frames) = animated_scene(scene, &driven, options)?;
+    if let Some(ground) = options.ground {
+        ground.check(&animated, &cameras, &frames)?;
+    }
     if options.samples == 0 {
         return Err(FitError::Input("--samples must be at least 1".into()));
     }
@@ -109,31 +118,44 @@ pub fn animate_run(options: &AnimateOptions, mut on: impl FnMut(TrainMessage)) -
         None => None,
         Some(spec) => Some(crate::relight::stated_light(&animated, spec)?),
     };
-    crate::relight::output_folder(&options.out, ANIMATION)?;
+    let total = frames.len();
+    let planned: Vec<String> = (0..total).map(frame_file).chain([ANIMATION.to_string()]).collect();
+    let folder = crate::written::OutputFolder::claim(&options.out, "render --motion", &planned).map_err(FitError::Input)?;
     let _lock = crate::run_lock::RunLock::for_output(&options.run, &options.out, "render")?;
-    std::fs::create_dir_all(&options.out).map_err(|e| io(&options.out, e))?;
+    folder.begin(&planned).map_err(|e| io(&options.out, e))?;
     let model = restored.fitted.model.valid();
     let device = restored.fitted.device.clone().without_autodiff();
     let lighting = match &light {
         Some(light) => Lighting::Known { light, albedo_scale: crate::run::albedo_scale(&animated, &model), samples: options.samples },
         None => Lighting::Fitted(0),
     };
-    let total = frames.len();
     on(TrainMessage::Evaluating { images: total });
+    on(TrainMessage::Planned { views: total, width: animated.cameras[cameras[0]].width, height: animated.cameras[cameras[0]].height });
     let at_once = rayon::current_num_threads().max(1);
     let views: Vec<usize> = (0..total).collect();
     let rendered = views.chunks(at_once).flat_map(|batch| {
         batch.par_iter().map(|&k| Rendered::view(&model, &animated, (cameras[k], frames[k]), &device, &lighting, options.ground)).collect::<Vec<_>>()
     });
-    let mut images = Vec::with_capacity(total);
+    // The animation is streamed a frame at a time: a long clip at a large size never sits in
+    // memory whole.
+    let frame_ms = (driven.frame_time * 1000.0).round().clamp(1.0, u16::MAX as f64) as u16;
+    let animation_path = options.out.join(ANIMATION);
+    let mut animation = None;
     for (k, rendered) in rendered.enumerate() {
-        let name = format!("f{k:04}.png");
+        let name = frame_file(k);
         rendered.save(&options.out.join(&name))?;
-        images.push(rendered.image);
+        let image = &rendered.image;
+        let stream = match &mut animation {
+            Some(stream) => stream,
+            None => animation.insert(crate::apng::ApngFile::create(&animation_path, (image.width, image.height), total, frame_ms).map_err(|e| io(&animation_path, e))?),
+        };
+        stream.push(image).map_err(|e| io(&animation_path, e))?;
         on(TrainMessage::Rendered { done: k + 1, total, name, psnr: None });
     }
-    let frame_ms = (driven.frame_time * 1000.0).round().clamp(1.0, u16::MAX as f64) as u16;
-    crate::relight::save_apng(&options.out.join(ANIMATION), &images, frame_ms)?;
+    if let Some(stream) = animation {
+        stream.finish().map_err(|e| io(&animation_path, e))?;
+    }
+    folder.finish(&planned).map_err(|e| io(&options.out, e))?;
     Ok(Animated { out: options.out.clone(), frames: total, direct: driven.direct, unmatched: driven.unmatched, scale: driven.scale, units })
 }
 

@@ -3,7 +3,7 @@
 //! or a runaway file is refused with a message instead of being read until memory runs out.
 
 use std::io::Read;
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
 /// The largest `scene.json` read: a 10,000-image, 2,000-frame, 60-bone capture takes about
 /// 30 MB of JSON; parsing costs about 20 bytes of memory per byte of text.
@@ -39,6 +39,45 @@ pub fn read_text(path: &Path, limit: u64) -> std::io::Result<String> {
     Ok(text)
 }
 
+/// A file created beside `path` under a hidden name of its own (`.NAME.TAG-PID-N`), made
+/// exclusively: never a file that was there before, whoever put it there.
+pub fn create_new_beside(path: &Path, tag: &str) -> std::io::Result<(PathBuf, std::fs::File)> {
+    new_beside(path, tag, |p| std::fs::OpenOptions::new().write(true).create_new(true).open(p))
+}
+
+/// A folder created beside `path` under a hidden name of its own (`.NAME.TAG-PID-N`), made
+/// exclusively: the caller owns it and everything in it, and may remove it.
+pub fn create_folder_beside(path: &Path, tag: &str) -> std::io::Result<PathBuf> {
+    new_beside(path, tag, |p| std::fs::create_dir(p)).map(|(p, ())| p)
+}
+
+/// The first free `.NAME.TAG-PID-N` beside `path` that `make` creates.
+fn new_beside<T>(path: &Path, tag: &str, make: impl Fn(&Path) -> std::io::Result<T>) -> std::io::Result<(PathBuf, T)> {
+    use std::io::{Error, ErrorKind};
+    let name = path.file_name().ok_or_else(|| Error::new(ErrorKind::InvalidInput, "names no file or folder (it ends in '.', '..' or '/')"))?;
+    for n in 0..1000 {
+        let candidate = path.with_file_name(format!(".{}.{tag}-{}-{n}", name.to_string_lossy(), std::process::id()));
+        match make(&candidate) {
+            Ok(made) => return Ok((candidate, made)),
+            Err(e) if e.kind() == ErrorKind::AlreadyExists => continue,
+            Err(e) => return Err(e),
+        }
+    }
+    Err(Error::new(ErrorKind::AlreadyExists, "no free temporary name beside it"))
+}
+
+/// `path` made absolute with its last part kept as named (`.`, `..` resolved through the
+/// folders that exist): what a command writes to when it is given `--out .` or `--out ..`.
+pub fn absolute_target(path: &Path) -> std::io::Result<PathBuf> {
+    match path.file_name() {
+        Some(_) if !path.exists() => {
+            let parent = path.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(Path::new("."));
+            Ok(std::fs::canonicalize(parent)?.join(path.file_name().unwrap_or_default()))
+        }
+        _ => std::fs::canonicalize(path),
+    }
+}
+
 /// The most memory this process has held at once (its peak resident set, `VmHWM` in
 /// `/proc/self/status`), in bytes; `None` where the system does not say (not Linux).
 pub fn peak_memory_bytes() -> Option<u64> {
@@ -65,6 +104,23 @@ mod tests {
         if Path::new("/dev/zero").exists() {
             assert!(read_text(Path::new("/dev/zero"), 100).unwrap_err().to_string().contains("not a regular file"));
         }
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    #[test]
+    fn a_new_name_beside_a_path_never_takes_one_that_is_there() {
+        let dir = std::env::temp_dir().join(format!("umbra-files-beside-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let target = dir.join("scene");
+        let taken = dir.join(format!(".scene.importing-{}-0", std::process::id()));
+        std::fs::create_dir_all(&taken).unwrap();
+        std::fs::write(taken.join("keep.txt"), "keep").unwrap();
+        let made = create_folder_beside(&target, "importing").unwrap();
+        assert_ne!(made, taken);
+        assert_eq!(std::fs::read_to_string(taken.join("keep.txt")).unwrap(), "keep");
+        let (file, _) = create_new_beside(&target, "importing").unwrap();
+        assert!(file != taken && file != made);
+        assert!(create_folder_beside(Path::new("/"), "x").is_err());
         let _ = std::fs::remove_dir_all(&dir);
     }
 }

@@ -207,6 +207,76 @@ pub fn light(data: &[u8]) -> Outcome {
     }
 }
 
+/// The clip readers on a text, as a BVH and as `joints.json`: a clip read is checked as every
+/// command checks one (`Motion::problem`) and, when it passes, posed in every frame and rigged;
+/// its poses are finite. A refusal names the file it was given.
+pub fn clip(data: &[u8]) -> Outcome {
+    let text = String::from_utf8_lossy(data);
+    let file = Path::new("fuzzed.bvh");
+    let bvh = crate::capture::bvh::parse(&text, file).map_err(|e| assert_eq!(e.file, file));
+    let dir = scratch("clip");
+    let json = std::fs::create_dir_all(&dir).ok().and_then(|_| std::fs::write(dir.join("joints.json"), data).ok()).and_then(|_| {
+        crate::capture::joints::read(&dir.join("joints.json")).map_err(|e| assert!(e.to_string().contains("joints.json"), "{e}")).ok()
+    });
+    let mut outcome = Outcome::Refused;
+    for motion in bvh.ok().into_iter().chain(json) {
+        if motion.problem().is_some() {
+            continue;
+        }
+        for k in 0..motion.frames.len() {
+            let joints = motion.joint_to_world(k);
+            assert!(joints.iter().all(|m| m.is_finite()), "frame {k}: a clip that passed its checks poses a joint nowhere");
+        }
+        let _ = crate::capture::bones::rig(&motion);
+        outcome = Outcome::Accepted;
+    }
+    outcome
+}
+
+/// The COLMAP text model reader on a folder (`cameras.txt`, `images.txt`): every image it
+/// accepts has a camera no check refuses; a refusal names a file inside the folder.
+pub fn colmap(data: &[u8]) -> Outcome {
+    let dir = scratch("colmap");
+    if Folder::decode(data).write_into(&dir).is_err() {
+        return Outcome::Refused;
+    }
+    match crate::capture::colmap::read(&dir, &dir.join("images")) {
+        Ok(images) => {
+            for image in &images {
+                assert!(image.intrinsics.problem(&image.distortion).is_none() && image.camera_to_world.is_finite());
+                assert!(image.path.starts_with(dir.join("images")), "an image outside the capture: {}", image.path.display());
+            }
+            Outcome::Accepted
+        }
+        Err(e) => {
+            assert!(e.to_string().contains(&dir.display().to_string()), "a refused model names a file inside it: {e}");
+            Outcome::Refused
+        }
+    }
+}
+
+/// The nerfstudio `transforms.json` reader on a text: the same promises as `colmap`.
+pub fn transforms(data: &[u8]) -> Outcome {
+    let dir = scratch("transforms");
+    let file = dir.join("transforms.json");
+    if std::fs::create_dir_all(&dir).and_then(|_| std::fs::write(&file, data)).is_err() {
+        return Outcome::Refused;
+    }
+    match crate::capture::nerfstudio::read(&file) {
+        Ok(images) => {
+            for image in &images {
+                assert!(image.intrinsics.problem(&image.distortion).is_none() && image.camera_to_world.is_finite());
+                assert!(image.path.starts_with(&dir), "an image outside the capture: {}", image.path.display());
+            }
+            Outcome::Accepted
+        }
+        Err(e) => {
+            assert_eq!(e.file, file);
+            Outcome::Refused
+        }
+    }
+}
+
 /// The checkpoint loader: a fresh trainer (the scene and schedule of the run the seed
 /// checkpoint came from) resumed from a fuzzed checkpoint folder (`state.json`, `model.bpk`,
 /// `optimizer-*.bpk`), as `umbra fit --resume` and `umbra render` load one.

@@ -2,7 +2,7 @@
 //! > 127 rule, and atomic writes (temp file, then rename) for everything umbra produces.
 
 use std::io::Write;
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
 /// A linear RGB image, row-major, top row first.
 #[derive(Clone, Debug, PartialEq)]
@@ -15,6 +15,38 @@ pub struct RgbImage {
 impl RgbImage {
     pub fn new(width: usize, height: usize) -> Self {
         Self { width, height, pixels: vec![[0.0; 3]; width * height] }
+    }
+
+    /// The mean of each `f` x `f` block (linear light); a remainder row or column is dropped.
+    pub fn downscaled(&self, f: usize) -> RgbImage {
+        if f <= 1 {
+            return self.clone();
+        }
+        let (w, h) = (self.width / f, self.height / f);
+        let mut out = RgbImage::new(w, h);
+        let n = (f * f) as f32;
+        for y in 0..h {
+            for x in 0..w {
+                let mut sum = [0.0f32; 3];
+                for dy in 0..f {
+                    for dx in 0..f {
+                        let p = self.pixels[(y * f + dy) * self.width + x * f + dx];
+                        for c in 0..3 {
+                            sum[c] += p[c];
+                        }
+                    }
+                }
+                out.pixels[y * w + x] = sum.map(|s| s / n);
+            }
+        }
+        out
+    }
+
+    /// Shrunk by a whole factor (block means) to at most `side` pixels on its longer side, and
+    /// at least one on its shorter: a thumbnail for a contact sheet.
+    pub fn thumbnail(&self, side: usize) -> RgbImage {
+        let f = self.width.max(self.height).div_ceil(side.max(1)).min(self.width.min(self.height)).max(1);
+        self.downscaled(f)
     }
 
     pub fn get(&self, x: usize, y: usize) -> [f32; 3] {
@@ -342,9 +374,8 @@ pub fn read_mask(path: &Path) -> Result<Mask, ImageError> {
 
 /// Writes `bytes` to `path` atomically: a temp file beside it, then a rename.
 pub fn write_atomic(path: &Path, bytes: &[u8]) -> std::io::Result<()> {
-    let temp = temp_path(path);
+    let (temp, mut file) = crate::files::create_new_beside(path, "tmp")?;
     let result = (|| {
-        let mut file = std::fs::File::create(&temp)?;
         file.write_all(bytes)?;
         file.sync_all()?;
         std::fs::rename(&temp, path)
@@ -355,12 +386,6 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> std::io::Result<()> {
     result
 }
 
-/// The temp name used by [`write_atomic`]: hidden, beside the target, unique to this process.
-pub fn temp_path(path: &Path) -> PathBuf {
-    let name = path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
-    path.with_file_name(format!(".{name}.tmp{}", std::process::id()))
-}
-
 /// Encodes linear RGB as an 8-bit sRGB PNG.
 pub fn encode_png_rgb(image: &RgbImage) -> Result<Vec<u8>, ImageError> {
     let mut raw = Vec::with_capacity(image.pixels.len() * 3);
@@ -368,31 +393,6 @@ pub fn encode_png_rgb(image: &RgbImage) -> Result<Vec<u8>, ImageError> {
         raw.extend(p.iter().map(|&c| linear_to_srgb8(c)));
     }
     encode_png_raw(&raw, image.width, image.height, image::ExtendedColorType::Rgb8)
-}
-
-/// Encodes same-sized linear RGB images as an animated 8-bit sRGB PNG (APNG) that loops for
-/// ever, each frame shown `frame_ms` milliseconds; viewers without APNG show the first frame.
-pub fn encode_apng_rgb(frames: &[RgbImage], frame_ms: u16) -> Result<Vec<u8>, ImageError> {
-    let err = |e: png::EncodingError| ImageError::Decode("apng encoder".into(), e.to_string());
-    let Some(first) = frames.first() else { return Err(ImageError::Decode("apng encoder".into(), "no frames".into())) };
-    if frames.iter().any(|f| (f.width, f.height) != (first.width, first.height)) {
-        return Err(ImageError::Decode("apng encoder".into(), "frames of different sizes".into()));
-    }
-    let mut out = Vec::new();
-    {
-        let mut encoder = png::Encoder::new(&mut out, first.width as u32, first.height as u32);
-        encoder.set_color(png::ColorType::Rgb);
-        encoder.set_depth(png::BitDepth::Eight);
-        encoder.set_animated(frames.len() as u32, 0).map_err(err)?;
-        encoder.set_frame_delay(frame_ms, 1000).map_err(err)?;
-        let mut writer = encoder.write_header().map_err(err)?;
-        for frame in frames {
-            let raw: Vec<u8> = frame.pixels.iter().flat_map(|p| p.map(linear_to_srgb8)).collect();
-            writer.write_image_data(&raw).map_err(err)?;
-        }
-        writer.finish().map_err(err)?;
-    }
-    Ok(out)
 }
 
 /// Encodes a mask as an 8-bit grey PNG (255 foreground, 0 background).
@@ -413,7 +413,8 @@ pub fn encode_png_raw(raw: &[u8], width: usize, height: usize, color: image::Ext
 
 /// Writes a linear RGB image as a float EXR, atomically.
 pub fn write_exr_atomic(path: &Path, image: &RgbImage) -> Result<(), ImageError> {
-    let temp = temp_path(path).with_extension("exr");
+    // The temp name is made exclusively (nobody's file), then the encoder writes into it.
+    let (temp, _) = crate::files::create_new_beside(path, "tmp.exr").map_err(|e| io_error(path, e))?;
     let result = exr::prelude::write_rgb_file(&temp, image.width, image.height, |x, y| {
         let p = image.get(x, y);
         (p[0], p[1], p[2])

@@ -7,6 +7,7 @@
 
 pub mod ablate;
 pub mod animate;
+pub mod apng;
 pub mod avatar;
 pub mod averaging;
 pub mod backend;
@@ -53,3 +54,4 @@ pub mod sun_search;
 pub mod synth;
 pub mod table;
 pub mod train;
+pub mod written;

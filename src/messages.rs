@@ -32,6 +32,13 @@ pub enum TrainMessage {
     Evaluating {
         images: usize,
     },
+    /// What a render of many views will cost, said before the first: the views, their size and
+    /// the PNG bytes they will take at most (8-bit RGBA, uncompressed).
+    Planned {
+        views: usize,
+        width: usize,
+        height: usize,
+    },
     /// One frame's fitted surface meshed and compared with the scene's ground-truth mesh.
     Meshed {
         done: usize,

@@ -210,15 +210,45 @@ pub fn read_photo(path: &Path) -> Result<(RgbImage, Option<Mask>), ImageError> {
         return Err(decode_error(format!("declares {w}x{h} pixels, more than the {MAX_PIXELS} allowed")));
     }
     let bytes = std::fs::read(path).map_err(|e| io_error(path, e))?;
+    if format == image::ImageFormat::Jpeg && !jpeg_is_whole(&bytes) {
+        return Err(decode_error("the JPEG is cut short (no end-of-image marker after its last scan): the file is truncated".into()));
+    }
     let img = guarded(path, || image::load_from_memory_with_format(&bytes, format).map_err(|e| decode_error(e.to_string())))?;
     let (width, height) = (img.width() as usize, img.height() as usize);
     let alpha = img.color().has_alpha().then(|| Mask { width, height, foreground: img.to_rgba8().pixels().map(|p| p.0[3] > 127).collect() });
     Ok((linear(img), alpha))
 }
 
+/// Whether a JPEG's bytes end its last scan: an end-of-image marker (`FF D9`) after the last
+/// start-of-scan (`FF DA`). The decoder fills a truncated scan with grey and says nothing; in a
+/// scan's coded data `FF` is always followed by `00` or a restart marker, so neither marker can
+/// appear there by chance, and an embedded thumbnail's end comes before the image's scans.
+pub fn jpeg_is_whole(bytes: &[u8]) -> bool {
+    let last = |marker: u8| bytes.windows(2).rposition(|w| w == [0xFF, marker]);
+    match (last(0xDA), last(0xD9)) {
+        (Some(scan), Some(end)) => end > scan,
+        _ => false,
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_jpeg_cut_anywhere_in_its_scans_is_not_whole() {
+        let mut image = image::RgbImage::new(32, 24);
+        for (x, y, p) in image.enumerate_pixels_mut() {
+            *p = image::Rgb([(x * 8) as u8, (y * 10) as u8, 77]);
+        }
+        let mut bytes = Vec::new();
+        image::DynamicImage::ImageRgb8(image).write_to(&mut std::io::Cursor::new(&mut bytes), image::ImageFormat::Jpeg).unwrap();
+        assert!(jpeg_is_whole(&bytes));
+        let scan = bytes.windows(2).rposition(|w| w == [0xFF, 0xDA]).unwrap();
+        for cut in (scan + 2..bytes.len() - 1).step_by(7) {
+            assert!(!jpeg_is_whole(&bytes[..cut]), "cut at {cut} of {}", bytes.len());
+        }
+    }
 
     #[test]
     fn runs_keep_every_pixel_and_drop_only_black() {

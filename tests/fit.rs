@@ -357,7 +357,9 @@ fn evaluation_renders_and_scores_every_test_image_and_umbra_render_repeats_it() 
     for name in ["c00_f0000.png", "c01_f0002.png", "sheet.png"] {
         assert!(sky.join(name).exists(), "{name}");
     }
-    assert_eq!(std::fs::read_dir(&sky).unwrap().count(), 5);
+    // The four views, the sheet and the manifest of what relight wrote.
+    assert_eq!(std::fs::read_dir(&sky).unwrap().count(), 6);
+    assert!(sky.join(umbra::written::MANIFEST).is_file());
     let lamp = dir.path().join("lamp.json");
     std::fs::write(&lamp, r#"{"type": "point", "position": [1.0, 2.0, 1.5], "intensity": [5, 5, 5]}"#).unwrap();
     let run = cli(&["relight", out.to_str().unwrap(), "--light", lamp.to_str().unwrap(), "--camera", "0", "--frame", "1"]);
@@ -855,7 +857,7 @@ fn orbit_cameras_circle_the_body_at_the_scenes_height_and_distance() {
         let o = c.centre() - centre;
         (o.x * o.x + o.z * o.z).sqrt()
     };
-    let orbit = umbra::relight::orbit_cameras(&scene, 0, 8);
+    let orbit = umbra::relight::orbit_cameras(&scene, 0, 8).collect::<Vec<_>>();
     assert_eq!(orbit.len(), 8);
     for c in &orbit {
         let at = c.project(centre).unwrap();

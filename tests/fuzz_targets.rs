@@ -151,3 +151,48 @@ fn the_checkpoint_target_resumes_a_real_checkpoint_and_refuses_damaged_ones() {
         eprintln!("{}: {:?}", path.display(), target.run(&bytes));
     }
 }
+
+#[test]
+fn the_clip_colmap_and_transforms_targets_accept_their_seeds_and_refuse_broken_copies() {
+    let dir = TempDir::new("fuzz-capture");
+    let options = umbra::synth::SynthOptions {
+        size: 24,
+        cameras: 2,
+        frames: 2,
+        test_frames: 0,
+        test: vec![],
+        samples: 2,
+        export: Some(umbra::synth::Export::Nerfstudio),
+        ..umbra::synth::SynthOptions::default()
+    };
+    let capture = dir.path().join("capture");
+    umbra::synth::generate(&options, &capture, false, |_, _| {}).unwrap();
+    let bvh = std::fs::read(capture.join("motion.bvh")).unwrap();
+    assert_eq!(umbra::fuzzing::clip(&bvh), Outcome::Accepted);
+    for bad in broken(&bvh) {
+        assert_eq!(umbra::fuzzing::clip(&bad), Outcome::Refused);
+    }
+    let transforms = std::fs::read(capture.join("transforms.json")).unwrap();
+    assert_eq!(umbra::fuzzing::transforms(&transforms), Outcome::Accepted);
+    for bad in broken(&transforms) {
+        assert_eq!(umbra::fuzzing::transforms(&bad), Outcome::Refused);
+    }
+    let cameras = b"1 PINHOLE 24 24 30 30 12 12\n2 OPENCV 24 24 30 30 12 12 0.01 0 0 0\n".to_vec();
+    let images = b"1 1 0 0 0 0 0 3 1 a.png\n\n2 1 0 0 0 0 0 3 2 cam2/b.png\n10.5 3 -1\n".to_vec();
+    let model = Folder { files: vec![("cameras.txt".into(), cameras), ("images.txt".into(), images.clone())] };
+    assert_eq!(umbra::fuzzing::colmap(&model.encode()), Outcome::Accepted);
+    for bad in broken(&images) {
+        let files = vec![model.files[0].clone(), ("images.txt".into(), bad)];
+        assert_eq!(umbra::fuzzing::colmap(&Folder { files }.encode()), Outcome::Refused);
+    }
+    for target in ["clip", "colmap", "transforms"] {
+        for (path, bytes) in regressions(target) {
+            let outcome = match target {
+                "clip" => umbra::fuzzing::clip(&bytes),
+                "colmap" => umbra::fuzzing::colmap(&bytes),
+                _ => umbra::fuzzing::transforms(&bytes),
+            };
+            eprintln!("{}: {outcome:?}", path.display());
+        }
+    }
+}

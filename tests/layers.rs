@@ -16,6 +16,8 @@ const LAYERS: &[&[&str]] = &[
         "scene",
         "skeleton",
         "imageio",
+        "apng",
+        "written",
         "photo",
         "random",
         "light",

@@ -273,7 +273,54 @@ impl Motion {
     pub fn time(&self, k: usize) -> f64 {
         k as f64 * self.frame_time
     }
+
+    /// The skeleton's size at rest (file units): the span of its joints and End Sites placed by
+    /// their offsets alone.
+    pub fn rest_span(&self) -> f64 {
+        let mut heads: Vec<DVec3> = Vec::with_capacity(self.joints.len());
+        let mut points = Vec::with_capacity(2 * self.joints.len());
+        for joint in &self.joints {
+            let head = joint.parent.map_or(DVec3::ZERO, |p| heads[p]) + joint.offset;
+            heads.push(head);
+            points.push(head);
+            points.extend(joint.end_site.map(|e| head + e));
+        }
+        let (lo, hi) = points.iter().fold((DVec3::splat(f64::INFINITY), DVec3::splat(f64::NEG_INFINITY)), |(lo, hi), p| (lo.min(*p), hi.max(*p)));
+        (hi - lo).length()
+    }
+
+    /// What makes the clip impossible to pose a body with, if anything: frames further apart
+    /// than `MAX_FRAME_TIME`, a skeleton of no size (every offset 0: no bone has a direction or
+    /// a length), or a frame that puts a joint further from the start than `MAX_TRAVEL` times
+    /// the skeleton's size (a body 1.7 m tall 17 km away: past what f32 renders) or nowhere.
+    /// Every reader of clips refuses these (`capture::read_clip`).
+    pub fn problem(&self) -> Option<String> {
+        if !(self.frame_time <= MAX_FRAME_TIME) {
+            let time = super::readable(self.frame_time);
+            return Some(format!("Frame Time {time} s: frames more than {MAX_FRAME_TIME} s apart are no motion clip (is it in milliseconds or frames per second?)"));
+        }
+        let span = self.rest_span();
+        if !(span > 0.0) || !span.is_finite() {
+            return Some("the skeleton has no size: every joint's OFFSET (and End Site) is 0, so its bones have neither length nor direction".into());
+        }
+        let reach = MAX_TRAVEL * span;
+        for k in 0..self.frames.len() {
+            let far = self.joint_to_world(k).iter().map(|m| m.w_axis.truncate().length()).fold(0.0f64, |a, d| if d.is_nan() { f64::INFINITY } else { a.max(d) });
+            if !(far <= reach) {
+                return Some(format!(
+                    "frame {k}: a joint lies {far:e} file units from the origin, more than {MAX_TRAVEL} times the skeleton's size ({span:.4}): no body can be posed there"
+                ));
+            }
+        }
+        None
+    }
 }
+
+/// The most seconds between a clip's frames (a clip at 0.1 frames per second is a slideshow).
+pub const MAX_FRAME_TIME: f64 = 10.0;
+
+/// How far from the origin, in skeleton sizes, a clip may carry a joint.
+pub const MAX_TRAVEL: f64 = 1e4;
 
 /// The angles (degrees) `a, b, c` with `Rz(a) Rx(b) Ry(c) = r` (a BVH's `Zrotation Xrotation
 /// Yrotation`).

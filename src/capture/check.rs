@@ -16,6 +16,43 @@ const POINTS_PER_BONE: usize = 9;
 pub const REFUSE: f64 = 0.5;
 pub const WARN: f64 = 0.85;
 
+/// The body sizes umbra fits (m, the diagonal of its joints' box): a cat's to an elephant's.
+/// Units or an up that turn and scale the cameras and the motion together leave the capture
+/// check's projections unchanged; a body's size and the cameras' level rows do not.
+pub const SMALLEST_BODY: f64 = 0.25;
+pub const LARGEST_BODY: f64 = 10.0;
+
+/// The most the up the cameras show (`scene::world_up`) may lean from the scene's +Y (degrees).
+pub const MOST_UP_LEAN: f64 = 30.0;
+
+/// What is wrong with a body `metres` across, if anything (`SMALLEST_BODY`..`LARGEST_BODY`).
+pub fn size_problem(metres: f64) -> Option<String> {
+    match (SMALLEST_BODY..=LARGEST_BODY).contains(&metres) {
+        true => None,
+        false => Some(format!("a body {metres:.3} m across, where umbra fits bodies {SMALLEST_BODY} to {LARGEST_BODY} m across")),
+    }
+}
+
+/// What is wrong with the way `scene` stands, if anything: its cameras' image rows are level
+/// about an up far from +Y (the capture's up is another axis), or most cameras stand below the
+/// body's lowest joint in every frame (up is upside down).
+pub fn orientation_problem(scene: &Scene) -> Option<String> {
+    let up = crate::scene::world_up(&scene.cameras);
+    let lean = up.angle_between(glam::DVec3::Y).to_degrees();
+    if !(lean <= MOST_UP_LEAN) {
+        return Some(format!(
+            "the cameras' image rows are level about an up of ({:.2}, {:.2}, {:.2}) in the scene, {lean:.0} degrees from its +Y",
+            up.x, up.y, up.z
+        ));
+    }
+    let lowest = scene.frames.iter().map(|f| f.pose.bounds(&scene.skeleton).0.y).fold(f64::INFINITY, f64::min);
+    let below = scene.cameras.iter().filter(|c| c.centre().y < lowest).count();
+    if 2 * below > scene.cameras.len() {
+        return Some(format!("{below} of {} cameras stand below the body's lowest joint ({lowest:.3} m): the body is upside down", scene.cameras.len()));
+    }
+    None
+}
+
 /// The share of the bones' points inside the masks: over all training images, per camera and
 /// per bone.
 #[derive(Clone, Debug)]

@@ -62,56 +62,88 @@ fn cameras(file: &Path) -> Result<BTreeMap<u64, (Intrinsics, Distortion)>, Impor
             "OPENCV" => Distortion { model: model.to_string(), k1: k[0], k2: k[1], p1: k[2], p2: k[3], k3: 0.0 },
             _ => Distortion { model: model.to_string(), k1: coefficient(0), k2: coefficient(1), ..Distortion::default() },
         };
-        out.insert(id, (Intrinsics { fx, fy, cx, cy, width, height }, distortion));
+        let intrinsics = Intrinsics { fx, fy, cx, cy, width, height };
+        if let Some(problem) = intrinsics.problem(&distortion) {
+            return Err(input(file, format!("line {n}: camera {id}: {problem}")));
+        }
+        if out.insert(id, (intrinsics, distortion)).is_some() {
+            return Err(input(file, format!("line {n}: a second camera {id}: each CAMERA_ID names one camera")));
+        }
     }
     Ok(out)
 }
 
 /// Every image of the model in `dir` (`cameras.txt`, `images.txt`), its file in `images`.
+/// A pose line is recognised by its fields, not by its place: a model written without the
+/// lines of 2D points, or with some missing, reads whole; a line of points is taken as one only
+/// right after a pose line.
 pub fn read(dir: &Path, images: &Path) -> Result<Vec<CaptureImage>, ImportError> {
     let cameras = cameras(&dir.join("cameras.txt"))?;
     let file = dir.join("images.txt");
     let text = crate::files::read_text(&file, crate::files::SCENE_BYTES).map_err(|e| input(&file, e.to_string()))?;
-    let lines: Vec<(usize, &str)> = text.lines().enumerate().map(|(n, l)| (n + 1, l.trim())).filter(|(_, l)| !l.starts_with('#')).collect();
     let mut out = Vec::new();
-    // Pose lines alternate with lines of 2D points (which may be empty).
-    let mut k = 0;
-    while k < lines.len() {
-        let (n, line) = lines[k];
-        k += 2;
-        if line.is_empty() {
-            k -= 1;
+    let mut ids = std::collections::BTreeSet::new();
+    // A line of 2D points may follow a pose line, and nothing else may be one.
+    let mut after_pose = false;
+    for (n, line) in text.lines().enumerate().map(|(n, l)| (n + 1, l.trim())) {
+        let words: Vec<&str> = line.split_whitespace().collect();
+        if words.is_empty() || line.starts_with('#') || (after_pose && is_points_line(&words)) {
+            after_pose = false;
             continue;
         }
-        let words: Vec<&str> = line.split_whitespace().collect();
-        if words.len() < 10 {
-            return Err(input(&file, format!("line {n}: expected IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME")));
+        after_pose = true;
+        let (id, image) = pose_line(&words, &cameras, images, &file, n)?;
+        if !ids.insert(id) {
+            return Err(input(&file, format!("line {n}: a second image {id}: each IMAGE_ID names one image")));
         }
-        let v = numbers(&words[1..8], &file, n)?;
-        let camera: u64 = words[8].parse().map_err(|_| input(&file, format!("line {n}: camera id {:?} is not a number", words[8])))?;
-        let (intrinsics, distortion) = cameras.get(&camera).cloned().ok_or_else(|| input(&file, format!("line {n}: camera {camera} is not in cameras.txt")))?;
-        let q = DQuat::from_xyzw(v[1], v[2], v[3], v[0]);
-        if (q.length() - 1.0).abs() > 1e-3 {
-            return Err(input(&file, format!("line {n}: the rotation quaternion has length {:.4}, not 1", q.length())));
-        }
-        let rotation = DMat3::from_quat(q.normalize());
-        let world_to_camera = DMat4::from_mat3_translation(rotation, DVec3::new(v[4], v[5], v[6]));
-        let name = words[9..].join(" ");
-        out.push(CaptureImage {
-            path: images.join(&name),
-            json_path: format!("line {n} ({name})"),
-            mask: None,
-            intrinsics,
-            distortion,
-            camera_to_world: world_to_camera.inverse(),
-            time: None,
-            split: Split::Train,
-        });
+        out.push(image);
     }
     if out.is_empty() {
         return Err(input(&file, "lists no images"));
     }
     Ok(out)
+}
+
+/// Whether `words` are a line of 2D points: `X Y POINT3D_ID` triples, numbers all.
+fn is_points_line(words: &[&str]) -> bool {
+    words.len() % 3 == 0 && words.iter().all(|w| w.parse::<f64>().is_ok())
+}
+
+/// One image's pose line, `IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME`: its id and image.
+fn pose_line(
+    words: &[&str],
+    cameras: &BTreeMap<u64, (Intrinsics, Distortion)>,
+    images: &Path,
+    file: &Path,
+    n: usize,
+) -> Result<(u64, CaptureImage), ImportError> {
+    if words.len() < 10 {
+        return Err(input(file, format!("line {n}: expected IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME, or a line of 2D points (X Y POINT3D_ID ...)")));
+    }
+    let id: u64 = words[0].parse().map_err(|_| input(file, format!("line {n}: image id {:?} is not a whole number", words[0])))?;
+    let v = numbers(&words[1..8], file, n)?;
+    let camera: u64 = words[8].parse().map_err(|_| input(file, format!("line {n}: camera id {:?} is not a number", words[8])))?;
+    let (intrinsics, distortion) = cameras.get(&camera).cloned().ok_or_else(|| input(file, format!("line {n}: camera {camera} is not in cameras.txt")))?;
+    let q = DQuat::from_xyzw(v[1], v[2], v[3], v[0]);
+    if (q.length() - 1.0).abs() > 1e-3 {
+        return Err(input(file, format!("line {n}: the rotation quaternion has length {:.4}, not 1", q.length())));
+    }
+    let rotation = DMat3::from_quat(q.normalize());
+    let world_to_camera = DMat4::from_mat3_translation(rotation, DVec3::new(v[4], v[5], v[6]));
+    let name = words[9..].join(" ");
+    let relative = super::inside(&name).map_err(|e| input(file, format!("line {n}: NAME {e}")))?;
+    let image = CaptureImage {
+        path: images.join(&relative),
+        key: super::image_key(&relative),
+        json_path: format!("line {n} ({name})"),
+        mask: None,
+        intrinsics,
+        distortion,
+        camera_to_world: world_to_camera.inverse(),
+        time: None,
+        split: Split::Train,
+    };
+    Ok((id, image))
 }
 
 #[cfg(test)]

@@ -38,6 +38,10 @@ pub struct Intrinsics {
 #[derive(Clone, Debug)]
 pub struct CaptureImage {
     pub path: PathBuf,
+    /// The image's name in the capture, without its extension: its path below the images'
+    /// folder (`cam02/000000` in a rig's folder per camera). Unique; the scene's image and its
+    /// mask take it.
+    pub key: String,
     /// Where the camera file names it (`frames[12].file_path`).
     pub json_path: String,
     pub mask: Option<PathBuf>,
@@ -48,6 +52,44 @@ pub struct CaptureImage {
     pub time: Option<f64>,
     pub split: Split,
 }
+
+/// `name` (a camera file's image or mask path) as a relative path that stays inside the
+/// folder it is relative to; an absolute path or one through `..` is refused.
+pub(crate) fn inside(name: &str) -> Result<PathBuf, String> {
+    let path = Path::new(name);
+    let plain = path.components().all(|c| matches!(c, std::path::Component::Normal(_) | std::path::Component::CurDir));
+    match !name.is_empty() && !path.is_absolute() && plain {
+        true => Ok(path.components().filter(|c| matches!(c, std::path::Component::Normal(_))).collect()),
+        false => Err(format!("{name:?} leads outside the capture (absolute, or through '..'): name files inside it")),
+    }
+}
+
+/// An image's key (`CaptureImage::key`) from its path below the images' folder: `/`-separated,
+/// without the extension.
+pub(crate) fn image_key(relative: &Path) -> String {
+    let parts: Vec<String> = relative.with_extension("").components().map(|c| c.as_os_str().to_string_lossy().into_owned()).collect();
+    parts.join("/")
+}
+
+/// `x` as a person reads it: plain when it is an everyday size, in exponent form when it is
+/// not (`1e300`, not three hundred digits).
+pub(crate) fn readable(x: f64) -> String {
+    match (1e-3..1e6).contains(&x.abs()) || x == 0.0 {
+        true => format!("{}", (x * 1e4).round() / 1e4),
+        false => format!("{x:.4e}"),
+    }
+}
+
+/// Reads `--max-size PIXELS`: a whole number of at least `SMALLEST_MAX_SIZE`.
+pub fn parse_max_size(text: &str) -> Result<usize, String> {
+    match text.trim().parse::<usize>() {
+        Ok(n) if n >= SMALLEST_MAX_SIZE => Ok(n),
+        _ => Err(format!("{text:?}: images are kept at least {SMALLEST_MAX_SIZE} pixels on their longer side (a smaller image holds too little of the body to fit)")),
+    }
+}
+
+/// The smallest `--max-size`.
+pub const SMALLEST_MAX_SIZE: usize = 16;
 
 /// The capture's length unit.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
@@ -181,8 +223,7 @@ fn read_cameras(options: &ImportOptions) -> Result<(Vec<CaptureImage>, PathBuf),
     let images_dir = if capture.join("images").is_dir() { capture.join("images") } else { capture.clone() };
     let mut images = colmap::read(&dir, &images_dir)?;
     for image in &mut images {
-        let stem = image.path.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_default();
-        let mask = capture.join("masks").join(format!("{stem}.png"));
+        let mask = capture.join("masks").join(format!("{}.png", image.key));
         if options.masks.is_none() && mask.is_file() {
             image.mask = Some(mask);
         }
@@ -197,11 +238,13 @@ pub fn import(options: &ImportOptions, on: &(dyn Fn(usize, usize) + Sync)) -> Re
     if out.exists() && std::fs::read_dir(out).map(|mut d| d.next().is_some()).unwrap_or(true) {
         return Err(input(out, "exists and is not an empty folder: import writes a new scene (nothing was written)"));
     }
+    // `--out .` or `--out ..` names a folder by where it is: the scene is named after it.
+    let out = &crate::files::absolute_target(out).map_err(|e| input(out, format!("{e} (nothing was written)")))?;
     let (images, camera_file) = read_cameras(options)?;
     let (motion, motion_file) = read_motion(options)?;
     let rig = bones::rig(&motion).map_err(|e| input(&motion_file, e))?;
     let mut report = ImportReport { images: images.len(), ..ImportReport::default() };
-    let units = units_of(options, &motion, &mut report);
+    let units = units_of(options, &motion, &motion_file, &mut report)?;
     let up = match options.up {
         Up::PlusY => DMat4::IDENTITY,
         // +Z up to +Y up: a quarter turn about X.
@@ -221,8 +264,8 @@ pub fn import(options: &ImportOptions, on: &(dyn Fn(usize, usize) + Sync)) -> Re
     let position = |k: usize| used.iter().position(|&u| u == k).unwrap_or(0);
     let (light_name, light) = light_json(options.light);
     report.assumed.push(format!("light: {light_name} ({}; the fit recovers it)", light["type"].as_str().unwrap_or("?")));
-    let temp = out.with_file_name(format!(".{}.importing", out.file_name().map(|f| f.to_string_lossy().into_owned()).unwrap_or_default()));
-    let _ = std::fs::remove_dir_all(&temp);
+    // A folder of import's own beside `out` (never one that was there): the only one it removes.
+    let temp = crate::files::create_folder_beside(out, "importing").map_err(|e| input(out, format!("{e} (nothing was written)")))?;
     let written = photos::write(&images, &photos, &temp, on);
     let result = written.and_then(|entries| {
         let image_entries: Vec<Value> = entries
@@ -250,17 +293,39 @@ pub fn import(options: &ImportOptions, on: &(dyn Fn(usize, usize) + Sync)) -> Re
         });
         let text = serde_json::to_string_pretty(&scene).map_err(|e| input(out, e.to_string()))?;
         crate::imageio::write_atomic(&temp.join("scene.json"), text.as_bytes()).map_err(|e| input(&temp, e.to_string()))?;
-        let scene = crate::scene::Scene::load(&temp)?;
+        // What the scene reader refuses lies in the capture's values: named by the capture's
+        // files, not by the temporary folder the user never saw.
+        let scene = crate::scene::Scene::load(&temp).map_err(|e| {
+            let said = e.to_string().replace(&temp.display().to_string(), "the converted scene");
+            input(&camera_file, format!("with {}: {said} (nothing was written)", motion_file.display()))
+        })?;
         agreement(&scene, &temp, &options.capture, &mut report)?;
-        if out.exists() {
-            std::fs::remove_dir(out).map_err(|e| input(out, e.to_string()))?;
-        }
-        std::fs::rename(&temp, out).map_err(|e| input(out, format!("cannot move the imported scene into place: {e}")))
+        move_into_place(&temp, out)
     });
     if result.is_err() {
         let _ = std::fs::remove_dir_all(&temp);
     }
     result.map(|_| report)
+}
+
+/// The finished scene in `temp` moved to `out`: renamed when `out` does not exist; moved entry
+/// by entry into an existing empty `out` (the user's folder, perhaps their working folder, is
+/// kept), `scene.json` last so that the folder is a scene only once it is whole.
+fn move_into_place(temp: &Path, out: &Path) -> Result<(), ImportError> {
+    let fail = |e: std::io::Error| input(out, format!("cannot move the imported scene into place: {e}"));
+    if !out.exists() {
+        return std::fs::rename(temp, out).map_err(fail);
+    }
+    let mut names: Vec<std::ffi::OsString> = std::fs::read_dir(temp).map_err(fail)?.filter_map(|e| e.ok().map(|e| e.file_name())).collect();
+    names.sort_by_key(|n| n == "scene.json");
+    for name in names {
+        let target = out.join(&name);
+        if std::fs::symlink_metadata(&target).is_ok() {
+            return Err(input(&target, "appeared while the scene was imported: nothing more was moved"));
+        }
+        std::fs::rename(temp.join(&name), &target).map_err(fail)?;
+    }
+    std::fs::remove_dir(temp).map_err(fail)
 }
 
 /// The capture's motion: `--motion`, else its only .bvh, else its `joints.json`; a BVH, or
@@ -278,31 +343,47 @@ fn read_motion(options: &ImportOptions) -> Result<(bvh::Motion, PathBuf), Import
 /// Reads a clip: a BVH, or per-frame joint transforms as JSON (`joints`) when its name ends
 /// in `.json`.
 pub fn read_clip(file: &Path) -> Result<bvh::Motion, ImportError> {
-    Ok(match file.extension().is_some_and(|e| e.eq_ignore_ascii_case("json")) {
+    let motion = match file.extension().is_some_and(|e| e.eq_ignore_ascii_case("json")) {
         true => joints::read(file)?,
         false => bvh::read(file)?,
-    })
+    };
+    match motion.problem() {
+        Some(problem) => Err(input(file, format!("{problem} (nothing was written)"))),
+        None => Ok(motion),
+    }
 }
 
 /// The capture's units: `--units`, else inferred from the joints' span; said in `report`.
-fn units_of(options: &ImportOptions, motion: &bvh::Motion, report: &mut ImportReport) -> Units {
-    if let Some(u) = options.units {
-        report.assumed.push(format!("units: {} (--units)", u.name()));
-        return u;
-    }
+/// Refused when they make the body a size umbra does not fit (`check::size_problem`), saying
+/// what the inference would take.
+fn units_of(options: &ImportOptions, motion: &bvh::Motion, motion_file: &Path, report: &mut ImportReport) -> Result<Units, ImportError> {
     let extent = joint_extent(motion);
-    let units = Units::for_extent(extent);
-    report.assumed.push(format!(
-        "units: {0} (inferred: the skeleton's joints span {extent:.3} file units, {1:.2} m in {0})",
-        units.name(),
-        extent * units.metres()
-    ));
-    units
+    let inferred = Units::for_extent(extent);
+    let units = options.units.unwrap_or(inferred);
+    if let Some(problem) = check::size_problem(extent * units.metres()) {
+        let how = if options.units.is_some() { "--units" } else { "inferred" };
+        let other = match options.units.filter(|&u| u != inferred) {
+            Some(_) => format!("; in {} (what its size suggests) it is {:.2} m", inferred.name(), extent * inferred.metres()),
+            None => String::new(),
+        };
+        return Err(input(
+            motion_file,
+            format!("the skeleton's joints span {} file units: in {} ({how}) {problem}{other} (nothing was written)", readable(extent), units.name()),
+        ));
+    }
+    report.assumed.push(match options.units {
+        Some(u) => format!("units: {} (--units)", u.name()),
+        None => format!("units: {0} (inferred: the skeleton's joints span {extent:.3} file units, {1:.2} m in {0})", units.name(), extent * units.metres()),
+    });
+    Ok(units)
 }
 
 /// The capture check (`check`) of the scene written in `dir`: its contact sheet beside it
 /// (`check.png`), its figure in the report; refused when the cameras and the motion disagree.
 fn agreement(scene: &crate::scene::Scene, dir: &Path, capture: &Path, report: &mut ImportReport) -> Result<(), ImportError> {
+    if let Some(problem) = check::orientation_problem(scene) {
+        return Err(input(capture, format!("{problem}: check --up (+y unless given; a Z-up capture takes --up +z) (nothing was written)")));
+    }
     let found = check::check(scene);
     check::contact_sheet(scene, &found).save_png(&dir.join("check.png")).map_err(|e| input(dir, e))?;
     let figure = format!("{:.0}% of the bones' points project inside the training masks", 100.0 * found.score);

@@ -44,6 +44,8 @@ pub fn read(file: &Path) -> Result<Vec<CaptureImage>, SceneError> {
     for frame in root.field("frames")?.non_empty_array()? {
         let path_node = frame.field("file_path")?;
         let relative = path_node.str()?;
+        let within = |node: &At| -> Result<std::path::PathBuf, SceneError> { super::inside(node.str()?).map_err(|e| node.error(e)) };
+        let file_path = within(&path_node)?;
         let own = intrinsics(&frame, shared.as_ref(), &model)?;
         let (intrinsics, distortion) =
             own.or(shared.clone()).ok_or_else(|| frame.error("no intrinsics: fl_x, fl_y, cx, cy, w and h on the frame or the file"))?;
@@ -57,10 +59,13 @@ pub fn read(file: &Path) -> Result<Vec<CaptureImage>, SceneError> {
         } else {
             Split::Train
         };
+        // The key: the path below `images/` (nerfstudio's folder for them), else below the file.
+        let below = file_path.strip_prefix("images").ok().filter(|p| !p.as_os_str().is_empty()).unwrap_or(&file_path);
         images.push(CaptureImage {
-            path: dir.join(relative),
+            path: dir.join(&file_path),
+            key: super::image_key(below),
             json_path: path_node.path.clone(),
-            mask: frame.opt_field("mask_path")?.map(|m| m.str().map(|p| dir.join(p))).transpose()?,
+            mask: frame.opt_field("mask_path")?.map(|m| within(&m).map(|p| dir.join(p))).transpose()?,
             intrinsics,
             distortion,
             camera_to_world: opengl * flip_yz(),
@@ -86,6 +91,14 @@ fn intrinsics(node: &At, shared: Option<&(Intrinsics, Distortion)>, model: &str)
             None => fallback.ok_or_else(|| node.error(format!("{key}: missing"))),
         }
     };
+    // An image's size in pixels: a whole number (128.5 is no size), and no more than an image
+    // umbra reads may have.
+    let whole = |key: &str, v: f64| -> Result<usize, SceneError> {
+        match v.fract() == 0.0 && (1.0..=crate::imageio::MAX_PIXELS as f64).contains(&v) {
+            true => Ok(v as usize),
+            false => Err(node.error(format!("{key} {v}: an image's size is a whole number of pixels"))),
+        }
+    };
     let model = match node.opt_field("camera_model")? {
         Some(m) => m.str()?.to_string(),
         None => model.to_string(),
@@ -100,8 +113,8 @@ fn intrinsics(node: &At, shared: Option<&(Intrinsics, Distortion)>, model: &str)
         fy: fl_y,
         cx: number("cx", base.as_ref().map(|b| b.cx))?,
         cy: number("cy", base.as_ref().map(|b| b.cy))?,
-        width: number("w", base.as_ref().map(|b| b.width as f64))? as usize,
-        height: number("h", base.as_ref().map(|b| b.height as f64))? as usize,
+        width: whole("w", number("w", base.as_ref().map(|b| b.width as f64))?)?,
+        height: whole("h", number("h", base.as_ref().map(|b| b.height as f64))?)?,
     };
     if intrinsics.fx <= 0.0 || intrinsics.fy <= 0.0 || intrinsics.width == 0 || intrinsics.height == 0 {
         return Err(node.error(format!("fl_x, fl_y, w and h must be positive, found {intrinsics:?}")));
@@ -124,6 +137,9 @@ fn intrinsics(node: &At, shared: Option<&(Intrinsics, Distortion)>, model: &str)
                 .error(format!("camera_model {other:?} is not supported (PINHOLE, SIMPLE_PINHOLE or OPENCV; fisheye and equirectangular captures are not)")))
         }
     };
+    if let Some(problem) = intrinsics.problem(&distortion) {
+        return Err(node.error(problem));
+    }
     Ok(Some((intrinsics, distortion)))
 }
 

@@ -23,27 +23,28 @@ pub struct Photos {
     pub intrinsics: Vec<Intrinsics>,
     factors: Vec<usize>,
     masks: Vec<MaskSource>,
-    /// Each image's file stem, unique.
-    stems: Vec<String>,
     pub assumed: Vec<String>,
 }
 
 /// Plans the images' processing; refuses two images of one name.
 pub fn prepare(images: &[CaptureImage], options: &ImportOptions, camera_file: &Path) -> Result<Photos, ImportError> {
-    let mut stems: Vec<String> = Vec::with_capacity(images.len());
+    let mut seen = std::collections::HashSet::with_capacity(images.len());
     for image in images {
-        let stem = image.path.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_default();
-        if stems.contains(&stem) {
-            return Err(input(camera_file, format!("{}: a second image named {stem:?}: a scene keeps each image's name", image.json_path)));
+        if !seen.insert(image.key.as_str()) {
+            return Err(input(camera_file, format!("{}: a second image named {:?}: a scene keeps each image's name", image.json_path, image.key)));
         }
-        stems.push(stem);
+    }
+    if let Some(dir) = options.masks.as_ref().filter(|d| !d.is_dir()) {
+        return Err(input(dir, "--masks: no such folder (nothing was written)"));
+    }
+    if let Some(most) = options.max_size.filter(|&m| m < super::SMALLEST_MAX_SIZE) {
+        return Err(input(camera_file, format!("--max-size {most}: {}", super::parse_max_size(&most.to_string()).err().unwrap_or_default())));
     }
     let masks: Vec<MaskSource> = images
         .iter()
-        .zip(&stems)
-        .map(|(image, stem)| match (&image.mask, &options.masks) {
+        .map(|image| match (&image.mask, &options.masks) {
             (Some(file), _) => MaskSource::File(file.clone()),
-            (None, Some(dir)) => MaskSource::File(dir.join(format!("{stem}.png"))),
+            (None, Some(dir)) => MaskSource::File(mask_in(dir, image)),
             (None, None) => MaskSource::Alpha,
         })
         .collect();
@@ -73,7 +74,20 @@ pub fn prepare(images: &[CaptureImage], options: &ImportOptions, camera_file: &P
     }
     let from_files = masks.iter().filter(|m| matches!(m, MaskSource::File(_))).count();
     assumed.push(format!("masks: {from_files} from files, {} from the images' alpha", masks.len() - from_files));
-    Ok(Photos { intrinsics, factors, masks, stems, assumed })
+    Ok(Photos { intrinsics, factors, masks, assumed })
+}
+
+/// An image's mask in `--masks DIR`: at its key's path (`DIR/cam02/000000.png`), else by its
+/// file's stem alone (`DIR/000000.png`, a flat folder of masks).
+fn mask_in(dir: &Path, image: &CaptureImage) -> PathBuf {
+    let keyed = dir.join(format!("{}.png", image.key));
+    let stem = image.path.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_default();
+    let flat = dir.join(format!("{stem}.png"));
+    if !keyed.is_file() && flat.is_file() {
+        flat
+    } else {
+        keyed
+    }
 }
 
 /// Processes and writes every image into `dir` (`images/`, `masks/`); returns each image's
@@ -131,11 +145,18 @@ fn write_one(image: &CaptureImage, photos: &Photos, i: usize, dir: &Path) -> Res
     let mut colour = colour;
     black_outside(&mut colour, &mask);
     let f = photos.factors[i];
-    let (mut colour, mask) = (downscale_colour(&colour, f), mask.map(|m| downscale_mask(&m, f)));
+    let (mut colour, mask) = (colour.downscaled(f), mask.map(|m| downscale_mask(&m, f)));
     black_outside(&mut colour, &mask);
-    let stem = &photos.stems[i];
+    let stem = &image.key;
     let exr = image.path.extension().is_some_and(|e| e.eq_ignore_ascii_case("exr"));
     let path = format!("images/{stem}.{}", if exr { "exr" } else { "png" });
+    // A key may hold folders (`cam02/000000`): the scene keeps them.
+    for sub in ["images", "masks"] {
+        let folder = dir.join(sub).join(stem);
+        if let Some(parent) = folder.parent() {
+            std::fs::create_dir_all(parent).map_err(|e| input(parent, e.to_string()))?;
+        }
+    }
     if exr {
         crate::imageio::write_exr_atomic(&dir.join(&path), &colour)?;
     } else {
@@ -152,31 +173,6 @@ fn write_one(image: &CaptureImage, photos: &Photos, i: usize, dir: &Path) -> Res
         None => None,
     };
     Ok((path, mask_path))
-}
-
-/// The mean of each `f` x `f` block (linear light); a remainder row or column is dropped.
-fn downscale_colour(image: &RgbImage, f: usize) -> RgbImage {
-    if f <= 1 {
-        return image.clone();
-    }
-    let (w, h) = (image.width / f, image.height / f);
-    let mut out = RgbImage::new(w, h);
-    let n = (f * f) as f32;
-    for y in 0..h {
-        for x in 0..w {
-            let mut sum = [0.0f32; 3];
-            for dy in 0..f {
-                for dx in 0..f {
-                    let p = image.pixels[(y * f + dy) * image.width + x * f + dx];
-                    for c in 0..3 {
-                        sum[c] += p[c];
-                    }
-                }
-            }
-            out.pixels[y * w + x] = sum.map(|s| s / n);
-        }
-    }
-    out
 }
 
 /// Each `f` x `f` block is body when at least half of it is.

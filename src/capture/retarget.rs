@@ -86,6 +86,14 @@ fn in_metres(m: DMat4, metres: f64) -> DMat4 {
     out
 }
 
+/// `driven` when every pose it gives is finite: renders and glTF hold no NaN or infinity.
+fn finite(driven: Driven) -> Result<Driven, String> {
+    match driven.poses.iter().position(|p| p.bone_to_world.iter().any(|m| !m.is_finite())) {
+        Some(k) => Err(format!("frame {k}: the clip poses a bone nowhere (a non-finite transform)")),
+        None => Ok(driven),
+    }
+}
+
 /// `motion`'s frames as poses of `skeleton`, whose `reference` pose (the scene's first frame)
 /// gives the fitted offsets and the body's place; `metres` per file unit.
 pub fn drive(skeleton: &Skeleton, reference: &Pose, motion: &Motion, metres: f64) -> Result<Driven, String> {
@@ -102,7 +110,7 @@ pub fn drive(skeleton: &Skeleton, reference: &Pose, motion: &Motion, metres: f64
                 Pose { bone_to_world: joint_of.iter().map(|&j| in_metres(joints[j], metres)).collect() }
             })
             .collect();
-        return Ok(Driven { poses, frame_time: motion.frame_time, direct: true, unmatched, scale: 1.0 });
+        return finite(Driven { poses, frame_time: motion.frame_time, direct: true, unmatched, scale: 1.0 });
     }
     let rig = bones::rig(motion)?;
     let lengths: Vec<f64> = (0..skeleton.len()).map(|b| offset_in_parent(skeleton, reference, b).length()).collect();
@@ -110,7 +118,10 @@ pub fn drive(skeleton: &Skeleton, reference: &Pose, motion: &Motion, metres: f64
     // in both, and measured alike).
     let fitted: f64 = lengths.iter().sum();
     let clip: f64 = (0..skeleton.len()).filter(|&b| skeleton.bones[b].parent.is_some()).map(|b| motion.joints[joint_of[b]].offset.length() * metres).sum();
-    let scale = fitted / clip.max(f64::MIN_POSITIVE);
+    let scale = fitted / clip;
+    if !(scale.is_finite() && scale > 0.0) {
+        return Err(format!("the clip's joints that carry the fitted bones have no length between them (their offsets sum to {clip:e} m): nothing to scale the travel by"));
+    }
     let start = motion.joint_to_world(0);
     let poses = frames
         .map(|k| {
@@ -138,5 +149,5 @@ pub fn drive(skeleton: &Skeleton, reference: &Pose, motion: &Motion, metres: f64
             Pose { bone_to_world }
         })
         .collect();
-    Ok(Driven { poses, frame_time: motion.frame_time, direct: false, unmatched, scale })
+    finite(Driven { poses, frame_time: motion.frame_time, direct: false, unmatched, scale })
 }

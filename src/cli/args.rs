@@ -52,12 +52,13 @@ pub enum Command {
         /// not the capture's only .bvh or its joints.json.
         #[arg(long)]
         motion: Option<PathBuf>,
-        /// A folder of masks named after the images (<name>.png), for images whose camera file
-        /// names no mask_path.
+        /// A folder of masks named after the images (<name>.png, or <camera>/<name>.png as the
+        /// images are), for images whose camera file names no mask_path.
         #[arg(long)]
         masks: Option<PathBuf>,
-        /// Downscale images by a whole factor until neither side exceeds this many pixels.
-        #[arg(long)]
+        /// Downscale images by a whole factor until neither side exceeds this many pixels
+        /// (at least 16).
+        #[arg(long, value_name = "PIXELS", value_parser = crate::capture::parse_max_size)]
         max_size: Option<usize>,
     },
     /// Fit an avatar, its light and its albedo to a scene's training images.
@@ -167,7 +168,7 @@ pub enum Command {
         /// A turntable: N views on a circle around the body (at the scene's cameras' height and
         /// distance) in the first frame (or each --frame), one PNG per view and an animated PNG
         /// per frame (orbit_fFFFF.png).
-        #[arg(long, value_name = "N", conflicts_with = "camera")]
+        #[arg(long, value_name = "N", conflicts_with = "camera", value_parser = crate::relight::parse_orbit)]
         orbit: Option<usize>,
         /// Render at WIDTHxHEIGHT (e.g. 512x512, 1920x1080), the cameras' intrinsics scaled.
         #[arg(long, value_name = "WxH", value_parser = crate::relight::parse_size)]
@@ -404,7 +405,7 @@ pub struct RenderViews {
     pub frame: Option<Vec<usize>>,
     /// A turntable of N views around the body (with --motion: a camera going once around every
     /// N frames).
-    #[arg(long, value_name = "N", conflicts_with = "camera")]
+    #[arg(long, value_name = "N", conflicts_with = "camera", value_parser = crate::relight::parse_orbit)]
     pub orbit: Option<usize>,
     /// Render at WIDTHxHEIGHT (e.g. 512x512, 1920x1080), the cameras' intrinsics scaled.
     #[arg(long, value_name = "WxH", value_parser = crate::relight::parse_size)]

@@ -173,7 +173,7 @@ fn fit(options: &crate::fit::FitOptions) -> Result<(), String> {
                 bar.set_message(format!("loss {:.4} ({})", stats.total, terms.join(", ")));
             }
         }
-        TrainMessage::Checkpoint { .. } => {}
+        TrainMessage::Checkpoint { .. } | TrainMessage::Planned { .. } => {}
         TrainMessage::Evaluating { images } => {
             bar.set_what("evaluating");
             bar.set_message(String::new());
@@ -231,6 +231,10 @@ fn image_progress(bar: &crate::progress::Progress) -> impl FnMut(crate::messages
     use crate::messages::TrainMessage;
     move |message| match message {
         TrainMessage::Evaluating { images } => bar.set_length(images as u64),
+        TrainMessage::Planned { views, width, height } => {
+            let megabytes = (views * width * height * 4) as f64 / 1e6;
+            bar.println(format!("rendering {views} views of {width}x{height} pixels (at most {megabytes:.0} MB of PNGs; the time left shows after the first)"));
+        }
         TrainMessage::Rendered { done, name, psnr, .. } => {
             bar.set_position(done as u64);
             bar.set_message(psnr.map(|p| format!("{name}: {p:.2} dB")).unwrap_or(name));

@@ -55,8 +55,10 @@ pub const EXPORT_HEADER: &str = "# umbra export-mesh";
 /// Whether `path` is a file an earlier `export-mesh` wrote (its first line is `EXPORT_HEADER`).
 fn written_by_export(path: &Path) -> bool {
     use std::io::Read;
-    let mut head = [0u8; EXPORT_HEADER.len()];
-    path.is_file() && std::fs::File::open(path).and_then(|mut f| f.read_exact(&mut head)).is_ok() && head == EXPORT_HEADER.as_bytes()
+    let line = format!("{EXPORT_HEADER}\n");
+    let mut head = vec![0u8; line.len()];
+    let is_file = std::fs::symlink_metadata(path).is_ok_and(|m| m.is_file());
+    is_file && std::fs::File::open(path).and_then(|mut f| f.read_exact(&mut head)).is_ok() && head == line.as_bytes()
 }
 
 /// Exports the meshes; every file is written atomically, and nothing before the run, its scene
@@ -98,12 +100,14 @@ pub fn export_meshes(options: &ExportOptions, mut on: impl FnMut(TrainMessage)) 
     Ok(done)
 }
 
-/// Whether `path` is a file an earlier `export-gaussians` wrote (`ply::PLY_MARK` in its header).
+/// Whether `path` is a file an earlier `export-gaussians` wrote: a regular file that opens with
+/// the header `ply::ply_bytes` writes (`ply::HEADER_START`), not merely one that holds its text.
 fn written_by_ply_export(path: &Path) -> bool {
     use std::io::Read;
-    let mut head = [0u8; 256];
-    let read = std::fs::File::open(path).and_then(|mut f| f.read(&mut head)).unwrap_or(0);
-    path.is_file() && String::from_utf8_lossy(&head[..read]).contains(ply::PLY_MARK)
+    let start = ply::HEADER_START.as_bytes();
+    let mut head = vec![0u8; start.len()];
+    let is_file = std::fs::symlink_metadata(path).is_ok_and(|m| m.is_file());
+    is_file && std::fs::File::open(path).and_then(|mut f| f.read_exact(&mut head)).is_ok() && head == start
 }
 
 /// `umbra export-gaussians`: the fitted shadow Gaussians posed in `frame` (a position in the

@@ -12,8 +12,8 @@
 use crate::shadow::PosedGaussian;
 use glam::{DMat3, DQuat};
 
-/// The first comment of every PLY `export-gaussians` writes: what lets a later export replace it.
-pub const PLY_MARK: &str = "comment umbra export-gaussians";
+/// How every PLY `export-gaussians` writes begins: what lets a later export replace it.
+pub const HEADER_START: &str = "ply\nformat binary_little_endian 1.0\ncomment umbra export-gaussians\n";
 
 /// The properties of a vertex, in order (all `float`).
 pub const PROPERTIES: [&str; 17] =
@@ -46,7 +46,7 @@ fn vertex(g: &PosedGaussian) -> [f32; 17] {
 
 /// The PLY file (binary little endian) of `gaussians`.
 pub fn ply_bytes(gaussians: &[PosedGaussian], frame: usize) -> Vec<u8> {
-    let mut header = format!("ply\nformat binary_little_endian 1.0\n{PLY_MARK}\ncomment frame {frame}\nelement vertex {}\n", gaussians.len());
+    let mut header = format!("{HEADER_START}comment frame {frame}\nelement vertex {}\n", gaussians.len());
     for name in PROPERTIES {
         header.push_str(&format!("property float {name}\n"));
     }

@@ -24,6 +24,19 @@ pub fn adjusted(light: &Light, degrees: f64, intensity: f64, pivot: DVec3) -> Li
     }
 }
 
+/// The largest strength `light` states (an irradiance, intensity or radiance channel, an
+/// ambient's, an environment map's brightest texel times its scale): what must stay within the
+/// scene format's bound once `--intensity` has scaled it.
+pub fn peak_strength(light: &Light) -> f64 {
+    match light {
+        Light::Directional { irradiance, ambient, .. } => irradiance.max_element().max(ambient.max_element()),
+        Light::Point { intensity, ambient, .. } => intensity.max_element().max(ambient.max_element()),
+        Light::Uniform { radiance } => radiance.max_element(),
+        Light::Environment { scale, map, .. } => map.image.pixels.iter().flatten().fold(0.0f64, |m, &c| m.max(c as f64)) * scale,
+        Light::Unknown { strength, ambient, .. } => strength.map_or(0.0, |s| s.max_element()).max(ambient.max_element()),
+    }
+}
+
 /// An equirectangular map turned by `degrees` about its up axis: a turn about +Y is a shift of
 /// the columns (longitude), by a whole number of texels exactly, else each new texel mixing
 /// the two it falls between (which keeps every row's sum, so the map's total radiance).

@@ -25,6 +25,34 @@ pub struct GroundOptions {
     pub height: Option<f64>,
 }
 
+impl GroundOptions {
+    /// Refuses a stated height no render can show: not finite, more than `GROUND_REACH` body
+    /// heights from the body's feet in `frames`, or above every camera in `cameras` (they would
+    /// see the ground from below, where it holds no shadow).
+    pub fn check(&self, scene: &crate::scene::Scene, cameras: &[usize], frames: &[usize]) -> Result<(), crate::fit_error::FitError> {
+        let Some(height) = self.height else { return Ok(()) };
+        let say = |what: String| Err(crate::fit_error::FitError::Input(format!("--ground-height {height}: {what}")));
+        if !height.is_finite() {
+            return say("not a finite height (m)".into());
+        }
+        let (lo, hi) = frames.iter().map(|&f| scene.frames[f].pose.bounds(&scene.skeleton)).fold(
+            (f64::INFINITY, f64::NEG_INFINITY),
+            |(lo, hi), (a, b)| (lo.min(a.y), hi.max(b.y)),
+        );
+        let reach = GROUND_REACH * (hi - lo).max(1e-3);
+        if (height - lo).abs() > reach {
+            return say(format!("{:.1} m from the body's lowest joint ({lo:.3} m): a ground that far ({GROUND_REACH} body heights, {reach:.1} m, at most) shows nothing of the body's shadow", (height - lo).abs()));
+        }
+        if cameras.iter().all(|&c| scene.cameras[c].centre().y <= height) {
+            return say("above every camera: they would see the ground from below".into());
+        }
+        Ok(())
+    }
+}
+
+/// How far, in body heights, a stated ground may lie from the body.
+pub const GROUND_REACH: f64 = 100.0;
+
 /// A rendered view: the picture, and its RGBA over the ground when there is one.
 pub struct Rendered {
     /// The render, or with a ground the render over a grey backdrop (for sheets, animations).

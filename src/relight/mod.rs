@@ -75,10 +75,28 @@ pub fn parse_size(text: &str) -> Result<(usize, usize), String> {
     }
 }
 
+/// Reads `--orbit N`: a whole number of views from 1 to `MAX_ORBIT`.
+pub fn parse_orbit(text: &str) -> Result<usize, String> {
+    text.trim().parse::<usize>().ok().and_then(|n| orbit_views(n).ok()).ok_or_else(|| format!("{text:?}: {ORBIT_RANGE}"))
+}
+
+const ORBIT_RANGE: &str = "the number of --orbit views must be a whole number from 1 to 3600";
+
+/// `n` when it is a number of orbit views `--orbit` accepts.
+pub fn orbit_views(n: usize) -> Result<usize, FitError> {
+    match (1..=MAX_ORBIT).contains(&n) {
+        true => Ok(n),
+        false => Err(FitError::Input(format!("--orbit {n}: {ORBIT_RANGE}"))),
+    }
+}
+
+/// The most views `--orbit` takes: one every tenth of a degree.
+pub const MAX_ORBIT: usize = 3600;
+
 /// The largest side `--size` accepts: an 8K image.
 pub const MAX_SIDE: usize = 8192;
 
-/// The contact sheet of a relight's folder (cameras down, frames across).
+/// The contact sheet of a relight (cameras down, frames across).
 const SHEET: &str = "sheet.png";
 
 /// A light's name as one plain folder name: letters, digits, `-`, `_` and `.` kept, anything
@@ -147,7 +165,16 @@ fn chosen_light(scene: &Scene, options: &RelightOptions, pivot: glam::DVec3) -> 
     };
     let (light, label) = resolve_light(scene, spec)?;
     known(&light, spec)?;
-    Ok(Some((adjust::adjusted(&light, options.rotate, options.intensity, pivot), label)))
+    let adjusted = adjust::adjusted(&light, options.rotate, options.intensity, pivot);
+    let peak = adjust::peak_strength(&adjusted);
+    let bound = crate::scene::json::MAX_MAGNITUDE;
+    if !(peak <= bound) {
+        return Err(FitError::Input(format!(
+            "--intensity {}: the light's strength becomes {peak:e}, beyond the {bound:e} a light may have (umbra renders in f32)",
+            options.intensity
+        )));
+    }
+    Ok(Some((adjusted, label)))
 }
 
 /// Refuses an unknown light: it lights its capture's images only.
@@ -177,8 +204,8 @@ fn chosen_views(scene: &Scene, options: &RelightOptions) -> Result<(Scene, Vec<u
     let mut scene = scene.clone();
     // A turntable renders cameras of its own (after the scene's), by default in the first frame.
     let (cameras, frames) = match options.orbit {
-        Some(0) => return Err(FitError::Input("--orbit needs at least 1 view".into())),
         Some(count) => {
+            let count = orbit_views(count)?;
             let frames = chosen("--frame", &Some(options.frames.clone().unwrap_or(vec![0])), scene.frames.len())?;
             let first = scene.cameras.len();
             let orbit = orbit_cameras(&scene, frames[0], count);
@@ -187,6 +214,14 @@ fn chosen_views(scene: &Scene, options: &RelightOptions) -> Result<(Scene, Vec<u
         }
         None => (chosen("--camera", &options.cameras, scene.cameras.len())?, chosen("--frame", &options.frames, scene.frames.len())?),
     };
+    if cameras.len().saturating_mul(frames.len()) > MAX_VIEWS {
+        return Err(FitError::Input(format!(
+            "{} views ({} cameras times {} frames): more than the {MAX_VIEWS} one relight renders; choose fewer with --frame, --camera or --orbit",
+            cameras.len().saturating_mul(frames.len()),
+            cameras.len(),
+            frames.len()
+        )));
+    }
     if let Some((w, h)) = options.size {
         for &c in &cameras {
             scene.cameras[c] = scene.cameras[c].resized(w, h);
@@ -224,19 +259,6 @@ fn check_sampling(options: &RelightOptions, scene: &Scene, cameras: &[usize], li
     Ok(())
 }
 
-/// The output folder, checked: new, empty, or one an earlier render of this kind wrote (its
-/// `marker` file is there); anything else is refused before anything is written.
-pub fn output_folder(out: &Path, marker: &str) -> Result<(), FitError> {
-    if out.exists() && !out.is_dir() {
-        return Err(io(out, "exists and is not a folder: --out names a folder for the renders (nothing was written)"));
-    }
-    let holds_files = std::fs::read_dir(out).is_ok_and(|mut entries| entries.next().is_some());
-    if holds_files && !out.join(marker).is_file() {
-        return Err(io(out, format!("holds files but no {marker} of an earlier render: choose a new or empty --out folder (nothing was written)")));
-    }
-    Ok(())
-}
-
 /// Renders a fitted avatar for every chosen camera and frame, under a new light or its fitted
 /// one; writes one PNG per view (`cCC_fFFFF.png`, the frame's position) and `sheet.png`
 /// (cameras down, frames across). Returns the output folder.
@@ -246,11 +268,16 @@ pub fn relight_run(options: &RelightOptions, mut on: impl FnMut(TrainMessage)) -
     let (lo, hi) = scene.frames[frames[0]].pose.bounds(&scene.skeleton);
     let light = chosen_light(&scene, options, (lo + hi) * 0.5)?;
     check_sampling(options, &scene, &cameras, light.as_ref().map(|(l, _)| l))?;
+    if let Some(ground) = options.ground {
+        ground.check(&scene, &cameras, &frames)?;
+    }
     let label = light.as_ref().map_or("fitted".to_string(), |(_, label)| label.clone());
     let out = options.out.clone().unwrap_or_else(|| options.run.join("relit").join(&label));
-    output_folder(&out, SHEET)?;
+    let views = view_order(options, &cameras, &frames);
+    let planned = planned_files(options, &views, &frames);
+    let folder = crate::written::OutputFolder::claim(&out, "relight", &planned).map_err(FitError::Input)?;
     let _lock = crate::run_lock::RunLock::for_output(&options.run, &out, "relight")?;
-    std::fs::create_dir_all(&out).map_err(|e| io(&out, e))?;
+    folder.begin(&planned).map_err(|e| io(&out, e))?;
     let model = restored.fitted.model.valid();
     let device = restored.fitted.device.clone().without_autodiff();
     let lighting = match &light {
@@ -259,8 +286,7 @@ pub fn relight_run(options: &RelightOptions, mut on: impl FnMut(TrainMessage)) -
     };
     let total = cameras.len() * frames.len();
     on(TrainMessage::Evaluating { images: total });
-    let views: Vec<(usize, usize, usize, usize)> =
-        cameras.iter().enumerate().flat_map(|(row, &camera)| frames.iter().enumerate().map(move |(column, &frame)| (row, column, camera, frame))).collect();
+    on(TrainMessage::Planned { views: total, width: scene.cameras[cameras[0]].width, height: scene.cameras[cameras[0]].height });
     let render = |camera: usize, frame: usize| match (options.basis, &light) {
         (Some(directions), Some((light, _))) => {
             let (image, timing) = relight_by_basis(&model, &scene, camera, frame, light, directions, &device);
@@ -272,9 +298,12 @@ pub fn relight_run(options: &RelightOptions, mut on: impl FnMut(TrainMessage)) -
     // busy by itself, and its timings must not share the cores).
     let at_once = if options.basis.is_some() { 1 } else { rayon::current_num_threads().max(1) };
     let rendered = views.chunks(at_once).flat_map(|batch| batch.par_iter().map(|&(_, _, camera, frame)| render(camera, frame)).collect::<Vec<_>>());
+    // The sheet keeps thumbnails, and a turntable is streamed: memory stays bounded however
+    // many views at whatever size.
     let mut cells: Vec<Vec<Option<RgbImage>>> = vec![vec![None; frames.len()]; cameras.len()];
+    let cell_side = sheet_cell_side(total);
     let mut timings = Vec::new();
-    let mut turntables: Vec<Vec<RgbImage>> = vec![Vec::new(); frames.len()];
+    let mut turntable: Option<(usize, crate::apng::ApngFile)> = None;
     for (done, (&(row, column, camera, frame), (rendered, timing))) in views.iter().zip(rendered).enumerate() {
         if let Some(mut timing) = timing {
             if timings.is_empty() {
@@ -284,15 +313,12 @@ pub fn relight_run(options: &RelightOptions, mut on: impl FnMut(TrainMessage)) -
             }
             timings.push(timing);
         }
-        let name = match options.orbit {
-            Some(_) => format!("orbit{row:03}_f{frame:04}.png"),
-            None => format!("c{camera:02}_f{frame:04}.png"),
-        };
+        let name = view_file(options, row, camera, frame);
         rendered.save(&out.join(&name))?;
         if options.orbit.is_some() {
-            turntables[column].push(rendered.image.clone());
+            turntable_push(&mut turntable, &out, (column, frames[column]), cameras.len(), &rendered.image)?;
         }
-        cells[row][column] = Some(rendered.image);
+        cells[row][column] = Some(rendered.image.thumbnail(cell_side));
         on(TrainMessage::Rendered { done: done + 1, total, name, psnr: None });
     }
     let row_label = |row: usize, camera: usize| match options.orbit {
@@ -305,22 +331,83 @@ pub fn relight_run(options: &RelightOptions, mut on: impl FnMut(TrainMessage)) -
         rows: cameras.iter().enumerate().map(|(row, &camera)| (row_label(row, camera), cells[row].iter().map(Option::as_ref).collect())).collect(),
     };
     sheet.render().save_png(&out.join(SHEET)).map_err(FitError::Input)?;
-    for (views, frame) in turntables.iter().zip(&frames).filter(|(views, _)| !views.is_empty()) {
-        save_apng(&out.join(format!("orbit_f{frame:04}.png")), views, TURNTABLE_FRAME_MS)?;
+    if let Some((column, file)) = turntable {
+        file.finish().map_err(|e| io(&out.join(turntable_file(frames[column])), e))?;
     }
     if let Some(directions) = options.basis {
         let table = basis_table(&label, directions, &timings);
-        let path = out.join("basis.md");
+        let path = out.join(BASIS_TABLE);
         crate::imageio::write_atomic(&path, table.as_bytes()).map_err(|e| io(&path, e))?;
     }
+    folder.finish(&planned).map_err(|e| io(&out, e))?;
     Ok(out)
 }
 
-/// An animated PNG of `frames`, each shown `frame_ms`, written atomically.
-pub fn save_apng(path: &Path, frames: &[RgbImage], frame_ms: u16) -> Result<(), FitError> {
-    let apng = crate::imageio::encode_apng_rgb(frames, frame_ms).map_err(|e| io(path, e))?;
-    crate::imageio::write_atomic(path, &apng).map_err(|e| io(path, e))
+/// The views of a relight as (row, column, camera, frame), cameras down and frames across;
+/// frame by frame on an orbit, so that one turntable is written at a time.
+fn view_order(options: &RelightOptions, cameras: &[usize], frames: &[usize]) -> Vec<(usize, usize, usize, usize)> {
+    let grid = |row: usize, column: usize| (row, column, cameras[row], frames[column]);
+    match options.orbit {
+        Some(_) => (0..frames.len()).flat_map(|c| (0..cameras.len()).map(move |r| grid(r, c))).collect(),
+        None => (0..cameras.len()).flat_map(|r| (0..frames.len()).map(move |c| grid(r, c))).collect(),
+    }
 }
+
+/// Appends `image` to the turntable of `(column, frame)`, ending the previous frame's (whole
+/// after its `views` views) when this is a new one.
+fn turntable_push(current: &mut Option<(usize, crate::apng::ApngFile)>, out: &Path, (column, frame): (usize, usize), views: usize, image: &RgbImage) -> Result<(), FitError> {
+    let path = out.join(turntable_file(frame));
+    if current.as_ref().is_some_and(|(c, _)| *c != column) {
+        if let Some((_, done)) = current.take() {
+            done.finish().map_err(|e| io(&path, e))?;
+        }
+    }
+    let file = match current {
+        Some((_, file)) => file,
+        None => &mut current.insert((column, crate::apng::ApngFile::create(&path, (image.width, image.height), views, TURNTABLE_FRAME_MS).map_err(|e| io(&path, e))?)).1,
+    };
+    file.push(image).map_err(|e| io(&path, e))
+}
+
+/// The longest side of a contact sheet's cell for `views` views: the whole sheet stays within
+/// about 16 million pixels (a cell from 16 to 512 pixels).
+fn sheet_cell_side(views: usize) -> usize {
+    ((16e6 / views.max(1) as f64).sqrt() as usize).clamp(16, 512)
+}
+
+/// The most views one relight renders (an orbit's views times its frames, or cameras times
+/// frames): more is several runs, chosen with --frame.
+pub const MAX_VIEWS: usize = 10_000;
+
+/// The file of one view: `cCC_fFFFF.png` (camera, frame), or `orbitRRR_fFFFF.png` on an orbit.
+fn view_file(options: &RelightOptions, row: usize, camera: usize, frame: usize) -> String {
+    match options.orbit {
+        Some(_) => format!("orbit{row:03}_f{frame:04}.png"),
+        None => format!("c{camera:02}_f{frame:04}.png"),
+    }
+}
+
+/// The turntable of one frame of an orbit.
+fn turntable_file(frame: usize) -> String {
+    format!("orbit_f{frame:04}.png")
+}
+
+/// The timings of a relight through a basis.
+const BASIS_TABLE: &str = "basis.md";
+
+/// Every file a relight of `views` writes, known before it starts.
+fn planned_files(options: &RelightOptions, views: &[(usize, usize, usize, usize)], frames: &[usize]) -> Vec<String> {
+    let mut files: Vec<String> = views.iter().map(|&(row, _, camera, frame)| view_file(options, row, camera, frame)).collect();
+    files.push(SHEET.into());
+    if options.orbit.is_some() {
+        files.extend(frames.iter().map(|&f| turntable_file(f)));
+    }
+    if options.basis.is_some() {
+        files.push(BASIS_TABLE.into());
+    }
+    files
+}
+
 
 /// How long each view of a turntable shows (ms): a 36-view orbit turns once in 3.6 s.
 const TURNTABLE_FRAME_MS: u16 = 100;

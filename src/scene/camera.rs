@@ -77,6 +77,28 @@ impl Camera {
     }
 }
 
+/// The world's up as the cameras show it. A camera that looks down at a body is pitched, so
+/// its own up leans toward the body, but its image rows stay level (no roll): every camera's
+/// right axis is horizontal, and up is the direction across all of them (the cross products of
+/// pairs of right axes, each turned to the cameras' mean up, summed). With one camera, or all
+/// facing one way, the cameras' mean up (a camera's image +Y points down).
+pub fn world_up(cameras: &[Camera]) -> DVec3 {
+    let mean_up = cameras.iter().map(|c| -c.camera_to_world.y_axis.truncate()).sum::<DVec3>().try_normalize().unwrap_or(DVec3::Y);
+    let rights: Vec<DVec3> = cameras.iter().filter_map(|c| c.camera_to_world.x_axis.truncate().try_normalize()).collect();
+    let mut across = DVec3::ZERO;
+    for (i, a) in rights.iter().enumerate() {
+        for b in &rights[i + 1..] {
+            let c = a.cross(*b);
+            across += if c.dot(mean_up) < 0.0 { -c } else { c };
+        }
+    }
+    if across.length() > 1e-3 * rights.len().max(1) as f64 {
+        across.normalize()
+    } else {
+        mean_up
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

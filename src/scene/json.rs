@@ -224,6 +224,9 @@ fn describe(v: &Value) -> String {
 /// (`cameras[0].fx: NaN is not a finite number`): the text is parsed again with each such
 /// literal replaced by a marker string that `At::f64` recognises.
 pub fn parse(text: &str, file: &Path) -> Result<Value> {
+    // A byte-order mark, as some Windows editors and exporters write before UTF-8 JSON, is no
+    // part of the document.
+    let text = text.strip_prefix('\u{feff}').unwrap_or(text);
     serde_json::from_str(text).or_else(|e| {
         let (marked, found) = mark_non_finite_literals(text);
         match serde_json::from_str(&marked) {

@@ -8,7 +8,7 @@ pub mod identity;
 pub mod json;
 mod reader;
 
-pub use camera::{Camera, Ray};
+pub use camera::{world_up, Camera, Ray};
 pub use footprint::{Footprint, FootprintEstimate};
 pub use json::SceneError;
 

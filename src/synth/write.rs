@@ -49,10 +49,8 @@ pub fn generate(options: &SynthOptions, out: &Path, force: bool, mut progress: i
     let out = &check_replaceable(out, force)?;
     let parent = out.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(Path::new("."));
     std::fs::create_dir_all(parent).map_err(|e| io_error(parent, e))?;
-    let temp = imageio::temp_path(out);
-    if temp.exists() {
-        std::fs::remove_dir_all(&temp).map_err(|e| io_error(&temp, e))?;
-    }
+    // A folder of its own beside `out` (never one that was there), removed only by this run.
+    let temp = crate::files::create_folder_beside(out, "synth").map_err(|e| io_error(out, e))?;
     // The scene is named after its folder (`datasets-synthetic/human-mono` is "human-mono").
     let name = out.file_name().map(|n| n.to_string_lossy().into_owned());
     let result = write_scene(options, &plan, &temp, name, &mut progress);
@@ -80,8 +78,7 @@ pub fn generate(options: &SynthOptions, out: &Path, force: bool, mut progress: i
 /// The scene just written in `dir` replaced by its capture (`capture::export`).
 fn export_capture(dir: &Path, report: Report) -> Result<Report, SynthError> {
     let scene = crate::scene::Scene::load(dir).map_err(|e| SynthError::Options(e.to_string()))?;
-    let capture = dir.with_extension("capture");
-    let _ = std::fs::remove_dir_all(&capture);
+    let capture = crate::files::create_folder_beside(dir, "capture").map_err(|e| io_error(dir, e))?;
     let written = crate::capture::export::write_capture(&scene, &capture, EXPORT_UNITS).map_err(|e| SynthError::Options(e.to_string()));
     let images = match written {
         Ok(images) => images,

@@ -193,3 +193,20 @@ pub fn without_checksums(state_path: &Path, state: &mut Value) {
     std::fs::write(state_path, state.to_string()).unwrap();
     let _ = std::fs::remove_file(state_path.with_file_name("state.checksum"));
 }
+
+/// A small sunlit synthetic scene's options (32 pixels, three cameras, three frames and a test
+/// frame), exported as a capture when `export` says.
+pub fn small_capture_options(export: Option<umbra::synth::Export>) -> umbra::synth::SynthOptions {
+    umbra::synth::SynthOptions {
+        light: umbra::synth::TrainingLight::Sun,
+        size: 32,
+        cameras: 3,
+        frames: 3,
+        test_frames: 1,
+        test: vec![umbra::synth::TestKind::Poses],
+        samples: 4,
+        seed: 5,
+        export,
+        ..umbra::synth::SynthOptions::default()
+    }
+}
