@@ -117,6 +117,12 @@ class CaptureCampaign(Campaign):
             words[i] = self.rng.choice(HOSTILE_NUMBERS) + tail
         return " ".join(words)
 
+    def rewrite(self, path, change):
+        """Replaces the text of `path` by `change(text)` (read before the file is opened to write)."""
+        text = open(path).read()
+        with open(path, "w") as f:
+            f.write(change(text))
+
     def mutate_lines(self, text):
         lines = text.split("\n")
         how = self.rng.choice(["delete", "duplicate", "swap", "truncate"])
@@ -155,20 +161,21 @@ class CaptureCampaign(Campaign):
             shutil.rmtree(capture, ignore_errors=True)
             shutil.copytree(base, capture)
             camera_file = os.path.join(capture, "sparse", "0", "images.txt" if self.rng.random() < 0.6 else "cameras.txt") if colmap else os.path.join(capture, "transforms.json")
-            kind = self.rng.choice(["cameras-numbers", "cameras-lines", "motion-numbers", "motion-lines", "photo", "flags", "flags"])
+            # The first case is the capture as it is: it must import, or the campaign tests nothing.
+            kind = "control" if k == 0 else self.rng.choice(["cameras-numbers", "cameras-lines", "motion-numbers", "motion-lines", "photo", "flags", "flags"])
             must_refuse = None
             args_extra = []
+            motion = os.path.join(capture, "motion.bvh")
             if kind == "cameras-numbers":
-                text = open(camera_file).read()
-                open(camera_file, "w").write(self.mutate_text_numbers(text, self.rng.randint(1, 3)))
+                self.rewrite(camera_file, lambda t: self.mutate_text_numbers(t, self.rng.randint(1, 3)))
             elif kind == "cameras-lines":
-                open(camera_file, "w").write(self.mutate_lines(open(camera_file).read()))
+                self.rewrite(camera_file, self.mutate_lines)
             elif kind == "motion-numbers":
-                path = os.path.join(capture, "motion.bvh")
-                open(path, "w").write(self.mutate_text_numbers(open(path).read(), self.rng.randint(1, 3)))
+                self.rewrite(motion, lambda t: self.mutate_text_numbers(t, self.rng.randint(1, 3)))
             elif kind == "motion-lines":
-                path = os.path.join(capture, "motion.bvh")
-                open(path, "w").write(self.mutate_lines(open(path).read()))
+                self.rewrite(motion, self.mutate_lines)
+            elif kind == "control":
+                pass
             elif kind == "photo":
                 kind += " " + self.mutate_photo(capture)
                 must_refuse = True
@@ -191,6 +198,9 @@ class CaptureCampaign(Campaign):
                 kind += " " + flag
             out = os.path.join(self.work, f"import-out-{k}")
             p = self.run(["import", capture, "--out", out, "--light", "sun"] + args_extra, self.work, must_refuse is True, [capture], f"import {'colmap' if colmap else 'nerfstudio'} {kind}")
+            if kind == "control" and (p is None or p.returncode != 0):
+                self.findings.append(("control refused", f"import {'colmap' if colmap else 'nerfstudio'}", p.stderr.decode(errors="replace")[-500:] if p else "hang"))
+                self.counts["silent"] += 1
             if p is not None and p.returncode == 0:
                 self.imported_wrong(out, f"import {kind} {args_extra}")
             elif os.path.exists(out):
@@ -209,9 +219,11 @@ class CaptureCampaign(Campaign):
         open(scene_clip, "w").write(self.clip)
         for k in range(count):
             text = self.clip
-            how = self.rng.choice(["numbers", "lines", "zero-offsets", "far-root", "frame-time"])
+            how = "control" if k < 2 else self.rng.choice(["numbers", "lines", "zero-offsets", "far-root", "frame-time"])
             must_refuse = None
-            if how == "numbers":
+            if how == "control":
+                pass
+            elif how == "numbers":
                 text = self.mutate_text_numbers(text, self.rng.randint(1, 4))
             elif how == "lines":
                 text = self.mutate_lines(text)
@@ -230,15 +242,21 @@ class CaptureCampaign(Campaign):
                 must_refuse = True
             clip = os.path.join(self.work, f"clip-{k}.bvh")
             open(clip, "w").write(text)
-            if self.rng.random() < 0.5:
+            if k == 0 or (k > 1 and self.rng.random() < 0.5):
                 out = os.path.join(self.work, f"clip-out-{k}")
-                size = self.rng.choice([[], ["--size", "16x16"], ["--orbit", self.rng.choice(["1", "3", "1000000000", "3601"])]])
+                size = [] if k == 0 else self.rng.choice([[], ["--size", "16x16"], ["--orbit", self.rng.choice(["1", "3", "1000000000", "3601"])]])
                 must = must_refuse is True or (len(size) == 2 and size[1] in ("1000000000", "3601"))
-                self.run(["render", run, "--motion", clip, "--out", out] + size, self.work, must, [self.capture], f"render --motion {how} {size}")
+                p = self.run(["render", run, "--motion", clip, "--out", out] + size, self.work, must, [self.capture], f"render --motion {how} {size}")
+                if k == 0 and (p is None or p.returncode != 0):
+                    self.findings.append(("control refused", "render --motion", p.stderr.decode(errors="replace")[-500:] if p else "hang"))
+                    self.counts["silent"] += 1
                 shutil.rmtree(out, ignore_errors=True)
             else:
                 glb = os.path.join(self.work, f"clip-{k}.glb")
                 p = self.run(["export-avatar", run, "--motion", clip, "--out", glb], self.work, must_refuse is True, [self.capture], f"export-avatar --motion {how}")
+                if k == 1 and (p is None or p.returncode != 0):
+                    self.findings.append(("control refused", "export-avatar --motion", p.stderr.decode(errors="replace")[-500:] if p else "hang"))
+                    self.counts["silent"] += 1
                 if p is not None and p.returncode == 0 and os.path.exists(glb):
                     self.glb_wrong(glb, f"export-avatar --motion {how}")
                 if os.path.exists(glb):

@@ -540,3 +540,82 @@ fn max_size_downscales_and_jpeg_or_alpha_photos_read() {
         assert_eq!(view.mask, twin.mask, "{}: the alpha is the mask", view.path.display());
     }
 }
+
+/// Each bone's rotation in its parent's frame, per frame of a clip.
+fn local_rotations(motion: &bvh::Motion) -> Vec<Vec<DMat3>> {
+    (0..motion.frames.len())
+        .map(|k| {
+            let world = motion.joint_to_world(k);
+            motion.joints.iter().enumerate().map(|(j, joint)| DMat3::from_mat4(joint.parent.map_or(world[j], |p| world[p].inverse() * world[j]))).collect()
+        })
+        .collect()
+}
+
+#[test]
+fn a_capture_with_a_real_pipelines_errors_errs_by_the_stated_sizes_and_keeps_its_truth() {
+    let dir = TempDir::new("capture-flaws");
+    let synth = SynthOptions { size: 48, frames: 8, ..synth_options(Some(Export::Nerfstudio)) };
+    let (clean, flawed) = (dir.path().join("clean"), dir.path().join("flawed"));
+    umbra::synth::generate(&synth, &clean, false, |_, _| {}).unwrap();
+    umbra::synth::generate(&SynthOptions { errors: Some(umbra::capture::flaws::REAL), ..synth }, &flawed, false, |_, _| {}).unwrap();
+    // The truth beside it is the clean capture's motion and cameras.
+    assert_eq!(std::fs::read(flawed.join("truth/motion.bvh")).unwrap(), std::fs::read(clean.join("motion.bvh")).unwrap());
+    let json = |p: &Path| -> serde_json::Value { serde_json::from_str(&std::fs::read_to_string(p).unwrap()).unwrap() };
+    let (truth, clean_cameras, given) = (json(&flawed.join("truth/transforms.json")), json(&clean.join("transforms.json")), json(&flawed.join("transforms.json")));
+    let test_names: Vec<String> = given["test_filenames"].as_array().unwrap().iter().map(|n| n.as_str().unwrap().to_string()).collect();
+    let mut turned = Vec::new();
+    // Each training image's camera turned by a tenth of a degree or so (the trace of R^T R' is
+    // 3 at no turn).
+    for ((t, c), g) in truth["frames"].as_array().unwrap().iter().zip(clean_cameras["frames"].as_array().unwrap()).zip(given["frames"].as_array().unwrap()) {
+        assert_eq!(t["transform_matrix"], c["transform_matrix"]);
+        let path = g["file_path"].as_str().unwrap();
+        let (a, b) = (matrix(&t["transform_matrix"]), matrix(&g["transform_matrix"]));
+        if test_names.iter().any(|n| n == path) {
+            assert!(path.ends_with(".png") && max_difference(&a, &b) == 0.0, "{path}: a test image is exact");
+        } else {
+            assert!(path.ends_with(".jpg"), "{path}: a training plate as JPEG");
+            turned.push((DMat3::from_mat4(a).transpose() * DMat3::from_mat4(b)).to_cols_array().iter().sum::<f64>());
+            // Moved by millimetres (the capture is in centimetres).
+            assert!((a.w_axis - b.w_axis).length() < 2.0, "{path}");
+        }
+    }
+    assert!(!turned.is_empty() && turned.iter().all(|&t| t < 3.0 && t > 3.0 - 1e-4), "{turned:?}");
+    // The motion: training frames' bones turned by about the stated spread per channel (the
+    // angle of three normal turns of 2.5 degrees has a mean of 2.5 sqrt(8 / pi) = 3.99), test
+    // frames exact.
+    let (exact, tracked) = (bvh::read(&clean.join("motion.bvh")).unwrap(), bvh::read(&flawed.join("motion.bvh")).unwrap());
+    let times: Vec<usize> = given["frames"].as_array().unwrap().iter().filter(|f| test_names.iter().any(|n| Some(n.as_str()) == f["file_path"].as_str())).map(|f| (f["time"].as_f64().unwrap() * 30.0).round() as usize).collect();
+    let (a, b) = (local_rotations(&exact), local_rotations(&tracked));
+    let mut angles = Vec::new();
+    for (k, (fa, fb)) in a.iter().zip(&b).enumerate() {
+        for (ra, rb) in fa.iter().zip(fb) {
+            let angle = DQuat::from_mat3(&(ra.transpose() * *rb)).to_axis_angle().1.to_degrees();
+            if times.contains(&k) {
+                assert!(angle < 1e-4, "frame {k} is a test frame: exact");
+            } else {
+                angles.push(angle);
+            }
+        }
+    }
+    let mean = angles.iter().sum::<f64>() / angles.len() as f64;
+    assert!((3.3..4.7).contains(&mean), "mean joint error {mean:.2} degrees over {} bones and frames", angles.len());
+    // The masks: changed only near their edges (a pixel, and blobs of 2), every training one.
+    let training: Vec<&serde_json::Value> = given["frames"].as_array().unwrap().iter().filter(|f| !test_names.iter().any(|n| Some(n.as_str()) == f["file_path"].as_str())).collect();
+    for frame in training {
+        let path = frame["mask_path"].as_str().unwrap();
+        let (m0, m1) = (umbra::imageio::read_mask(&clean.join(path)).unwrap(), umbra::imageio::read_mask(&flawed.join(path)).unwrap());
+        let changed: Vec<usize> = (0..m0.foreground.len()).filter(|&p| m0.foreground[p] != m1.foreground[p]).collect();
+        assert!(!changed.is_empty(), "{path}");
+        let near_edge = |p: usize| {
+            let (x, y) = ((p % m0.width) as i64, (p / m0.width) as i64);
+            (-4i64..=4).any(|dy| (-4i64..=4).any(|dx| {
+                let (u, v) = (x + dx, y + dy);
+                (0..m0.width as i64).contains(&u) && (0..m0.height as i64).contains(&v) && m0.foreground[(v * m0.width as i64 + u) as usize] != m0.foreground[p]
+            }))
+        };
+        assert!(changed.iter().all(|&p| near_edge(p)), "{path}: a change away from the edge");
+    }
+    // It still imports, its capture check said.
+    let report = import(&options(&flawed, dir.path().join("imported")), &|_, _| {}).unwrap();
+    assert!(report.score > 0.5, "{:?}", report.assumed);
+}

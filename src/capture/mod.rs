@@ -11,6 +11,7 @@ pub mod check;
 pub mod colmap;
 pub mod distortion;
 pub mod export;
+pub mod flaws;
 pub mod joints;
 pub mod nerfstudio;
 mod photos;

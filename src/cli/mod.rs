@@ -233,7 +233,7 @@ fn image_progress(bar: &crate::progress::Progress) -> impl FnMut(crate::messages
         TrainMessage::Evaluating { images } => bar.set_length(images as u64),
         TrainMessage::Planned { views, width, height } => {
             let megabytes = (views * width * height * 4) as f64 / 1e6;
-            bar.println(format!("rendering {views} views of {width}x{height} pixels (at most {megabytes:.0} MB of PNGs; the time left shows after the first)"));
+            bar.println(format!("rendering {views} views of {width}x{height} pixels (at most {megabytes:.1} MB of PNGs; the time left shows after the first)"));
         }
         TrainMessage::Rendered { done, name, psnr, .. } => {
             bar.set_position(done as u64);

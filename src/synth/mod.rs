@@ -123,6 +123,15 @@ pub struct SynthOptions {
     #[arg(long, value_enum)]
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub export: Option<Export>,
+    /// With --export: put the errors a real pipeline leaves into the capture's training images,
+    /// frames and cameras, keeping the exact cameras and motion in truth/: `real` (a tracker's
+    /// 2.5 degrees per joint channel and 1 cm at the root, masks a pixel off with two blobs,
+    /// cameras off by 0.1 degrees and 3 mm, 6% gain and 3% white balance per camera, JPEG 88),
+    /// or KEY=VALUE,... of joints, root, masks, blobs, camera_turn, camera_move, gain,
+    /// white_balance, jpeg (after `real,` to change some).
+    #[arg(long, value_name = "SPEC", value_parser = crate::capture::flaws::CaptureErrors::parse, requires = "export")]
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub errors: Option<crate::capture::flaws::CaptureErrors>,
 }
 
 /// The capture formats `synth --export` writes.
@@ -184,6 +193,7 @@ impl Default for SynthOptions {
             meshes: false,
             mesh_cell: 0.02,
             export: None,
+            errors: None,
         }
     }
 }

@@ -55,7 +55,7 @@ pub fn generate(options: &SynthOptions, out: &Path, force: bool, mut progress: i
     let name = out.file_name().map(|n| n.to_string_lossy().into_owned());
     let result = write_scene(options, &plan, &temp, name, &mut progress);
     let result = match (result, options.export) {
-        (Ok(report), Some(Export::Nerfstudio)) => export_capture(&temp, report),
+        (Ok(report), Some(Export::Nerfstudio)) => export_capture(&temp, report, options),
         (result, _) => result,
     };
     match result {
@@ -75,11 +75,13 @@ pub fn generate(options: &SynthOptions, out: &Path, force: bool, mut progress: i
     }
 }
 
-/// The scene just written in `dir` replaced by its capture (`capture::export`).
-fn export_capture(dir: &Path, report: Report) -> Result<Report, SynthError> {
+/// The scene just written in `dir` replaced by its capture (`capture::export`), with the errors
+/// `options` asks for.
+fn export_capture(dir: &Path, report: Report, options: &SynthOptions) -> Result<Report, SynthError> {
     let scene = crate::scene::Scene::load(dir).map_err(|e| SynthError::Options(e.to_string()))?;
     let capture = crate::files::create_folder_beside(dir, "capture").map_err(|e| io_error(dir, e))?;
-    let written = crate::capture::export::write_capture(&scene, &capture, EXPORT_UNITS).map_err(|e| SynthError::Options(e.to_string()));
+    let errors = options.errors.clone().unwrap_or_default();
+    let written = crate::capture::export::write_capture(&scene, &capture, EXPORT_UNITS, &errors, options.seed).map_err(|e| SynthError::Options(e.to_string()));
     let images = match written {
         Ok(images) => images,
         Err(e) => {
