@@ -147,7 +147,8 @@ pub fn animate_run(options: &AnimateOptions, mut on: impl FnMut(TrainMessage)) -
         let image = &rendered.image;
         let stream = match &mut animation {
             Some(stream) => stream,
-            None => animation.insert(crate::apng::ApngFile::create(&animation_path, (image.width, image.height), total, frame_ms).map_err(|e| io(&animation_path, e))?),
+            None => animation
+                .insert(crate::apng::ApngFile::create(&animation_path, (image.width, image.height), total, frame_ms).map_err(|e| io(&animation_path, e))?),
         };
         stream.push(image).map_err(|e| io(&animation_path, e))?;
         on(TrainMessage::Rendered { done: k + 1, total, name, psnr: None });

@@ -215,9 +215,10 @@ pub fn clip(data: &[u8]) -> Outcome {
     let file = Path::new("fuzzed.bvh");
     let bvh = crate::capture::bvh::parse(&text, file).map_err(|e| assert_eq!(e.file, file));
     let dir = scratch("clip");
-    let json = std::fs::create_dir_all(&dir).ok().and_then(|_| std::fs::write(dir.join("joints.json"), data).ok()).and_then(|_| {
-        crate::capture::joints::read(&dir.join("joints.json")).map_err(|e| assert!(e.to_string().contains("joints.json"), "{e}")).ok()
-    });
+    let json = std::fs::create_dir_all(&dir)
+        .ok()
+        .and_then(|_| std::fs::write(dir.join("joints.json"), data).ok())
+        .and_then(|_| crate::capture::joints::read(&dir.join("joints.json")).map_err(|e| assert!(e.to_string().contains("joints.json"), "{e}")).ok());
     let mut outcome = Outcome::Refused;
     for motion in bvh.ok().into_iter().chain(json) {
         if motion.problem().is_some() {

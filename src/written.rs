@@ -53,9 +53,7 @@ impl OutputFolder {
             true => match read_manifest(&dir.join(MANIFEST)) {
                 Some(m) if m.command == command => m.files.into_iter().filter(|n| plain(n)).collect(),
                 Some(m) => return Err(say(dir, format!("holds what `umbra {}` wrote: choose another --out folder for `umbra {command}`", m.command))),
-                None => {
-                    return Err(say(dir, format!("holds files but no {MANIFEST} of an earlier `umbra {command}`: choose a new or empty --out folder")))
-                }
+                None => return Err(say(dir, format!("holds files but no {MANIFEST} of an earlier `umbra {command}`: choose a new or empty --out folder"))),
             },
         };
         for name in planned {

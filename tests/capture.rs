@@ -561,7 +561,8 @@ fn a_capture_with_a_real_pipelines_errors_errs_by_the_stated_sizes_and_keeps_its
     // The truth beside it is the clean capture's motion and cameras.
     assert_eq!(std::fs::read(flawed.join("truth/motion.bvh")).unwrap(), std::fs::read(clean.join("motion.bvh")).unwrap());
     let json = |p: &Path| -> serde_json::Value { serde_json::from_str(&std::fs::read_to_string(p).unwrap()).unwrap() };
-    let (truth, clean_cameras, given) = (json(&flawed.join("truth/transforms.json")), json(&clean.join("transforms.json")), json(&flawed.join("transforms.json")));
+    let (truth, clean_cameras, given) =
+        (json(&flawed.join("truth/transforms.json")), json(&clean.join("transforms.json")), json(&flawed.join("transforms.json")));
     let test_names: Vec<String> = given["test_filenames"].as_array().unwrap().iter().map(|n| n.as_str().unwrap().to_string()).collect();
     let mut turned = Vec::new();
     // Each training image's camera turned by a tenth of a degree or so (the trace of R^T R' is
@@ -584,7 +585,13 @@ fn a_capture_with_a_real_pipelines_errors_errs_by_the_stated_sizes_and_keeps_its
     // angle of three normal turns of 2.5 degrees has a mean of 2.5 sqrt(8 / pi) = 3.99), test
     // frames exact.
     let (exact, tracked) = (bvh::read(&clean.join("motion.bvh")).unwrap(), bvh::read(&flawed.join("motion.bvh")).unwrap());
-    let times: Vec<usize> = given["frames"].as_array().unwrap().iter().filter(|f| test_names.iter().any(|n| Some(n.as_str()) == f["file_path"].as_str())).map(|f| (f["time"].as_f64().unwrap() * 30.0).round() as usize).collect();
+    let times: Vec<usize> = given["frames"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter(|f| test_names.iter().any(|n| Some(n.as_str()) == f["file_path"].as_str()))
+        .map(|f| (f["time"].as_f64().unwrap() * 30.0).round() as usize)
+        .collect();
     let (a, b) = (local_rotations(&exact), local_rotations(&tracked));
     let mut angles = Vec::new();
     for (k, (fa, fb)) in a.iter().zip(&b).enumerate() {
@@ -600,7 +607,8 @@ fn a_capture_with_a_real_pipelines_errors_errs_by_the_stated_sizes_and_keeps_its
     let mean = angles.iter().sum::<f64>() / angles.len() as f64;
     assert!((3.3..4.7).contains(&mean), "mean joint error {mean:.2} degrees over {} bones and frames", angles.len());
     // The masks: changed only near their edges (a pixel, and blobs of 2), every training one.
-    let training: Vec<&serde_json::Value> = given["frames"].as_array().unwrap().iter().filter(|f| !test_names.iter().any(|n| Some(n.as_str()) == f["file_path"].as_str())).collect();
+    let training: Vec<&serde_json::Value> =
+        given["frames"].as_array().unwrap().iter().filter(|f| !test_names.iter().any(|n| Some(n.as_str()) == f["file_path"].as_str())).collect();
     for frame in training {
         let path = frame["mask_path"].as_str().unwrap();
         let (m0, m1) = (umbra::imageio::read_mask(&clean.join(path)).unwrap(), umbra::imageio::read_mask(&flawed.join(path)).unwrap());
@@ -608,10 +616,14 @@ fn a_capture_with_a_real_pipelines_errors_errs_by_the_stated_sizes_and_keeps_its
         assert!(!changed.is_empty(), "{path}");
         let near_edge = |p: usize| {
             let (x, y) = ((p % m0.width) as i64, (p / m0.width) as i64);
-            (-4i64..=4).any(|dy| (-4i64..=4).any(|dx| {
-                let (u, v) = (x + dx, y + dy);
-                (0..m0.width as i64).contains(&u) && (0..m0.height as i64).contains(&v) && m0.foreground[(v * m0.width as i64 + u) as usize] != m0.foreground[p]
-            }))
+            (-4i64..=4).any(|dy| {
+                (-4i64..=4).any(|dx| {
+                    let (u, v) = (x + dx, y + dy);
+                    (0..m0.width as i64).contains(&u)
+                        && (0..m0.height as i64).contains(&v)
+                        && m0.foreground[(v * m0.width as i64 + u) as usize] != m0.foreground[p]
+                })
+            })
         };
         assert!(changed.iter().all(|&p| near_edge(p)), "{path}: a change away from the edge");
     }

@@ -30,7 +30,17 @@ fn capture(dir: &Path) -> PathBuf {
 }
 
 fn options(capture: &Path, out: PathBuf) -> ImportOptions {
-    ImportOptions { capture: capture.to_path_buf(), out, light: CaptureLight::Sun, units: None, up: Up::PlusY, cameras: None, motion: None, masks: None, max_size: None }
+    ImportOptions {
+        capture: capture.to_path_buf(),
+        out,
+        light: CaptureLight::Sun,
+        units: None,
+        up: Up::PlusY,
+        cameras: None,
+        motion: None,
+        masks: None,
+        max_size: None,
+    }
 }
 
 fn copy_tree(from: &Path, to: &Path) {
@@ -200,7 +210,8 @@ fn defects_09_and_10_clips_lights_and_grounds_that_cannot_render_are_refused() {
     });
     let mut equal = serde_json::json!({"frame_time": 0.1, "joints": [], "frames": []});
     equal["joints"] = serde_json::json!(scene.skeleton.bones.iter().map(|b| serde_json::json!({"name": b.name, "parent": b.parent})).collect::<Vec<_>>());
-    let still: Vec<Vec<Vec<f64>>> = scene.skeleton.bones.iter().map(|_| DMat4::IDENTITY.transpose().to_cols_array_2d().iter().map(|r| r.to_vec()).collect()).collect();
+    let still: Vec<Vec<Vec<f64>>> =
+        scene.skeleton.bones.iter().map(|_| DMat4::IDENTITY.transpose().to_cols_array_2d().iter().map(|r| r.to_vec()).collect()).collect();
     equal["frames"] = serde_json::json!([still.clone(), still]);
     for (name, text, expected) in [("zero.bvh", zero_offsets, "no size"), ("far.bvh", far, "a joint lies 1e30"), ("equal.json", equal.to_string(), "no size")] {
         let file = dir.path().join(name);
@@ -254,9 +265,11 @@ fn defect_06_units_and_up_that_cannot_be_right_are_refused_saying_what_was_infer
     let frames: Vec<Vec<DMat4>> = (0..motion.frames.len())
         .map(|k| motion.joint_to_world(k).into_iter().map(|m| DMat4::from_scale(glam::DVec3::splat(0.01)) * to_z_up * m).collect())
         .collect();
-    let bones = motion.joints.iter().map(|j| umbra::skeleton::Bone { name: j.name.clone(), parent: j.parent, length: j.end_site.map_or(0.1, |e| e.length() / 100.0) });
+    let bones =
+        motion.joints.iter().map(|j| umbra::skeleton::Bone { name: j.name.clone(), parent: j.parent, length: j.end_site.map_or(0.1, |e| e.length() / 100.0) });
     let skeleton = umbra::skeleton::Skeleton { bones: bones.collect() };
-    let unscaled: Vec<Vec<DMat4>> = frames.iter().map(|f| f.iter().map(|m| DMat4::from_cols(m.x_axis * 100.0, m.y_axis * 100.0, m.z_axis * 100.0, m.w_axis)).collect()).collect();
+    let unscaled: Vec<Vec<DMat4>> =
+        frames.iter().map(|f| f.iter().map(|m| DMat4::from_cols(m.x_axis * 100.0, m.y_axis * 100.0, m.z_axis * 100.0, m.w_axis)).collect()).collect();
     std::fs::write(turned.join("motion.bvh"), bvh::write(&skeleton, &unscaled, motion.frame_time, 100.0).unwrap()).unwrap();
     let err = import_error(&options(&turned, dir.path().join("z-read-as-y")));
     assert!(err.contains("--up +z"), "{err}");
@@ -276,11 +289,7 @@ fn defects_08_11_13_degenerate_cameras_clips_photos_and_unclear_messages() {
     };
     let cases: Vec<(&str, String, &str)> = vec![
         ("transforms.json", transforms.replacen("\"fl_x\": ", "\"fl_x\": 1e-12, \"old_fl_x\": ", 1), "field of view"),
-        (
-            "transforms.json",
-            transforms.replacen("\"PINHOLE\"", "\"OPENCV\"", 1).replacen("\"fl_x\": ", "\"k1\": -3.0, \"fl_x\": ", 1),
-            "folds back",
-        ),
+        ("transforms.json", transforms.replacen("\"PINHOLE\"", "\"OPENCV\"", 1).replacen("\"fl_x\": ", "\"k1\": -3.0, \"fl_x\": ", 1), "folds back"),
         ("transforms.json", transforms.replacen("\"w\": 32", "\"w\": 32.5", 1), "whole number of pixels"),
         ("transforms.json", format!("\u{feff}{transforms}"), ""),
         ("transforms.json", transforms.replacen(&format!("\"{first_path}\""), "\"../outside.png\"", 1), "leads outside the capture"),
@@ -326,11 +335,15 @@ fn colmap(capture: &Path, dir: &Path, name: impl Fn(usize, usize) -> String, poi
     std::fs::copy(capture.join("motion.bvh"), dir.join("motion.bvh")).unwrap();
     let mut cameras = String::new();
     let mut images = String::new();
-    let train: Vec<&serde_json::Value> = transforms["frames"].as_array().unwrap().iter().filter(|f| {
-        let path = f["file_path"].as_str().unwrap();
-        transforms["train_filenames"].as_array().unwrap().iter().any(|n| n.as_str() == Some(path))
-    })
-    .collect();
+    let train: Vec<&serde_json::Value> = transforms["frames"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter(|f| {
+            let path = f["file_path"].as_str().unwrap();
+            transforms["train_filenames"].as_array().unwrap().iter().any(|n| n.as_str() == Some(path))
+        })
+        .collect();
     for (k, frame) in train.iter().enumerate() {
         let (fx, fy, cx, cy) = (frame["fl_x"].as_f64().unwrap(), frame["fl_y"].as_f64().unwrap(), frame["cx"].as_f64().unwrap(), frame["cy"].as_f64().unwrap());
         cameras += &format!("{} PINHOLE 32 32 {fx} {fy} {cx} {cy}\n", k + 1);
@@ -390,7 +403,11 @@ fn defects_07_12_13_colmap_models_read_by_their_fields_in_a_folder_per_camera() 
         (&images_txt, images.replacen(&first, &first.replacen("1 ", "abc ", 1), 1), "line 1: image id \"abc\""),
         (&images_txt, format!("{images}{first}\n"), "a second image 1"),
         (&cameras_txt, format!("{cameras}{}", cameras.lines().next().unwrap()), "a second camera 1"),
-        (&cameras_txt, cameras.replacen(cameras.lines().next().unwrap(), "1 PINHOLE 32 32 1e30 1e30 16 16", 1), "line 1: camera 1: a focal length of 1000000000000000000000000000000"),
+        (
+            &cameras_txt,
+            cameras.replacen(cameras.lines().next().unwrap(), "1 PINHOLE 32 32 1e30 1e30 16 16", 1),
+            "line 1: camera 1: a focal length of 1000000000000000000000000000000",
+        ),
         (&images_txt, images.replacen(&flat(0, 0), "../../outside.png", 1), "leads outside the capture"),
     ];
     for (k, (file, text, expected)) in cases.iter().enumerate() {

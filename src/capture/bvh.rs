@@ -297,7 +297,9 @@ impl Motion {
     pub fn problem(&self) -> Option<String> {
         if !(self.frame_time <= MAX_FRAME_TIME) {
             let time = super::readable(self.frame_time);
-            return Some(format!("Frame Time {time} s: frames more than {MAX_FRAME_TIME} s apart are no motion clip (is it in milliseconds or frames per second?)"));
+            return Some(format!(
+                "Frame Time {time} s: frames more than {MAX_FRAME_TIME} s apart are no motion clip (is it in milliseconds or frames per second?)"
+            ));
         }
         let span = self.rest_span();
         if !(span > 0.0) || !span.is_finite() {
@@ -305,7 +307,8 @@ impl Motion {
         }
         let reach = MAX_TRAVEL * span;
         for k in 0..self.frames.len() {
-            let far = self.joint_to_world(k).iter().map(|m| m.w_axis.truncate().length()).fold(0.0f64, |a, d| if d.is_nan() { f64::INFINITY } else { a.max(d) });
+            let far =
+                self.joint_to_world(k).iter().map(|m| m.w_axis.truncate().length()).fold(0.0f64, |a, d| if d.is_nan() { f64::INFINITY } else { a.max(d) });
             if !(far <= reach) {
                 return Some(format!(
                     "frame {k}: a joint lies {far:e} file units from the origin, more than {MAX_TRAVEL} times the skeleton's size ({span:.4}): no body can be posed there"

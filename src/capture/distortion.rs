@@ -48,7 +48,8 @@ impl Intrinsics {
         if !((self.cx - 0.5 * w).abs() <= w && (self.cy - 0.5 * h).abs() <= h) {
             return Some(format!("the principal point ({}, {}) lies more than the image's size from the centre of a {w}x{h} image", self.cx, self.cy));
         }
-        let corner = [(0.0, 0.0), (w, 0.0), (0.0, h), (w, h)].iter().map(|&(x, y)| ((x - self.cx) / self.fx).hypot((y - self.cy) / self.fy)).fold(0.0, f64::max);
+        let corner =
+            [(0.0, 0.0), (w, 0.0), (0.0, h), (w, h)].iter().map(|&(x, y)| ((x - self.cx) / self.fx).hypot((y - self.cy) / self.fy)).fold(0.0, f64::max);
         distortion.fold_radius(corner).map(|r| {
             format!(
                 "the lens model (k1 {}, k2 {}, k3 {}) folds back on itself at {:.0}% of the way to the image's corner: it maps two directions to one pixel",

@@ -68,7 +68,13 @@ pub fn write_capture(scene: &Scene, dir: &Path, units: f64, errors: &CaptureErro
 }
 
 /// `transforms.json` and `motion.bvh` of `scene`'s cameras and frames into `dir`.
-fn write_cameras_and_motion(scene: &Scene, dir: &Path, units: f64, chosen: &[usize], names: &dyn Fn(usize) -> (String, Option<String>)) -> Result<(), ImportError> {
+fn write_cameras_and_motion(
+    scene: &Scene,
+    dir: &Path,
+    units: f64,
+    chosen: &[usize],
+    names: &dyn Fn(usize) -> (String, Option<String>),
+) -> Result<(), ImportError> {
     let transforms = super::nerfstudio::write(scene, chosen, units, FRAME_TIME, names);
     let text = serde_json::to_string_pretty(&transforms).map_err(|e| input(dir, e.to_string()))?;
     write(&dir.join("transforms.json"), text.as_bytes())?;

@@ -75,12 +75,34 @@ impl CaptureErrors {
                 "camera_move" => errors.camera_move = number,
                 "gain" => errors.gain = number,
                 "white_balance" => errors.white_balance = number,
-                "jpeg" => errors.jpeg = whole().and_then(|q| u8::try_from(q).ok().filter(|q| *q <= 100).ok_or_else(|| format!("jpeg={value}: a quality from 1 to 100, 0 for PNG")))?,
-                other => return Err(format!("{other:?}: not an error of a capture (joints, root, masks, blobs, camera_turn, camera_move, gain, white_balance, jpeg)")),
+                "jpeg" => {
+                    errors.jpeg = whole()
+                        .and_then(|q| u8::try_from(q).ok().filter(|q| *q <= 100).ok_or_else(|| format!("jpeg={value}: a quality from 1 to 100, 0 for PNG")))?
+                }
+                other => {
+                    return Err(format!(
+                        "{other:?}: not an error of a capture (joints, root, masks, blobs, camera_turn, camera_move, gain, white_balance, jpeg)"
+                    ))
+                }
             }
         }
-        if errors.joints > 45.0 || errors.camera_turn > 45.0 || errors.gain > 1.0 || errors.white_balance > 1.0 {
-            return Err(format!("{text:?}: angles above 45 degrees or colour errors above 1 are no capture's"));
+        if text.trim().is_empty() {
+            return Err("an empty spec: give `real` or KEY=VALUE,...".into());
+        }
+        let within = [
+            (errors.joints, 45.0),
+            (errors.camera_turn, 45.0),
+            (errors.root, 100.0),
+            (errors.camera_move, 1000.0),
+            (errors.gain, 1.0),
+            (errors.white_balance, 1.0),
+            (errors.masks as f64, 16.0),
+            (errors.blobs as f64, 100.0),
+        ];
+        if within.iter().any(|(v, most)| v > most) {
+            return Err(format!(
+                "{text:?}: no capture's errors are that large (at most 45 degrees, 100 cm at the root, 1000 mm for a camera, 1 in gain or white balance, 16 pixels of mask, 100 blobs)"
+            ));
         }
         Ok(errors)
     }
@@ -201,7 +223,19 @@ mod tests {
         let changed = CaptureErrors::parse("real, jpeg=0, joints=5").unwrap();
         assert_eq!((changed.jpeg, changed.joints, changed.root), (0, 5.0, 1.0));
         assert_eq!(CaptureErrors::parse("masks=2").unwrap(), CaptureErrors { masks: 2, ..CaptureErrors::default() });
-        for bad in ["joints", "joints=-1", "masks=1.5", "jpeg=101", "elbows=3", "joints=nan", "gain=2"] {
+        for bad in [
+            "",
+            "joints",
+            "joints=-1",
+            "masks=1.5",
+            "jpeg=101",
+            "elbows=3",
+            "joints=nan",
+            "gain=2",
+            "root=1e39",
+            "camera_move=18446744073709551616",
+            "masks=0.5e3",
+        ] {
             assert!(CaptureErrors::parse(bad).is_err(), "{bad}");
         }
     }

@@ -14,13 +14,17 @@ pub mod export;
 pub mod flaws;
 pub mod joints;
 pub mod nerfstudio;
+mod options;
 mod photos;
 pub mod retarget;
+mod scene_json;
 
 pub use distortion::Distortion;
 
 use crate::scene::Split;
 use glam::{DMat4, DVec3};
+pub use options::{parse_max_size, CaptureLight, ImportOptions, Units, Up, SMALLEST_MAX_SIZE};
+use scene_json::{cameras, frame_json, light_json, World};
 use serde_json::{json, Value};
 use std::path::{Path, PathBuf};
 
@@ -79,81 +83,6 @@ pub(crate) fn readable(x: f64) -> String {
         true => format!("{}", (x * 1e4).round() / 1e4),
         false => format!("{x:.4e}"),
     }
-}
-
-/// Reads `--max-size PIXELS`: a whole number of at least `SMALLEST_MAX_SIZE`.
-pub fn parse_max_size(text: &str) -> Result<usize, String> {
-    match text.trim().parse::<usize>() {
-        Ok(n) if n >= SMALLEST_MAX_SIZE => Ok(n),
-        _ => Err(format!("{text:?}: images are kept at least {SMALLEST_MAX_SIZE} pixels on their longer side (a smaller image holds too little of the body to fit)")),
-    }
-}
-
-/// The smallest `--max-size`.
-pub const SMALLEST_MAX_SIZE: usize = 16;
-
-/// The capture's length unit.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
-pub enum Units {
-    M,
-    Cm,
-    Mm,
-}
-
-impl Units {
-    pub fn metres(self) -> f64 {
-        match self {
-            Units::M => 1.0,
-            Units::Cm => 0.01,
-            Units::Mm => 0.001,
-        }
-    }
-
-    pub fn name(self) -> &'static str {
-        match self {
-            Units::M => "m",
-            Units::Cm => "cm",
-            Units::Mm => "mm",
-        }
-    }
-
-    /// The unit that makes a body of `extent` (the diagonal of its joints' box, file units)
-    /// nearest 1.5 m, a walking human's or a large dog's, in ratio.
-    pub fn for_extent(extent: f64) -> Units {
-        let off = |u: Units| ((extent * u.metres()) / 1.5).ln().abs();
-        [Units::M, Units::Cm, Units::Mm].into_iter().min_by(|a, b| off(*a).total_cmp(&off(*b))).unwrap_or(Units::M)
-    }
-}
-
-/// The capture's up axis.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
-pub enum Up {
-    #[value(name = "+y")]
-    PlusY,
-    #[value(name = "+z")]
-    PlusZ,
-}
-
-/// The light the capture was made under, unknown but of a kind.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
-pub enum CaptureLight {
-    Sun,
-    Point,
-    Uniform,
-}
-
-/// What `umbra import` is asked.
-#[derive(Clone, Debug)]
-pub struct ImportOptions {
-    pub capture: PathBuf,
-    pub out: PathBuf,
-    pub light: CaptureLight,
-    pub units: Option<Units>,
-    pub up: Up,
-    pub cameras: Option<PathBuf>,
-    pub motion: Option<PathBuf>,
-    pub masks: Option<PathBuf>,
-    pub max_size: Option<usize>,
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -405,26 +334,6 @@ fn agreement(scene: &crate::scene::Scene, dir: &Path, capture: &Path, report: &m
     Ok(())
 }
 
-/// The capture's world in scene/1's: turned so its up is +Y, scaled to metres.
-struct World {
-    up: DMat4,
-    metres: f64,
-}
-
-impl World {
-    /// A rigid transform whose translation is in capture units, in scene/1's world.
-    fn apply(&self, m: DMat4) -> DMat4 {
-        let turned = self.up * m;
-        let mut out = turned;
-        out.w_axis = (turned.w_axis.truncate() * self.metres).extend(1.0);
-        out
-    }
-}
-
-fn rows(m: &DMat4) -> Value {
-    json!((0..4).map(|r| m.row(r).to_array().to_vec()).collect::<Vec<_>>())
-}
-
 /// The diagonal of the box of the clip's joints in its first frame (file units).
 pub fn joint_extent(motion: &bvh::Motion) -> f64 {
     let joints = motion.joint_to_world(0);
@@ -466,43 +375,4 @@ pub fn number_in_name(path: &Path) -> Option<usize> {
     let stem = path.file_stem()?.to_string_lossy().into_owned();
     let digits: String = stem.chars().rev().skip_while(|c| !c.is_ascii_digit()).take_while(|c| c.is_ascii_digit()).collect();
     digits.chars().rev().collect::<String>().parse().ok()
-}
-
-/// The scene's cameras (images with the same intrinsics and pose share one) and each image's.
-fn cameras(images: &[CaptureImage], intrinsics: &[Intrinsics], world: &World) -> (Vec<Value>, Vec<usize>) {
-    let mut kept: Vec<(Intrinsics, DMat4)> = Vec::new();
-    let mut of = Vec::with_capacity(images.len());
-    for (image, k) in images.iter().zip(intrinsics) {
-        let pose = world.apply(image.camera_to_world);
-        let same = |(i, p): &(Intrinsics, DMat4)| i == k && p.abs_diff_eq(pose, 1e-9);
-        match kept.iter().position(same) {
-            Some(c) => of.push(c),
-            None => {
-                of.push(kept.len());
-                kept.push((k.clone(), pose));
-            }
-        }
-    }
-    let values = kept
-        .iter()
-        .enumerate()
-        .map(|(c, (k, pose))| json!({"name": format!("cam{c:02}"), "width": k.width, "height": k.height, "fx": k.fx, "fy": k.fy, "cx": k.cx, "cy": k.cy, "camera_to_world": rows(pose)}))
-        .collect();
-    (values, of)
-}
-
-/// Clip frame `k` as a scene/1 frame: each bone's frame in metres, +Y up.
-fn frame_json(motion: &bvh::Motion, rig: &bones::Rig, k: usize, world: &World) -> Value {
-    let joints = motion.joint_to_world(k);
-    let bones: Vec<Value> = joints.iter().zip(&rig.alignments).map(|(j, a)| rows(&world.apply(*j * *a))).collect();
-    json!({"index": k, "time": motion.time(k), "bone_to_world": bones})
-}
-
-/// The capture's light: unknown, of the kind asked.
-fn light_json(light: CaptureLight) -> (&'static str, Value) {
-    match light {
-        CaptureLight::Sun => ("sun", json!({"type": "directional"})),
-        CaptureLight::Point => ("lamp", json!({"type": "point"})),
-        CaptureLight::Uniform => ("uniform", json!({"type": "uniform", "radiance": [1.0, 1.0, 1.0]})),
-    }
 }

@@ -120,7 +120,9 @@ pub fn drive(skeleton: &Skeleton, reference: &Pose, motion: &Motion, metres: f64
     let clip: f64 = (0..skeleton.len()).filter(|&b| skeleton.bones[b].parent.is_some()).map(|b| motion.joints[joint_of[b]].offset.length() * metres).sum();
     let scale = fitted / clip;
     if !(scale.is_finite() && scale > 0.0) {
-        return Err(format!("the clip's joints that carry the fitted bones have no length between them (their offsets sum to {clip:e} m): nothing to scale the travel by"));
+        return Err(format!(
+            "the clip's joints that carry the fitted bones have no length between them (their offsets sum to {clip:e} m): nothing to scale the travel by"
+        ));
     }
     let start = motion.joint_to_world(0);
     let poses = frames

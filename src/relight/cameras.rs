@@ -21,13 +21,11 @@ pub fn orbit_cameras(scene: &Scene, frame: usize, count: usize) -> impl Iterator
     let radius = offsets.iter().map(|o| across(o).length()).sum::<f64>() / n;
     let start = offsets.first().and_then(|o| across(o).try_normalize()).unwrap_or_else(|| up.any_orthonormal_vector());
     let (width, image_height, focal) = scene.cameras.first().map_or((128, 128, 128.0), |c| (c.width, c.height, c.fx));
-    (0..count)
-        .map(move |k| {
-            let turn = glam::DQuat::from_axis_angle(up, 2.0 * PI * k as f64 / count as f64);
-            let eye = centre + up * height + turn * start * radius.max(1e-6);
-            crate::scene::Camera::look_at(&format!("orbit{k:03}"), eye, centre, up, width, image_height, focal)
-        })
+    (0..count).map(move |k| {
+        let turn = glam::DQuat::from_axis_angle(up, 2.0 * PI * k as f64 / count as f64);
+        let eye = centre + up * height + turn * start * radius.max(1e-6);
+        crate::scene::Camera::look_at(&format!("orbit{k:03}"), eye, centre, up, width, image_height, focal)
+    })
 }
 
 pub use crate::scene::world_up;
-

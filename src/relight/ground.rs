@@ -35,10 +35,10 @@ impl GroundOptions {
         if !height.is_finite() {
             return say("not a finite height (m)".into());
         }
-        let (lo, hi) = frames.iter().map(|&f| scene.frames[f].pose.bounds(&scene.skeleton)).fold(
-            (f64::INFINITY, f64::NEG_INFINITY),
-            |(lo, hi), (a, b)| (lo.min(a.y), hi.max(b.y)),
-        );
+        let (lo, hi) = frames
+            .iter()
+            .map(|&f| scene.frames[f].pose.bounds(&scene.skeleton))
+            .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), (a, b)| (lo.min(a.y), hi.max(b.y)));
         let reach = GROUND_REACH * (hi - lo).max(1e-3);
         if (height - lo).abs() > reach {
             return say(format!("{:.1} m from the body's lowest joint ({lo:.3} m): a ground that far ({GROUND_REACH} body heights, {reach:.1} m, at most) shows nothing of the body's shadow", (height - lo).abs()));

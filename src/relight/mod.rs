@@ -355,7 +355,13 @@ fn view_order(options: &RelightOptions, cameras: &[usize], frames: &[usize]) -> 
 
 /// Appends `image` to the turntable of `(column, frame)`, ending the previous frame's (whole
 /// after its `views` views) when this is a new one.
-fn turntable_push(current: &mut Option<(usize, crate::apng::ApngFile)>, out: &Path, (column, frame): (usize, usize), views: usize, image: &RgbImage) -> Result<(), FitError> {
+fn turntable_push(
+    current: &mut Option<(usize, crate::apng::ApngFile)>,
+    out: &Path,
+    (column, frame): (usize, usize),
+    views: usize,
+    image: &RgbImage,
+) -> Result<(), FitError> {
     let path = out.join(turntable_file(frame));
     if current.as_ref().is_some_and(|(c, _)| *c != column) {
         if let Some((_, done)) = current.take() {
@@ -364,7 +370,11 @@ fn turntable_push(current: &mut Option<(usize, crate::apng::ApngFile)>, out: &Pa
     }
     let file = match current {
         Some((_, file)) => file,
-        None => &mut current.insert((column, crate::apng::ApngFile::create(&path, (image.width, image.height), views, TURNTABLE_FRAME_MS).map_err(|e| io(&path, e))?)).1,
+        None => {
+            &mut current
+                .insert((column, crate::apng::ApngFile::create(&path, (image.width, image.height), views, TURNTABLE_FRAME_MS).map_err(|e| io(&path, e))?))
+                .1
+        }
     };
     file.push(image).map_err(|e| io(&path, e))
 }
@@ -407,7 +417,6 @@ fn planned_files(options: &RelightOptions, views: &[(usize, usize, usize, usize)
     }
     files
 }
-
 
 /// How long each view of a turntable shows (ms): a 36-view orbit turns once in 3.6 s.
 const TURNTABLE_FRAME_MS: u16 = 100;
