@@ -8,7 +8,7 @@ mod common;
 use common::TempDir;
 use glam::{DMat3, DMat4, DQuat, DVec3};
 use std::path::{Path, PathBuf};
-use umbra::capture::{bvh, import, CaptureLight, ImportOptions, Intrinsics, Units, Up};
+use umbra::capture::{bvh, import, ImportOptions, Intrinsics, Units, Up};
 use umbra::scene::Scene;
 use umbra::synth::{Export, SynthOptions};
 
@@ -17,17 +17,7 @@ fn synth_options(export: Option<Export>) -> SynthOptions {
 }
 
 fn options(capture: &Path, out: PathBuf) -> ImportOptions {
-    ImportOptions {
-        capture: capture.to_path_buf(),
-        out,
-        light: CaptureLight::Sun,
-        units: None,
-        up: Up::PlusY,
-        cameras: None,
-        motion: None,
-        masks: None,
-        max_size: None,
-    }
+    common::import_options(capture, out)
 }
 
 /// A scene and the same scene exported as a capture, in `dir`.

@@ -9,7 +9,7 @@ mod common;
 use common::{fails, short_run, succeeds, umbra, TempDir};
 use glam::DMat4;
 use std::path::{Path, PathBuf};
-use umbra::capture::{bvh, import, CaptureLight, ImportOptions, Units, Up};
+use umbra::capture::{bvh, import, ImportOptions, Units, Up};
 use umbra::scene::Scene;
 use umbra::synth::Export;
 
@@ -30,17 +30,7 @@ fn capture(dir: &Path) -> PathBuf {
 }
 
 fn options(capture: &Path, out: PathBuf) -> ImportOptions {
-    ImportOptions {
-        capture: capture.to_path_buf(),
-        out,
-        light: CaptureLight::Sun,
-        units: None,
-        up: Up::PlusY,
-        cameras: None,
-        motion: None,
-        masks: None,
-        max_size: None,
-    }
+    common::import_options(capture, out)
 }
 
 fn copy_tree(from: &Path, to: &Path) {

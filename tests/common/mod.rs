@@ -210,3 +210,18 @@ pub fn small_capture_options(export: Option<umbra::synth::Export>) -> umbra::syn
         ..umbra::synth::SynthOptions::default()
     }
 }
+
+/// Import `capture` into `out` as a sunlit capture, everything else inferred.
+pub fn import_options(capture: &Path, out: PathBuf) -> umbra::capture::ImportOptions {
+    umbra::capture::ImportOptions {
+        capture: capture.to_path_buf(),
+        out,
+        light: umbra::capture::CaptureLight::Sun,
+        units: None,
+        up: umbra::capture::Up::PlusY,
+        cameras: None,
+        motion: None,
+        masks: None,
+        max_size: None,
+    }
+}
