@@ -2,9 +2,9 @@
 //! sheets where no image constrains it (far from the body, where every training ray saw
 //! background and the density stayed near zero, so no render shows them), which a mesh would
 //! otherwise carry. A point of the true body projects inside every mask of its frame, so a
-//! vertex that projects into an image of its frame outside that image's mask (widened by
-//! `MASK_MARGIN` pixels for the masks' own edge) is not the body: every triangle that holds
-//! one is cut, and the vertices no triangle holds any more go with them. An image whose mask
+//! vertex that projects into images of its frame outside their masks (widened by `MASK_MARGIN`
+//! pixels for the masks' own edge; two images, or the only one that sees it, for a mask may
+//! hold a segmenter's stray cut) is not the body: every triangle that holds one is cut, and the vertices no triangle holds any more go with them. An image whose mask
 //! keeps clear of its border frames the whole body, so a vertex beyond that image's border is
 //! not the body either; where the body runs off an image, that image says nothing beyond it.
 //!
@@ -105,17 +105,20 @@ fn judge(vertices: &[DVec3], scene: &Scene, view: &View) -> Option<Vec<Option<bo
     Some(vertices.iter().map(verdict).collect())
 }
 
-/// Whether each vertex lies outside some mask of the frame it projects into.
+/// Whether each vertex lies outside the masks of the frame it projects into: outside two of
+/// them, or the only one that judges it. One image's mask alone never cuts what the others see
+/// inside theirs: a segmenter's stray cut (a blob bitten from an arm) stays one image's error.
 fn outside_hull(vertices: &[DVec3], scene: &Scene, frame: usize) -> (Vec<bool>, usize) {
-    let mut outside = vec![false; vertices.len()];
+    let (mut outside, mut judged) = (vec![0u32; vertices.len()], vec![0u32; vertices.len()]);
     let mut views = 0;
     for verdicts in scene.views.iter().filter(|v| v.frame == frame).filter_map(|view| judge(vertices, scene, view)) {
         views += 1;
-        for (out, verdict) in outside.iter_mut().zip(verdicts) {
-            *out |= verdict == Some(true);
+        for ((out, seen), verdict) in outside.iter_mut().zip(judged.iter_mut()).zip(verdicts) {
+            *seen += verdict.is_some() as u32;
+            *out += (verdict == Some(true)) as u32;
         }
     }
-    (outside, views)
+    (outside.iter().zip(&judged).map(|(&o, &j)| o >= 2 || (o == 1 && j == 1)).collect(), views)
 }
 
 /// Whether each vertex, moved by its skinning from frame `frame` into each training frame,

@@ -49,6 +49,7 @@ pub mod scoring;
 pub mod seen;
 pub mod shading;
 pub mod shadow;
+pub mod silhouette;
 pub mod skeleton;
 pub mod sun_search;
 pub mod synth;

@@ -9,9 +9,14 @@ pub fn rgb(colour: Tensor<2>, target: Tensor<2>) -> Tensor<1> {
     (colour - target).abs().mean().reshape([1])
 }
 
-/// `mean |accumulation - mask|`.
-pub fn mask(accumulation: Tensor<1>, mask: Tensor<1>) -> Tensor<1> {
-    (accumulation - mask).abs().mean().reshape([1])
+/// `mean |accumulation - mask|`, each ray's term times its weight when given (a mask trusted
+/// less near its edge).
+pub fn mask(accumulation: Tensor<1>, mask: Tensor<1>, weights: Option<Tensor<1>>) -> Tensor<1> {
+    let error = (accumulation - mask).abs();
+    match weights {
+        Some(w) => (error * w).mean().reshape([1]),
+        None => error.mean().reshape([1]),
+    }
 }
 
 /// `|albedo - 0.75|` on foreground rays (mean over foreground rays and channels).
@@ -90,7 +95,8 @@ mod tests {
     #[test]
     fn each_loss_matches_hand_computed_values() {
         close(value(rgb(t2(&[0.5, 0.5, 0.5, 0.0, 0.2, 1.0], 3), t2(&[0.25, 0.5, 1.0, 0.0, 0.0, 0.0], 3))), (0.25 + 0.0 + 0.5 + 0.0 + 0.2 + 1.0) / 6.0);
-        close(value(mask(t1(&[0.9, 0.1, 0.5]), t1(&[1.0, 0.0, 0.0]))), (0.1 + 0.1 + 0.5) / 3.0);
+        close(value(mask(t1(&[0.9, 0.1, 0.5]), t1(&[1.0, 0.0, 0.0]), None)), (0.1 + 0.1 + 0.5) / 3.0);
+        close(value(mask(t1(&[0.9, 0.1, 0.5]), t1(&[1.0, 0.0, 0.0]), Some(t1(&[1.0, 0.0, 0.5])))), (0.1 + 0.0 + 0.25) / 3.0);
         // Only the foreground ray counts: |0.5 - 0.75| + |1 - 0.75| + |0.75 - 0.75| over 3.
         close(value(grey(t2(&[0.5, 1.0, 0.75, 0.0, 0.0, 0.0], 3), t1(&[1.0, 0.0]))), 0.5 / 3.0);
         close(value(density(t1(&[0.0, 100.0]), t1(&[0.5, 100.0]))), (0.5f64.tanh().powi(2) + 0.0) / 2.0);

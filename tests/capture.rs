@@ -621,3 +621,66 @@ fn a_capture_with_a_real_pipelines_errors_errs_by_the_stated_sizes_and_keeps_its
     let report = import(&options(&flawed, dir.path().join("imported")), &|_, _| {}).unwrap();
     assert!(report.score > 0.5, "{:?}", report.assumed);
 }
+
+/// A clean capture of static cameras: each camera's plate, where known, is what its photos show
+/// where no body is near; a training image keeps the body, and what the camera saw within
+/// `EDGE_BAND` of its mask where the plate is known, and is black elsewhere; test images keep
+/// only their body and have no plate.
+#[test]
+fn a_static_cameras_plate_comes_from_its_frames_and_training_images_keep_what_it_saw_near_the_masks_edge() {
+    use umbra::silhouette::{near_body, EDGE_BAND, PLATE_CLEARANCE};
+    let dir = TempDir::new("plates");
+    let capture = dir.path().join("capture");
+    umbra::synth::generate(&SynthOptions { frames: 6, ..synth_options(Some(Export::Nerfstudio)) }, &capture, false, |_, _| {}).unwrap();
+    let out = dir.path().join("scene");
+    let report = import(&options(&capture, out.clone()), &|_, _| {}).unwrap();
+    assert!(report.assumed.iter().any(|a| a.starts_with("plates: 3 of 3 cameras")), "{:?}", report.assumed);
+    let scene = Scene::load(&out).unwrap();
+    let byte = umbra::imageio::linear_to_srgb8;
+    let same = |a: [f32; 3], b: [f32; 3]| a.iter().zip(&b).all(|(&x, &y)| (byte(x) as i32 - byte(y) as i32).abs() <= 1);
+    let mut kept_beyond_mask = 0;
+    for view in &scene.views {
+        let mask = view.mask.as_ref().unwrap();
+        let (photo, _) = umbra::photo::read_photo(&capture.join("images").join(view.path.file_name().unwrap())).unwrap();
+        let Some(plate) = view.plate.as_ref() else {
+            assert_ne!(view.split, umbra::scene::Split::Train, "{}: a training image of a static camera has a plate", view.path.display());
+            assert!((0..photo.pixels.len()).all(|p| mask.foreground[p] || view.colour.pixel(p) == [0.0; 3]), "{}", view.path.display());
+            continue;
+        };
+        assert_eq!(view.split, umbra::scene::Split::Train);
+        let (near, clear) = (near_body(mask, EDGE_BAND), near_body(mask, PLATE_CLEARANCE));
+        for p in 0..photo.pixels.len() {
+            let stored = view.colour.pixel(p);
+            let keep = mask.foreground[p] || (near[p] && plate.known.foreground[p]);
+            assert!(if keep { same(stored, photo.pixels[p]) } else { stored == [0.0; 3] }, "{}: pixel {p}", view.path.display());
+            kept_beyond_mask += (keep && !mask.foreground[p]) as usize;
+            if plate.known.foreground[p] && !clear[p] {
+                assert!(same(plate.colour.pixels[p], photo.pixels[p]), "{}: the plate at pixel {p}", view.path.display());
+            }
+        }
+    }
+    assert!(kept_beyond_mask > 0);
+
+    // A training batch composites over the plate, and trusts the mask less, exactly at the
+    // pixels near a mask's edge where the plate is known.
+    let schedule = umbra::schedule::Schedule::load(Path::new("schedules/default.toml")).unwrap();
+    let mut trainer = umbra::train::Trainer::new(scene.clone(), schedule, umbra::backend::Backend::Flex, 0).unwrap();
+    let (mut near_edge, mut elsewhere) = (0, 0);
+    for _ in 0..4 {
+        let batch = trainer.draw_batch().unwrap();
+        assert_eq!(batch.backgrounds.len(), 3 * batch.masks.len());
+        for (k, &(v, p, _)) in batch.sources.iter().enumerate() {
+            let view = &scene.views[v];
+            let (mask, plate) = (view.mask.as_ref().unwrap(), view.plate.as_ref().unwrap());
+            let edge = umbra::silhouette::edge_pixels(mask, EDGE_BAND).contains(&(p as u32)) && plate.known.foreground[p];
+            let behind = [0, 1, 2].map(|c| batch.backgrounds[3 * k + c]);
+            match edge {
+                true => assert!(behind == plate.colour.pixels[p] && batch.mask_weights[k] < 1.0, "{k}"),
+                false => assert!(behind == [0.0; 3] && batch.mask_weights[k] == 1.0, "{k}"),
+            }
+            near_edge += edge as usize;
+            elsewhere += !edge as usize;
+        }
+    }
+    assert!(near_edge > 0 && elsewhere > 0, "{near_edge} near the edge, {elsewhere} elsewhere");
+}

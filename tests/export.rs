@@ -176,6 +176,18 @@ fn carving_keeps_what_lies_inside_every_mask_and_cuts_a_sheet_beside_the_body() 
     assert_eq!(carved.mesh.triangles.len(), body.triangles.len());
     assert!(carved.kept.iter().all(|&v| v < offset), "only the ball at the pelvis is kept");
     assert!(carved.mesh.is_closed_manifold());
+    // One image's mask cut away at the pelvis (a segmenter's stray bite) cuts nothing the other
+    // images see inside theirs; two such masks do.
+    let mut bitten = scene.clone();
+    let of_frame: Vec<usize> = (0..bitten.views.len()).filter(|&v| bitten.views[v].frame == 0 && bitten.views[v].mask.is_some()).collect();
+    let bite = |scene: &mut umbra::scene::Scene, v: usize| {
+        let mask = scene.views[v].mask.as_mut().unwrap();
+        mask.foreground = vec![false; mask.width * mask.height].into();
+    };
+    bite(&mut bitten, of_frame[0]);
+    assert_eq!(umbra::carve::carve(&both, &bitten, 0, None).mesh.triangles.len(), body.triangles.len());
+    bite(&mut bitten, of_frame[1]);
+    assert_eq!(umbra::carve::carve(&both, &bitten, 0, None).mesh.triangles.len(), 0);
 
     // A test pose with no image of its own: its own hull says nothing, and the training frames'
     // hulls, the vertices moved there with the pelvis, cut the same ball and keep the other.

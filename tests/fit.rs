@@ -871,3 +871,34 @@ fn orbit_cameras_circle_the_body_at_the_scenes_height_and_distance() {
         assert!((cosine.acos().to_degrees() - 45.0).abs() < 1e-6, "{cosine}");
     }
 }
+
+/// One camera's training images a quarter brighter and redder than the others' (its exposure
+/// and white balance): a short fit learns that camera the largest gain in every channel, the
+/// red most, while the gains' mean over the cameras stays 1.
+#[test]
+fn a_brighter_camera_is_learned_a_larger_gain_and_the_gains_mean_is_one() {
+    let dir = TempDir::new("camera-colours");
+    let scene_path = tiny_scene(dir.path(), TrainingLight::Sun);
+    let scene = umbra::scene::Scene::load(&scene_path).unwrap();
+    let bright = [1.35f32, 1.2, 1.2];
+    for view in scene.views.iter().filter(|v| v.camera == 1 && v.split == umbra::scene::Split::Train) {
+        let mut image = umbra::imageio::read_rgb(&view.path).unwrap();
+        image.pixels.iter_mut().for_each(|p| *p = [0, 1, 2].map(|c| (p[c] * bright[c]).min(1.0)));
+        std::fs::write(&view.path, umbra::imageio::encode_png_rgb(&image).unwrap()).unwrap();
+    }
+    let scene = umbra::scene::Scene::load(&scene_path).unwrap();
+    let schedule = Schedule::parse(QUICK, Path::new("quick.toml")).unwrap();
+    let mut trainer = Trainer::new(scene, schedule, Backend::Flex, 1).unwrap();
+    for _ in 0..60 {
+        trainer.iterate().unwrap();
+    }
+    let gains = trainer.camera_gains();
+    eprintln!("{gains:?}");
+    assert_eq!(gains.len(), 4, "every training camera has a gain");
+    let (_, brighter) = gains.iter().find(|(c, _)| *c == 1).unwrap();
+    for (camera, gain) in gains.iter().filter(|(c, _)| *c != 1) {
+        assert!((0..3).all(|c| brighter[c] > gain[c] + 0.05), "camera 1 {brighter:?} against camera {camera} {gain:?}");
+    }
+    assert!(brighter[0] > brighter[1] && brighter[0] > brighter[2], "{brighter:?}");
+    assert!((0..3).all(|c| (gains.iter().map(|(_, g)| g[c]).sum::<f64>() / 4.0 - 1.0).abs() < 1e-9));
+}

@@ -24,6 +24,7 @@ const LAYERS: &[&[&str]] = &[
         "geometry",
         "isosurface",
         "seen",
+        "silhouette",
         "metrics",
         "plot",
         "progress",

@@ -141,6 +141,9 @@ fn image_rules() {
     expect_path(broken(|s, _| s["images"][0]["path"] = json!("images/b.png")), "images[0].path", "6x4");
     expect_path(broken(|s, _| s["images"][1]["albedo"] = json!("images/a.png")), "images[1].albedo", "8x8");
     expect_path(broken(|s, _| s["images"][0]["mask"] = json!("masks/none.png")), "images[0].mask", "not found");
+    expect_path(broken(|s, _| s["images"][0]["plate"] = json!("plates/none.png")), "images[0].plate", "not found");
+    expect_path(broken(|s, _| s["images"][0]["plate"] = json!("images/b.png")), "images[0].plate", "6x4");
+    expect_path(broken(|s, _| s["images"][2]["plate"] = json!("images/a.png")), "images[2].plate", "needs the image's mask");
 }
 
 #[test]
@@ -346,4 +349,26 @@ fn a_checkpoint_of_the_first_training_identity_still_matches_its_scene() {
     other.replace_range(0..1, if first.starts_with('0') { "1" } else { "0" });
     assert!(!scene.is_training_identity(&other, &current));
     assert!(!scene.is_training_identity("v2:0000000000000000", &current));
+}
+
+/// A plate (umbra's own `images[*].plate`) is read once for the images that share it, known
+/// where its alpha is opaque, everywhere when it has none.
+#[test]
+fn a_plate_is_read_once_and_known_where_it_is_opaque() {
+    let dir = TempDir::new("plate");
+    let mut scene = valid_scene(dir.path());
+    let rgba: Vec<u8> = (0..64).flat_map(|k| [200, 100, 50, if k % 2 == 0 { 255 } else { 0 }]).collect();
+    let bytes = umbra::imageio::encode_png_raw(&rgba, 8, 8, image::ExtendedColorType::Rgba8).unwrap();
+    std::fs::write(dir.path().join("plate.png"), bytes).unwrap();
+    scene["images"][0]["plate"] = json!("plate.png");
+    write_scene_json(dir.path(), &scene);
+    let loaded = Scene::load(dir.path()).unwrap();
+    let plate = loaded.views[0].plate.as_ref().expect("a plate");
+    assert!((0..64).all(|k| plate.known.foreground[k] == (k % 2 == 0)));
+    assert!((plate.colour.pixels[0][0] - umbra::imageio::srgb_to_linear(200.0 / 255.0)).abs() < 1e-6);
+    assert!(loaded.views[1].plate.is_none());
+    scene["images"][0]["plate"] = json!("images/a.png");
+    write_scene_json(dir.path(), &scene);
+    let opaque = Scene::load(dir.path()).unwrap();
+    assert!(opaque.views[0].plate.as_ref().unwrap().known.foreground.iter().all(|&k| k));
 }

@@ -61,7 +61,11 @@ pub fn write_capture(scene: &Scene, dir: &Path, units: f64, errors: &CaptureErro
         let truth = dir.join("truth");
         std::fs::create_dir_all(&truth).map_err(|e| input(&truth, e.to_string()))?;
         write_cameras_and_motion(scene, &truth, units, &chosen, &names)?;
-        let text = serde_json::to_string_pretty(errors).map_err(|e| input(&truth, e.to_string()))?;
+        // The sizes asked for, and the colour each camera was given (gain times white balance,
+        // per channel, by the synth camera's index: `cNN` in the images' names).
+        let mut stated = serde_json::to_value(errors).map_err(|e| input(&truth, e.to_string()))?;
+        stated["camera_colours"] = serde_json::json!(flawed.colours);
+        let text = serde_json::to_string_pretty(&stated).map_err(|e| input(&truth, e.to_string()))?;
         write(&truth.join("errors.json"), text.as_bytes())?;
     }
     Ok(chosen.len())

@@ -196,16 +196,25 @@ pub fn import(options: &ImportOptions, on: &(dyn Fn(usize, usize) + Sync)) -> Re
     report.assumed.push(format!("light: {light_name} ({}; the fit recovers it)", light["type"].as_str().unwrap_or("?")));
     // A folder of import's own beside `out` (never one that was there): the only one it removes.
     let temp = crate::files::create_folder_beside(out, "importing").map_err(|e| input(out, format!("{e} (nothing was written)")))?;
-    let written = photos::write(&images, &photos, &temp, on);
+    let written = photos::write(&images, &photos, &camera_of, &temp, on);
     let result = written.and_then(|entries| {
+        let plates: std::collections::BTreeSet<&String> = entries.iter().filter_map(|e| e.2.as_ref()).collect();
+        report.assumed.push(format!(
+            "plates: {} of {} cameras (from their frames' backgrounds): near the masks' edges there the fit decides the silhouette",
+            plates.len(),
+            report.cameras
+        ));
         let image_entries: Vec<Value> = entries
             .into_iter()
             .enumerate()
-            .map(|(i, (path, mask))| {
+            .map(|(i, (path, mask, plate))| {
                 let mut entry =
                     json!({"camera": camera_of[i], "frame": position(frame_of[i]), "light": light_name, "split": images[i].split.name(), "path": path});
                 if let Some(mask) = mask {
                     entry["mask"] = json!(mask);
+                }
+                if let Some(plate) = plate {
+                    entry["plate"] = json!(plate);
                 }
                 entry
             })

@@ -1,7 +1,9 @@
 //! A capture's photographs into a scene's images: each read (PNG, JPEG or EXR), its mask found
 //! (the camera file's `mask_path`, `--masks DIR/<stem>.png`, else the image's alpha), the lens
 //! distortion removed, downscaled by a whole factor to `--max-size`, the background blacked by
-//! the mask, and written under the image's own name; in parallel, one image in memory per thread.
+//! the mask (but near its edge where the camera's plate is known: a static camera's plate is
+//! estimated from its frames first), and written under the image's own name; in parallel, one
+//! image in memory per thread.
 
 use super::{input, CaptureImage, ImportError, ImportOptions, Intrinsics};
 use crate::imageio::{Mask, RgbImage};
@@ -90,24 +92,91 @@ fn mask_in(dir: &Path, image: &CaptureImage) -> PathBuf {
     }
 }
 
-/// Processes and writes every image into `dir` (`images/`, `masks/`); returns each image's
-/// path and mask path relative to `dir`. `on(done, total)` after each.
-pub fn write(images: &[CaptureImage], photos: &Photos, dir: &Path, on: &(dyn Fn(usize, usize) + Sync)) -> Result<Vec<(String, Option<String>)>, ImportError> {
+/// An image as the scene keeps it: its path, its mask's path and its plate's, relative to the
+/// scene's folder.
+pub type Written = (String, Option<String>, Option<String>);
+
+/// Processes and writes every image into `dir` (`images/`, `masks/`, and `plates/` for the
+/// static cameras whose frames show what lies behind the body); `camera_of` is each image's
+/// scene camera. `on(done, total)` after each image.
+pub fn write(
+    images: &[CaptureImage],
+    photos: &Photos,
+    camera_of: &[usize],
+    dir: &Path,
+    on: &(dyn Fn(usize, usize) + Sync),
+) -> Result<Vec<Written>, ImportError> {
     for sub in ["images", "masks"] {
         std::fs::create_dir_all(dir.join(sub)).map_err(|e| input(&dir.join(sub), e.to_string()))?;
     }
+    let plates = plates(images, photos, camera_of, dir)?;
     let done = AtomicUsize::new(0);
     (0..images.len())
         .into_par_iter()
         .map(|i| {
-            let written = write_one(&images[i], photos, i, dir);
+            let plate = plates.get(&camera_of[i]).filter(|_| images[i].split == Split::Train);
+            let written = write_one(&images[i], photos, i, plate, dir);
             on(done.fetch_add(1, Ordering::Relaxed) + 1, images.len());
             written
         })
         .collect()
 }
 
-fn write_one(image: &CaptureImage, photos: &Photos, i: usize, dir: &Path) -> Result<(String, Option<String>), ImportError> {
+/// The most frames of a camera its plate is estimated from (evenly spread over its training
+/// images): enough for a median, and a bounded memory at any capture's length.
+const PLATE_FRAMES: usize = 32;
+
+/// A plate written for the scene: its path relative to the scene's folder, and the plate.
+type WrittenPlate = (String, crate::silhouette::Plate);
+
+/// Each static camera's plate (`silhouette::plate_of`) from its masked training images,
+/// written to `plates/camNN.png` (alpha: where it is known); cameras with too few frames or
+/// no pixel known have none.
+fn plates(images: &[CaptureImage], photos: &Photos, camera_of: &[usize], dir: &Path) -> Result<std::collections::BTreeMap<usize, WrittenPlate>, ImportError> {
+    let mut per_camera: std::collections::BTreeMap<usize, Vec<usize>> = std::collections::BTreeMap::new();
+    for (i, image) in images.iter().enumerate() {
+        if image.split == Split::Train {
+            per_camera.entry(camera_of[i]).or_default().push(i);
+        }
+    }
+    let mut plates = std::collections::BTreeMap::new();
+    for (camera, members) in per_camera.into_iter().filter(|(_, m)| m.len() >= crate::silhouette::PLATE_SAMPLES) {
+        let chosen: Vec<usize> = (0..members.len().min(PLATE_FRAMES)).map(|k| members[k * members.len() / members.len().min(PLATE_FRAMES)]).collect();
+        let developed: Vec<(Vec<[u8; 3]>, Mask)> = chosen
+            .par_iter()
+            .map(|&i| {
+                let (colour, mask) = develop(&images[i], photos, i)?;
+                let f = photos.factors[i];
+                let bytes = colour.downscaled(f).pixels.iter().map(|p| p.map(crate::imageio::linear_to_srgb8)).collect();
+                Ok(mask.map(|m| (bytes, downscale_mask(&m, f))))
+            })
+            .collect::<Result<Vec<_>, ImportError>>()?
+            .into_iter()
+            .flatten()
+            .collect();
+        let Some(plate) = crate::silhouette::plate_of(&developed) else { continue };
+        let relative = format!("plates/cam{camera:02}.png");
+        let rgba: Vec<u8> = plate
+            .colour
+            .pixels
+            .iter()
+            .zip(plate.known.foreground.iter())
+            .flat_map(|(p, &known)| {
+                let [r, g, b] = p.map(crate::imageio::linear_to_srgb8);
+                [r, g, b, if known { 255 } else { 0 }]
+            })
+            .collect();
+        let bytes = crate::imageio::encode_png_raw(&rgba, plate.colour.width, plate.colour.height, image::ExtendedColorType::Rgba8)?;
+        std::fs::create_dir_all(dir.join("plates")).map_err(|e| input(&dir.join("plates"), e.to_string()))?;
+        crate::imageio::write_atomic(&dir.join(&relative), &bytes).map_err(|e| input(&dir.join(&relative), e.to_string()))?;
+        plates.insert(camera, (relative, plate));
+    }
+    Ok(plates)
+}
+
+/// An image read, checked against its camera, with its mask, and its lens distortion removed:
+/// full size, nothing blacked.
+fn develop(image: &CaptureImage, photos: &Photos, i: usize) -> Result<(RgbImage, Option<Mask>), ImportError> {
     let (colour, alpha) = crate::photo::read_photo(&image.path)?;
     let k = &image.intrinsics;
     if (colour.width, colour.height) != (k.width, k.height) {
@@ -125,28 +194,51 @@ fn write_one(image: &CaptureImage, photos: &Photos, i: usize, dir: &Path) -> Res
     if mask.is_none() && image.split == Split::Train {
         return Err(input(&image.path, "a training image needs a mask: mask_path in the camera file, --masks DIR with <name>.png, or an alpha channel"));
     }
-    let (colour, mask) = if image.distortion.is_none() {
-        (colour, mask)
-    } else {
-        let undistorted = super::distortion::undistort_colour(&colour, k, &image.distortion);
-        (undistorted, mask.map(|m| super::distortion::undistort_mask(&m, k, &image.distortion)))
-    };
-    // The background blacked at full size, then again after downscaling: a pixel on the
-    // silhouette averages body and black, as a renderer's pixel over its area does.
-    let black_outside = |colour: &mut RgbImage, mask: &Option<Mask>| {
-        if let Some(m) = mask {
-            for (pixel, &inside) in colour.pixels.iter_mut().zip(&m.foreground) {
-                if !inside {
-                    *pixel = [0.0; 3];
-                }
+    Ok(match image.distortion.is_none() {
+        true => (colour, mask),
+        false => {
+            let undistorted = super::distortion::undistort_colour(&colour, k, &image.distortion);
+            (undistorted, mask.map(|m| super::distortion::undistort_mask(&m, k, &image.distortion)))
+        }
+    })
+}
+
+/// Blacks every pixel of `colour` that `keep` does not keep.
+fn black_unless(colour: &mut RgbImage, keep: impl Fn(usize) -> bool) {
+    for (p, pixel) in colour.pixels.iter_mut().enumerate() {
+        if !keep(p) {
+            *pixel = [0.0; 3];
+        }
+    }
+}
+
+fn write_one(image: &CaptureImage, photos: &Photos, i: usize, plate: Option<&WrittenPlate>, dir: &Path) -> Result<Written, ImportError> {
+    let (colour, mask) = develop(image, photos, i)?;
+    let f = photos.factors[i];
+    let (colour, mask, plate) = match (mask, plate) {
+        // With a plate, what the camera saw near the mask's edge is kept (downscaled whole, so
+        // an edge pixel averages body and plate, as the fit composites it), where the plate is
+        // known: the fit decides the silhouette there.
+        (Some(m), Some((relative, plate))) => {
+            let (mut colour, m) = (colour.downscaled(f), downscale_mask(&m, f));
+            let near = crate::silhouette::near_body(&m, crate::silhouette::EDGE_BAND);
+            black_unless(&mut colour, |p| m.foreground[p] || (near[p] && plate.known.foreground[p]));
+            (colour, Some(m), Some(relative.clone()))
+        }
+        // Else the background is blacked at full size, then again after downscaling: a pixel
+        // on the silhouette averages body and black, as a renderer's pixel over its area does.
+        (mask, _) => {
+            let mut colour = colour;
+            if let Some(m) = &mask {
+                black_unless(&mut colour, |p| m.foreground[p]);
             }
+            let (mut colour, mask) = (colour.downscaled(f), mask.map(|m| downscale_mask(&m, f)));
+            if let Some(m) = &mask {
+                black_unless(&mut colour, |p| m.foreground[p]);
+            }
+            (colour, mask, None)
         }
     };
-    let mut colour = colour;
-    black_outside(&mut colour, &mask);
-    let f = photos.factors[i];
-    let (mut colour, mask) = (colour.downscaled(f), mask.map(|m| downscale_mask(&m, f)));
-    black_outside(&mut colour, &mask);
     let stem = &image.key;
     let exr = image.path.extension().is_some_and(|e| e.eq_ignore_ascii_case("exr"));
     let path = format!("images/{stem}.{}", if exr { "exr" } else { "png" });
@@ -172,7 +264,7 @@ fn write_one(image: &CaptureImage, photos: &Photos, i: usize, dir: &Path) -> Res
         }
         None => None,
     };
-    Ok((path, mask_path))
+    Ok((path, mask_path, plate))
 }
 
 /// Each `f` x `f` block is body when at least half of it is.

@@ -221,6 +221,9 @@ fn fit(options: &crate::fit::FitOptions) -> Result<(), String> {
     if let Some(e) = report.direction_error() {
         println!("light direction error against the scene's sun: {e:.2} degrees");
     }
+    if let Some(line) = print::camera_colours(&report.capture) {
+        println!("{line}");
+    }
     print_evaluation(&report.evaluation);
     println!("wall time: {:.1} s", report.wall_seconds);
     Ok(())

@@ -122,6 +122,9 @@ pub(super) fn capture_report(trainer: &Trainer) -> serde_json::Value {
         // Gaussians seeded on the body the masks show beyond every bone (a loose body's root).
         "gaussians_on_loose_body": trainer.loose_gaussians(),
         "training_cameras": training_cameras.len(),
+        // Each training camera's learned gain per channel (its exposure and white balance),
+        // normalised to a mean of 1 over the cameras: renders are of the mean camera.
+        "camera_colours": trainer.camera_gains().iter().map(|(c, gain)| json!({"camera": trainer.scene.cameras[*c].name, "gain": gain})).collect::<Vec<_>>(),
         "monocular": training_cameras.len() == 1,
         "light_start": match trainer.searches.first().and_then(|s| s.as_ref()) {
             Some(r) if r.best.position.is_some() => "point light search over directions and distances around the body, then gradient descent",

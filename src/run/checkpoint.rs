@@ -77,6 +77,7 @@ pub fn save_checkpoint_until(trainer: &Trainer, out: &Path, history: &[(usize, S
         "field": trainer.model()?.field.config,
         "gaussian_bones": trainer.model()?.gaussians.bones,
         "error_maps": trainer.error_maps().into_iter().map(|(view, errors)| json!({"view": view, "errors": errors})).collect::<Vec<_>>(),
+        "camera_colours": trainer.camera_colours_json(),
     });
     write_text(&temp.join("state.json"), &state.to_string())?;
     let sum = file_checksum(&temp.join("state.json")).map_err(|e| io(&temp.join("state.json"), e))?;
@@ -310,6 +311,9 @@ pub(crate) fn load_checkpoint(trainer: &mut Trainer, out: &Path) -> Result<Vec<(
         maps.push((view, errors));
     }
     trainer.set_error_maps(maps).map_err(|e| io(&state_path, format!("error_maps: {e}")))?;
+    // Checkpoints from before the cameras' colours were learned have none: they start at 1.
+    let colours = state.get("camera_colours").cloned().unwrap_or(serde_json::Value::Null);
+    trainer.restore_camera_colours(&colours).map_err(|e| io(&state_path, format!("camera_colours: {e}")))?;
     let csv = crate::files::read_text(&dir.join("losses.csv"), crate::files::STATE_BYTES).map_err(|e| io(&dir.join("losses.csv"), e))?;
     Ok(parse_losses_csv(&csv))
 }

@@ -92,6 +92,17 @@ impl Scene {
                 f = f.bytes(&v.to_bits().to_le_bytes());
             }
         }
+        // What lies behind the body, where known, when the image has a plate (a scene without
+        // plates keeps the identity it had).
+        if let Some(plate) = &view.plate {
+            f = f.text("plate");
+            for (p, c) in plate.colour.pixels.iter().enumerate().filter(|(p, _)| plate.known.foreground[*p]) {
+                f = f.bytes(&(p as u64).to_le_bytes());
+                for v in c {
+                    f = f.bytes(&v.to_bits().to_le_bytes());
+                }
+            }
+        }
         f.0
     }
 

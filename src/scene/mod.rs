@@ -59,6 +59,11 @@ pub struct View {
     pub colour: crate::photo::Photo,
     pub mask: Option<Mask>,
     pub albedo: Option<RgbImage>,
+    /// What the camera saw behind the body (`images[*].plate`, umbra's own key, written by
+    /// `umbra import` for a static camera's training images): the image then keeps the photo
+    /// within `silhouette::EDGE_BAND` of its mask's edge where the plate is known, and a fit
+    /// composites over the plate there. Shared by the images of one camera.
+    pub plate: Option<std::sync::Arc<crate::silhouette::Plate>>,
 }
 
 #[derive(Clone, Debug)]

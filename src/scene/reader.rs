@@ -4,11 +4,13 @@
 use super::*;
 use crate::imageio::{self, ImageError, Mask, RgbImage};
 use crate::light::{EnvironmentMap, Light, UnknownLight};
+use crate::silhouette::Plate;
 use crate::skeleton::{Bone, Pose, Skeleton};
 use json::At;
 use rayon::prelude::*;
 use std::collections::{BTreeMap, HashMap, HashSet};
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
 
 pub(super) struct Reader<'a> {
     pub(super) root: &'a Path,
@@ -233,6 +235,7 @@ impl Reader<'_> {
             colour: Pending,
             mask: Option<Pending>,
             albedo: Option<Pending>,
+            plate: Option<Pending>,
         }
         let mut records = Vec::new();
         for item in node.non_empty_array()?.iter() {
@@ -264,7 +267,11 @@ impl Reader<'_> {
                 None => None,
             };
             let albedo = item.opt_field("albedo")?.map(|a| self.pending(&a)).transpose()?;
-            records.push(Record { camera, frame, light, split, colour, mask, albedo });
+            let plate = item.opt_field("plate")?.map(|a| self.pending(&a)).transpose()?;
+            if let (Some(plate), None) = (&plate, &mask) {
+                return Err(pending_error(plate, "a plate needs the image's mask: it is used only near the mask's edge".into()));
+            }
+            records.push(Record { camera, frame, light, split, colour, mask, albedo, plate });
         }
         // An unknown light is recovered from its training images: one that lights none cannot
         // be rendered, so no image of another split may name it.
@@ -279,11 +286,13 @@ impl Reader<'_> {
                 ),
             });
         }
+        let plates = self.plates(records.iter().filter_map(|r| r.plate.as_ref().map(|p| (p, &cameras[r.camera]))))?;
         // Decoding is the slow part of loading: do it in parallel, report the first failure in order.
         let (total, done) = (records.len(), std::sync::atomic::AtomicUsize::new(0));
         records
             .into_par_iter()
             .map(|r| {
+                let plate = r.plate.as_ref().map(|p| plates[&p.file].clone());
                 let (w, h) = (cameras[r.camera].width, cameras[r.camera].height);
                 let colour = decode_photo(&r.colour, w, h)?;
                 let mask = r.mask.as_ref().map(|m| decode_mask(m, w, h)).transpose()?;
@@ -291,9 +300,27 @@ impl Reader<'_> {
                 if let Some(on) = self.on_image {
                     on(done.fetch_add(1, std::sync::atomic::Ordering::Relaxed) + 1, total);
                 }
-                Ok(View { camera: r.camera, frame: r.frame, light: r.light, split: r.split, path: r.colour.file, colour, mask, albedo })
+                Ok(View { camera: r.camera, frame: r.frame, light: r.light, split: r.split, path: r.colour.file, colour, mask, albedo, plate })
             })
             .collect()
+    }
+
+    /// Each plate the images name, read once (images of one camera share it), in parallel.
+    fn plates<'a>(&self, named: impl Iterator<Item = (&'a Pending, &'a Camera)>) -> Result<BTreeMap<PathBuf, Arc<Plate>>, SceneError> {
+        let mut first: BTreeMap<PathBuf, (&Pending, &Camera)> = BTreeMap::new();
+        for (p, camera) in named {
+            let (w, h) = (camera.width, camera.height);
+            match first.get(&p.file) {
+                Some((_, c)) if (c.width, c.height) != (w, h) => {
+                    return Err(pending_error(p, format!("{} is named by images of cameras of different sizes", p.relative)));
+                }
+                Some(_) => {}
+                None => {
+                    first.insert(p.file.clone(), (p, camera));
+                }
+            }
+        }
+        first.into_par_iter().map(|(file, (p, camera))| Ok((file, Arc::new(decode_plate(p, camera.width, camera.height)?)))).collect()
     }
 
     pub(super) fn pending(&self, node: &At) -> Result<Pending, SceneError> {
@@ -348,6 +375,18 @@ pub(super) fn decode_photo(p: &Pending, w: usize, h: usize) -> Result<crate::pho
         }
     }
     Ok(photo)
+}
+
+/// A plate: an sRGB PNG whose alpha says where it is known (opaque), or an EXR known everywhere.
+fn decode_plate(p: &Pending, w: usize, h: usize) -> Result<Plate, SceneError> {
+    check_header(p, (w, h))?;
+    let (colour, alpha) = crate::photo::read_photo(&p.file).map_err(|e| pending_error(p, image_message(e, &p.relative)))?;
+    check_size(p, (colour.width, colour.height), (w, h))?;
+    if colour.pixels.iter().any(|px| px.iter().any(|c| !c.is_finite())) {
+        return Err(pending_error(p, format!("{} holds a non-finite value", p.relative)));
+    }
+    let known = alpha.unwrap_or_else(|| Mask { width: w, height: h, foreground: vec![true; w * h].into() });
+    Ok(Plate { colour, known })
 }
 
 pub(super) fn decode_mask(p: &Pending, w: usize, h: usize) -> Result<Mask, SceneError> {

@@ -13,36 +13,10 @@ use crate::render::{ray_bounds, RaySet};
 /// percent of a view's pixels).
 pub(super) const BOUNDARY_BAND: usize = 2;
 
-/// The pixels of `mask` within `band` pixels (Chebyshev) of a pixel of the other kind: a pixel
-/// of the body whose window holds fewer body pixels than in-image pixels, or one outside it whose
-/// window holds any; each window's count from a summed-area table, so the cost does not grow
-/// with the band.
-pub(super) fn boundary_pixels(mask: &crate::imageio::Mask, band: usize) -> super::pixels::PixelRuns {
-    let (w, h) = (mask.width, mask.height);
-    // table[(y * (w + 1)) + x]: body pixels above and left of (x, y).
-    let mut table = vec![0u32; (w + 1) * (h + 1)];
-    for y in 0..h {
-        let mut row = 0u32;
-        for x in 0..w {
-            row += mask.foreground[y * w + x] as u32;
-            table[(y + 1) * (w + 1) + x + 1] = table[y * (w + 1) + x + 1] + row;
-        }
-    }
-    let window =
-        |x0: usize, y0: usize, x1: usize, y1: usize| table[y1 * (w + 1) + x1] + table[y0 * (w + 1) + x0] - table[y0 * (w + 1) + x1] - table[y1 * (w + 1) + x0];
-    (0..w * h)
-        .filter(|&p| {
-            let (x, y) = (p % w, p / w);
-            let (x0, y0, x1, y1) = (x.saturating_sub(band), y.saturating_sub(band), (x + band + 1).min(w), (y + band + 1).min(h));
-            let body = window(x0, y0, x1, y1);
-            match mask.foreground[p] {
-                true => (body as usize) < (x1 - x0) * (y1 - y0),
-                false => body > 0,
-            }
-        })
-        .map(|p| p as u32)
-        .collect()
-}
+/// How far a mask is trusted within `silhouette::EDGE_BAND` of its edge where the plate is
+/// known, against 1 elsewhere: there the colour composited over the plate decides the
+/// silhouette, and a mask a pixel off or with a stray blob must not.
+pub const MASK_TRUST_NEAR_EDGE: f32 = 0.0;
 
 /// Whether the `j`-th draw of a part of the batch is one of the evenly spread `share` of its
 /// draws (every (1 / share)-th: 0 takes none, 1 every one).
@@ -67,6 +41,11 @@ pub struct Batch {
     /// Per pixel, its colour (linear RGB) and mask.
     pub colours: Vec<f32>,
     pub masks: Vec<f32>,
+    /// Per pixel when some view has a plate (else empty): what lies behind the body (linear
+    /// RGB; the plate near the mask's edge, black elsewhere) and how far its mask is trusted
+    /// (`MASK_TRUST_NEAR_EDGE` near the edge, 1 elsewhere).
+    pub backgrounds: Vec<f32>,
+    pub mask_weights: Vec<f32>,
     /// Per pixel, its view, its index in the view, and whether it was drawn by the view's
     /// error map (`Schedule::error_rays`).
     pub sources: Vec<(usize, usize, bool)>,
@@ -126,6 +105,7 @@ impl Trainer {
         let mut colours = Vec::with_capacity(pixel_count * 3);
         let mut masks = Vec::with_capacity(pixel_count);
         let mut sources = Vec::with_capacity(pixel_count);
+        let plates = self.views.iter().any(|v| !v.near_edge.is_empty());
         let anywhere = super::pixels::PixelRuns::default();
         for k in 0..pixel_count {
             let v = same_light[self.stream.below(same_light.len())];
@@ -153,7 +133,11 @@ impl Trainer {
             let mask = view.mask.as_ref().map(|m| m.foreground[pixel] as u8 as f32).unwrap_or(0.0);
             let ray = camera.pixel_ray(pixel % camera.width, pixel / camera.width);
             let bounds = ray_bounds(ray.origin, ray.direction, &posed, self.min_bound_radius());
-            drawn.push((ray, bounds, view.colour.pixel(pixel), mask));
+            let behind = match &view.plate {
+                Some(plate) if self.views[v].near_edge.contains(pixel as u32) => Some(plate.colour.pixels[pixel]),
+                _ => None,
+            };
+            drawn.push((ray, bounds, view.colour.pixel(pixel), mask, behind));
             sources.push((v, pixel, wrong.is_some()));
         }
         // A stable partition: hits first, in the order drawn.
@@ -162,13 +146,18 @@ impl Trainer {
         order.sort_by_key(|&d| drawn[d].1.is_none());
         let mut rays = RaySet::default();
         for &d in &order {
-            let (ray, bounds, _, _) = &drawn[d];
+            let (ray, bounds, ..) = &drawn[d];
             rays.push(ray.origin, ray.direction, *bounds);
         }
         // One ray per pixel: the targets follow the rays' order.
+        let (mut backgrounds, mut mask_weights) = (Vec::new(), Vec::new());
         for &d in &order {
             colours.extend(drawn[d].2);
             masks.push(drawn[d].3);
+            if plates {
+                backgrounds.extend(drawn[d].4.unwrap_or([0.0; 3]));
+                mask_weights.push(if drawn[d].4.is_some() { MASK_TRUST_NEAR_EDGE } else { 1.0 });
+            }
         }
         let sources = order.iter().map(|&d| sources[d]).collect();
         Batch {
@@ -179,6 +168,8 @@ impl Trainer {
             rendered: 0,
             colours,
             masks,
+            backgrounds,
+            mask_weights,
             sources,
             jitter: Vec::new(),
             density_samples: Vec::new(),
@@ -195,30 +186,6 @@ impl Trainer {
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    /// The summed-area band against the definition, pixel by pixel, on random masks.
-    #[test]
-    fn the_boundary_band_is_every_pixel_near_one_of_the_other_kind() {
-        let mut stream = crate::random::Stream::new(7, 1, 0);
-        for (w, h, band) in [(17, 11, 2), (5, 9, 1), (30, 30, 3), (1, 1, 2)] {
-            let foreground: Vec<bool> = (0..w * h).map(|_| stream.uniform() < 0.4).collect();
-            let mask = crate::imageio::Mask { width: w, height: h, foreground: foreground.into() };
-            let b = band as i64;
-            let expected: Vec<u32> = (0..w * h)
-                .filter(|&p| {
-                    let (x, y) = ((p % w) as i64, (p / w) as i64);
-                    (-b..=b).any(|dy| {
-                        (-b..=b).any(|dx| {
-                            let (u, v) = (x + dx, y + dy);
-                            u >= 0 && v >= 0 && (u as usize) < w && (v as usize) < h && mask.foreground[v as usize * w + u as usize] != mask.foreground[p]
-                        })
-                    })
-                })
-                .map(|p| p as u32)
-                .collect();
-            assert_eq!(boundary_pixels(&mask, band), expected.into_iter().collect(), "{w}x{h}, band {band}");
-        }
-    }
 
     #[test]
     fn a_share_of_draws_is_spread_evenly() {

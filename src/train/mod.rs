@@ -13,6 +13,7 @@
 
 mod batch;
 pub mod body;
+pub mod camera_colour;
 mod light_search;
 mod pixels;
 mod rebind;
@@ -88,6 +89,9 @@ struct ViewData {
     foreground: pixels::PixelRuns,
     /// Pixels within `BOUNDARY_BAND` pixels of the silhouette's edge, on either side.
     boundary: pixels::PixelRuns,
+    /// Pixels within `silhouette::EDGE_BAND` of the mask's edge where the view's plate is
+    /// known: there the render is composited over the plate, and the mask trusted less.
+    near_edge: pixels::PixelRuns,
 }
 
 /// What one training step changes (`Trainer::step` takes it and gives it back): the model, its
@@ -102,6 +106,8 @@ pub struct TrainState {
     /// Per scene view, where the fit is still wrong in it, when the schedule draws rays by it
     /// (`Schedule::error_rays`; training views with a mask only).
     pub error_maps: Vec<Option<crate::error_map::ErrorMap>>,
+    /// Each training camera's learned colour, for a scene of two or more training cameras.
+    pub camera_colours: Option<camera_colour::CameraColours>,
 }
 
 pub struct Trainer {
@@ -167,6 +173,27 @@ impl Trainer {
     pub fn error_maps(&self) -> Vec<(usize, Vec<f32>)> {
         let maps = self.state.as_ref().map(|s| s.error_maps.as_slice()).unwrap_or_default();
         maps.iter().enumerate().filter_map(|(v, m)| m.as_ref().map(|m| (v, m.errors().to_vec()))).collect()
+    }
+
+    /// Each training camera (scene index) with its learned, normalised gain per channel.
+    pub fn camera_gains(&self) -> Vec<(usize, [f64; 3])> {
+        self.state.as_ref().and_then(|s| s.camera_colours.as_ref()).map(|c| c.gains()).unwrap_or_default()
+    }
+
+    /// The cameras' colours as a checkpoint keeps them (null for none).
+    pub fn camera_colours_json(&self) -> serde_json::Value {
+        self.state.as_ref().and_then(|s| s.camera_colours.as_ref()).map(|c| c.to_json()).unwrap_or(serde_json::Value::Null)
+    }
+
+    /// Restores `camera_colours_json`'s output; null (a checkpoint before cameras' colours
+    /// were learned) keeps them where they start.
+    pub fn restore_camera_colours(&mut self, value: &serde_json::Value) -> Result<(), String> {
+        let state = self.state_mut().map_err(|e| e.to_string())?;
+        match (state.camera_colours.as_mut(), value.is_null()) {
+            (_, true) => Ok(()),
+            (Some(colours), false) => colours.restore(value),
+            (None, false) => Err("this scene has one training camera: no colours to restore".into()),
+        }
     }
 
     /// Restores `error_maps`' output; refused when a view has no map or a map's size differs.

@@ -19,6 +19,16 @@ impl PixelRuns {
         self.len == 0
     }
 
+    /// Whether `pixel` is one of the set.
+    pub fn contains(&self, pixel: u32) -> bool {
+        let run = self.starts.partition_point(|&s| s <= pixel);
+        if run == 0 {
+            return false;
+        }
+        let end = self.before.get(run).map_or(self.len as u32, |&b| b) - self.before[run - 1];
+        pixel < self.starts[run - 1] + end
+    }
+
     /// The `k`-th pixel in ascending order (`k < len`).
     pub fn get(&self, k: usize) -> u32 {
         let run = self.before.partition_point(|&b| b as usize <= k) - 1;
@@ -55,5 +65,7 @@ mod tests {
         assert!((0..pixels.len()).all(|k| runs.get(k) == pixels[k]));
         assert_eq!(runs.starts.len(), 5);
         assert!(PixelRuns::default().is_empty());
+        assert!((0..120).all(|p| runs.contains(p) == pixels.contains(&p)));
+        assert!(!PixelRuns::default().contains(0));
     }
 }

@@ -2,7 +2,7 @@
 //! the body measured, the field shaped to it, Gaussians placed along the bones (and on loose
 //! body), the light started above or beside it.
 
-use super::batch::{boundary_pixels, BOUNDARY_BAND};
+use super::batch::BOUNDARY_BAND;
 use super::body::{masked_body_beyond_bones, reach_of, seeds_on_loose_body};
 use super::rebind::mean_targets;
 use super::{FrameData, Trainer, ViewData};
@@ -219,7 +219,13 @@ fn index_training(scene: &Scene, training: &[usize], device: &Device) -> (Vec<Fr
             let mask = v.mask.as_ref().filter(|_| v.split == Split::Train);
             ViewData {
                 foreground: mask.map(|m| (0..m.foreground.len() as u32).filter(|&k| m.foreground[k as usize]).collect()).unwrap_or_default(),
-                boundary: mask.map(|m| boundary_pixels(m, BOUNDARY_BAND)).unwrap_or_default(),
+                boundary: mask.map(|m| crate::silhouette::edge_pixels(m, BOUNDARY_BAND).into_iter().collect()).unwrap_or_default(),
+                near_edge: match (mask, &v.plate) {
+                    (Some(m), Some(plate)) => {
+                        crate::silhouette::edge_pixels(m, crate::silhouette::EDGE_BAND).into_iter().filter(|&p| plate.known.foreground[p as usize]).collect()
+                    }
+                    _ => Default::default(),
+                },
             }
         })
         .collect();
@@ -285,12 +291,13 @@ impl Trainer {
         let mean_targets = mean_targets(&set.gaussians.iter().map(|g| g.bone).collect::<Vec<_>>(), &anchors, root, reference, &scene.skeleton, &device);
 
         let footprint_estimate = scene.footprint();
+        let camera_colours = super::camera_colour::CameraColours::new(&scene);
         let footprint = schedule.footprint.unwrap_or(footprint_estimate.footprint);
         Ok(Self {
             scene,
             schedule,
             device,
-            state: Some(super::TrainState { model, optimisers: super::Optimisers::new(), iteration: 0, average: None, error_maps }),
+            state: Some(super::TrainState { model, optimisers: super::Optimisers::new(), iteration: 0, average: None, error_maps, camera_colours }),
             frames,
             views,
             fit_light,

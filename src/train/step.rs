@@ -81,7 +81,10 @@ impl Trainer {
         if let Some(grid) = state.model.field.grid.as_mut() {
             grid.active_levels = if self.fit_light { self.schedule.active_levels(grid.config.levels, it) } else { grid.config.levels as f32 };
         }
-        let (terms, forks) = self.losses(&state.model, &batch, it, &mut state.error_maps, &mut clock);
+        // The cameras' colours go up as one leaf a step, once colour is fitted.
+        let colours = state.camera_colours.as_ref().filter(|_| self.schedule.weight("rgb", it) > 0.0).map(|c| (c, c.leaf(&self.device)));
+        let (terms, forks) = self.losses(&state.model, &batch, it, &mut state.error_maps, colours.clone(), &mut clock);
+        let colour_leaf = colours.map(|(_, leaf)| leaf);
         let mut total = terms[0].2.clone() * terms[0].1;
         for (_, weight, value) in terms.iter().skip(1) {
             total = total + value.clone() * *weight;
@@ -94,6 +97,11 @@ impl Trainer {
         }
         let grads = total.backward();
         clock.mark(8);
+        if let (Some(leaf), Some(colours)) = (colour_leaf, state.camera_colours.as_mut()) {
+            if let Some(gradient) = leaf.grad(&grads) {
+                colours.step(&crate::backend::host_values(gradient), self.schedule.learning_rate("light", it));
+            }
+        }
         let model = state.model;
         state.model = self.update(model, grads, forks, batch.light, &mut state.optimisers, it);
         if self.fit_light {
@@ -119,6 +127,7 @@ impl Trainer {
         batch: &Batch,
         it: usize,
         error_maps: &mut [Option<crate::error_map::ErrorMap>],
+        colours: Option<(&super::camera_colour::CameraColours, Tensor<2>)>,
         clock: &mut PhaseClock,
     ) -> (Terms<'a>, Vec<AvatarField>) {
         let device = self.device.clone();
@@ -151,6 +160,12 @@ impl Trainer {
         let albedo = background(deferred.albedo.clone());
         let target: Tensor<2> = Tensor::from_data(TensorData::new(batch.colours.clone(), [pixels, 3]), &device);
         let mask: Tensor<1> = Tensor::from_data(TensorData::new(batch.masks.clone(), [pixels]), &device);
+        // Near a mask's edge with a plate, the render over what lies behind the body.
+        let behind = (!batch.backgrounds.is_empty()).then(|| {
+            let plate: Tensor<2> = Tensor::from_data(TensorData::new(batch.backgrounds.clone(), [pixels, 3]), &device);
+            let weights: Tensor<1> = Tensor::from_data(TensorData::new(batch.mask_weights.clone(), [pixels]), &device);
+            (plate, weights)
+        });
         // The Gaussians posed in the graph only when a loss reaches them: burn registers every
         // operation on a parameter in the parameter's graph, and what no backward consumes stays
         // there, swept at every backward: 300 steps of an unused posing piled up 18,000 nodes,
@@ -163,6 +178,18 @@ impl Trainer {
                 Some(normal) => background(self.shaded(model, batch, &deferred, normal)),
                 None => albedo.clone(),
             };
+            // Each ray's body in its camera's colour, then over what lies behind it.
+            let colour = match colours {
+                Some((colours, leaf)) => {
+                    let cameras: Vec<usize> = batch.sources.iter().map(|s| self.scene.views[s.0].camera).collect();
+                    colour * colours.per_ray(leaf, &cameras, &device)
+                }
+                None => colour,
+            };
+            let colour = match &behind {
+                Some((plate, _)) => colour + plate.clone() * (accumulation.clone().neg() + 1.0).reshape([pixels, 1]),
+                None => colour,
+            };
             if self.error_rays > 0.0 {
                 colour_error = Some((colour.clone().detach() - target.clone()).abs().mean_dim(1).reshape([pixels]));
             }
@@ -170,9 +197,14 @@ impl Trainer {
         }
         clock.mark(5);
         if self.error_rays > 0.0 {
-            record_errors(error_maps, batch, (accumulation.clone().detach() - mask.clone()).abs(), colour_error);
+            let coverage = (accumulation.clone().detach() - mask.clone()).abs();
+            let coverage = match &behind {
+                Some((_, weights)) => coverage * weights.clone(),
+                None => coverage,
+            };
+            record_errors(error_maps, batch, coverage, colour_error);
         }
-        terms.push(("mask", w("mask"), crate::losses::mask(accumulation, mask.clone())));
+        terms.push(("mask", w("mask"), crate::losses::mask(accumulation, mask.clone(), behind.map(|b| b.1))));
         if w("grey") > 0.0 {
             terms.push(("grey", w("grey"), crate::losses::grey(albedo, mask)));
         }
