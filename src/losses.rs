@@ -1,8 +1,90 @@
 //! The loss terms of the supplement (section 4.1), each a function of tensors: RGB L1, mask,
 //! grey, Gaussian density fit, the sigma (eq. 5) and mean (eq. 6) regularisers, ambient,
-//! Eikonal and curvature. Weights come from the schedule; `train` adds them up.
+//! Eikonal and curvature; and `TERMS`, the one list of them: each term's name (the schedule's
+//! `[losses]` key, the losses table's column), what it is computed from (`Input`: a step
+//! computes, and a batch draws samples for, only what an active term needs) and its value from
+//! a step's `Inputs`. Adding a term is an entry here and its weight in a schedule. Weights come
+//! from the schedule; `train` adds the terms up in this order.
 
 use burn::tensor::Tensor;
+
+/// What a term is computed from beyond the rays' coverage, masks, albedos and targets, which
+/// every step has: the rest costs a step work (shading, samples, SDF gradients), done only
+/// when an active term needs it.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Input {
+    /// Each ray's colour, shaded and in its camera's colour, over what lies behind the body.
+    Colour,
+    /// The Gaussians' mixture against the field's density at samples of the rays
+    /// (`density_points` of them).
+    Density,
+    /// The Gaussians' scales (body units).
+    Widths,
+    /// The Gaussians' means and the points the mean regulariser pulls them to (body units).
+    Means,
+    /// The light's ambient and its target (a fitted light only).
+    Ambient,
+    /// The SDF's gradient at samples of the rays (`regulariser_points` of them).
+    Gradient,
+    /// Unit normals at those samples and at points offset from them.
+    NormalPairs,
+}
+
+/// What a step computed for its batch; a part an active term does not need is absent.
+pub struct Inputs {
+    pub accumulation: Tensor<1>,
+    pub mask: Tensor<1>,
+    /// How far each ray's mask is trusted (absent: fully everywhere).
+    pub mask_weights: Option<Tensor<1>>,
+    pub albedo: Tensor<2>,
+    pub target: Tensor<2>,
+    pub colour: Option<Tensor<2>>,
+    /// (mixture, field density) at every scale the density is fitted at.
+    pub densities: Vec<(Tensor<1>, Tensor<1>)>,
+    pub widths: Option<Tensor<2>>,
+    pub means: Option<(Tensor<2>, Tensor<2>)>,
+    pub ambient: Option<(Tensor<1>, f64)>,
+    pub gradient: Option<Tensor<2>>,
+    pub normal_pairs: Option<(Tensor<2>, Tensor<2>)>,
+}
+
+/// A loss term: its name, what it needs, its value (none when a step lacks an input).
+pub struct Term {
+    pub name: &'static str,
+    pub needs: &'static [Input],
+    /// Evaluated and reported at every step, whatever its weight (the mask: the silhouette's
+    /// progress is always worth a column, and a step's total always has a term).
+    pub always: bool,
+    pub value: fn(&Inputs) -> Option<Tensor<1>>,
+}
+
+/// Every loss term, in the order a step sums them.
+pub const TERMS: [Term; 9] = [
+    Term { name: "rgb", needs: &[Input::Colour], always: false, value: |i| Some(rgb(i.colour.clone()?, i.target.clone())) },
+    Term { name: "mask", needs: &[], always: true, value: |i| Some(mask(i.accumulation.clone(), i.mask.clone(), i.mask_weights.clone())) },
+    Term { name: "grey", needs: &[], always: false, value: |i| Some(grey(i.albedo.clone(), i.mask.clone())) },
+    Term {
+        name: "density",
+        needs: &[Input::Density],
+        always: false,
+        value: |i| i.densities.iter().map(|(m, f)| density(m.clone(), f.clone())).reduce(|a, b| a + b),
+    },
+    Term { name: "sigma", needs: &[Input::Widths], always: false, value: |i| Some(sigma(i.widths.clone()?)) },
+    Term { name: "mean", needs: &[Input::Means], always: false, value: |i| i.means.clone().map(|(m, c)| mean(m, c)) },
+    Term { name: "ambient", needs: &[Input::Ambient], always: false, value: |i| i.ambient.clone().map(|(a, target)| ambient(a, target)) },
+    Term { name: "eikonal", needs: &[Input::Gradient], always: false, value: |i| Some(eikonal(i.gradient.clone()?)) },
+    Term { name: "curvature", needs: &[Input::NormalPairs], always: false, value: |i| i.normal_pairs.clone().map(|(n, p)| curvature(n, p)) },
+];
+
+/// The terms' names, in `TERMS`' order.
+pub fn names() -> impl Iterator<Item = &'static str> {
+    TERMS.iter().map(|t| t.name)
+}
+
+/// The term of this name.
+pub fn term(name: &str) -> Option<&'static Term> {
+    TERMS.iter().find(|t| t.name == name)
+}
 
 /// `mean |c - target|` over rays and channels.
 pub fn rgb(colour: Tensor<2>, target: Tensor<2>) -> Tensor<1> {

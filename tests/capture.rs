@@ -56,9 +56,17 @@ fn a_scene_exported_as_nerfstudio_and_a_centimetre_bvh_imports_as_the_same_scene
         assert_eq!(imported.frames[view.frame].index as usize, twin.frame);
         assert_eq!(view.mask, twin.mask, "{}: mask", stem(&view.path));
         let mask = twin.mask.as_ref().unwrap();
+        // Outside the mask, what the camera saw is kept near the mask's edge where the
+        // camera's plate is known (a training image of a static camera), blacked elsewhere.
+        let near = umbra::silhouette::near_body(mask, umbra::silhouette::EDGE_BAND);
+        let (photo, _) = umbra::photo::read_photo(&capture.join("images").join(view.path.file_name().unwrap())).unwrap();
         for p in 0..mask.foreground.len() {
+            let kept = view.plate.as_ref().is_some_and(|plate| near[p] && plate.known.foreground[p]);
             if mask.foreground[p] {
                 assert_eq!(view.colour.pixel(p), twin.colour.pixel(p), "{}: pixel {p} inside the mask", stem(&view.path));
+            } else if kept {
+                let byte = |v: [f32; 3]| v.map(umbra::imageio::linear_to_srgb8);
+                assert_eq!(byte(view.colour.pixel(p)), byte(photo.pixels[p]), "{}: pixel {p} by the mask's edge", stem(&view.path));
             } else {
                 assert_eq!(view.colour.pixel(p), [0.0; 3], "the plate's background is blacked");
             }
@@ -475,14 +483,18 @@ fn max_size_downscales_and_jpeg_or_alpha_photos_read() {
         let (a, b) = (&half.cameras[view.camera], &original.cameras[twin.camera]);
         assert_eq!((a.width, a.height), (b.width / 2, b.height / 2));
         assert!((a.fx - b.fx / 2.0).abs() < 1e-12 && (a.cx - b.cx / 2.0).abs() < 1e-12);
-        // Each pixel the mean of its 2x2 block inside the body (blacked outside).
+        // Each pixel the mean of its 2x2 block inside the body: of the photo as the camera saw
+        // it when the image has a plate (the fit composites its edge over the plate), else of
+        // the photo blacked outside the body.
         let mask = view.mask.as_ref().unwrap();
+        let (photo, _) = umbra::photo::read_photo(&capture.join("images").join(view.path.file_name().unwrap())).unwrap();
+        let source = |x: usize, y: usize| if view.plate.is_some() { photo.pixels[y * photo.width + x] } else { twin.colour.get(x, y) };
         for y in 0..a.height {
             for x in 0..a.width {
                 if !mask.foreground[y * a.width + x] {
                     continue;
                 }
-                let block: Vec<[f32; 3]> = (0..4).map(|q| twin.colour.get(2 * x + q % 2, 2 * y + q / 2)).collect();
+                let block: Vec<[f32; 3]> = (0..4).map(|q| source(2 * x + q % 2, 2 * y + q / 2)).collect();
                 let mean: [f32; 3] = std::array::from_fn(|c| block.iter().map(|p| p[c]).sum::<f32>() / 4.0);
                 let got = view.colour.get(x, y);
                 // Written as 8-bit sRGB: within a step of 8-bit rounding.

@@ -158,11 +158,12 @@ fn sphere(centre: DVec3, radius: f64, cell: f64) -> umbra::isosurface::Mesh {
 #[test]
 fn carving_keeps_what_lies_inside_every_mask_and_cuts_a_sheet_beside_the_body() {
     let dir = common::TempDir::new("carve");
-    let scene_dir = common::tiny_synth(dir.path(), umbra::synth::TrainingLight::Sun, 32, 3, vec![umbra::synth::TestKind::Poses], 4);
+    let scene_dir = common::tiny_synth(dir.path(), umbra::synth::TrainingLight::Sun, 32, 6, vec![umbra::synth::TestKind::Poses], 4);
     let scene = umbra::scene::Scene::load(&scene_dir).unwrap();
     let pose = &scene.frames[0].pose;
     // A small ball at the pelvis (inside every mask), and one a metre beside the body, which
-    // the cameras see outside the masks or not at all.
+    // at least two cameras see outside their masks (six cameras around it: one may see it
+    // over the body).
     let pelvis = pose.bone_to_world[0].w_axis.truncate();
     let (body, beside) = (sphere(pelvis, 0.04, 0.01), sphere(pelvis + DVec3::new(1.0, 0.3, 0.0), 0.1, 0.02));
     let offset = body.vertices.len();

@@ -21,7 +21,7 @@ pub(super) fn losses_chart(history: &[(usize, StepStats)], schedule: &Schedule, 
         points: smooth(history.iter().map(|(i, s)| (*i as f64 + 1.0, s.total)).collect(), window),
         lines: true,
     }];
-    for term in crate::schedule::TERMS {
+    for term in crate::losses::names() {
         let points: Vec<(f64, f64)> = history.iter().filter_map(|(i, s)| s.terms.get(term).map(|v| (*i as f64 + 1.0, *v))).collect();
         if !points.is_empty() {
             series.push(Series { name: term.into(), points: smooth(points, window), lines: true });

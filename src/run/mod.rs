@@ -81,10 +81,10 @@ pub(crate) fn write_text(path: &Path, text: &str) -> Result<(), FitError> {
 const LIGHT_COLUMNS: [&str; 3] = ["light_x", "light_y", "light_z"];
 
 pub(crate) fn losses_csv(history: &[(usize, StepStats)]) -> String {
-    let header: Vec<&str> = ["iteration", "total", "seconds"].into_iter().chain(crate::schedule::TERMS).chain(LIGHT_COLUMNS).collect();
+    let header: Vec<&str> = ["iteration", "total", "seconds"].into_iter().chain(crate::losses::names()).chain(LIGHT_COLUMNS).collect();
     let rows = history.iter().map(|(it, s)| {
         let mut row = vec![it.to_string(), format!("{:.6e}", s.total), format!("{:.4}", s.seconds)];
-        row.extend(crate::schedule::TERMS.iter().map(|t| s.terms.get(*t).map(|v| format!("{v:.6e}")).unwrap_or_default()));
+        row.extend(crate::losses::names().map(|t| s.terms.get(t).map(|v| format!("{v:.6e}")).unwrap_or_default()));
         row.extend((0..3).map(|k| s.light.map(|v| format!("{:.7}", v[k])).unwrap_or_default()));
         row
     });
@@ -102,7 +102,7 @@ fn parse_losses_csv(text: &str) -> Vec<(usize, StepStats)> {
         let (Some(it), Some(total), Some(seconds)) = (line.first().and_then(|c| c.parse().ok()), cell(Some(1)), cell(Some(2))) else {
             continue;
         };
-        let terms = crate::schedule::TERMS.iter().filter_map(|t| cell(column(t)).map(|v| (t.to_string(), v))).collect();
+        let terms = crate::losses::names().filter_map(|t| cell(column(t)).map(|v| (t.to_string(), v))).collect();
         let light_cell = |k: usize| cell(column(LIGHT_COLUMNS[k]));
         let light = match (light_cell(0), light_cell(1), light_cell(2)) {
             (Some(x), Some(y), Some(z)) => Some([x, y, z]),

@@ -9,7 +9,7 @@ use std::path::Path;
 use serde::de::{self, Deserializer, MapAccess, Visitor};
 use serde::Deserialize;
 
-use super::{err, ErrorRays, FieldKind, FieldSettings, LightPolicy, Ramp, Schedule, ScheduleError, Switch, GROUPS, MAX_COUNT, TERMS};
+use super::{err, ErrorRays, FieldKind, FieldSettings, LightPolicy, Ramp, Schedule, ScheduleError, Switch, GROUPS, MAX_COUNT};
 use crate::scene::Footprint;
 
 /// The top level of a schedule file.
@@ -70,27 +70,16 @@ impl LearningRates {
     }
 }
 
-/// `[losses]`: one entry per term of `TERMS`.
-#[derive(Deserialize, Default)]
-#[serde(deny_unknown_fields)]
-struct Losses {
-    rgb: Option<Weight>,
-    mask: Option<Weight>,
-    grey: Option<Weight>,
-    density: Option<Weight>,
-    sigma: Option<Weight>,
-    mean: Option<Weight>,
-    ambient: Option<Weight>,
-    eikonal: Option<Weight>,
-    curvature: Option<Weight>,
-}
+/// `[losses]`: a weight per term, by the term's name (`losses::TERMS`).
+type Losses = BTreeMap<String, Weight>;
 
-impl Losses {
-    /// The terms given, by name.
-    fn given(&self) -> Vec<(&'static str, Weight)> {
-        let all = [self.rgb, self.mask, self.grey, self.density, self.sigma, self.mean, self.ambient, self.eikonal, self.curvature];
-        TERMS.iter().zip(all).filter_map(|(name, w)| w.map(|w| (*name, w))).collect()
+/// The terms given, in `losses::TERMS`' order; a name that is no term is refused.
+fn given(losses: &Losses, file: &Path) -> Result<Vec<(&'static str, Weight)>, ScheduleError> {
+    if let Some(unknown) = losses.keys().find(|name| crate::losses::term(name).is_none()) {
+        let names: Vec<&str> = crate::losses::names().collect();
+        return Err(err(file, &format!("losses.{unknown}"), format!("unknown loss term (the terms are {})", names.join(", "))));
     }
+    Ok(crate::losses::TERMS.iter().filter_map(|t| losses.get(t.name).map(|w| (t.name, *w))).collect())
 }
 
 /// A loss weight as written: `term = w`, or a `[losses.term]` table of a ramp.
@@ -327,7 +316,7 @@ fn learning_rates(written: LearningRates, file: &Path) -> Result<BTreeMap<String
 fn weights(losses: Option<Losses>, iterations: usize, file: &Path) -> Result<BTreeMap<String, Ramp>, ScheduleError> {
     let losses = losses.ok_or_else(|| err(file, "losses", "missing: a schedule must weight at least the mask loss"))?;
     let mut weights = BTreeMap::new();
-    for (name, weight) in losses.given() {
+    for (name, weight) in given(&losses, file)? {
         let key = format!("losses.{name}");
         let (ramp, shorthand) = match weight {
             Weight::Constant(v) => (Ramp::constant(v), true),
@@ -351,7 +340,7 @@ fn weights(losses: Option<Losses>, iterations: usize, file: &Path) -> Result<BTr
     if !weights.get("mask").is_some_and(|r| r.ever_active(iterations)) {
         return Err(err(file, "losses.mask", "the mask loss must be active: nothing else fits the silhouette"));
     }
-    for term in TERMS {
+    for term in crate::losses::names() {
         weights.entry(term.to_string()).or_insert(Ramp::constant(0.0));
     }
     Ok(weights)
@@ -359,11 +348,17 @@ fn weights(losses: Option<Losses>, iterations: usize, file: &Path) -> Result<BTr
 
 /// A weighted loss with no points to evaluate it on would be dropped silently.
 fn check_points(schedule: &Schedule) -> Result<(), ScheduleError> {
-    let needs =
-        [(schedule.density_points, "density_points", &["density"][..]), (schedule.regulariser_points, "regulariser_points", &["eikonal", "curvature"][..])];
-    for (points, key, terms) in needs {
-        let active = terms.iter().find(|t| schedule.weights.get(**t).is_some_and(|r| r.ever_active(schedule.iterations)));
+    use crate::losses::Input;
+    let needs = [
+        (schedule.density_points, "density_points", &[Input::Density][..]),
+        (schedule.regulariser_points, "regulariser_points", &[Input::Gradient, Input::NormalPairs][..]),
+    ];
+    for (points, key, inputs) in needs {
+        let active = crate::losses::TERMS
+            .iter()
+            .find(|t| t.needs.iter().any(|n| inputs.contains(n)) && schedule.weights.get(t.name).is_some_and(|r| r.ever_active(schedule.iterations)));
         if let (Some(term), 0) = (active, points) {
+            let term = term.name;
             return Err(err(
                 &schedule.file,
                 key,

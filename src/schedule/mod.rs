@@ -8,8 +8,6 @@ use std::path::{Path, PathBuf};
 
 mod file;
 
-/// Every loss term a schedule can weight.
-pub const TERMS: [&str; 9] = ["rgb", "mask", "grey", "density", "sigma", "mean", "ambient", "eikonal", "curvature"];
 /// Parameter groups with their own learning rate: the field's decoder (and the whole `mlp`
 /// field), the Gaussians, the light, and a `grid` field's feature tables.
 pub const GROUPS: [&str; 4] = ["field", "gaussians", "light", "features"];
@@ -309,6 +307,11 @@ impl Schedule {
 
     pub fn weight(&self, term: &str, iteration: usize) -> f64 {
         self.weights.get(term).map(|r| r.at(iteration)).unwrap_or(0.0)
+    }
+
+    /// Whether a term weighted at an iteration needs `input` (`losses::Term::needs`).
+    pub fn needs(&self, input: crate::losses::Input, iteration: usize) -> bool {
+        crate::losses::TERMS.iter().any(|t| t.needs.contains(&input) && self.weight(t.name, iteration) > 0.0)
     }
 
     /// How many of a grid's `levels` are active at an iteration (`FieldSettings::fine_levels`).

@@ -6,6 +6,7 @@
 use super::Trainer;
 use crate::fit_error::FitError;
 use crate::gaussians::GaussianSet;
+use crate::losses::Input;
 use crate::render::{ray_bounds, RaySet};
 
 /// Half-width (pixels) of the band around a silhouette that a third of each batch samples:
@@ -70,10 +71,10 @@ impl Trainer {
         let sampling = self.schedule.sampling();
         let samples = rendered * sampling.total();
         let jitter: Vec<f32> = (0..rendered * sampling.draws()).map(|_| self.stream.uniform() as f32).collect();
-        let w = |name: &str| self.schedule.weight(name, it);
-        let density = w("density") > 0.0 && self.schedule.density_points > 0;
-        let curvature = w("curvature") > 0.0;
-        let regularised = (w("eikonal") > 0.0 || curvature) && self.schedule.regulariser_points > 0;
+        let needs = |input: Input| self.schedule.needs(input, it);
+        let density = needs(Input::Density) && self.schedule.density_points > 0;
+        let curvature = needs(Input::NormalPairs);
+        let regularised = (needs(Input::Gradient) || curvature) && self.schedule.regulariser_points > 0;
         let density_samples = if density { self.random_indices(self.schedule.density_points, samples) } else { Vec::new() };
         let q = if regularised { self.schedule.regulariser_points } else { 0 };
         let regulariser_samples = self.random_indices(q, samples);

@@ -6,6 +6,7 @@ use crate::avatar::{first_non_finite, Avatar};
 use crate::field::AvatarField;
 use crate::fit_error::FitError;
 use crate::gaussians::GaussianParams;
+use crate::losses::{Input, Inputs};
 use crate::messages::{StepStats, PHASES};
 use crate::render::{render_in_parts, sum_gradients, Deferred};
 use crate::shading::{FittedLight, LightKind};
@@ -118,9 +119,9 @@ impl Trainer {
         (state, Ok(stats))
     }
 
-    /// The forward pass and the schedule's losses on `batch` (the colour loss records each
-    /// pixel's error in its view's error map), with the forks of the field that rendered parts
-    /// of the batch on other threads.
+    /// The forward pass and the schedule's losses on `batch` (`losses::TERMS`, each from the
+    /// step's `Inputs`; the colour's error, and the mask's, recorded in each pixel's view's
+    /// error map), with the forks of the field that rendered parts of the batch on other threads.
     fn losses<'a>(
         &self,
         model: &Avatar,
@@ -131,12 +132,11 @@ impl Trainer {
         clock: &mut PhaseClock,
     ) -> (Terms<'a>, Vec<AvatarField>) {
         let device = self.device.clone();
-        let schedule = self.schedule.clone();
-        let w = |name: &str| schedule.weight(name, it);
+        let needs = |input: Input| self.schedule.needs(input, it);
         let pose = self.frames[batch.frame].pose_tensors.clone();
         let (r, rendered) = (batch.rays.len(), batch.rendered);
         let sampling = self.schedule.sampling();
-        let shading = self.fit_light && w("rgb") > 0.0;
+        let shading = self.fit_light && needs(Input::Colour);
         let (deferred, forks) = render_in_parts(
             &model.field,
             &pose,
@@ -166,14 +166,7 @@ impl Trainer {
             let weights: Tensor<1> = Tensor::from_data(TensorData::new(batch.mask_weights.clone(), [pixels]), &device);
             (plate, weights)
         });
-        // The Gaussians posed in the graph only when a loss reaches them: burn registers every
-        // operation on a parameter in the parameter's graph, and what no backward consumes stays
-        // there, swept at every backward: 300 steps of an unused posing piled up 18,000 nodes,
-        // and the first stage's steps took up to twice as long.
-        let posed = (!batch.density_samples.is_empty()).then(|| model.gaussians.posed(&pose));
-        let mut terms: Terms = Vec::new();
-        let mut colour_error: Option<Tensor<1>> = None;
-        if w("rgb") > 0.0 {
+        let colour = needs(Input::Colour).then(|| {
             let colour = match &deferred.normal {
                 Some(normal) => background(self.shaded(model, batch, &deferred, normal)),
                 None => albedo.clone(),
@@ -186,31 +179,46 @@ impl Trainer {
                 }
                 None => colour,
             };
-            let colour = match &behind {
+            match &behind {
                 Some((plate, _)) => colour + plate.clone() * (accumulation.clone().neg() + 1.0).reshape([pixels, 1]),
                 None => colour,
-            };
-            if self.error_rays > 0.0 {
-                colour_error = Some((colour.clone().detach() - target.clone()).abs().mean_dim(1).reshape([pixels]));
             }
-            terms.push(("rgb", w("rgb"), crate::losses::rgb(colour, target)));
-        }
+        });
         clock.mark(5);
+        let mask_weights = behind.map(|b| b.1);
         if self.error_rays > 0.0 {
             let coverage = (accumulation.clone().detach() - mask.clone()).abs();
-            let coverage = match &behind {
-                Some((_, weights)) => coverage * weights.clone(),
+            let coverage = match &mask_weights {
+                Some(weights) => coverage * weights.clone(),
                 None => coverage,
             };
+            let colour_error = colour.as_ref().map(|c| (c.clone().detach() - target.clone()).abs().mean_dim(1).reshape([pixels]));
             record_errors(error_maps, batch, coverage, colour_error);
         }
-        terms.push(("mask", w("mask"), crate::losses::mask(accumulation, mask.clone(), behind.map(|b| b.1))));
-        if w("grey") > 0.0 {
-            terms.push(("grey", w("grey"), crate::losses::grey(albedo, mask)));
-        }
-        self.gaussian_terms(model, batch, it, &deferred, posed, &mut terms);
+        let mut inputs = Inputs {
+            accumulation,
+            mask,
+            mask_weights,
+            albedo,
+            target,
+            colour,
+            densities: Vec::new(),
+            widths: None,
+            means: None,
+            ambient: None,
+            gradient: None,
+            normal_pairs: None,
+        };
+        self.gaussian_inputs(model, batch, it, &deferred, &mut inputs);
         clock.mark(6);
-        self.regulariser_terms(model, batch, it, &deferred, &mut terms);
+        self.regulariser_inputs(model, batch, it, &deferred, &mut inputs);
+        let terms = crate::losses::TERMS
+            .iter()
+            .filter_map(|term| {
+                let weight = self.schedule.weight(term.name, it);
+                (term.always || weight > 0.0).then(|| (term.value)(&inputs).map(|value| (term.name, weight, value))).flatten()
+            })
+            .collect();
         (terms, forks)
     }
 
@@ -230,44 +238,40 @@ impl Trainer {
         batch_light.shade_weighted(deferred.albedo.clone(), deferred.surface.clone(), normal.clone(), &casters, weights.as_ref())
     }
 
-    /// The Gaussians' losses: their fit to the field's density, their widths, their means, and
-    /// the light's ambient prior.
-    fn gaussian_terms(
-        &self,
-        model: &Avatar,
-        batch: &Batch,
-        it: usize,
-        deferred: &Deferred,
-        posed: Option<crate::shadow::tensor::GaussianTensors>,
-        terms: &mut Terms,
-    ) {
-        let w = |name: &str| self.schedule.weight(name, it);
-        if let Some(posed) = posed {
+    /// The Gaussians' inputs the active terms need: their mixture against the field's density
+    /// at the density samples, their widths, their means, and the light's ambient.
+    fn gaussian_inputs(&self, model: &Avatar, batch: &Batch, it: usize, deferred: &Deferred, inputs: &mut Inputs) {
+        let needs = |input: Input| self.schedule.needs(input, it);
+        let pose = &self.frames[batch.frame].pose_tensors;
+        if !batch.density_samples.is_empty() {
+            // The Gaussians posed in the graph only when a loss reaches them: burn registers every
+            // operation on a parameter in the parameter's graph, and what no backward consumes
+            // stays there, swept at every backward: 300 steps of an unused posing piled up 18,000
+            // nodes, and the first stage's steps took up to twice as long.
+            let posed = model.gaussians.posed(pose);
             let count = batch.density_samples.len();
             let idx = Tensor::<1, Int>::from_data(TensorData::new(batch.density_samples.clone(), [count]), &self.device);
             let points = deferred.sample_points.clone().detach().select(0, idx.clone());
             // The Gaussians' amplitudes are optical density per body unit.
             let field_density = deferred.sample_density.clone().detach().select(0, idx) * model.light.unit;
             let mixture = GaussianParams::mixture_density(&posed, points);
+            inputs.densities.push((mixture.clone(), field_density.clone()));
             // Also at the density the shadows are cast with, when asked (the first light's
             // scale, detached: the light does not learn from how well the Gaussians fit): the
             // first term keeps the body opaque to them, the second fits away the faint tails
             // outside it that a shadow sees at the light's scale.
-            let fit = if self.density_at_shadow_scale {
+            if self.density_at_shadow_scale {
                 let scale = model.light.density_scale().detach();
-                crate::losses::density(mixture.clone(), field_density.clone()) + crate::losses::density(mixture * scale.clone(), field_density * scale)
-            } else {
-                crate::losses::density(mixture, field_density)
-            };
-            terms.push(("density", w("density"), fit));
+                inputs.densities.push((mixture * scale.clone(), field_density * scale));
+            }
         }
-        if w("sigma") > 0.0 {
-            terms.push(("sigma", w("sigma"), crate::losses::sigma(model.gaussians.scales() / model.light.unit)));
+        if needs(Input::Widths) {
+            inputs.widths = Some(model.gaussians.scales() / model.light.unit);
         }
-        if w("mean") > 0.0 {
-            terms.push(("mean", w("mean"), crate::losses::mean(model.gaussians.means.val(), self.mean_targets.clone() / model.light.unit)));
+        if needs(Input::Means) {
+            inputs.means = Some((model.gaussians.means.val(), self.mean_targets.clone() / model.light.unit));
         }
-        if w("ambient") > 0.0 && self.fit_light {
+        if needs(Input::Ambient) && self.fit_light {
             // The ambient target is a fraction of the batch light's irradiance: for the first
             // light (irradiance 1, or a point light whose strength is free) its ambient itself;
             // for another sun, whose irradiance is learned, its ambient over that irradiance.
@@ -277,30 +281,29 @@ impl Trainer {
                 (k, LightKind::Directional) if k > 0 => batch_light.ambient() / batch_light.irradiance(),
                 _ => model.light.ambient(),
             };
-            terms.push(("ambient", w("ambient"), crate::losses::ambient(ambient, self.schedule.ambient_target)));
+            inputs.ambient = Some((ambient, self.schedule.ambient_target));
         }
     }
 
-    /// The SDF's regularisers at the batch's regulariser samples: Eikonal, and curvature between
-    /// each sample and its offset.
-    fn regulariser_terms(&self, model: &Avatar, batch: &Batch, it: usize, deferred: &Deferred, terms: &mut Terms) {
+    /// The SDF's gradient at the batch's regulariser samples, and the unit normals there and at
+    /// the curvature's offsets from them.
+    fn regulariser_inputs(&self, model: &Avatar, batch: &Batch, it: usize, deferred: &Deferred, inputs: &mut Inputs) {
         let q = batch.regulariser_samples.len();
         if q == 0 {
             return;
         }
-        let w = |name: &str| self.schedule.weight(name, it);
         let pose = &self.frames[batch.frame].pose_tensors;
         let idx = Tensor::<1, Int>::from_data(TensorData::new(batch.regulariser_samples.clone(), [q]), &self.device);
         let points = deferred.sample_points.clone().detach().select(0, idx);
         let gradient = model.field.sdf_gradient(points.clone(), pose, self.gradient);
-        if w("eikonal") > 0.0 {
-            terms.push(("eikonal", w("eikonal"), crate::losses::eikonal(gradient.clone())));
-        }
         if !batch.curvature_offsets.is_empty() {
             let perturbed = points + Tensor::<2>::from_data(TensorData::new(batch.curvature_offsets.clone(), [q, 3]), &self.device);
             let g2 = model.field.sdf_gradient(perturbed, pose, self.gradient);
             let unit = crate::render::unit_rows;
-            terms.push(("curvature", w("curvature"), crate::losses::curvature(unit(gradient), unit(g2))));
+            inputs.normal_pairs = Some((unit(gradient.clone()), unit(g2)));
+        }
+        if self.schedule.needs(Input::Gradient, it) {
+            inputs.gradient = Some(gradient);
         }
     }
 
