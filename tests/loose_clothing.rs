@@ -117,3 +117,24 @@ fn a_loose_fit_resumes_bit_for_bit_with_its_seeded_gaussians_and_renders_from_it
     assert_eq!(restored.fitted.model.gaussians.means.val().dims()[0], saved);
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// A segmenter's errors (every training mask a pixel too wide or too narrow, two blobs of 2 px
+/// added or cut on its edge) neither hide the skirt nor make the tight body loose.
+#[test]
+fn a_segmenters_mask_errors_do_not_mislead_the_loose_body_analysis() {
+    let errors = umbra::capture::flaws::CaptureErrors::parse("masks=1,blobs=2").unwrap();
+    let flawed_reach = |name: &str| {
+        let mut scene = Scene::load(&Path::new("datasets-synthetic").join(name)).expect("a shipped scene");
+        for (k, view) in scene.views.iter_mut().enumerate().filter(|(_, v)| v.split == umbra::scene::Split::Train) {
+            let mask = view.mask.as_ref().unwrap();
+            view.mask = Some(umbra::capture::flaws::segmented_mask(mask, &errors, &mut umbra::random::Stream::new(7, 3, k as u64)));
+        }
+        let reach = scene.body_extent() * REACH_PER_EXTENT as f64;
+        let root = scene.skeleton.bones.iter().position(|b| b.parent.is_none()).expect("a root bone");
+        masked_reach_beyond_bones(&scene, reach, root)
+    };
+    assert_eq!(flawed_reach("human-sun"), None);
+    let (clean, flawed) = (reach_beyond_bones("human-dressed").unwrap(), flawed_reach("human-dressed").expect("the skirt is still found"));
+    eprintln!("the hem at {flawed:.3} m, {clean:.3} m with exact masks");
+    assert!((flawed - clean).abs() < 0.05, "the hem at {flawed:.3} m, {clean:.3} m with exact masks");
+}
