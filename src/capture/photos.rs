@@ -134,8 +134,10 @@ type WrittenPlate = (String, crate::silhouette::Plate);
 /// no pixel known have none.
 fn plates(images: &[CaptureImage], photos: &Photos, camera_of: &[usize], dir: &Path) -> Result<std::collections::BTreeMap<usize, WrittenPlate>, ImportError> {
     let mut per_camera: std::collections::BTreeMap<usize, Vec<usize>> = std::collections::BTreeMap::new();
+    // An EXR capture's light runs past what an 8-bit plate holds: its cameras get none.
+    let exr = |image: &CaptureImage| image.path.extension().is_some_and(|e| e.eq_ignore_ascii_case("exr"));
     for (i, image) in images.iter().enumerate() {
-        if image.split == Split::Train {
+        if image.split == Split::Train && !exr(image) {
             per_camera.entry(camera_of[i]).or_default().push(i);
         }
     }
