@@ -221,7 +221,7 @@ fn fit(options: &crate::fit::FitOptions) -> Result<(), String> {
     if let Some(e) = report.direction_error() {
         println!("light direction error against the scene's sun: {e:.2} degrees");
     }
-    if let Some(line) = print::camera_colours(&report.capture) {
+    if let Some(line) = crate::fit_report::camera_colours_line(&report.capture) {
         println!("{line}");
     }
     print_evaluation(&report.evaluation);

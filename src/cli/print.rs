@@ -70,34 +70,10 @@ pub fn print_evaluation(evaluation: &serde_json::Value) {
     }
 }
 
-/// The cameras' learned colours (fit.json's `capture.camera_colours`) in a line: how far the
-/// gains spread, and the camera farthest from the mean; none for one camera.
-pub fn camera_colours(capture: &serde_json::Value) -> Option<String> {
-    let cameras = capture.get("camera_colours")?.as_array().filter(|c| !c.is_empty())?;
-    let gains: Vec<(String, [f64; 3])> =
-        cameras.iter().filter_map(|c| Some((c["camera"].as_str()?.to_string(), serde_json::from_value(c["gain"].clone()).ok()?))).collect();
-    let all = gains.iter().flat_map(|(_, g)| g.iter().copied());
-    let (lo, hi) = all.clone().fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), g| (lo.min(g), hi.max(g)));
-    let (name, gain) = gains.iter().max_by(|a, b| spread(&a.1).total_cmp(&spread(&b.1)))?;
-    Some(format!("camera colours: {} cameras, gains {lo:.3} to {hi:.3} (mean 1); farthest {name} at {:.3} {:.3} {:.3}", gains.len(), gain[0], gain[1], gain[2]))
-}
-
-fn spread(gain: &[f64; 3]) -> f64 {
-    gain.iter().map(|g| (g - 1.0).abs()).sum()
-}
-
 #[cfg(test)]
 mod tests {
-    use super::{camera_colours, describe_light};
+    use super::describe_light;
     use serde_json::json;
-
-    #[test]
-    fn the_cameras_colours_are_one_line_naming_the_farthest() {
-        let capture = json!({"camera_colours": [{"camera": "cam00", "gain": [0.98, 1.0, 1.01]}, {"camera": "cam01", "gain": [1.02, 1.0, 0.99]}, {"camera": "cam02", "gain": [1.0, 1.1, 1.0]}]});
-        assert_eq!(camera_colours(&capture).unwrap(), "camera colours: 3 cameras, gains 0.980 to 1.100 (mean 1); farthest cam02 at 1.000 1.100 1.000");
-        assert_eq!(camera_colours(&json!({"camera_colours": []})), None);
-        assert_eq!(camera_colours(&json!(null)), None);
-    }
 
     #[test]
     fn a_light_is_described_in_degrees_and_three_digit_colours() {

@@ -150,6 +150,9 @@ fn summary_rows(fit: &FitReport, truth: Option<&Light>) -> Vec<(String, String)>
     if let Some(error) = fit.position_error() {
         rows.push(("light position error against the scene's".into(), format!("{error:.3} m")));
     }
+    if let Some(line) = crate::fit_report::camera_colours_line(&fit.capture) {
+        rows.push(("cameras' colours".into(), line.trim_start_matches("camera colours: ").to_string()));
+    }
     for stage in &fit.stages {
         let seconds = stage.seconds.map_or("-".to_string(), |s| format!("{s:.1} s"));
         let ran = if stage.ran { seconds } else { "skipped".into() };
