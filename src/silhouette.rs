@@ -133,7 +133,8 @@ mod tests {
                 let mask = &mask;
                 (-b..=b)
                     .flat_map(move |dy| (-b..=b).map(move |dx| (x + dx, y + dy)))
-                    .filter_map(move |(u, v)| (u >= 0 && v >= 0 && (u as usize) < w && (v as usize) < h).then(|| mask.foreground[v as usize * w + u as usize]))
+                    .filter(move |&(u, v)| u >= 0 && v >= 0 && (u as usize) < w && (v as usize) < h)
+                    .map(move |(u, v)| mask.foreground[v as usize * w + u as usize])
             };
             let edge: Vec<u32> = (0..w * h).filter(|&p| neighbours(p).any(|f| f != mask.foreground[p])).map(|p| p as u32).collect();
             assert_eq!(edge_pixels(&mask, band), edge, "{w}x{h}, band {band}");

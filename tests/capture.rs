@@ -60,8 +60,8 @@ fn a_scene_exported_as_nerfstudio_and_a_centimetre_bvh_imports_as_the_same_scene
         // camera's plate is known (a training image of a static camera), blacked elsewhere.
         let near = umbra::silhouette::near_body(mask, umbra::silhouette::EDGE_BAND);
         let (photo, _) = umbra::photo::read_photo(&capture.join("images").join(view.path.file_name().unwrap())).unwrap();
-        for p in 0..mask.foreground.len() {
-            let kept = view.plate.as_ref().is_some_and(|plate| near[p] && plate.known.foreground[p]);
+        for (p, &near) in near.iter().enumerate() {
+            let kept = view.plate.as_ref().is_some_and(|plate| near && plate.known.foreground[p]);
             if mask.foreground[p] {
                 assert_eq!(view.colour.pixel(p), twin.colour.pixel(p), "{}: pixel {p} inside the mask", stem(&view.path));
             } else if kept {

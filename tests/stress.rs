@@ -65,7 +65,7 @@ fn losses_of_an_all_background_batch_are_finite() {
     let zeros1 = || Tensor::<1>::zeros([4], &device);
     for value in [
         umbra::losses::rgb(zeros2(), zeros2()),
-        umbra::losses::mask(zeros1(), zeros1()),
+        umbra::losses::mask(zeros1(), zeros1(), None),
         umbra::losses::grey(zeros2(), zeros1()),
         umbra::losses::eikonal(zeros2()),
     ] {

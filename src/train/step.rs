@@ -167,34 +167,14 @@ impl Trainer {
             (plate, weights)
         });
         let colour = needs(Input::Colour).then(|| {
-            let colour = match &deferred.normal {
+            let body = match &deferred.normal {
                 Some(normal) => background(self.shaded(model, batch, &deferred, normal)),
                 None => albedo.clone(),
             };
-            // Each ray's body in its camera's colour, then over what lies behind it.
-            let colour = match colours {
-                Some((colours, leaf)) => {
-                    let cameras: Vec<usize> = batch.sources.iter().map(|s| self.scene.views[s.0].camera).collect();
-                    colour * colours.per_ray(leaf, &cameras, &device)
-                }
-                None => colour,
-            };
-            match &behind {
-                Some((plate, _)) => colour + plate.clone() * (accumulation.clone().neg() + 1.0).reshape([pixels, 1]),
-                None => colour,
-            }
+            self.as_seen(body, batch, colours, &accumulation, behind.as_ref().map(|b| &b.0))
         });
         clock.mark(5);
         let mask_weights = behind.map(|b| b.1);
-        if self.error_rays > 0.0 {
-            let coverage = (accumulation.clone().detach() - mask.clone()).abs();
-            let coverage = match &mask_weights {
-                Some(weights) => coverage * weights.clone(),
-                None => coverage,
-            };
-            let colour_error = colour.as_ref().map(|c| (c.clone().detach() - target.clone()).abs().mean_dim(1).reshape([pixels]));
-            record_errors(error_maps, batch, coverage, colour_error);
-        }
         let mut inputs = Inputs {
             accumulation,
             mask,
@@ -209,6 +189,9 @@ impl Trainer {
             gradient: None,
             normal_pairs: None,
         };
+        if self.error_rays > 0.0 {
+            record_errors(error_maps, batch, &inputs);
+        }
         self.gaussian_inputs(model, batch, it, &deferred, &mut inputs);
         clock.mark(6);
         self.regulariser_inputs(model, batch, it, &deferred, &mut inputs);
@@ -220,6 +203,29 @@ impl Trainer {
             })
             .collect();
         (terms, forks)
+    }
+
+    /// Each ray's body as its camera saw it: in the camera's colour, then over what lies behind
+    /// the body (the plate near a mask's edge, black elsewhere).
+    fn as_seen(
+        &self,
+        body: Tensor<2>,
+        batch: &Batch,
+        colours: Option<(&super::camera_colour::CameraColours, Tensor<2>)>,
+        accumulation: &Tensor<1>,
+        plate: Option<&Tensor<2>>,
+    ) -> Tensor<2> {
+        let body = match colours {
+            Some((colours, leaf)) => {
+                let cameras: Vec<usize> = batch.sources.iter().map(|s| self.scene.views[s.0].camera).collect();
+                body * colours.per_ray(leaf, &cameras, &self.device)
+            }
+            None => body,
+        };
+        match plate {
+            Some(plate) => body + plate.clone() * (accumulation.clone().neg() + 1.0).reshape([batch.masks.len(), 1]),
+            None => body,
+        }
     }
 
     /// The batch's colour under its light, with the shadows cast by the Gaussians' values: they
@@ -370,10 +376,17 @@ impl Trainer {
     }
 }
 
-/// Each pixel's error (coverage, and colour once it is fitted) into its view's error map.
-fn record_errors(error_maps: &mut [Option<crate::error_map::ErrorMap>], batch: &Batch, coverage: Tensor<1>, colour: Option<Tensor<1>>) {
-    let error = match colour {
-        Some(c) => coverage + c,
+/// Each pixel's error (coverage, weighted as the mask is trusted, and colour once it is
+/// fitted) into its view's error map.
+fn record_errors(error_maps: &mut [Option<crate::error_map::ErrorMap>], batch: &Batch, inputs: &Inputs) {
+    let coverage = (inputs.accumulation.clone().detach() - inputs.mask.clone()).abs();
+    let coverage = match &inputs.mask_weights {
+        Some(weights) => coverage * weights.clone(),
+        None => coverage,
+    };
+    let pixels = batch.masks.len();
+    let error = match &inputs.colour {
+        Some(c) => coverage + (c.clone().detach() - inputs.target.clone()).abs().mean_dim(1).reshape([pixels]),
         None => coverage,
     };
     let error = crate::backend::host_values(error);
