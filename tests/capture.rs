@@ -695,4 +695,13 @@ fn a_static_cameras_plate_comes_from_its_frames_and_training_images_keep_what_it
         }
     }
     assert!(near_edge > 0 && elsewhere > 0, "{near_edge} near the edge, {elsewhere} elsewhere");
+
+    // The plates are training data: another plate is another identity (a fit does not resume
+    // on it).
+    let mut other = scene.clone();
+    let view = other.views.iter_mut().find(|v| v.plate.is_some()).unwrap();
+    let plate = std::sync::Arc::make_mut(view.plate.as_mut().unwrap());
+    let known = plate.known.foreground.iter().position(|&k| k).unwrap();
+    plate.colour.pixels[known][0] += 0.25;
+    assert_ne!(other.training_identity(), scene.training_identity());
 }

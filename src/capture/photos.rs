@@ -135,9 +135,8 @@ type WrittenPlate = (String, crate::silhouette::Plate);
 fn plates(images: &[CaptureImage], photos: &Photos, camera_of: &[usize], dir: &Path) -> Result<std::collections::BTreeMap<usize, WrittenPlate>, ImportError> {
     let mut per_camera: std::collections::BTreeMap<usize, Vec<usize>> = std::collections::BTreeMap::new();
     // An EXR capture's light runs past what an 8-bit plate holds: its cameras get none.
-    let exr = |image: &CaptureImage| image.path.extension().is_some_and(|e| e.eq_ignore_ascii_case("exr"));
     for (i, image) in images.iter().enumerate() {
-        if image.split == Split::Train && !exr(image) {
+        if image.split == Split::Train && !is_exr(image) {
             per_camera.entry(camera_of[i]).or_default().push(i);
         }
     }
@@ -242,7 +241,7 @@ fn write_one(image: &CaptureImage, photos: &Photos, i: usize, plate: Option<&Wri
         }
     };
     let stem = &image.key;
-    let exr = image.path.extension().is_some_and(|e| e.eq_ignore_ascii_case("exr"));
+    let exr = is_exr(image);
     let path = format!("images/{stem}.{}", if exr { "exr" } else { "png" });
     // A key may hold folders (`cam02/000000`): the scene keeps them.
     for sub in ["images", "masks"] {
@@ -267,6 +266,11 @@ fn write_one(image: &CaptureImage, photos: &Photos, i: usize, plate: Option<&Wri
         None => None,
     };
     Ok((path, mask_path, plate))
+}
+
+/// Whether the image is an EXR (kept as EXR in the scene, linear and unbounded).
+fn is_exr(image: &CaptureImage) -> bool {
+    image.path.extension().is_some_and(|e| e.eq_ignore_ascii_case("exr"))
 }
 
 /// Each `f` x `f` block is body when at least half of it is.

@@ -60,7 +60,19 @@ impl Scene {
     pub fn training_identity(&self) -> String {
         use rayon::prelude::*;
         let training: Vec<&super::View> = self.views.iter().filter(|v| v.split == Split::Train).collect();
-        let views: Vec<u64> = training.par_iter().map(|view| self.lit_fingerprint(view)).collect();
+        // Each plate hashed once, however many images share it.
+        let mut plates: Vec<&std::sync::Arc<crate::silhouette::Plate>> = Vec::new();
+        for plate in training.iter().filter_map(|v| v.plate.as_ref()) {
+            if !plates.iter().any(|p| std::sync::Arc::ptr_eq(p, plate)) {
+                plates.push(plate);
+            }
+        }
+        let plate_hashes: Vec<u64> = plates.par_iter().map(|plate| pixels_fingerprint(Fingerprint::default(), plate_pixels(plate)).0).collect();
+        let plate_hash = |view: &super::View| {
+            let plate = view.plate.as_ref()?;
+            plates.iter().position(|p| std::sync::Arc::ptr_eq(p, plate)).map(|k| plate_hashes[k])
+        };
+        let views: Vec<u64> = training.par_iter().map(|view| self.lit_fingerprint(view, plate_hash(view))).collect();
         let f = views.iter().fold(self.skeleton_fingerprint(), |f, v| f.bytes(&v.to_le_bytes()));
         format!("{TRAINING_IDENTITY_VERSION}:{}", f.hex())
     }
@@ -84,26 +96,14 @@ impl Scene {
     /// One training image's fingerprint: its camera, pose and light as `view_fingerprint`
     /// hashes them, then each pixel that is not black, its index and its value (the black
     /// background says nothing a mask does not).
-    fn lit_fingerprint(&self, view: &super::View) -> u64 {
-        let mut f = self.view_header(view, Fingerprint::default());
-        for (p, c) in view.colour.lit_pixels() {
-            f = f.bytes(&(p as u64).to_le_bytes());
-            for v in c {
-                f = f.bytes(&v.to_bits().to_le_bytes());
-            }
+    fn lit_fingerprint(&self, view: &super::View, plate: Option<u64>) -> u64 {
+        let f = pixels_fingerprint(self.view_header(view, Fingerprint::default()), view.colour.lit_pixels());
+        // What lies behind the body when the image has a plate (its fingerprint): a scene
+        // without plates keeps the identity it had.
+        match plate {
+            Some(hash) => f.text("plate").bytes(&hash.to_le_bytes()).0,
+            None => f.0,
         }
-        // What lies behind the body, where known, when the image has a plate (a scene without
-        // plates keeps the identity it had).
-        if let Some(plate) = &view.plate {
-            f = f.text("plate");
-            for (p, c) in plate.colour.pixels.iter().enumerate().filter(|(p, _)| plate.known.foreground[*p]) {
-                f = f.bytes(&(p as u64).to_le_bytes());
-                for v in c {
-                    f = f.bytes(&v.to_bits().to_le_bytes());
-                }
-            }
-        }
-        f.0
     }
 
     /// `f` continued over a training image's camera, its frame's pose and its light.
@@ -139,4 +139,20 @@ impl Scene {
         }
         f
     }
+}
+
+/// `f` continued over pixels given as (index, linear RGB).
+fn pixels_fingerprint(mut f: Fingerprint, pixels: impl Iterator<Item = (usize, [f32; 3])>) -> Fingerprint {
+    for (p, c) in pixels {
+        f = f.bytes(&(p as u64).to_le_bytes());
+        for v in c {
+            f = f.bytes(&v.to_bits().to_le_bytes());
+        }
+    }
+    f
+}
+
+/// A plate's known pixels as (index, linear RGB).
+fn plate_pixels(plate: &crate::silhouette::Plate) -> impl Iterator<Item = (usize, [f32; 3])> + '_ {
+    plate.colour.pixels.iter().copied().enumerate().filter(|(p, _)| plate.known.foreground[*p])
 }

@@ -106,7 +106,6 @@ impl Trainer {
         let mut colours = Vec::with_capacity(pixel_count * 3);
         let mut masks = Vec::with_capacity(pixel_count);
         let mut sources = Vec::with_capacity(pixel_count);
-        let plates = self.views.iter().any(|v| !v.near_edge.is_empty());
         let anywhere = super::pixels::PixelRuns::default();
         for k in 0..pixel_count {
             let v = same_light[self.stream.below(same_light.len())];
@@ -155,7 +154,7 @@ impl Trainer {
         for &d in &order {
             colours.extend(drawn[d].2);
             masks.push(drawn[d].3);
-            if plates {
+            if self.plates {
                 backgrounds.extend(drawn[d].4.unwrap_or([0.0; 3]));
                 mask_weights.push(if drawn[d].4.is_some() { MASK_TRUST_NEAR_EDGE } else { 1.0 });
             }

@@ -118,6 +118,9 @@ pub struct Trainer {
     state: Option<TrainState>,
     frames: Vec<FrameData>,
     views: Vec<ViewData>,
+    /// Whether some training view has a plate (`ViewData::near_edge`): batches then carry each
+    /// pixel's background and mask weight.
+    plates: bool,
     pub fit_light: bool,
     pub light_kind: LightKind,
     /// The seed the fit was started with (a resumed fit keeps it).

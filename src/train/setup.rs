@@ -299,6 +299,7 @@ impl Trainer {
             device,
             state: Some(super::TrainState { model, optimisers: super::Optimisers::new(), iteration: 0, average: None, error_maps, camera_colours }),
             frames,
+            plates: views.iter().any(|v| !v.near_edge.is_empty()),
             views,
             fit_light,
             light_kind,
