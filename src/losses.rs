@@ -1,6 +1,6 @@
 //! The loss terms of the supplement (section 4.1), each a function of tensors: RGB L1, mask,
 //! grey, Gaussian density fit, the sigma (eq. 5) and mean (eq. 6) regularisers, ambient,
-//! Eikonal and curvature; and `TERMS`, the one list of them: each term's name (the schedule's
+//! Eikonal and curvature, and the refined motion's prior and smoothness; and `TERMS`, the one list of them: each term's name (the schedule's
 //! `[losses]` key, the losses table's column), what it is computed from (`Input`: a step
 //! computes, and a batch draws samples for, only what an active term needs) and its value from
 //! a step's `Inputs`. Adding a term is an entry here and its weight in a schedule. Weights come
@@ -28,6 +28,9 @@ pub enum Input {
     Gradient,
     /// Unit normals at those samples and at points offset from them.
     NormalPairs,
+    /// The batch frame's motion correction, refined with the field (`train::motion`): a step
+    /// carries it through the render and the terms that weigh it hold it near the given motion.
+    Motion,
 }
 
 /// What a step computed for its batch; a part an active term does not need is absent.
@@ -46,6 +49,10 @@ pub struct Inputs {
     pub ambient: Option<(Tensor<1>, f64)>,
     pub gradient: Option<Tensor<2>>,
     pub normal_pairs: Option<(Tensor<2>, Tensor<2>)>,
+    /// The batch frame's motion correction (`[bones + 1, 3]`: each bone's turn in radians, the
+    /// skeleton's shift in levers) and where its neighbouring frames would have it for a
+    /// motion as smooth as the given one's.
+    pub motion: Option<(Tensor<2>, Tensor<2>)>,
 }
 
 /// A loss term: its name, what it needs, its value (none when a step lacks an input).
@@ -59,7 +66,7 @@ pub struct Term {
 }
 
 /// Every loss term, in the order a step sums them.
-pub const TERMS: [Term; 9] = [
+pub const TERMS: [Term; 11] = [
     Term { name: "rgb", needs: &[Input::Colour], always: false, value: |i| Some(rgb(i.colour.clone()?, i.target.clone())) },
     Term { name: "mask", needs: &[], always: true, value: |i| Some(mask(i.accumulation.clone(), i.mask.clone(), i.mask_weights.clone())) },
     Term { name: "grey", needs: &[], always: false, value: |i| Some(grey(i.albedo.clone(), i.mask.clone())) },
@@ -74,6 +81,8 @@ pub const TERMS: [Term; 9] = [
     Term { name: "ambient", needs: &[Input::Ambient], always: false, value: |i| i.ambient.clone().map(|(a, target)| ambient(a, target)) },
     Term { name: "eikonal", needs: &[Input::Gradient], always: false, value: |i| Some(eikonal(i.gradient.clone()?)) },
     Term { name: "curvature", needs: &[Input::NormalPairs], always: false, value: |i| i.normal_pairs.clone().map(|(n, p)| curvature(n, p)) },
+    Term { name: "motion_prior", needs: &[Input::Motion], always: false, value: |i| i.motion.clone().map(|(c, _)| squared(c)) },
+    Term { name: "motion_smoothness", needs: &[Input::Motion], always: false, value: |i| i.motion.clone().map(|(c, smooth)| squared(c - smooth)) },
 ];
 
 /// The terms' names, in `TERMS`' order.
@@ -147,6 +156,12 @@ pub fn eikonal(gradient: Tensor<2>) -> Tensor<1> {
     (d.clone() * d).mean().reshape([1])
 }
 
+/// The sum of squares: of a motion's correction (held near the given motion), or of its
+/// distance from where its neighbours would have it (smooth in time).
+pub fn squared(v: Tensor<2>) -> Tensor<1> {
+    (v.clone() * v).sum().reshape([1])
+}
+
 /// `|n(x) - n(x + eps)|^2` of unit normals, mean over points.
 pub fn curvature(normal: Tensor<2>, perturbed: Tensor<2>) -> Tensor<1> {
     let d = normal - perturbed;
@@ -189,5 +204,6 @@ mod tests {
         close(value(ambient(t1(&[0.1, 0.2, 0.4]), 0.1)), (0.0 + 0.01 + 0.09) / 3.0);
         close(value(eikonal(t2(&[3.0, 4.0, 0.0, 0.0, 0.0, 1.0], 3))), (16.0 + 0.0) / 2.0);
         close(value(curvature(t2(&[1.0, 0.0, 0.0], 3), t2(&[0.0, 1.0, 0.0], 3))), 2.0);
+        close(value(squared(t2(&[0.1, -0.2, 0.0, 0.3, 0.0, 0.0], 3))), 0.01 + 0.04 + 0.09);
     }
 }

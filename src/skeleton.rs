@@ -71,6 +71,22 @@ impl Pose {
         self.bone_to_world[bone].transform_vector3(local)
     }
 
+    /// The pose with each bone turned in its own frame by `turns[b]` (a rotation vector,
+    /// radians: the correction of its rotation in its parent's frame, its children carried
+    /// along, the skeleton's offsets kept) and the whole skeleton moved by `shift` (m, world).
+    pub fn corrected(&self, skeleton: &Skeleton, turns: &[[f64; 3]], shift: [f64; 3]) -> Pose {
+        let mut out: Vec<DMat4> = Vec::with_capacity(self.bone_to_world.len());
+        for (b, m) in self.bone_to_world.iter().enumerate() {
+            let turn = turns.get(b).map(|t| DVec3::from_array(*t)).unwrap_or(DVec3::ZERO);
+            let turn = if turn.length() > 0.0 { DMat4::from_axis_angle(turn.normalize(), turn.length()) } else { DMat4::IDENTITY };
+            out.push(match skeleton.bones.get(b).and_then(|bone| bone.parent).filter(|&p| p < b) {
+                Some(p) => out[p] * (self.bone_to_world[p].inverse() * *m) * turn,
+                None => DMat4::from_translation(DVec3::from_array(shift)) * *m * turn,
+            });
+        }
+        Pose { bone_to_world: out }
+    }
+
     /// Each bone's move from this pose into `to` (`to`'s bone-to-world after this one's inverse).
     pub fn moves_to(&self, to: &Pose) -> Vec<DMat4> {
         to.bone_to_world.iter().zip(&self.bone_to_world).map(|(t, f)| *t * f.inverse()).collect()
@@ -134,6 +150,74 @@ pub struct PoseTensors {
     pub lengths: Tensor<1>,
     /// The same bones on the CPU, for planning grid lookups.
     pub frames: Vec<BoneFrame>,
+    /// A rigid increment of each bone's pose whose gradient a training step reads (the motion's
+    /// refinement), when the lookups are to carry one.
+    pub motion: Option<MotionIncrement>,
+}
+
+/// A zero-valued increment of a pose that gradients flow through: per bone a world rotation
+/// about its head joint that turns it and every bone below it, and one world translation of
+/// the whole skeleton (`leaf`, `[B + 1, 3]`, the translation last). A world point carried by
+/// bone `b` moves by `E_b x - P_b + t`, with `E = A w` and `P = A (w x o)` over the bone's chain
+/// (`chains`, `A[b, j] = 1` when `j` is `b` or above it; `heads`, each bone's head `o`).
+#[derive(Clone, Debug)]
+pub struct MotionIncrement {
+    pub leaf: Tensor<2>,
+    chains: Tensor<2>,
+    heads: Tensor<2>,
+}
+
+/// `a x b` for rows of `[.., 3]`.
+pub fn cross_rows(a: Tensor<2>, b: Tensor<2>) -> Tensor<2> {
+    let c = |t: &Tensor<2>, k: usize| t.clone().narrow(1, k, 1);
+    Tensor::cat(
+        vec![c(&a, 1) * c(&b, 2) - c(&a, 2) * c(&b, 1), c(&a, 2) * c(&b, 0) - c(&a, 0) * c(&b, 2), c(&a, 0) * c(&b, 1) - c(&a, 1) * c(&b, 0)],
+        1,
+    )
+}
+
+impl MotionIncrement {
+    /// A fresh leaf of zeros for the bones of `skeleton` posed in `pose`.
+    pub fn new(skeleton: &Skeleton, pose: &Pose, device: &Device) -> Self {
+        let b = skeleton.len();
+        let mut chains = vec![0.0f32; b * b];
+        for bone in 0..b {
+            let mut j = Some(bone);
+            while let Some(k) = j {
+                chains[bone * b + k] = 1.0;
+                // A parent is an earlier bone (the scene's rule), so the walk ends.
+                j = skeleton.bones[k].parent.filter(|&p| p < k);
+            }
+        }
+        let heads: Vec<f32> = pose.bone_to_world.iter().flat_map(|m| m.w_axis.truncate().as_vec3().to_array()).collect();
+        MotionIncrement {
+            leaf: Tensor::zeros([b + 1, 3], device).require_grad(),
+            chains: Tensor::from_data(TensorData::new(chains, [b, b]), device),
+            heads: Tensor::from_data(TensorData::new(heads, [b, 3]), device),
+        }
+    }
+
+    /// The same increment as a new leaf (a graph of its own, for another thread).
+    pub fn fork(&self) -> Self {
+        let [rows, _] = self.leaf.dims();
+        MotionIncrement { leaf: Tensor::zeros([rows, 3], &self.leaf.device()).require_grad(), chains: self.chains.clone(), heads: self.heads.clone() }
+    }
+
+    /// How each of `points` (`[N, 3]`) moves when carried by bone `bones[n, k]` (`[N, K]`,
+    /// row-major): `[N, K, 3]`.
+    pub fn motion_of(&self, points: Tensor<2>, bones: &[u32], k: usize) -> Tensor<3> {
+        let [n, _] = points.dims();
+        let b = self.heads.dims()[0];
+        let turns = self.leaf.clone().narrow(0, 0, b);
+        let shift = self.leaf.clone().narrow(0, b, 1);
+        let e = self.chains.clone().matmul(turns.clone()); // [B, 3]
+        let p = self.chains.clone().matmul(cross_rows(turns, self.heads.clone())); // [B, 3]
+        let index: Vec<i64> = bones.iter().map(|&v| v as i64).collect();
+        let index = Tensor::<1, burn::tensor::Int>::from_data(TensorData::new(index, [n * k]), &points.device());
+        let (e, p) = (e.select(0, index.clone()), p.select(0, index));
+        let x = points.unsqueeze_dim::<3>(1).expand([n, k, 3]).reshape([n * k, 3]);
+        (cross_rows(e, x) - p + shift).reshape([n, k, 3])
+    }
 }
 
 impl PoseTensors {
@@ -155,6 +239,7 @@ impl PoseTensors {
             .collect();
         Self {
             frames,
+            motion: None,
             rotations: Tensor::from_data(TensorData::new(rotations, [b, 3, 3]), device),
             translations: Tensor::from_data(TensorData::new(translations, [b, 3]), device),
             lengths: Tensor::from_data(TensorData::new(lengths, [b]), device),

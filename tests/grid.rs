@@ -491,7 +491,7 @@ fn feature_tangents_match_finite_differences() {
     let pts = points(&s, 40, 9);
     let n = pts.len();
     let tensor = |p: &[DVec3]| Tensor::<2>::from_data(TensorData::new(flat(p), [p.len(), 3]), &device);
-    let encoded = grid.encode(tensor(&pts), &frames, skin, true);
+    let encoded = grid.encode(tensor(&pts), &frames, skin, true, None);
     let width = grid.config.width();
     let (feature_tangents, _) = encoded.tangents.unwrap();
     let (here, tangents) = (values(encoded.features), values(feature_tangents));
@@ -501,8 +501,8 @@ fn feature_tangents_match_finite_differences() {
     let (mut checked, mut kinks) = (0, 0);
     for axis in 0..3 {
         let shift = |sign: f64| pts.iter().map(|p| *p + DVec3::from_array([0, 1, 2].map(|a| if a == axis { sign * h } else { 0.0 }))).collect::<Vec<_>>();
-        let plus = values(grid.encode(tensor(&shift(1.0)), &frames, skin, false).features);
-        let minus = values(grid.encode(tensor(&shift(-1.0)), &frames, skin, false).features);
+        let plus = values(grid.encode(tensor(&shift(1.0)), &frames, skin, false, None).features);
+        let minus = values(grid.encode(tensor(&shift(-1.0)), &frames, skin, false, None).features);
         for k in 0..n {
             // Rows that change within h (a cell face, another nearest bone): not differentiable there.
             let rows = |p: DVec3| {
@@ -538,9 +538,9 @@ fn inactive_levels_contribute_nothing_and_a_fading_level_contributes_in_part() {
     let frames = PoseTensors::new(&s.pose, &s.character.skeleton, &device).frames;
     let pts = points(&s, 20, 21);
     let input = Tensor::<2>::from_data(TensorData::new(flat(&pts), [pts.len(), 3]), &device);
-    let full = values(field.grid.as_ref().unwrap().encode(input.clone(), &frames, skinning(&s.config), false).features);
+    let full = values(field.grid.as_ref().unwrap().encode(input.clone(), &frames, skinning(&s.config), false, None).features);
     field.grid.as_mut().unwrap().active_levels = 4.5;
-    let encoded = field.grid.as_ref().unwrap().encode(input, &frames, skinning(&s.config), true);
+    let encoded = field.grid.as_ref().unwrap().encode(input, &frames, skinning(&s.config), true, None);
     let (faded, tangents) = (values(encoded.features), values(encoded.tangents.unwrap().0));
     let f = s.config.grid.as_ref().unwrap().features;
     let width = 8 * f;
@@ -580,7 +580,7 @@ fn fused_interpolation_matches_the_composite_and_its_gradient() {
         let run = |composite: bool| {
             let mut grid = grid.clone();
             grid.composite = composite;
-            let f = grid.encode(input(), &pose.frames, skinning(&s.config), true);
+            let f = grid.encode(input(), &pose.frames, skinning(&s.config), true, None);
             let (tangents, _) = f.tangents.unwrap();
             let out = Tensor::cat(vec![f.features, tangents], 0);
             let loss = (out.clone() * weights.clone()).sum();
@@ -604,7 +604,7 @@ fn fused_interpolation_matches_the_composite_and_its_gradient() {
         let mut moved = field.clone();
         moved.grid.as_mut().unwrap().table = Param::from_tensor(Tensor::from_data(TensorData::new(shifted, [rows, features]), &device));
         let moved_grid = moved.grid.as_ref().unwrap();
-        let f = moved_grid.encode(input(), &pose.frames, skinning(&s.config), true);
+        let f = moved_grid.encode(input(), &pose.frames, skinning(&s.config), true, None);
         let out = Tensor::cat(vec![f.features, f.tangents.unwrap().0], 0);
         let moved_loss = values((out * weights.clone()).sum().inner())[0];
         let fd = (moved_loss as f64 - loss[0] as f64) / h as f64;
@@ -633,8 +633,8 @@ fn a_lookup_without_gradients_is_the_planned_lookup() {
         let pts = points(&s, 300, 23);
         let input = || Tensor::<2>::from_data(TensorData::new(flat(&pts), [pts.len(), 3]), &device);
         for skin in [skinning(&s.config), uncapped(&s.config)] {
-            let planned = tracked.encode(input(), &pose.frames, skin, false);
-            let host = untracked.encode(input().inner(), &pose.frames, skin, false);
+            let planned = tracked.encode(input(), &pose.frames, skin, false, None);
+            let host = untracked.encode(input().inner(), &pose.frames, skin, false, None);
             let (a, b) = (values(planned.features.inner()), values(host.features));
             assert_eq!(a.len(), b.len());
             let worst = a.iter().zip(&b).map(|(a, b)| (a - b).abs()).fold(0.0f32, f32::max);
@@ -858,7 +858,7 @@ fn the_capped_prior_holds_a_hem_point_still_while_the_legs_swing() {
         let frames = PoseTensors::new(&pose, &s.character.skeleton, &device).frames;
         let point = pose.to_world(0, hem);
         let input = Tensor::<2>::from_data(TensorData::new(vec![point.x as f32, point.y as f32, point.z as f32], [1, 3]), &device);
-        values(field.grid.as_ref().unwrap().encode(input, &frames, config.skinning(), false).prior)[0]
+        values(field.grid.as_ref().unwrap().encode(input, &frames, config.skinning(), false, None).prior)[0]
     };
     let capped = &s.config;
     let root = capped.grid.as_ref().unwrap().root.unwrap();

@@ -24,7 +24,7 @@ use burn::tensor::{Device, Int, Tensor, TensorData};
 pub use super::layout::{GridConfig, Level, RootSkinning, RootTable, FINEST_PER_EXTENT, MAX_TOP_BONES, REACH_PER_EXTENT};
 pub use super::lookup::{features_on_host, lookup, saturate, Lookup, Skinning};
 
-pub use crate::skeleton::BoneFrame;
+pub use crate::skeleton::{BoneFrame, MotionIncrement};
 
 /// The learnable table: `levels x 2^table_log2` rows of `features`.
 #[derive(Module, Debug)]
@@ -101,22 +101,34 @@ impl FeatureGrid {
         (0..self.config.levels).map(|l| (self.active_levels - l as f32).clamp(0.0, 1.0)).collect()
     }
 
-    /// Looks `points` up in the posed bones `frames`.
-    pub fn encode(&self, points: Tensor<2>, frames: &[BoneFrame], skinning: Skinning, tangents: bool) -> GridFeatures {
+    /// Looks `points` up in the posed bones `frames`. With a `motion` increment, a tracked lookup
+    /// that asks for no tangents carries it: each point's features and prior move, to first
+    /// order, as the point would move against its bones (`encode_moving`).
+    pub fn encode(&self, points: Tensor<2>, frames: &[BoneFrame], skinning: Skinning, tangents: bool, motion: Option<&MotionIncrement>) -> GridFeatures {
         let device = points.device();
-        if !tangents && !self.composite && !self.table.val().is_require_grad() {
+        let tracked = self.table.val().is_require_grad();
+        let motion = motion.filter(|_| !tangents && tracked && !self.composite);
+        if !tangents && !self.composite && !tracked {
             return self.encode_without_gradients(points, frames, skinning);
         }
-        let (plan, n) = self.plan(points, frames, skinning, tangents);
+        let planned = tangents || motion.is_some();
+        let (plan, n) = self.plan(points.clone(), frames, skinning, planned);
         let (per_bone, per_bone_tangents, plan) =
-            if self.composite { self.interpolate_composite(plan, n, tangents) } else { self.interpolate_fused(plan, n, tangents) };
+            if self.composite { self.interpolate_composite(plan, n, planned) } else { self.interpolate_fused(plan, n, planned) };
         let prior = Tensor::from_data(TensorData::new(plan.prior.clone(), [n]), &device);
-        let (features, feature_tangents) = self.blend(&plan, n, per_bone, per_bone_tangents, &device);
-        let tangents = feature_tangents.map(|t| {
-            let prior_tangents: Tensor<2> = Tensor::from_data(TensorData::new(plan.prior_tangents, [n, 3]), &device);
-            (t, prior_tangents.transpose())
-        });
-        GridFeatures { features, prior, tangents }
+        let (features, feature_tangents, weights) = self.blend(&plan, n, per_bone, per_bone_tangents, &device);
+        let prior_tangents = |plan: &Lookup| Tensor::<2>::from_data(TensorData::new(plan.prior_tangents.clone(), [n, 3]), &device);
+        match (motion, feature_tangents) {
+            (Some(motion), Some(feature_tangents)) => {
+                let moved = Moving { points, weights, feature_tangents, prior_tangents: prior_tangents(&plan) };
+                let (features, prior) = moved.encode(features, prior, motion, &plan.bones);
+                GridFeatures { features, prior, tangents: None }
+            }
+            (_, feature_tangents) => {
+                let tangents = feature_tangents.map(|t| (t, prior_tangents(&plan).transpose()));
+                GridFeatures { features, prior, tangents }
+            }
+        }
     }
 
     /// Each chosen bone's features (`[N, K W]`) and their tangents (`[3N, K W]`) by the fused
@@ -169,7 +181,8 @@ impl FeatureGrid {
     /// The features (`[N, W]`) as the chosen bones' features weighted by the skinning: a
     /// softmax of the planned logits plus the root's learned preference; and their tangents
     /// (`[3N, W]`), through the weights' gradients too.
-    fn blend(&self, plan: &Lookup, n: usize, per_bone: Tensor<2>, per_bone_tangents: Option<Tensor<2>>, device: &Device) -> (Tensor<2>, Option<Tensor<2>>) {
+    #[allow(clippy::type_complexity)]
+    fn blend(&self, plan: &Lookup, n: usize, per_bone: Tensor<2>, per_bone_tangents: Option<Tensor<2>>, device: &Device) -> (Tensor<2>, Option<Tensor<2>>, Tensor<2>) {
         let config = &self.config;
         let (k, w) = (config.top(), config.width());
         let logits: Tensor<2> = Tensor::from_data(TensorData::new(plan.logits.clone(), [n, k]), device);
@@ -197,6 +210,7 @@ impl FeatureGrid {
         let weights = burn::tensor::activation::softmax(logits, 1); // [N, K]
         let per_bone = per_bone.reshape([n, k, w]);
         let features = (per_bone.clone() * weights.clone().reshape([n, k, 1])).sum_dim(1).reshape([n, w]);
+        let blended = weights.clone();
         let feature_tangents = per_bone_tangents.map(|d_per_bone| {
             let d_logits: Tensor<3> = Tensor::<2>::from_data(TensorData::new(plan.logit_tangents.clone(), [n * k, 3]), device).transpose().reshape([3, n, k]);
             let d_logits = match &preference {
@@ -209,7 +223,34 @@ impl FeatureGrid {
             let through_features = weights.reshape([1, n, k, 1]) * d_per_bone.reshape([3, n, k, w]);
             (through_weights + through_features).sum_dim(2).reshape([3 * n, w])
         });
-        (features, feature_tangents)
+        (features, feature_tangents, blended)
+    }
+}
+
+/// A tracked lookup that carries a motion increment: its points (`[N, 3]`), skinning weights
+/// (`[N, K]`) and the features' and prior's world tangents (`[3N, W]`, `[N, 3]`).
+struct Moving {
+    points: Tensor<2>,
+    weights: Tensor<2>,
+    feature_tangents: Tensor<2>,
+    prior_tangents: Tensor<2>,
+}
+
+impl Moving {
+    /// The features and prior with the increment's first-order effect added: zero in value,
+    /// it carries the gradient to the increment. A bone moved by `m` carries its content with
+    /// it, so a point is looked up as if it had moved by `-m`: by each chosen bone's motion,
+    /// blended by the skinning weights (a linear-blend warp of the point; exact where one bone
+    /// carries it). Second derivatives are not followed: the tangents are constants.
+    fn encode(self, features: Tensor<2>, prior: Tensor<1>, motion: &MotionIncrement, bones: &[u32]) -> (Tensor<2>, Tensor<1>) {
+        let [n, k] = self.weights.dims();
+        let w = features.dims()[1];
+        let moves = motion.motion_of(self.points, bones, k); // [N, K, 3]
+        let shift = (moves * self.weights.detach().reshape([n, k, 1])).sum_dim(1).reshape([n, 3]).neg();
+        let along = self.feature_tangents.detach().reshape([3, n, w]) * shift.clone().transpose().reshape([3, n, 1]);
+        let features = features + along.sum_dim(0).reshape([n, w]);
+        let prior = prior + (self.prior_tangents * shift).sum_dim(1).reshape([n]);
+        (features, prior)
     }
 }
 

@@ -52,6 +52,9 @@ pub struct Lookup {
     pub root_coefficient_tangents: Vec<f32>,
     pub prior: Vec<f32>,
     pub prior_tangents: Vec<f32>,
+    /// Per point and chosen bone, the bone (`[N * K]`), when tangents are planned: what a
+    /// motion increment moves the point's lookup with.
+    pub bones: Vec<u32>,
 }
 
 /// What the plan says about one point besides its feature rows.
@@ -65,6 +68,7 @@ struct PointSkin {
     root_coefficient_tangents: [[f32; 3]; 8],
     prior: f32,
     prior_tangent: [f32; 3],
+    bones: [u32; MAX_TOP_BONES],
 }
 
 /// Plans the lookup of `points` (`[N * 3]`, world) in the bones `frames`.
@@ -106,6 +110,7 @@ pub fn lookup(config: &GridConfig, levels: &[Level], frames: &[BoneFrame], skinn
             plan.logit_tangents.extend(skin.logit_tangents[..top].iter().flatten());
             plan.root_coefficient_tangents.extend(skin.root_coefficient_tangents.iter().flatten());
             plan.prior_tangents.extend_from_slice(&skin.prior_tangent);
+            plan.bones.extend_from_slice(&skin.bones[..top]);
         }
     }
     plan
@@ -290,6 +295,7 @@ fn skin_point(config: &GridConfig, frames: &[BoneFrame], skinning: Skinning, poi
     let lead = (0..chosen.len()).min_by(|&a, &b| chosen[a].skinning_d2.total_cmp(&chosen[b].skinning_d2)).unwrap_or(0);
     let (max, d_max) = (chosen[lead].skinning_d2 * skinning.sharpness, chosen[lead].skinning_gradient.map(|g| g * skinning.sharpness));
     for (j, a) in chosen.iter().enumerate() {
+        skin.bones[j] = a.bone as u32;
         skin.logits[j] = a.skinning_d2 * skinning.sharpness - max;
         skin.logit_tangents[j] = [0, 1, 2].map(|x| a.skinning_gradient[x] * skinning.sharpness - d_max[x]);
     }

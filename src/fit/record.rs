@@ -125,6 +125,9 @@ pub(super) fn capture_report(trainer: &Trainer) -> serde_json::Value {
         // Each training camera's learned gain per channel (its exposure and white balance),
         // normalised to a mean of 1 over the cameras: renders are of the mean camera.
         "camera_colours": trainer.camera_gains().iter().map(|(c, gain)| json!({"camera": trainer.scene.cameras[*c].name, "gain": gain})).collect::<Vec<_>>(),
+        // How far the refinement moved the training motion (each bone's turn, degrees; the
+        // skeleton's shift, cm), when the schedule refines it.
+        "motion_refined": trainer.motion_moved(),
         "monocular": training_cameras.len() == 1,
         "light_start": match trainer.searches.first().and_then(|s| s.as_ref()) {
             Some(r) if r.best.position.is_some() => "point light search over directions and distances around the body, then gradient descent",

@@ -126,6 +126,9 @@ pub struct Deferred {
     /// Samples the field was evaluated at with gradients (`R * S`, fewer when culled; none for
     /// a still render).
     pub evaluated: usize,
+    /// The motion increments the render's lookups carried (`PoseTensors::motion`), one per
+    /// part rendered on its own thread: their gradients sum to the increment's.
+    pub motion_leaves: Vec<Tensor<2>>,
 }
 
 /// The parts of `render` whose time `Deferred::seconds` holds.
@@ -309,6 +312,7 @@ pub fn render_still(
         sample_density: Tensor::<1>::from_data(TensorData::new(density, [r * s]), device),
         seconds,
         evaluated: 0,
+        motion_leaves: Vec::new(),
     }
 }
 
@@ -366,7 +370,8 @@ pub fn render(
         unit_rows(gradient)
     });
     let seconds = [located, forward - located, start.elapsed().as_secs_f64() - forward];
-    Deferred { accumulation, albedo, depth, surface, normal, sample_points: points, sample_density: density, seconds, evaluated }
+    let motion_leaves = pose.motion.iter().map(|m| m.leaf.clone()).collect();
+    Deferred { accumulation, albedo, depth, surface, normal, sample_points: points, sample_density: density, seconds, evaluated, motion_leaves }
 }
 
 /// The differentiable pass over the `kept` samples only (`contributing`): the field decoded at
@@ -418,6 +423,7 @@ impl Deferred {
             sample_density: join1(|p| p.sample_density.clone()),
             seconds,
             evaluated: parts.iter().map(|p| p.evaluated).sum(),
+            motion_leaves: parts.iter().flat_map(|p| p.motion_leaves.iter().cloned()).collect(),
         }
     }
 }

@@ -35,10 +35,13 @@ pub fn render_in_parts(
     use rayon::prelude::*;
     let per_part = r.div_ceil(parts);
     let forks: Vec<AvatarField> = (0..parts).map(|_| field.clone().fork(device)).collect();
+    // A motion increment, like the field, is a leaf of each part's own graph.
+    let poses: Vec<PoseTensors> = (0..parts).map(|_| PoseTensors { motion: pose.motion.as_ref().map(|m| m.fork()), ..pose.clone() }).collect();
     let rendered: Vec<Deferred> = forks
         .par_iter()
+        .zip(&poses)
         .enumerate()
-        .map(|(k, fork)| {
+        .map(|(k, (fork, pose))| {
             let (lo, hi) = (k * per_part, ((k + 1) * per_part).min(r));
             render(fork, pose, &rays.range(lo, hi), sampling, &sampling.jitter_of(jitter, r, lo, hi), normals, device)
         })

@@ -78,6 +78,7 @@ pub fn save_checkpoint_until(trainer: &Trainer, out: &Path, history: &[(usize, S
         "gaussian_bones": trainer.model()?.gaussians.bones,
         "error_maps": trainer.error_maps().into_iter().map(|(view, errors)| json!({"view": view, "errors": errors})).collect::<Vec<_>>(),
         "camera_colours": trainer.camera_colours_json(),
+        "motion": trainer.motion_json(),
     });
     write_text(&temp.join("state.json"), &state.to_string())?;
     let sum = file_checksum(&temp.join("state.json")).map_err(|e| io(&temp.join("state.json"), e))?;
@@ -314,6 +315,9 @@ pub(crate) fn load_checkpoint(trainer: &mut Trainer, out: &Path) -> Result<Vec<(
     // Checkpoints from before the cameras' colours were learned have none: they start at 1.
     let colours = state.get("camera_colours").cloned().unwrap_or(serde_json::Value::Null);
     trainer.restore_camera_colours(&colours).map_err(|e| io(&state_path, format!("camera_colours: {e}")))?;
+    // Checkpoints from before the motion was refined have none: the given motion.
+    let motion = state.get("motion").cloned().unwrap_or(serde_json::Value::Null);
+    trainer.restore_motion(&motion).map_err(|e| io(&state_path, format!("motion: {e}")))?;
     let csv = crate::files::read_text(&dir.join("losses.csv"), crate::files::STATE_BYTES).map_err(|e| io(&dir.join("losses.csv"), e))?;
     Ok(parse_losses_csv(&csv))
 }

@@ -59,7 +59,15 @@ struct LearningRates {
     gaussians: Option<f64>,
     light: Option<f64>,
     features: Option<f64>,
+    /// The motion's corrections (radians a step, and the skeleton's shift in levers:
+    /// `train::motion`), not a parameter group of the model.
+    motion: Option<f64>,
 }
+
+/// The motion's learning rate unless a schedule gives one: Adam's step in radians (a ninth of a
+/// degree), so that a tracker's few degrees are crossed within a frame's first few dozen
+/// visits, which a 30-frame capture's fit gives each frame by its last stage.
+pub const MOTION_LEARNING_RATE: f64 = 2e-3;
 
 impl LearningRates {
     /// Each group (`GROUPS`'s order) with its rate, or its default.
@@ -309,6 +317,11 @@ fn learning_rates(written: LearningRates, file: &Path) -> Result<BTreeMap<String
         }
         rates.insert(group.to_string(), rate);
     }
+    let motion = written.motion.unwrap_or(MOTION_LEARNING_RATE);
+    if !(motion > 0.0 && motion < 1.0) {
+        return Err(err(file, "learning_rates.motion", format!("must be within (0, 1), found {motion}")));
+    }
+    rates.insert("motion".into(), motion);
     Ok(rates)
 }
 

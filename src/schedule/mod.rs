@@ -335,7 +335,7 @@ impl Schedule {
         let base = self.learning_rates.get(group).copied().unwrap_or(1e-3);
         let (decay, from) = match group {
             "light" => (self.light_lr_decay, self.light_from),
-            "field" | "features" => (self.field_lr_decay, self.field_lr_decay_from),
+            "field" | "features" | "motion" => (self.field_lr_decay, self.field_lr_decay_from),
             _ => return base,
         };
         let span = self.iterations.saturating_sub(from).max(1) as f64;

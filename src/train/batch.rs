@@ -32,6 +32,9 @@ pub struct Batch {
     /// The training frame (an index into the trainer's frames) and light.
     pub frame: usize,
     pub light: usize,
+    /// The frame's pose as the motion's refinement has corrected it so far, while it is refined
+    /// (else the step renders the given pose).
+    pub corrected: Option<(crate::skeleton::Pose, crate::field::PoseTensors)>,
     /// Rays that meet a Gaussian's bound first (`hits` of them, only they enter the field),
     /// then the others, which are background: colour and accumulation zero.
     pub rays: RaySet,
@@ -99,8 +102,17 @@ impl Trainer {
         } else {
             (0, data.views.clone())
         };
-        let pose = &self.scene.frames[data.position].pose;
-        let posed = set.pose(pose);
+        let given = &self.scene.frames[data.position].pose;
+        let refined = self.schedule.needs(Input::Motion, self.iteration());
+        let corrected = match self.state.as_ref().and_then(|s| s.motion.as_ref()) {
+            Some(motion) if refined => {
+                let pose = motion.pose(&self.scene.skeleton, data.position, given);
+                let tensors = crate::field::PoseTensors::new(&pose, &self.scene.skeleton, &self.device);
+                Some((pose, tensors))
+            }
+            _ => None,
+        };
+        let posed = set.pose(corrected.as_ref().map_or(given, |c| &c.0));
         let pixel_count = self.schedule.rays_per_batch.max(1);
         let mut drawn = Vec::with_capacity(pixel_count);
         let mut colours = Vec::with_capacity(pixel_count * 3);
@@ -163,6 +175,7 @@ impl Trainer {
         Batch {
             frame,
             light,
+            corrected,
             rays,
             hits,
             rendered: 0,

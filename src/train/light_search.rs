@@ -55,7 +55,7 @@ impl Trainer {
         let mut casters = Vec::new();
         for k in 0..count {
             let data = &self.frames[k * self.frames.len() / count];
-            let pose = &self.scene.frames[data.position].pose;
+            let pose = &self.corrected_pose(data.position);
             // Bounds and shadows from the Gaussians as the light casts them (density scaled).
             let posed = model.light_at(light).shadow_casters_posed(&set.pose(pose));
             let views: Vec<usize> = data.views.iter().copied().filter(|&v| self.view_light[v] == Some(light)).collect();

@@ -14,6 +14,7 @@
 mod batch;
 pub mod body;
 pub mod camera_colour;
+pub mod motion;
 mod light_search;
 mod pixels;
 mod rebind;
@@ -108,6 +109,8 @@ pub struct TrainState {
     pub error_maps: Vec<Option<crate::error_map::ErrorMap>>,
     /// Each training camera's learned colour, for a scene of two or more training cameras.
     pub camera_colours: Option<camera_colour::CameraColours>,
+    /// The training motion's corrections (a grid field's fit).
+    pub motion: Option<motion::MotionCorrections>,
 }
 
 pub struct Trainer {
@@ -271,6 +274,37 @@ impl Trainer {
                 average.applied(model.field).ok_or_else(|| FitError::Input("the field's parameter average does not match the field's layout".into()))?;
         }
         Ok(model)
+    }
+
+    /// Scene frame `position`'s pose as the motion's refinement has corrected it so far.
+    pub fn corrected_pose(&self, position: usize) -> crate::skeleton::Pose {
+        let given = &self.scene.frames[position].pose;
+        match self.state.as_ref().and_then(|s| s.motion.as_ref()) {
+            Some(motion) => motion.pose(&self.scene.skeleton, position, given),
+            None => given.clone(),
+        }
+    }
+
+    /// How far the refinement has moved the training motion (none for a fit that does not
+    /// refine it).
+    pub fn motion_moved(&self) -> Option<motion::MotionMoved> {
+        self.state.as_ref().and_then(|s| s.motion.as_ref()).filter(|_| self.schedule.weights.keys().any(|k| k.starts_with("motion"))).map(|m| m.moved())
+    }
+
+    /// The motion's corrections as a checkpoint keeps them (null for none).
+    pub fn motion_json(&self) -> serde_json::Value {
+        self.state.as_ref().and_then(|s| s.motion.as_ref()).map(|m| m.to_json()).unwrap_or(serde_json::Value::Null)
+    }
+
+    /// Restores `motion_json`'s output; null (a checkpoint before the motion was refined) keeps
+    /// the given motion.
+    pub fn restore_motion(&mut self, value: &serde_json::Value) -> Result<(), String> {
+        let state = self.state_mut().map_err(|e| e.to_string())?;
+        match (state.motion.as_mut(), value.is_null()) {
+            (_, true) => Ok(()),
+            (Some(motion), false) => motion.restore(value),
+            (None, false) => Err("this fit does not refine the motion".into()),
+        }
     }
 
     /// The body's length unit: `skeleton::body_length(1, extent)`.

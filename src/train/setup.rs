@@ -292,12 +292,15 @@ impl Trainer {
 
         let footprint_estimate = scene.footprint();
         let camera_colours = super::camera_colour::CameraColours::new(&scene);
+        // The motion is refined through the grid's lookups (the `mlp` field has no way in).
+        let lever = crate::skeleton::body_length(super::motion::LEVER_ON_HUMAN, extent);
+        let motion = model.field.grid.as_ref().and_then(|_| super::motion::MotionCorrections::new(&scene, lever));
         let footprint = schedule.footprint.unwrap_or(footprint_estimate.footprint);
         Ok(Self {
             scene,
             schedule,
             device,
-            state: Some(super::TrainState { model, optimisers: super::Optimisers::new(), iteration: 0, average: None, error_maps, camera_colours }),
+            state: Some(super::TrainState { model, optimisers: super::Optimisers::new(), iteration: 0, average: None, error_maps, camera_colours, motion }),
             frames,
             plates: views.iter().any(|v| !v.near_edge.is_empty()),
             views,

@@ -3,7 +3,9 @@
 
 use super::{Batch, TrainState, Trainer};
 use crate::avatar::{first_non_finite, Avatar};
-use crate::field::AvatarField;
+use crate::field::{AvatarField, PoseTensors};
+use crate::skeleton::MotionIncrement;
+use super::motion::MotionCorrections;
 use crate::fit_error::FitError;
 use crate::gaussians::GaussianParams;
 use crate::losses::{Input, Inputs};
@@ -69,6 +71,10 @@ fn scalar(t: &Tensor<1>) -> f64 {
 /// The step's losses: name, weight and value, in the order they are summed.
 type Terms<'a> = Vec<(&'a str, f64, Tensor<1>)>;
 
+/// The motion's leaves of a step: the corrected frame, its correction's leaf and the
+/// increments the render carried.
+type MotionLeaves = (usize, Tensor<2>, Vec<Tensor<2>>);
+
 impl Trainer {
     /// One step on `batch` from `state`: forward, the weighted losses, backward, one Adam step
     /// per group. The batch carries every random number the step uses (`draw_batch`). The state
@@ -84,7 +90,10 @@ impl Trainer {
         }
         // The cameras' colours go up as one leaf a step, once colour is fitted.
         let colours = state.camera_colours.as_ref().filter(|_| self.schedule.weight("rgb", it) > 0.0).map(|c| (c, c.leaf(&self.device)));
-        let (terms, forks) = self.losses(&state.model, &batch, it, &mut state.error_maps, colours.clone(), &mut clock);
+        // The frame's motion correction, while it is refined.
+        let refined = state.motion.as_ref().filter(|_| self.schedule.needs(Input::Motion, it) && batch.corrected.is_some());
+        let motion_row = refined.and_then(|m| m.row(self.frames[batch.frame].position).map(|k| (m, k)));
+        let (terms, forks, leaves) = self.losses(&state.model, &batch, it, &mut state.error_maps, colours.clone(), motion_row, &mut clock);
         let colour_leaf = colours.map(|(_, leaf)| leaf);
         let mut total = terms[0].2.clone() * terms[0].1;
         for (_, weight, value) in terms.iter().skip(1) {
@@ -102,6 +111,16 @@ impl Trainer {
             if let Some(gradient) = leaf.grad(&grads) {
                 colours.step(&crate::backend::host_values(gradient), self.schedule.learning_rate("light", it));
             }
+        }
+        if let (Some((k, leaf, increments)), Some(motion), Some((pose, _))) = (leaves, state.motion.as_mut(), batch.corrected.as_ref()) {
+            let read = |t: &Tensor<2>| t.grad(&grads).map(crate::backend::host_values);
+            let rows = leaf.dims()[0] * 3;
+            let leaf = read(&leaf).unwrap_or_else(|| vec![0.0; rows]);
+            let mut through_render = vec![0.0f32; rows];
+            for g in increments.iter().filter_map(read) {
+                through_render.iter_mut().zip(g).for_each(|(a, b)| *a += b);
+            }
+            motion.step(k, &leaf, &through_render, pose, self.schedule.learning_rate("motion", it));
         }
         let model = state.model;
         state.model = self.update(model, grads, forks, batch.light, &mut state.optimisers, it);
@@ -122,6 +141,7 @@ impl Trainer {
     /// The forward pass and the schedule's losses on `batch` (`losses::TERMS`, each from the
     /// step's `Inputs`; the colour's error, and the mask's, recorded in each pixel's view's
     /// error map), with the forks of the field that rendered parts of the batch on other threads.
+    #[allow(clippy::too_many_arguments)]
     fn losses<'a>(
         &self,
         model: &Avatar,
@@ -129,11 +149,14 @@ impl Trainer {
         it: usize,
         error_maps: &mut [Option<crate::error_map::ErrorMap>],
         colours: Option<(&super::camera_colour::CameraColours, Tensor<2>)>,
+        motion: Option<(&MotionCorrections, usize)>,
         clock: &mut PhaseClock,
-    ) -> (Terms<'a>, Vec<AvatarField>) {
+    ) -> (Terms<'a>, Vec<AvatarField>, Option<MotionLeaves>) {
         let device = self.device.clone();
         let needs = |input: Input| self.schedule.needs(input, it);
-        let pose = self.frames[batch.frame].pose_tensors.clone();
+        // With the motion refined, the render's lookups carry an increment of the pose.
+        let increment = motion.zip(batch.corrected.as_ref()).map(|(_, (pose, _))| MotionIncrement::new(&self.scene.skeleton, pose, &device));
+        let pose = PoseTensors { motion: increment, ..self.batch_pose(batch).clone() };
         let (r, rendered) = (batch.rays.len(), batch.rendered);
         let sampling = self.schedule.sampling();
         let shading = self.fit_light && needs(Input::Colour);
@@ -188,7 +211,9 @@ impl Trainer {
             ambient: None,
             gradient: None,
             normal_pairs: None,
+            motion: motion.map(|(m, k)| m.leaf_and_smooth(k, &device)),
         };
+        let leaves = motion.zip(inputs.motion.as_ref()).map(|((_, k), (leaf, _))| (k, leaf.clone(), deferred.motion_leaves.clone()));
         if self.error_rays > 0.0 {
             record_errors(error_maps, batch, &inputs);
         }
@@ -202,7 +227,12 @@ impl Trainer {
                 (term.always || weight > 0.0).then(|| (term.value)(&inputs).map(|value| (term.name, weight, value))).flatten()
             })
             .collect();
-        (terms, forks)
+        (terms, forks, leaves)
+    }
+
+    /// The pose a batch is rendered in: its frame's, as the motion's refinement has corrected it.
+    fn batch_pose<'b>(&'b self, batch: &'b Batch) -> &'b PoseTensors {
+        batch.corrected.as_ref().map_or(&self.frames[batch.frame].pose_tensors, |c| &c.1)
     }
 
     /// Each ray's body as its camera saw it: in the camera's colour, then over what lies behind
@@ -231,7 +261,7 @@ impl Trainer {
     /// The batch's colour under its light, with the shadows cast by the Gaussians' values: they
     /// learn only from their fit to the field's density.
     fn shaded(&self, model: &Avatar, batch: &Batch, deferred: &Deferred, normal: &Tensor<2>) -> Tensor<2> {
-        let pose = &self.frames[batch.frame].pose_tensors;
+        let pose = self.batch_pose(batch);
         let casters = model.gaussians.posed_values(pose);
         let batch_light = model.light_at(batch.light);
         // The pixels drawn where the fit is wrong teach the light nothing: it learns from the
@@ -248,7 +278,7 @@ impl Trainer {
     /// at the density samples, their widths, their means, and the light's ambient.
     fn gaussian_inputs(&self, model: &Avatar, batch: &Batch, it: usize, deferred: &Deferred, inputs: &mut Inputs) {
         let needs = |input: Input| self.schedule.needs(input, it);
-        let pose = &self.frames[batch.frame].pose_tensors;
+        let pose = self.batch_pose(batch);
         if !batch.density_samples.is_empty() {
             // The Gaussians posed in the graph only when a loss reaches them: burn registers every
             // operation on a parameter in the parameter's graph, and what no backward consumes
@@ -298,7 +328,7 @@ impl Trainer {
         if q == 0 {
             return;
         }
-        let pose = &self.frames[batch.frame].pose_tensors;
+        let pose = self.batch_pose(batch);
         let idx = Tensor::<1, Int>::from_data(TensorData::new(batch.regulariser_samples.clone(), [q]), &self.device);
         let points = deferred.sample_points.clone().detach().select(0, idx);
         let gradient = model.field.sdf_gradient(points.clone(), pose, self.gradient);

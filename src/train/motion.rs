@@ -1,0 +1,233 @@
+//! The training motion refined while fitting: per training frame, a correction of each bone's
+//! rotation in its parent's frame (a rotation vector, radians) and of the skeleton's position
+//! (in levers: a limb's length on this body), learned with the field from the stage the
+//! schedule's motion terms start at. A step renders its frame's pose as corrected so far and
+//! carries a zero increment of it through the field's lookups (`skeleton::MotionIncrement`);
+//! the increment's gradient is turned into the correction's and one Adam step is taken on the
+//! host (a frame's corrections are `3 (bones + 1)` numbers). The motion's terms
+//! (`losses::TERMS`: `motion_prior`, `motion_smoothness`) hold a correction near the given
+//! motion and the corrected motion as smooth in time as the given one. Test frames and new
+//! motion are used as given.
+
+use crate::scene::{Scene, Split};
+use crate::skeleton::{Pose, Skeleton};
+use burn::tensor::{Device, Tensor, TensorData};
+use glam::{DMat3, DQuat, DVec3};
+
+/// Adam's decay rates and its guard against a zero second moment.
+const BETAS: (f64, f64) = (0.9, 0.999);
+const EPSILON: f64 = 1e-8;
+
+/// The lever (m on the reference human, scaled with the body) the skeleton's shift is measured
+/// in: a turn of one radian moves a point this far from its joint as far as a shift of one.
+pub const LEVER_ON_HUMAN: f64 = 0.3;
+
+/// Rows of a frame's correction: one per bone, then the shift.
+type Rows = Vec<[f64; 3]>;
+
+/// The training frames' corrections and their optimiser's state.
+#[derive(Clone, Debug, PartialEq)]
+pub struct MotionCorrections {
+    /// Per corrected frame, its scene frame.
+    frames: Vec<usize>,
+    /// Per corrected frame, the frames before and after it in time (indices here), when it has
+    /// both.
+    neighbours: Vec<Option<(usize, usize)>>,
+    /// Per corrected frame, the given motion's acceleration there: each bone's turn over the
+    /// next step less the last step's (radians), the shift's second difference (levers).
+    acceleration: Vec<Rows>,
+    values: Vec<Rows>,
+    first: Vec<Rows>,
+    second: Vec<Rows>,
+    steps: Vec<u64>,
+    lever: f64,
+}
+
+/// How far the refinement moved the training motion: each bone's turn over every frame
+/// (degrees, mean and largest) and the skeleton's shift (cm, mean and largest).
+#[derive(Clone, Copy, Debug, Default, PartialEq, serde::Serialize)]
+pub struct MotionMoved {
+    pub frames: usize,
+    pub mean_degrees: f64,
+    pub largest_degrees: f64,
+    pub mean_shift_cm: f64,
+    pub largest_shift_cm: f64,
+}
+
+/// A bone's rotation in its parent's frame (the root's in the world) in `pose`.
+fn local_rotation(skeleton: &Skeleton, pose: &Pose, bone: usize) -> DMat3 {
+    let m = pose.bone_to_world[bone];
+    let local = match skeleton.bones[bone].parent.filter(|&p| p < bone) {
+        Some(p) => pose.bone_to_world[p].inverse() * m,
+        None => m,
+    };
+    DMat3::from_mat4(local)
+}
+
+/// The rotation vector taking `a` to `b` in `a`'s frame.
+fn turn_between(a: DMat3, b: DMat3) -> DVec3 {
+    DQuat::from_mat3(&(a.transpose() * b)).normalize().to_scaled_axis()
+}
+
+impl MotionCorrections {
+    /// For the scene's training frames (none without any), the shift measured in `lever` (m).
+    pub fn new(scene: &Scene, lever: f64) -> Option<Self> {
+        let mut frames: Vec<usize> = scene.views.iter().filter(|v| v.split == Split::Train).map(|v| v.frame).collect();
+        // In time (a frame without a time by its index).
+        let when = |f: usize| scene.frames[f].time.unwrap_or(scene.frames[f].index as f64);
+        frames.sort_by(|&a, &b| when(a).total_cmp(&when(b)).then(a.cmp(&b)));
+        frames.dedup();
+        if frames.is_empty() {
+            return None;
+        }
+        let rows = scene.skeleton.len() + 1;
+        let n = frames.len();
+        let neighbours: Vec<Option<(usize, usize)>> = (0..n).map(|k| (k > 0 && k + 1 < n).then(|| (k - 1, k + 1))).collect();
+        let acceleration = (0..n)
+            .map(|k| match neighbours[k] {
+                Some((before, after)) => {
+                    let pose = |j: usize| &scene.frames[frames[j]].pose;
+                    let mut out: Rows = (0..scene.skeleton.len())
+                        .map(|b| {
+                            let r = |j: usize| local_rotation(&scene.skeleton, pose(j), b);
+                            (turn_between(r(k), r(after)) - turn_between(r(before), r(k))).to_array()
+                        })
+                        .collect();
+                    let root = |j: usize| pose(j).bone_to_world.first().map(|m| m.w_axis.truncate()).unwrap_or_default();
+                    out.push(((root(after) - root(k) * 2.0 + root(before)) / lever).to_array());
+                    out
+                }
+                None => vec![[0.0; 3]; rows],
+            })
+            .collect();
+        let zeros = vec![vec![[0.0; 3]; rows]; n];
+        Some(Self { frames, neighbours, acceleration, values: zeros.clone(), first: zeros.clone(), second: zeros, steps: vec![0; n], lever })
+    }
+
+    /// The corrected frame of scene frame `frame`, if it is one.
+    pub fn row(&self, frame: usize) -> Option<usize> {
+        self.frames.iter().position(|&f| f == frame)
+    }
+
+    /// Scene frame `frame`'s given pose as corrected so far (the given one if not corrected).
+    pub fn pose(&self, skeleton: &Skeleton, frame: usize, given: &Pose) -> Pose {
+        match self.row(frame) {
+            Some(k) => {
+                let values = &self.values[k];
+                let shift = values.last().copied().unwrap_or_default().map(|v| v * self.lever);
+                given.corrected(skeleton, &values[..values.len().saturating_sub(1)], shift)
+            }
+            None => given.clone(),
+        }
+    }
+
+    /// Corrected frame `k`'s correction as a leaf (`[bones + 1, 3]`) whose gradient a step
+    /// reads back, and where its neighbours would have it for a motion as smooth as the given
+    /// one's (second differences of the corrected motion equal to the given motion's, to first
+    /// order; itself when it lacks a neighbour, which no term then moves).
+    pub fn leaf_and_smooth(&self, k: usize, device: &Device) -> (Tensor<2>, Tensor<2>) {
+        let values = &self.values[k];
+        let rows = values.len();
+        let smooth: Vec<f32> = match self.neighbours[k] {
+            Some((before, after)) => (0..rows)
+                .flat_map(|r| {
+                    let (a, b, acc) = (self.values[before][r], self.values[after][r], self.acceleration[k][r]);
+                    (0..3).map(move |c| ((a[c] + b[c] + acc[c]) / 2.0) as f32)
+                })
+                .collect(),
+            None => values.iter().flatten().map(|&v| v as f32).collect(),
+        };
+        let leaf: Vec<f32> = values.iter().flatten().map(|&v| v as f32).collect();
+        (
+            Tensor::from_data(TensorData::new(leaf, [rows, 3]), device).require_grad(),
+            Tensor::from_data(TensorData::new(smooth, [rows, 3]), device),
+        )
+    }
+
+    /// One Adam step of `rate` on corrected frame `k`: `leaf` is the gradient of its leaf
+    /// (`[bones + 1, 3]`), `increment` that of the increment the render carried (each bone's world
+    /// turn about its head, then the world shift, m), `pose` the pose the step rendered.
+    pub fn step(&mut self, k: usize, leaf: &[f32], increment: &[f32], pose: &Pose, rate: f64) {
+        let rows = self.values[k].len();
+        let fine = |g: &[f32]| g.len() == 3 * rows && g.iter().all(|v| v.is_finite());
+        if !fine(leaf) || !(increment.is_empty() || fine(increment)) {
+            return;
+        }
+        let row = |g: &[f32], r: usize| DVec3::new(g[3 * r] as f64, g[3 * r + 1] as f64, g[3 * r + 2] as f64);
+        // A turn dv in a bone's own frame is a world turn R dv about its head: the world
+        // gradient seen from the bone's frame is R^T g. The shift is in levers.
+        let gradient: Vec<DVec3> = (0..rows)
+            .map(|r| {
+                let through_render = match (increment.is_empty(), pose.bone_to_world.get(r)) {
+                    (true, _) => DVec3::ZERO,
+                    (false, Some(m)) => DMat3::from_mat4(*m).transpose() * row(increment, r),
+                    (false, None) => row(increment, r) * self.lever,
+                };
+                through_render + row(leaf, r)
+            })
+            .collect();
+        self.steps[k] += 1;
+        let (b1, b2) = BETAS;
+        let t = self.steps[k] as i32;
+        let (c1, c2) = (1.0 - b1.powi(t), 1.0 - b2.powi(t));
+        for (r, g) in gradient.iter().enumerate() {
+            for c in 0..3 {
+                let g = g[c];
+                let (m, v) = (&mut self.first[k][r][c], &mut self.second[k][r][c]);
+                *m = b1 * *m + (1.0 - b1) * g;
+                *v = b2 * *v + (1.0 - b2) * g * g;
+                self.values[k][r][c] -= rate * (*m / c1) / ((*v / c2).sqrt() + EPSILON);
+            }
+        }
+    }
+
+    /// How far the corrections moved the motion.
+    pub fn moved(&self) -> MotionMoved {
+        let turns: Vec<f64> = self.values.iter().flat_map(|v| v[..v.len() - 1].iter().map(|t| DVec3::from_array(*t).length().to_degrees())).collect();
+        let shifts: Vec<f64> = self.values.iter().map(|v| DVec3::from_array(*v.last().unwrap_or(&[0.0; 3])).length() * self.lever * 100.0).collect();
+        let mean = |v: &[f64]| if v.is_empty() { 0.0 } else { v.iter().sum::<f64>() / v.len() as f64 };
+        let largest = |v: &[f64]| v.iter().copied().fold(0.0, f64::max);
+        MotionMoved {
+            frames: self.frames.len(),
+            mean_degrees: mean(&turns),
+            largest_degrees: largest(&turns),
+            mean_shift_cm: mean(&shifts),
+            largest_shift_cm: largest(&shifts),
+        }
+    }
+
+    /// The scene frames corrected, in time order.
+    pub fn frames(&self) -> &[usize] {
+        &self.frames
+    }
+
+    /// The state a checkpoint keeps.
+    pub fn to_json(&self) -> serde_json::Value {
+        serde_json::json!({"frames": self.frames, "values": self.values, "first": self.first, "second": self.second, "steps": self.steps})
+    }
+
+    /// The state from a checkpoint's `to_json`, refused when it is not this scene's frames.
+    pub fn restore(&mut self, value: &serde_json::Value) -> Result<(), String> {
+        let frames: Vec<usize> = serde_json::from_value(value["frames"].clone()).map_err(|e| format!("frames: {e}"))?;
+        if frames != self.frames {
+            return Err(format!("frames {frames:?}, the scene's training frames are {:?}", self.frames));
+        }
+        let rows = self.values.first().map_or(0, |v| v.len());
+        let table = |key: &str| -> Result<Vec<Rows>, String> {
+            let table: Vec<Rows> = serde_json::from_value(value[key].clone()).map_err(|e| format!("{key}: {e}"))?;
+            match table.len() == frames.len() && table.iter().all(|t| t.len() == rows && t.iter().flatten().all(|v| v.is_finite())) {
+                true => Ok(table),
+                false => Err(format!("{key}: {rows} finite [x, y, z] per training frame")),
+            }
+        };
+        let steps: Vec<u64> = serde_json::from_value(value["steps"].clone()).map_err(|e| format!("steps: {e}"))?;
+        if steps.len() != frames.len() {
+            return Err("steps: one per training frame".into());
+        }
+        self.values = table("values")?;
+        self.first = table("first")?;
+        self.second = table("second")?;
+        self.steps = steps;
+        Ok(())
+    }
+}

@@ -1,0 +1,160 @@
+//! The training motion's refinement: the gradient a motion increment carries through the grid
+//! field's lookups against finite differences of the field in the corrected pose, and the
+//! corrected pose itself (a tracker's error undone by its inverse).
+
+use burn::module::Param;
+use burn::tensor::{Device, Tensor, TensorData};
+use glam::{DMat3, DVec3};
+use umbra::field::{AvatarField, FieldConfig, PoseTensors};
+use umbra::random::Stream;
+use umbra::skeleton::{MotionIncrement, Pose};
+use umbra::synth::character::{Character, Kind};
+
+fn values<const D: usize>(t: Tensor<D>) -> Vec<f32> {
+    t.into_data().convert::<f32>().try_to_vec::<f32>().unwrap()
+}
+
+/// A grid field with busy features (so the SDF varies within a cell) on the walking human.
+fn field(character: &Character, pose: &Pose, device: &Device) -> AvatarField {
+    let (lo, hi) = pose.bounds(&character.skeleton);
+    let config = FieldConfig::with_grid(character.skeleton.bones.iter().map(|b| b.length as f32).collect(), (hi - lo).length() as f32);
+    let mut field = config.init(device, 7);
+    let mut stream = Stream::new(3, 1, 0);
+    let grid = field.grid.as_mut().unwrap();
+    let [rows, features] = grid.table.val().dims();
+    let table: Vec<f32> = (0..rows * features).map(|_| (stream.uniform() * 2.0 - 1.0) as f32 * 0.5).collect();
+    grid.table = Param::from_tensor(Tensor::from_data(TensorData::new(table, [rows, features]), device));
+    field
+}
+
+/// Points along the middle of every bone, a few centimetres off its axis: carried by one bone
+/// (given beside each).
+fn points(character: &Character, pose: &Pose) -> (Vec<DVec3>, Vec<usize>) {
+    let mut stream = Stream::new(9, 2, 0);
+    let (mut out, mut carriers) = (Vec::new(), Vec::new());
+    for (b, bone) in character.skeleton.bones.iter().enumerate() {
+        for _ in 0..12 {
+            let along = bone.length * (0.3 + 0.4 * stream.uniform());
+            let local = DVec3::new((stream.uniform() - 0.5) * 0.06, along, (stream.uniform() - 0.5) * 0.06);
+            out.push(pose.to_world(b, local));
+            carriers.push(b);
+        }
+    }
+    (out, carriers)
+}
+
+/// `sum_i w_i sdf(x_i)` in `pose`, carrying `motion` when given.
+fn loss(field: &AvatarField, character: &Character, pose: &Pose, pts: &[DVec3], weights: &Tensor<1>, motion: bool, device: &Device) -> (Tensor<1>, PoseTensors) {
+    let mut tensors = PoseTensors::new(pose, &character.skeleton, device);
+    if motion {
+        tensors.motion = Some(MotionIncrement::new(&character.skeleton, pose, device));
+    }
+    let flat: Vec<f32> = pts.iter().flat_map(|p| p.as_vec3().to_array()).collect();
+    let input = Tensor::<2>::from_data(TensorData::new(flat, [pts.len(), 3]), device);
+    let sdf = field.decode(input, &tensors).sdf;
+    ((sdf * weights.clone()).sum(), tensors)
+}
+
+/// The pose with bone `bone` (and every bone below it) turned by `angle` about world `axis`
+/// through its head, or the whole skeleton shifted by `shift`.
+fn moved(character: &Character, pose: &Pose, bone: Option<usize>, axis: DVec3, angle: f64, shift: DVec3) -> Pose {
+    let turn = glam::DMat4::from_axis_angle(axis, angle);
+    let bone_to_world = pose
+        .bone_to_world
+        .iter()
+        .enumerate()
+        .map(|(b, m)| match bone {
+            Some(j) if below(character, b, j) => {
+                let head = pose.bone_to_world[j].w_axis.truncate();
+                glam::DMat4::from_translation(head) * turn * glam::DMat4::from_translation(-head) * *m
+            }
+            Some(_) => *m,
+            None => glam::DMat4::from_translation(shift) * *m,
+        })
+        .collect();
+    Pose { bone_to_world }
+}
+
+/// The increment's gradient (each bone's world turn about its head, then the world shift)
+/// against central differences of the loss with the bones moved: the skeleton shifted and the
+/// root turned (every bone moves alike, where the blended warp is exact), and a limb turned
+/// with its children (points carried by one bone).
+#[test]
+fn the_motion_increment_carries_the_gradient_of_the_corrected_pose() {
+    let device = Device::flex().autodiff();
+    let character = Character::new(Kind::Human);
+    let pose = character.pose(0.3, 0.2, DVec3::new(0.05, 0.0, -0.1));
+    let field = field(&character, &pose, &device);
+    let (pts, carriers) = points(&character, &pose);
+    let b = character.skeleton.len();
+    let limb = character.skeleton.bones.iter().position(|bone| bone.name.contains("forearm") || bone.name.contains("shin")).unwrap_or(b - 1);
+    let mut checked = 0;
+    for (bone, row) in [(None, b), (Some(0), 0), (Some(limb), limb)] {
+        // The loss weighs the points the move carries rigidly (every one for the skeleton's
+        // shift and the root's turn; the limb's and those below it for the limb's turn).
+        let mut stream = Stream::new(4, 4, row as u64);
+        let w: Vec<f32> =
+            carriers.iter().map(|&c| if bone.is_none_or(|j| below(&character, c, j)) { (stream.uniform() * 2.0 - 1.0) as f32 } else { 0.0 }).collect();
+        let weights = Tensor::<1>::from_data(TensorData::new(w.clone(), [pts.len()]), &device);
+        let (l, tensors) = loss(&field, &character, &pose, &pts, &weights, true, &device);
+        let grads = l.backward();
+        let leaf = tensors.motion.as_ref().unwrap().leaf.clone();
+        let gradient = values(leaf.grad(&grads).expect("the increment is in the graph"));
+        // The loss summed in f64 on the host, so that a small step's difference is not rounding.
+        let value = |p: &Pose| {
+            let tensors = PoseTensors::new(p, &character.skeleton, &device);
+            let flat: Vec<f32> = pts.iter().flat_map(|p| p.as_vec3().to_array()).collect();
+            let sdf = values(field.decode(Tensor::<2>::from_data(TensorData::new(flat, [pts.len(), 3]), &device), &tensors).sdf.inner());
+            sdf.iter().zip(&w).map(|(s, w)| *s as f64 * *w as f64).sum::<f64>()
+        };
+        for axis in [DVec3::X, DVec3::Y, DVec3::Z] {
+            // Small beside the finest cell (1/160 of the body), so few points cross a cell's
+            // face, where the trilinear slope jumps.
+            let h = 2e-4;
+            let (plus, minus) = match bone {
+                None => (moved(&character, &pose, None, axis, 0.0, axis * h), moved(&character, &pose, None, axis, 0.0, -axis * h)),
+                Some(j) => (moved(&character, &pose, Some(j), axis, h, DVec3::ZERO), moved(&character, &pose, Some(j), axis, -h, DVec3::ZERO)),
+            };
+            let fd = (value(&plus) - value(&minus)) / (2.0 * h);
+            let analytic = gradient[3 * row..3 * row + 3].iter().zip(axis.to_array()).map(|(g, a)| *g as f64 * a).sum::<f64>();
+            let scale = fd.abs().max(analytic.abs()).max(0.02);
+            assert!((fd - analytic).abs() < 0.03 * scale, "bone {bone:?} axis {axis}: finite difference {fd} vs gradient {analytic}");
+            checked += (fd.abs() > 0.02) as usize;
+        }
+    }
+    assert!(checked >= 6, "too few of the differences were large enough to test ({checked})");
+}
+
+/// Whether bone `b` is bone `j` or below it.
+fn below(character: &Character, b: usize, j: usize) -> bool {
+    let mut k = Some(b);
+    while let Some(c) = k {
+        if c == j {
+            return true;
+        }
+        k = character.skeleton.bones[c].parent;
+    }
+    false
+}
+
+/// A tracker's error (each bone turned in its parent's frame, the root shifted) is undone by the
+/// corrections that invert it, to rounding.
+#[test]
+fn a_corrected_pose_undoes_the_error_it_inverts() {
+    let character = Character::new(Kind::Human);
+    let truth = character.pose(0.6, -0.3, DVec3::new(0.0, 0.0, 0.2));
+    let mut stream = Stream::new(1, 2, 3);
+    let turns: Vec<[f64; 3]> = (0..character.skeleton.len()).map(|_| [(); 3].map(|_| (stream.uniform() - 0.5) * 0.1)).collect();
+    let shift = [0.01, -0.02, 0.005];
+    let tracked = truth.corrected(&character.skeleton, &turns, shift);
+    // Undo: the inverse turn in each bone's frame, the shift back (the root's turn is about
+    // its head, which the shift moved).
+    let undo: Vec<[f64; 3]> = turns.iter().map(|t| (-DVec3::from_array(*t)).to_array()).collect();
+    let back = tracked.corrected(&character.skeleton, &undo, shift.map(|v| -v));
+    for (a, b) in back.bone_to_world.iter().zip(&truth.bone_to_world) {
+        let rotation = (DMat3::from_mat4(*a).transpose() * DMat3::from_mat4(*b) - DMat3::IDENTITY).abs_diff_eq(DMat3::ZERO, 1e-9);
+        assert!(rotation && (a.w_axis - b.w_axis).length() < 1e-9, "{a} vs {b}");
+    }
+    // And it moved the bones: the tracked pose is not the truth.
+    assert!((tracked.bone_to_world[5].w_axis - truth.bone_to_world[5].w_axis).length() > 1e-3);
+}
