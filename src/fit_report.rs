@@ -111,13 +111,28 @@ pub fn camera_colours_line(capture: &serde_json::Value) -> Option<String> {
     Some(format!("camera colours: {} cameras, gains {lo:.3} to {hi:.3} (mean 1); farthest {name} at {:.3} {:.3} {:.3}", gains.len(), gain[0], gain[1], gain[2]))
 }
 
+/// How far the fit moved the training motion (fit.json's `capture.motion_refined`) in a line;
+/// none when it was not refined.
+pub fn motion_line(capture: &serde_json::Value) -> Option<String> {
+    let moved = capture.get("motion_refined").filter(|m| m.is_object())?;
+    let number = |key: &str| moved[key].as_f64();
+    Some(format!(
+        "motion refined: {} training frames, bones turned {:.2} degrees on average (at most {:.2}), the root moved {:.2} cm (at most {:.2})",
+        moved["frames"].as_u64()?,
+        number("mean_degrees")?,
+        number("largest_degrees")?,
+        number("mean_shift_cm")?,
+        number("largest_shift_cm")?,
+    ))
+}
+
 fn spread(gain: &[f64; 3]) -> f64 {
     gain.iter().map(|g| (g - 1.0).abs()).sum()
 }
 
 #[cfg(test)]
 mod tests {
-    use super::camera_colours_line;
+    use super::{camera_colours_line, motion_line};
     use serde_json::json;
 
     #[test]
@@ -126,5 +141,15 @@ mod tests {
         assert_eq!(camera_colours_line(&capture).unwrap(), "camera colours: 3 cameras, gains 0.980 to 1.100 (mean 1); farthest cam02 at 1.000 1.100 1.000");
         assert_eq!(camera_colours_line(&json!({"camera_colours": []})), None);
         assert_eq!(camera_colours_line(&json!(null)), None);
+    }
+
+    #[test]
+    fn the_motions_refinement_is_one_line() {
+        let capture = json!({"motion_refined": {"frames": 12, "mean_degrees": 1.234, "largest_degrees": 6.5, "mean_shift_cm": 0.71, "largest_shift_cm": 1.9}});
+        assert_eq!(
+            motion_line(&capture).unwrap(),
+            "motion refined: 12 training frames, bones turned 1.23 degrees on average (at most 6.50), the root moved 0.71 cm (at most 1.90)"
+        );
+        assert_eq!(motion_line(&json!({"motion_refined": null})), None);
     }
 }

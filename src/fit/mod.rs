@@ -223,6 +223,7 @@ pub fn fit(options: &FitOptions, mut on: impl FnMut(TrainMessage)) -> Result<Fit
     on(TrainMessage::Started { first: trainer.iteration(), iterations: schedule.iterations });
     let segment_seconds = train(&mut trainer, &schedule, out, &mut history, &mut on)?;
     write_results(&trainer, out, &history)?;
+    write_refined_motion(&trainer, out)?;
     let (evaluation, evaluation_skipped) = evaluation(&trainer, options, trainer.iteration() > first_iteration_here, &mut on)?;
     let model: &Avatar = trainer.model()?;
     let light = model.light.report();
@@ -271,6 +272,24 @@ fn write_results(trainer: &Trainer, out: &Path, history: &[(usize, StepStats)]) 
     set.save(&out.join("gaussians.json")).map_err(|e| io(&out.join("gaussians.json"), e))?;
     write_text(&out.join("losses.csv"), &losses_csv(history))?;
     losses_chart(history, &trainer.schedule, trainer.fit_light).render(900, 520).save_png(&out.join("losses.png")).map_err(|e| io(&out.join("losses.png"), e))
+}
+
+/// The training motion as the fit refined it (`train::motion`), as a BVH of the scene's
+/// bones in metres, one frame per training frame in time order; nothing when the fit does not
+/// refine the motion.
+fn write_refined_motion(trainer: &Trainer, out: &Path) -> Result<(), FitError> {
+    let Some(motion) = trainer.state()?.motion.as_ref().filter(|_| trainer.motion_moved().is_some()) else { return Ok(()) };
+    let refined = motion.refined(&trainer.scene);
+    let frames: Vec<Vec<glam::DMat4>> = refined.iter().map(|(_, pose)| pose.bone_to_world.clone()).collect();
+    // The training frames' spacing in time (a BVH's frames are evenly spaced).
+    let times: Vec<f64> = refined.iter().filter_map(|(f, _)| trainer.scene.frames[*f].time).collect();
+    let frame_time = match (times.len() == refined.len() && times.len() > 1, times.first(), times.last()) {
+        (true, Some(first), Some(last)) if last > first => (last - first) / (times.len() - 1) as f64,
+        _ => 1.0 / 30.0,
+    };
+    let path = out.join(crate::run::REFINED_MOTION);
+    let text = crate::capture::bvh::write(&trainer.scene.skeleton, &frames, frame_time, 1.0).map_err(|e| io(&path, e))?;
+    write_text(&path, &text)
 }
 
 /// The fit's evaluation on the scene's test images (fit.json's `evaluation`), or why there is

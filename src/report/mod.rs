@@ -153,6 +153,9 @@ fn summary_rows(fit: &FitReport, truth: Option<&Light>) -> Vec<(String, String)>
     if let Some(line) = crate::fit_report::camera_colours_line(&fit.capture) {
         rows.push(("cameras' colours".into(), line.trim_start_matches("camera colours: ").to_string()));
     }
+    if let Some(line) = crate::fit_report::motion_line(&fit.capture) {
+        rows.push(("training motion".into(), line.trim_start_matches("motion refined: ").to_string()));
+    }
     for stage in &fit.stages {
         let seconds = stage.seconds.map_or("-".to_string(), |s| format!("{s:.1} s"));
         let ran = if stage.ran { seconds } else { "skipped".into() };

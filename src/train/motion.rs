@@ -196,6 +196,11 @@ impl MotionCorrections {
         }
     }
 
+    /// The corrected training motion: each corrected scene frame, in time order, with its pose.
+    pub fn refined(&self, scene: &Scene) -> Vec<(usize, Pose)> {
+        self.frames.iter().map(|&f| (f, self.pose(&scene.skeleton, f, &scene.frames[f].pose))).collect()
+    }
+
     /// The scene frames corrected, in time order.
     pub fn frames(&self) -> &[usize] {
         &self.frames
@@ -230,4 +235,16 @@ impl MotionCorrections {
         self.steps = steps;
         Ok(())
     }
+}
+
+/// How far pose `a` is from pose `b`: each bone's rotation in its parent's frame (the root's in
+/// the world) apart, in degrees, averaged over the bones; and the root's head apart (cm).
+pub fn joint_error(skeleton: &Skeleton, a: &Pose, b: &Pose) -> (f64, f64) {
+    let bones = skeleton.len().min(a.bone_to_world.len()).min(b.bone_to_world.len());
+    if bones == 0 {
+        return (0.0, 0.0);
+    }
+    let degrees: f64 = (0..bones).map(|k| turn_between(local_rotation(skeleton, a, k), local_rotation(skeleton, b, k)).length().to_degrees()).sum();
+    let root = (a.bone_to_world[0].w_axis - b.bone_to_world[0].w_axis).truncate().length() * 100.0;
+    (degrees / bones as f64, root)
 }
