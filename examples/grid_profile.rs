@@ -39,7 +39,7 @@ fn main() {
         .map(|_| {
             let t = Instant::now();
             for _ in 0..repeat {
-                std::hint::black_box(still.grid.as_ref().unwrap().encode(still_input.clone(), &tensors.frames, skinning, false).features.into_data());
+                std::hint::black_box(still.grid.as_ref().unwrap().encode(still_input.clone(), &tensors.frames, skinning, false, None).features.into_data());
             }
             t.elapsed().as_secs_f64() * 1e3 / repeat as f64
         })
@@ -48,7 +48,7 @@ fn main() {
     for (name, composite) in [("fused op", false), ("composite of tensor ops", true)] {
         let mut grid = field.grid.clone().unwrap();
         grid.composite = composite;
-        let encode = |tangents: bool| grid.encode(input.clone(), &tensors.frames, skinning, tangents);
+        let encode = |tangents: bool| grid.encode(input.clone(), &tensors.frames, skinning, tangents, None);
         let t = Instant::now();
         for _ in 0..repeat {
             std::hint::black_box(encode(false).features.into_data());

@@ -170,10 +170,7 @@ pub struct MotionIncrement {
 /// `a x b` for rows of `[.., 3]`.
 pub fn cross_rows(a: Tensor<2>, b: Tensor<2>) -> Tensor<2> {
     let c = |t: &Tensor<2>, k: usize| t.clone().narrow(1, k, 1);
-    Tensor::cat(
-        vec![c(&a, 1) * c(&b, 2) - c(&a, 2) * c(&b, 1), c(&a, 2) * c(&b, 0) - c(&a, 0) * c(&b, 2), c(&a, 0) * c(&b, 1) - c(&a, 1) * c(&b, 0)],
-        1,
-    )
+    Tensor::cat(vec![c(&a, 1) * c(&b, 2) - c(&a, 2) * c(&b, 1), c(&a, 2) * c(&b, 0) - c(&a, 0) * c(&b, 2), c(&a, 0) * c(&b, 1) - c(&a, 1) * c(&b, 0)], 1)
 }
 
 impl MotionIncrement {

@@ -44,7 +44,15 @@ fn points(character: &Character, pose: &Pose) -> (Vec<DVec3>, Vec<usize>) {
 }
 
 /// `sum_i w_i sdf(x_i)` in `pose`, carrying `motion` when given.
-fn loss(field: &AvatarField, character: &Character, pose: &Pose, pts: &[DVec3], weights: &Tensor<1>, motion: bool, device: &Device) -> (Tensor<1>, PoseTensors) {
+fn loss(
+    field: &AvatarField,
+    character: &Character,
+    pose: &Pose,
+    pts: &[DVec3],
+    weights: &Tensor<1>,
+    motion: bool,
+    device: &Device,
+) -> (Tensor<1>, PoseTensors) {
     let mut tensors = PoseTensors::new(pose, &character.skeleton, device);
     if motion {
         tensors.motion = Some(MotionIncrement::new(&character.skeleton, pose, device));

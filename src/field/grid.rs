@@ -182,7 +182,14 @@ impl FeatureGrid {
     /// softmax of the planned logits plus the root's learned preference; and their tangents
     /// (`[3N, W]`), through the weights' gradients too.
     #[allow(clippy::type_complexity)]
-    fn blend(&self, plan: &Lookup, n: usize, per_bone: Tensor<2>, per_bone_tangents: Option<Tensor<2>>, device: &Device) -> (Tensor<2>, Option<Tensor<2>>, Tensor<2>) {
+    fn blend(
+        &self,
+        plan: &Lookup,
+        n: usize,
+        per_bone: Tensor<2>,
+        per_bone_tangents: Option<Tensor<2>>,
+        device: &Device,
+    ) -> (Tensor<2>, Option<Tensor<2>>, Tensor<2>) {
         let config = &self.config;
         let (k, w) = (config.top(), config.width());
         let logits: Tensor<2> = Tensor::from_data(TensorData::new(plan.logits.clone(), [n, k]), device);

@@ -14,8 +14,8 @@
 mod batch;
 pub mod body;
 pub mod camera_colour;
-pub mod motion;
 mod light_search;
+pub mod motion;
 mod pixels;
 mod rebind;
 mod setup;
@@ -288,7 +288,8 @@ impl Trainer {
     /// How far the refinement has moved the training motion (none for a fit that does not
     /// refine it).
     pub fn motion_moved(&self) -> Option<motion::MotionMoved> {
-        self.state.as_ref().and_then(|s| s.motion.as_ref()).filter(|_| self.schedule.weights.keys().any(|k| k.starts_with("motion"))).map(|m| m.moved())
+        let refines = self.schedule.weights.iter().any(|(name, ramp)| name.starts_with("motion") && (ramp.from > 0.0 || ramp.to > 0.0));
+        self.state.as_ref().and_then(|s| s.motion.as_ref()).filter(|_| refines).map(|m| m.moved())
     }
 
     /// The motion's corrections as a checkpoint keeps them (null for none).

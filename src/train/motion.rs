@@ -138,10 +138,7 @@ impl MotionCorrections {
             None => values.iter().flatten().map(|&v| v as f32).collect(),
         };
         let leaf: Vec<f32> = values.iter().flatten().map(|&v| v as f32).collect();
-        (
-            Tensor::from_data(TensorData::new(leaf, [rows, 3]), device).require_grad(),
-            Tensor::from_data(TensorData::new(smooth, [rows, 3]), device),
-        )
+        (Tensor::from_data(TensorData::new(leaf, [rows, 3]), device).require_grad(), Tensor::from_data(TensorData::new(smooth, [rows, 3]), device))
     }
 
     /// One Adam step of `rate` on corrected frame `k`: `leaf` is the gradient of its leaf

@@ -1,17 +1,17 @@
 //! One training step: forward, the schedule's weighted losses, backward, one Adam step per named
 //! parameter group, the light kept in its cone, the field's moving average updated.
 
+use super::motion::MotionCorrections;
 use super::{Batch, TrainState, Trainer};
 use crate::avatar::{first_non_finite, Avatar};
 use crate::field::{AvatarField, PoseTensors};
-use crate::skeleton::MotionIncrement;
-use super::motion::MotionCorrections;
 use crate::fit_error::FitError;
 use crate::gaussians::GaussianParams;
 use crate::losses::{Input, Inputs};
 use crate::messages::{StepStats, PHASES};
 use crate::render::{render_in_parts, sum_gradients, Deferred};
 use crate::shading::{FittedLight, LightKind};
+use crate::skeleton::MotionIncrement;
 use burn::optim::GradientsParams;
 use burn::tensor::{Device, Int, Tensor, TensorData};
 use std::time::Instant;
