@@ -52,5 +52,24 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     println!("training frames: {}", refined.len());
     println!("given:   joints {:.3} degrees, root {:.3} cm", before.0 / n, before.1 / n);
     println!("refined: joints {:.3} degrees, root {:.3} cm", after.0 / n, after.1 / n);
+    // The same error split into each bone's direction (swing) and its turn about its own
+    // length (twist, which a limb's outline hardly shows).
+    let split = |pose: &dyn Fn(usize) -> umbra::skeleton::Pose| {
+        let (mut swing, mut twist) = (0.0, 0.0);
+        for (f, _) in &refined {
+            let (p, e) = (pose(*f), &truth.frames[*f].pose);
+            for b in 0..given.skeleton.len() {
+                let (a, t) = (glam::DMat3::from_mat4(p.bone_to_world[b]), glam::DMat3::from_mat4(e.bone_to_world[b]));
+                swing += (a.y_axis.dot(t.y_axis)).clamp(-1.0, 1.0).acos().to_degrees();
+                let q = glam::DQuat::from_mat3(&(a.transpose() * t)).normalize();
+                twist += (2.0 * q.y.atan2(q.w)).abs().to_degrees().min(360.0 - (2.0 * q.y.atan2(q.w)).abs().to_degrees());
+            }
+        }
+        let count = (refined.len() * given.skeleton.len()).max(1) as f64;
+        (swing / count, twist / count)
+    };
+    let (gs, gt) = split(&|f| given.frames[f].pose.clone());
+    let (rs, rt) = split(&|f| refined.iter().find(|(g, _)| *g == f).map(|(_, p)| p.clone()).unwrap_or_else(|| given.frames[f].pose.clone()));
+    println!("bone directions in the world (swing): given {gs:.3}, refined {rs:.3} degrees; turns about the bones (twist): given {gt:.3}, refined {rt:.3}");
     Ok(())
 }
