@@ -51,7 +51,7 @@ pub struct Inputs {
     pub normal_pairs: Option<(Tensor<2>, Tensor<2>)>,
     /// The batch frame's motion correction (`[bones + 1, 3]`: each bone's turn in radians, the
     /// skeleton's shift in levers) and where its neighbouring frames would have it for a
-    /// motion as smooth as the given one's.
+    /// smooth motion (the corrected motion's second difference there zero).
     pub motion: Option<(Tensor<2>, Tensor<2>)>,
 }
 

@@ -64,10 +64,12 @@ struct LearningRates {
     motion: Option<f64>,
 }
 
-/// The motion's learning rate unless a schedule gives one: Adam's step in radians (a ninth of a
-/// degree), so that a tracker's few degrees are crossed within a frame's first few dozen
-/// visits, which a 30-frame capture's fit gives each frame by its last stage.
-pub const MOTION_LEARNING_RATE: f64 = 2e-3;
+/// The motion's learning rate unless a schedule gives one: Adam's step in radians (0.3
+/// degrees), so that a tracker's few degrees are crossed within a frame's first dozen visits.
+/// Against 2e-3 on a 64-pixel human whose training motion is 2.5 degrees and 1 cm off (seed 0):
+/// the refined joints' error 2.12 -> 1.90 degrees (given 3.46), foreground novel pose 20.56 ->
+/// 22.03 dB; on the exact human-sun 27.71 -> 28.03 dB.
+pub const MOTION_LEARNING_RATE: f64 = 5e-3;
 
 impl LearningRates {
     /// Each group (`GROUPS`'s order) with its rate, or its default.

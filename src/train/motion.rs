@@ -6,7 +6,8 @@
 //! the increment's gradient is turned into the correction's and one Adam step is taken on the
 //! host (a frame's corrections are `3 (bones + 1)` numbers). The motion's terms
 //! (`losses::TERMS`: `motion_prior`, `motion_smoothness`) hold a correction near the given
-//! motion and the corrected motion as smooth in time as the given one. Test frames and new
+//! motion and the corrected motion smooth in time (its second differences near zero). Test
+//! frames and new
 //! motion are used as given.
 
 use crate::scene::{Scene, Split};
@@ -122,9 +123,10 @@ impl MotionCorrections {
     }
 
     /// Corrected frame `k`'s correction as a leaf (`[bones + 1, 3]`) whose gradient a step
-    /// reads back, and where its neighbours would have it for a motion as smooth as the given
-    /// one's (second differences of the corrected motion equal to the given motion's, to first
-    /// order; itself when it lacks a neighbour, which no term then moves).
+    /// reads back, and where its neighbours would have it for a smooth motion (the corrected
+    /// motion's second difference there zero, to first order: half the neighbours' corrections
+    /// plus the given motion's second difference; itself when it lacks a neighbour, which no
+    /// term then moves).
     pub fn leaf_and_smooth(&self, k: usize, device: &Device) -> (Tensor<2>, Tensor<2>) {
         let values = &self.values[k];
         let rows = values.len();
