@@ -76,13 +76,20 @@ impl Pose {
     /// along, the skeleton's offsets kept) and the whole skeleton moved by `shift` (m, world).
     pub fn corrected(&self, skeleton: &Skeleton, turns: &[[f64; 3]], shift: [f64; 3]) -> Pose {
         let mut out: Vec<DMat4> = Vec::with_capacity(self.bone_to_world.len());
+        // Whether a bone moved: one that did not (nor anything above it) keeps its transform to
+        // the bit.
+        let mut moved: Vec<bool> = Vec::with_capacity(self.bone_to_world.len());
         for (b, m) in self.bone_to_world.iter().enumerate() {
             let turn = turns.get(b).map(|t| DVec3::from_array(*t)).unwrap_or(DVec3::ZERO);
+            let parent = skeleton.bones.get(b).and_then(|bone| bone.parent).filter(|&p| p < b);
+            let still = turn == DVec3::ZERO && parent.map_or(shift == [0.0; 3], |p| !moved[p]);
             let turn = if turn.length() > 0.0 { DMat4::from_axis_angle(turn.normalize(), turn.length()) } else { DMat4::IDENTITY };
-            out.push(match skeleton.bones.get(b).and_then(|bone| bone.parent).filter(|&p| p < b) {
+            out.push(match parent {
+                _ if still => *m,
                 Some(p) => out[p] * (self.bone_to_world[p].inverse() * *m) * turn,
                 None => DMat4::from_translation(DVec3::from_array(shift)) * *m * turn,
             });
+            moved.push(!still);
         }
         Pose { bone_to_world: out }
     }

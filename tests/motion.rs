@@ -2,6 +2,8 @@
 //! field's lookups against finite differences of the field in the corrected pose, and the
 //! corrected pose itself (a tracker's error undone by its inverse).
 
+mod common;
+
 use burn::module::Param;
 use burn::tensor::{Device, Tensor, TensorData};
 use glam::{DMat3, DVec3};
@@ -9,6 +11,7 @@ use umbra::field::{AvatarField, FieldConfig, PoseTensors};
 use umbra::random::Stream;
 use umbra::skeleton::{MotionIncrement, Pose};
 use umbra::synth::character::{Character, Kind};
+use umbra::train::motion::MotionCorrections;
 
 fn values<const D: usize>(t: Tensor<D>) -> Vec<f32> {
     t.into_data().convert::<f32>().try_to_vec::<f32>().unwrap()
@@ -165,4 +168,43 @@ fn a_corrected_pose_undoes_the_error_it_inverts() {
     }
     // And it moved the bones: the tracked pose is not the truth.
     assert!((tracked.bone_to_world[5].w_axis - truth.bone_to_world[5].w_axis).length() > 1e-3);
+}
+
+/// The corrections start at the given motion, an Adam step moves a frame's against its
+/// gradient by the learning rate (and no other frame), and a checkpoint's copy restores them
+/// exactly but is refused for another scene's frames.
+#[test]
+fn corrections_step_against_their_gradient_and_survive_a_checkpoint() {
+    let dir = common::TempDir::new("motion-corrections");
+    let path = common::tiny_synth(dir.path(), umbra::synth::TrainingLight::Sun, 16, 2, vec![umbra::synth::TestKind::Poses], 3);
+    let scene = umbra::scene::Scene::load(&path).unwrap();
+    let mut motion = MotionCorrections::new(&scene, 0.3).unwrap();
+    let frames = motion.frames().to_vec();
+    assert_eq!(frames.len(), 2, "two training frames");
+    let (f, other) = (frames[0], frames[1]);
+    assert_eq!(motion.pose(&scene.skeleton, f, &scene.frames[f].pose), scene.frames[f].pose);
+    let rows = scene.skeleton.len() + 1;
+    // A gradient on bone 2's x turn through the leaf, and on the shift through the render.
+    let mut leaf = vec![0.0f32; 3 * rows];
+    leaf[3 * 2] = 0.5;
+    let mut increment = vec![0.0f32; 3 * rows];
+    increment[3 * (rows - 1) + 1] = -2.0;
+    motion.step(0, &leaf, &increment, &scene.frames[f].pose, 0.01);
+    let moved = motion.pose(&scene.skeleton, f, &scene.frames[f].pose);
+    let turn = |p: &Pose| DMat3::from_mat4(p.bone_to_world[2]);
+    let before = turn(&scene.frames[f].pose);
+    let angle = glam::DQuat::from_mat3(&(before.transpose() * turn(&moved))).to_scaled_axis();
+    assert!((angle.x + 0.01).abs() < 1e-6 && angle.y.abs() < 1e-6, "bone 2 turned by {angle} in its own frame");
+    let shift = moved.bone_to_world[0].w_axis - scene.frames[f].pose.bone_to_world[0].w_axis;
+    assert!((shift.y - 0.01 * 0.3).abs() < 1e-6 && shift.x.abs() < 1e-9, "the root moved by {shift}");
+    assert_eq!(motion.pose(&scene.skeleton, other, &scene.frames[other].pose), scene.frames[other].pose);
+    let moved_report = motion.moved(&scene.skeleton);
+    assert!((moved_report.largest_degrees - 0.01f64.to_degrees()).abs() < 1e-6 && (moved_report.largest_shift_cm - 0.3).abs() < 1e-6);
+    // The checkpoint's copy.
+    let mut restored = MotionCorrections::new(&scene, 0.3).unwrap();
+    restored.restore(&motion.to_json()).unwrap();
+    assert_eq!(restored, motion);
+    let mut other_frames = motion.to_json();
+    other_frames["frames"] = serde_json::json!([0, 7]);
+    assert!(restored.restore(&other_frames).unwrap_err().contains("frames"));
 }

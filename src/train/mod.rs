@@ -289,7 +289,7 @@ impl Trainer {
     /// refine it).
     pub fn motion_moved(&self) -> Option<motion::MotionMoved> {
         let refines = self.schedule.weights.iter().any(|(name, ramp)| name.starts_with("motion") && (ramp.from > 0.0 || ramp.to > 0.0));
-        self.state.as_ref().and_then(|s| s.motion.as_ref()).filter(|_| refines).map(|m| m.moved())
+        self.state.as_ref().and_then(|s| s.motion.as_ref()).filter(|_| refines).map(|m| m.moved(&self.scene.skeleton))
     }
 
     /// The motion's corrections as a checkpoint keeps them (null for none).

@@ -44,15 +44,24 @@ pub struct MotionCorrections {
     lever: f64,
 }
 
-/// How far the refinement moved the training motion: each bone's turn over every frame
-/// (degrees, mean and largest) and the skeleton's shift (cm, mean and largest).
-#[derive(Clone, Copy, Debug, Default, PartialEq, serde::Serialize)]
+/// How far the refinement moved the training motion: the bones' turns over every frame
+/// (degrees, mean and largest), each bone's, and the skeleton's shift (cm, mean and largest).
+#[derive(Clone, Debug, Default, PartialEq, serde::Serialize)]
 pub struct MotionMoved {
     pub frames: usize,
     pub mean_degrees: f64,
     pub largest_degrees: f64,
     pub mean_shift_cm: f64,
     pub largest_shift_cm: f64,
+    pub bones: Vec<BoneMoved>,
+}
+
+/// How far one bone was turned over the training frames (degrees).
+#[derive(Clone, Debug, Default, PartialEq, serde::Serialize)]
+pub struct BoneMoved {
+    pub bone: String,
+    pub mean_degrees: f64,
+    pub largest_degrees: f64,
 }
 
 /// A bone's rotation in its parent's frame (the root's in the world) in `pose`.
@@ -180,18 +189,29 @@ impl MotionCorrections {
         }
     }
 
-    /// How far the corrections moved the motion.
-    pub fn moved(&self) -> MotionMoved {
-        let turns: Vec<f64> = self.values.iter().flat_map(|v| v[..v.len() - 1].iter().map(|t| DVec3::from_array(*t).length().to_degrees())).collect();
+    /// How far the corrections moved the motion of `skeleton`.
+    pub fn moved(&self, skeleton: &Skeleton) -> MotionMoved {
+        let degrees = |b: usize| -> Vec<f64> { self.values.iter().filter_map(|v| v.get(b)).map(|t| DVec3::from_array(*t).length().to_degrees()).collect() };
+        let turns: Vec<f64> = (0..skeleton.len()).flat_map(degrees).collect();
         let shifts: Vec<f64> = self.values.iter().map(|v| DVec3::from_array(*v.last().unwrap_or(&[0.0; 3])).length() * self.lever * 100.0).collect();
         let mean = |v: &[f64]| if v.is_empty() { 0.0 } else { v.iter().sum::<f64>() / v.len() as f64 };
         let largest = |v: &[f64]| v.iter().copied().fold(0.0, f64::max);
+        let bones = skeleton
+            .bones
+            .iter()
+            .enumerate()
+            .map(|(b, bone)| {
+                let d = degrees(b);
+                BoneMoved { bone: bone.name.clone(), mean_degrees: mean(&d), largest_degrees: largest(&d) }
+            })
+            .collect();
         MotionMoved {
             frames: self.frames.len(),
             mean_degrees: mean(&turns),
             largest_degrees: largest(&turns),
             mean_shift_cm: mean(&shifts),
             largest_shift_cm: largest(&shifts),
+            bones,
         }
     }
 
