@@ -207,20 +207,16 @@ impl MotionIncrement {
         MotionIncrement { leaf: Tensor::zeros([rows, 3], &self.leaf.device()).require_grad(), chains: self.chains.clone(), heads: self.heads.clone() }
     }
 
-    /// How each of `points` (`[N, 3]`) moves when carried by bone `bones[n, k]` (`[N, K]`,
-    /// row-major): `[N, K, 3]`.
-    pub fn motion_of(&self, points: Tensor<2>, bones: &[u32], k: usize) -> Tensor<3> {
-        let [n, _] = points.dims();
+    /// How each of `points` (`[N, 3]`) moves when carried by the bones with weights
+    /// `weights` (`[N, B]`, rows summing to one): the bones' motions at the point, blended,
+    /// `(W E) x - W P + t` (`[N, 3]`).
+    pub fn blended_motion(&self, points: Tensor<2>, weights: Tensor<2>) -> Tensor<2> {
         let b = self.heads.dims()[0];
         let turns = self.leaf.clone().narrow(0, 0, b);
         let shift = self.leaf.clone().narrow(0, b, 1);
         let e = self.chains.clone().matmul(turns.clone()); // [B, 3]
         let p = self.chains.clone().matmul(cross_rows(turns, self.heads.clone())); // [B, 3]
-        let index: Vec<i64> = bones.iter().map(|&v| v as i64).collect();
-        let index = Tensor::<1, burn::tensor::Int>::from_data(TensorData::new(index, [n * k]), &points.device());
-        let (e, p) = (e.select(0, index.clone()), p.select(0, index));
-        let x = points.unsqueeze_dim::<3>(1).expand([n, k, 3]).reshape([n * k, 3]);
-        (cross_rows(e, x) - p + shift).reshape([n, k, 3])
+        cross_rows(weights.clone().matmul(e), points) - weights.matmul(p) + shift
     }
 }
 

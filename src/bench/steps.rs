@@ -25,6 +25,9 @@ struct Variant {
     one_render_thread: bool,
     /// Every sample through the differentiable pass (before `render::Sampling::cull`).
     every_sample: bool,
+    /// The training motion as given: the schedule's motion terms dropped (before
+    /// `train::motion`; the light stage is where it is refined).
+    motion_given: bool,
 }
 
 /// Milliseconds per step of `variant` from `iteration` (its stage), over `budget` seconds.
@@ -32,6 +35,9 @@ fn step_ms(scene: &Scene, schedule: &Schedule, variant: &Variant, iteration: usi
     let mut schedule = schedule.clone();
     schedule.field = variant.field.clone();
     schedule.cull_samples &= !variant.every_sample;
+    if variant.motion_given {
+        schedule.weights.retain(|name, _| !name.starts_with("motion"));
+    }
     let mut trainer = Trainer::new(scene.clone(), schedule, Backend::Flex, 0)?;
     trainer.render_missed_rays = variant.render_missed_rays;
     trainer.set_composite_lookup(variant.composite_lookup);
@@ -63,28 +69,25 @@ const STAGES: [&str; 2] = ["silhouette stage", "light stage"];
 fn variants(scene: &Scene) -> Vec<Variant> {
     let grid = |top_bones: Option<usize>| FieldSettings { top_bones, ..FieldSettings::of(FieldKind::Grid) };
     let mlp = FieldSettings::of(FieldKind::Mlp);
-    // [render missed rays, composite lookup, one render thread, every sample differentiated]
-    let v = |name: &'static str, field: FieldSettings, [render_missed_rays, composite_lookup, one_render_thread, every_sample]: [bool; 4]| Variant {
-        name,
-        field,
-        render_missed_rays,
-        composite_lookup,
-        one_render_thread,
-        every_sample,
+    // [render missed rays, composite lookup, one render thread, every sample differentiated,
+    // the motion as given]
+    let v = |name: &'static str, field: FieldSettings, [render_missed_rays, composite_lookup, one_render_thread, every_sample, motion_given]: [bool; 5]| {
+        Variant { name, field, render_missed_rays, composite_lookup, one_render_thread, every_sample, motion_given }
     };
     vec![
-        v("mlp, every ray rendered (before), one render thread", mlp.clone(), [true, false, true, false]),
-        v("mlp, missed rays skipped, one render thread", mlp.clone(), [false, false, true, false]),
-        v("mlp, missed rays skipped", mlp, [false, false, false, false]),
+        v("mlp, every ray rendered (before), one render thread", mlp.clone(), [true, false, true, false, false]),
+        v("mlp, missed rays skipped, one render thread", mlp.clone(), [false, false, true, false, false]),
+        v("mlp, missed rays skipped", mlp, [false, false, false, false, false]),
         v(
             "grid, nearest 8 bones (the most a lookup takes), composite lookup",
             grid(Some(scene.skeleton.len().min(crate::field::grid::MAX_TOP_BONES))),
-            [false, true, false, false],
+            [false, true, false, false, false],
         ),
-        v("grid, nearest 3 bones, composite lookup", grid(None), [false, true, false, false]),
-        v("grid, nearest 3 bones, fused lookup op, one render thread", grid(None), [false, false, true, false]),
-        v("grid, nearest 3 bones, fused lookup op, every sample differentiated", grid(None), [false, false, false, true]),
-        v("grid, nearest 3 bones, fused lookup op", grid(None), [false, false, false, false]),
+        v("grid, nearest 3 bones, composite lookup", grid(None), [false, true, false, false, false]),
+        v("grid, nearest 3 bones, fused lookup op, one render thread", grid(None), [false, false, true, false, false]),
+        v("grid, nearest 3 bones, fused lookup op, every sample differentiated", grid(None), [false, false, false, true, false]),
+        v("grid, nearest 3 bones, fused lookup op, the motion as given", grid(None), [false, false, false, false, true]),
+        v("grid, nearest 3 bones, fused lookup op (the motion refined from 400)", grid(None), [false, false, false, false, false]),
     ]
 }
 
@@ -158,7 +161,7 @@ fn write_tables(out: &Path, scene_path: &Path, schedule: &Schedule, rows: &[(&st
         })
         .collect();
     let chart = Chart {
-        title: "ms per training step by variant (1-7 as in steps.md)".into(),
+        title: "ms per training step by variant (numbered as in steps.md)".into(),
         x_label: "variant".into(),
         y_label: "ms per step".into(),
         log_x: false,

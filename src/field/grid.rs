@@ -102,41 +102,72 @@ impl FeatureGrid {
     }
 
     /// Looks `points` up in the posed bones `frames`. With a `motion` increment, a tracked lookup
-    /// that asks for no tangents carries it: each point's features and prior move, to first
-    /// order, as the point would move against its bones (`encode_moving`).
+    /// that asks for no tangents carries it (`encode_moving`).
     pub fn encode(&self, points: Tensor<2>, frames: &[BoneFrame], skinning: Skinning, tangents: bool, motion: Option<&MotionIncrement>) -> GridFeatures {
         let device = points.device();
         let tracked = self.table.val().is_require_grad();
-        let motion = motion.filter(|_| !tangents && tracked && !self.composite);
+        if let Some(motion) = motion.filter(|_| !tangents && tracked && !self.composite) {
+            return self.encode_moving(points, frames, skinning, motion);
+        }
         if !tangents && !self.composite && !tracked {
             return self.encode_without_gradients(points, frames, skinning);
         }
-        let planned = tangents || motion.is_some();
-        let (plan, n) = self.plan(points.clone(), frames, skinning, planned);
+        let (plan, n) = self.plan(points, frames, skinning, tangents);
         let (per_bone, per_bone_tangents, plan) =
-            if self.composite { self.interpolate_composite(plan, n, planned) } else { self.interpolate_fused(plan, n, planned) };
+            if self.composite { self.interpolate_composite(plan, n, tangents) } else { self.interpolate_fused(plan, n, tangents, None) };
         let prior = Tensor::from_data(TensorData::new(plan.prior.clone(), [n]), &device);
-        let (features, feature_tangents, weights) = self.blend(&plan, n, per_bone, per_bone_tangents, &device);
-        let prior_tangents = |plan: &Lookup| Tensor::<2>::from_data(TensorData::new(plan.prior_tangents.clone(), [n, 3]), &device);
-        match (motion, feature_tangents) {
-            (Some(motion), Some(feature_tangents)) => {
-                let moved = Moving { points, weights, feature_tangents, prior_tangents: prior_tangents(&plan) };
-                let (features, prior) = moved.encode(features, prior, motion, &plan.bones);
-                GridFeatures { features, prior, tangents: None }
-            }
-            (_, feature_tangents) => {
-                let tangents = feature_tangents.map(|t| (t, prior_tangents(&plan).transpose()));
-                GridFeatures { features, prior, tangents }
+        let (features, feature_tangents) = self.blend(&plan, n, per_bone, per_bone_tangents, None, &device);
+        let tangents = feature_tangents.map(|t| {
+            let prior_tangents: Tensor<2> = Tensor::from_data(TensorData::new(plan.prior_tangents, [n, 3]), &device);
+            (t, prior_tangents.transpose())
+        });
+        GridFeatures { features, prior, tangents }
+    }
+
+    /// A tracked lookup that carries a motion increment: the same features and prior, with the
+    /// increment's gradient. A bone moved by `m` carries its content with it, so a point is
+    /// looked up as if it had moved by `-m`: by its chosen bones' motions blended by their
+    /// skinning weights (a linear-blend warp of the point; exact where one bone carries it).
+    /// The shift reaches the trilinear corners through the fused op's backward
+    /// (`interpolate_carrying`), and the skinning's logits and the capsule prior through their
+    /// planned world derivatives; second derivatives are not followed.
+    fn encode_moving(&self, points: Tensor<2>, frames: &[BoneFrame], skinning: Skinning, motion: &MotionIncrement) -> GridFeatures {
+        let device = points.device();
+        let (plan, n) = self.plan(points.clone(), frames, skinning, true);
+        let k = self.config.top();
+        let bones = frames.len();
+        // The blend's weights from distance alone (the root's learned preference aside), per
+        // point over every bone.
+        let mut weights = vec![0.0f32; n * bones];
+        for (i, (logits, chosen)) in plan.logits.chunks(k).zip(plan.bones.chunks(k)).enumerate() {
+            let total: f32 = logits.iter().map(|l| l.exp()).sum();
+            for (l, &b) in logits.iter().zip(chosen) {
+                if let Some(w) = weights.get_mut(i * bones + b as usize) {
+                    *w += l.exp() / total;
+                }
             }
         }
+        let weights: Tensor<2> = Tensor::from_data(TensorData::new(weights, [n, bones]), &device);
+        let shift = motion.blended_motion(points, weights).neg();
+        let logit_tangents: Tensor<3> = Tensor::from_data(TensorData::new(plan.logit_tangents.clone(), [n, k, 3]), &device);
+        let logit_shift = (logit_tangents * shift.clone().reshape([n, 1, 3])).sum_dim(2).reshape([n, k]);
+        let prior_tangents: Tensor<2> = Tensor::from_data(TensorData::new(plan.prior_tangents.clone(), [n, 3]), &device);
+        let prior = Tensor::<1>::from_data(TensorData::new(plan.prior.clone(), [n]), &device) + (prior_tangents * shift.clone()).sum_dim(1).reshape([n]);
+        let (per_bone, _, plan) = self.interpolate_fused(plan, n, false, Some(shift));
+        let (features, _) = self.blend(&plan, n, per_bone, None, Some(logit_shift), &device);
+        GridFeatures { features, prior, tangents: None }
     }
 
     /// Each chosen bone's features (`[N, K W]`) and their tangents (`[3N, K W]`) by the fused
-    /// op (`interpolate`).
+    /// op (`interpolate`); with a `shift` of the points (`[N, 3]`, the plan's coefficient
+    /// tangents planned), carrying its gradient instead of giving tangents.
     #[allow(clippy::type_complexity)]
-    fn interpolate_fused(&self, mut plan: Lookup, n: usize, tangents: bool) -> (Tensor<2>, Option<Tensor<2>>, Lookup) {
+    fn interpolate_fused(&self, mut plan: Lookup, n: usize, tangents: bool, shift: Option<Tensor<2>>) -> (Tensor<2>, Option<Tensor<2>>, Lookup) {
         let config = &self.config;
         let groups = config.top() * config.levels;
+        let derivatives = std::mem::take(&mut plan.coefficient_tangents);
+        let carrying = shift.is_some();
+        let (derivatives, carried) = if carrying { (None, Some(derivatives)) } else { (tangents.then_some(derivatives), None) };
         let fused = super::interpolate::Plan {
             points: n,
             levels: groups,
@@ -144,14 +175,18 @@ impl FeatureGrid {
             features: config.features,
             rows: std::mem::take(&mut plan.rows),
             coefficients: std::mem::take(&mut plan.coefficients),
-            tangents: tangents.then(|| std::mem::take(&mut plan.coefficient_tangents)),
+            tangents: derivatives,
+            carried,
             fade: self.fade().into_iter().cycle().take(groups).collect(),
             table_parts: config.levels,
         };
-        let out = super::interpolate::interpolate(self.table.val(), fused);
+        let out = match shift {
+            Some(shift) => super::interpolate::interpolate_carrying(self.table.val(), shift, fused),
+            None => super::interpolate::interpolate(self.table.val(), fused),
+        };
         let width = groups * config.features;
         let per_bone = out.clone().slice([0..n, 0..width]);
-        let per_bone_tangents = tangents.then(|| out.slice([n..4 * n, 0..width]));
+        let per_bone_tangents = (tangents && !carrying).then(|| out.slice([n..4 * n, 0..width]));
         (per_bone, per_bone_tangents, plan)
     }
 
@@ -179,20 +214,25 @@ impl FeatureGrid {
     }
 
     /// The features (`[N, W]`) as the chosen bones' features weighted by the skinning: a
-    /// softmax of the planned logits plus the root's learned preference; and their tangents
-    /// (`[3N, W]`), through the weights' gradients too.
-    #[allow(clippy::type_complexity)]
+    /// softmax of the planned logits (plus `logit_shift`, when the points carry a shift) plus the
+    /// root's learned preference; and their tangents (`[3N, W]`), through the weights'
+    /// gradients too.
     fn blend(
         &self,
         plan: &Lookup,
         n: usize,
         per_bone: Tensor<2>,
         per_bone_tangents: Option<Tensor<2>>,
+        logit_shift: Option<Tensor<2>>,
         device: &Device,
-    ) -> (Tensor<2>, Option<Tensor<2>>, Tensor<2>) {
+    ) -> (Tensor<2>, Option<Tensor<2>>) {
         let config = &self.config;
         let (k, w) = (config.top(), config.width());
         let logits: Tensor<2> = Tensor::from_data(TensorData::new(plan.logits.clone(), [n, k]), device);
+        let logits = match logit_shift {
+            Some(shift) => logits + shift,
+            None => logits,
+        };
         let root_slot: Tensor<2> = Tensor::from_data(TensorData::new(plan.root_slot.clone(), [n, k]), device);
         let tangents = per_bone_tangents.is_some();
         // The root's preference at each point (and its gradient), by the same fused op.
@@ -205,6 +245,7 @@ impl FeatureGrid {
                 rows: plan.root_rows.clone(),
                 coefficients: plan.root_coefficients.clone(),
                 tangents: tangents.then(|| plan.root_coefficient_tangents.clone()),
+                carried: None,
                 fade: vec![1.0],
                 table_parts: 1,
             };
@@ -217,7 +258,6 @@ impl FeatureGrid {
         let weights = burn::tensor::activation::softmax(logits, 1); // [N, K]
         let per_bone = per_bone.reshape([n, k, w]);
         let features = (per_bone.clone() * weights.clone().reshape([n, k, 1])).sum_dim(1).reshape([n, w]);
-        let blended = weights.clone();
         let feature_tangents = per_bone_tangents.map(|d_per_bone| {
             let d_logits: Tensor<3> = Tensor::<2>::from_data(TensorData::new(plan.logit_tangents.clone(), [n * k, 3]), device).transpose().reshape([3, n, k]);
             let d_logits = match &preference {
@@ -230,34 +270,7 @@ impl FeatureGrid {
             let through_features = weights.reshape([1, n, k, 1]) * d_per_bone.reshape([3, n, k, w]);
             (through_weights + through_features).sum_dim(2).reshape([3 * n, w])
         });
-        (features, feature_tangents, blended)
-    }
-}
-
-/// A tracked lookup that carries a motion increment: its points (`[N, 3]`), skinning weights
-/// (`[N, K]`) and the features' and prior's world tangents (`[3N, W]`, `[N, 3]`).
-struct Moving {
-    points: Tensor<2>,
-    weights: Tensor<2>,
-    feature_tangents: Tensor<2>,
-    prior_tangents: Tensor<2>,
-}
-
-impl Moving {
-    /// The features and prior with the increment's first-order effect added: zero in value,
-    /// it carries the gradient to the increment. A bone moved by `m` carries its content with
-    /// it, so a point is looked up as if it had moved by `-m`: by each chosen bone's motion,
-    /// blended by the skinning weights (a linear-blend warp of the point; exact where one bone
-    /// carries it). Second derivatives are not followed: the tangents are constants.
-    fn encode(self, features: Tensor<2>, prior: Tensor<1>, motion: &MotionIncrement, bones: &[u32]) -> (Tensor<2>, Tensor<1>) {
-        let [n, k] = self.weights.dims();
-        let w = features.dims()[1];
-        let moves = motion.motion_of(self.points, bones, k); // [N, K, 3]
-        let shift = (moves * self.weights.detach().reshape([n, k, 1])).sum_dim(1).reshape([n, 3]).neg();
-        let along = self.feature_tangents.detach().reshape([3, n, w]) * shift.clone().transpose().reshape([3, n, 1]);
-        let features = features + along.sum_dim(0).reshape([n, w]);
-        let prior = prior + (self.prior_tangents * shift).sum_dim(1).reshape([n]);
-        (features, prior)
+        (features, feature_tangents)
     }
 }
 

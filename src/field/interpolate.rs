@@ -18,7 +18,7 @@ use crate::skeleton::BoneFrame;
 use burn::backend::autodiff::checkpoint::base::Checkpointer;
 use burn::backend::autodiff::checkpoint::strategy::CheckpointStrategy;
 use burn::backend::autodiff::grads::Gradients;
-use burn::backend::autodiff::ops::{unary, Backward, Ops, OpsKind};
+use burn::backend::autodiff::ops::{binary, unary, Backward, Ops, OpsKind};
 use burn::backend::tensor::FloatTensor;
 use burn::backend::{backend_extension, Autodiff, AutodiffBackend, Backend, Dispatch, Flex, NdArray, TensorMetadata};
 use burn::tensor::{Tensor, TensorData};
@@ -38,6 +38,9 @@ pub struct Plan {
     pub rows: Vec<u32>,
     pub coefficients: Vec<f32>,
     pub tangents: Option<Vec<f32>>,
+    /// The coefficients' world derivatives (as `tangents`) when the lookup carries a shift of
+    /// its points (`interpolate_carrying`): only the shift's gradient reads them.
+    pub carried: Option<Vec<f32>>,
     pub fade: Vec<f32>,
     /// The table's rows are this many equal runs, group `g`'s rows lying in run
     /// `g % table_parts` (the grid's table is level-major: its level count; 1 for any table).
@@ -150,6 +153,41 @@ impl Plan {
     }
 }
 
+impl Plan {
+    /// The gradient (`[N, 3]`, row-major) of a shift of the points, to first order, from the
+    /// output's (`[N, W]`): per point, each corner's table row against the output's gradient,
+    /// times the level's fade and the coefficient's world derivative.
+    fn shift_backward(&self, grad: &[f32], table: &[f32]) -> Vec<f32> {
+        let (w, f, c) = (self.width(), self.features, self.corners);
+        let Some(d) = &self.carried else { return vec![0.0; 3 * self.points] };
+        let per_point = self.levels * c;
+        let mut out = vec![0.0f32; 3 * self.points];
+        // Points in chunks across threads: each point owns its three values.
+        const CHUNK: usize = 256;
+        out.par_chunks_mut(3 * CHUNK).enumerate().for_each(|(chunk, shifts)| {
+            for (k, shift) in shifts.chunks_mut(3).enumerate() {
+                let i = chunk * CHUNK + k;
+                for g in 0..self.levels {
+                    let fade = self.fade[g];
+                    let grad = &grad[i * w + g * f..i * w + (g + 1) * f];
+                    for j in 0..c {
+                        let at = i * per_point + g * c + j;
+                        let row = self.rows[at] as usize;
+                        let along: f32 = match table.get(row * f..(row + 1) * f) {
+                            Some(entry) => entry.iter().zip(grad).map(|(t, g)| t * g).sum(),
+                            None => f32::NAN,
+                        };
+                        for (axis, s) in shift.iter_mut().enumerate() {
+                            *s += along * fade * d[at * 3 + axis];
+                        }
+                    }
+                }
+            }
+        });
+        out
+    }
+}
+
 /// A float tensor's values on the host (NaN-filled if the backend cannot give them, which the
 /// fit then reports as a non-finite loss rather than a panic).
 fn host<B: Backend>(tensor: FloatTensor<B>) -> Vec<f32> {
@@ -196,6 +234,12 @@ fn backward_on_host<B: HostValues>(grad: FloatTensor<B>, plan: &Plan, table_rows
     B::from_host(values, [table_rows, plan.features], &device)
 }
 
+fn shift_backward_on_host<B: HostValues>(grad: FloatTensor<B>, table: FloatTensor<B>, plan: &Plan) -> FloatTensor<B> {
+    let device = grad.device();
+    let values = B::with_host(grad, |grad| B::with_host(table, |table| plan.shift_backward(grad, table)));
+    B::from_host(values, [plan.points, 3], &device)
+}
+
 /// A lookup with no gradients wanted (`grid::features_on_host`): the points, the posed bones and
 /// the grid's layout.
 #[derive(Debug)]
@@ -234,11 +278,24 @@ pub trait GridOps: Backend {
     /// `[N, levels x features + 1]`: the features and the prior of a lookup with no gradients,
     /// straight from `table` and the root's `preference` grid.
     fn grid_lookup(table: FloatTensor<Self>, preference: FloatTensor<Self>, lookup: Arc<HostLookup>) -> FloatTensor<Self>;
+    /// `grid_interpolate` of points that carry a zero-valued `shift` (`[N, 3]`): the same values,
+    /// with a gradient to the shift (`grid_shift_backward`) as well as to the table.
+    fn grid_interpolate_carrying(table: FloatTensor<Self>, shift: FloatTensor<Self>, plan: Arc<Plan>) -> FloatTensor<Self>;
+    /// `[N, 3]`: the shift's gradient from the interpolation's (`grad`) and the `table`.
+    fn grid_shift_backward(grad: FloatTensor<Self>, table: FloatTensor<Self>, plan: Arc<Plan>) -> FloatTensor<Self>;
 }
 
 impl GridOps for Flex {
     fn grid_interpolate(table: FloatTensor<Self>, plan: Arc<Plan>) -> FloatTensor<Self> {
         forward_on_host::<Self>(table, &plan)
+    }
+
+    fn grid_interpolate_carrying(table: FloatTensor<Self>, _shift: FloatTensor<Self>, plan: Arc<Plan>) -> FloatTensor<Self> {
+        forward_on_host::<Self>(table, &plan)
+    }
+
+    fn grid_shift_backward(grad: FloatTensor<Self>, table: FloatTensor<Self>, plan: Arc<Plan>) -> FloatTensor<Self> {
+        shift_backward_on_host::<Self>(grad, table, &plan)
     }
 
     fn grid_interpolate_backward(grad: FloatTensor<Self>, plan: Arc<Plan>, table_rows: usize) -> FloatTensor<Self> {
@@ -253,6 +310,14 @@ impl GridOps for Flex {
 impl GridOps for NdArray {
     fn grid_interpolate(table: FloatTensor<Self>, plan: Arc<Plan>) -> FloatTensor<Self> {
         forward_on_host::<Self>(table, &plan)
+    }
+
+    fn grid_interpolate_carrying(table: FloatTensor<Self>, _shift: FloatTensor<Self>, plan: Arc<Plan>) -> FloatTensor<Self> {
+        forward_on_host::<Self>(table, &plan)
+    }
+
+    fn grid_shift_backward(grad: FloatTensor<Self>, table: FloatTensor<Self>, plan: Arc<Plan>) -> FloatTensor<Self> {
+        shift_backward_on_host::<Self>(grad, table, &plan)
     }
 
     fn grid_interpolate_backward(grad: FloatTensor<Self>, plan: Arc<Plan>, table_rows: usize) -> FloatTensor<Self> {
@@ -277,7 +342,45 @@ impl<B: Backend + GridOps> Backward<B, 1> for Interpolate {
     }
 }
 
+#[derive(Debug)]
+struct Carry;
+
+impl<B: Backend + GridOps> Backward<B, 2> for Carry {
+    /// The plan, the table's row count and the table's values.
+    type State = (Arc<Plan>, usize, FloatTensor<B>);
+
+    fn backward(self, ops: Ops<Self::State, 2>, grads: &mut Gradients, _checkpointer: &mut Checkpointer) {
+        let (plan, table_rows, table) = ops.state;
+        let shift_plan = plan.clone();
+        binary::<B, _, _>(
+            ops.parents,
+            ops.node,
+            grads,
+            |grad| B::grid_interpolate_backward(grad, plan, table_rows),
+            |grad| B::grid_shift_backward(grad, table, shift_plan),
+        );
+    }
+}
+
 impl<B: Backend + GridOps, C: CheckpointStrategy> GridOps for Autodiff<B, C> {
+    fn grid_interpolate_carrying(table: FloatTensor<Self>, shift: FloatTensor<Self>, plan: Arc<Plan>) -> FloatTensor<Self> {
+        let table_rows = table.shape()[0];
+        let (table_node, shift_node) = (table.node(), shift.node());
+        let inner = table.into_primitive();
+        let out = B::grid_interpolate(inner.clone(), plan.clone());
+        match Carry.prepare::<C>([table_node, shift_node]).compute_bound().stateful() {
+            OpsKind::Tracked(prep) => prep.finish((plan, table_rows, inner), out),
+            OpsKind::UnTracked(prep) => prep.finish(out),
+        }
+    }
+
+    /// Not itself differentiated (the carrying interpolation's backward calls it on the inner
+    /// backend).
+    fn grid_shift_backward(grad: FloatTensor<Self>, table: FloatTensor<Self>, plan: Arc<Plan>) -> FloatTensor<Self> {
+        let (grad, table) = (<Self as AutodiffBackend>::inner(grad), <Self as AutodiffBackend>::inner(table));
+        <Self as AutodiffBackend>::from_inner(B::grid_shift_backward(grad, table, plan))
+    }
+
     fn grid_interpolate(table: FloatTensor<Self>, plan: Arc<Plan>) -> FloatTensor<Self> {
         let table_rows = table.shape()[0];
         let node = table.node();
@@ -304,6 +407,12 @@ impl<B: Backend + GridOps, C: CheckpointStrategy> GridOps for Autodiff<B, C> {
 /// gradients to the table when it is tracked.
 pub fn interpolate(table: Tensor<2>, plan: Plan) -> Tensor<2> {
     Tensor::from_dispatch(<Dispatch as GridOps>::grid_interpolate(table.into_dispatch(), Arc::new(plan)))
+}
+
+/// `interpolate` of points that carry `shift` (`[N, 3]`, zero in value): the same values, with
+/// the gradient to the shift as well (the plan's `carried` coefficient derivatives).
+pub fn interpolate_carrying(table: Tensor<2>, shift: Tensor<2>, plan: Plan) -> Tensor<2> {
+    Tensor::from_dispatch(<Dispatch as GridOps>::grid_interpolate_carrying(table.into_dispatch(), shift.into_dispatch(), Arc::new(plan)))
 }
 
 /// The features and prior (`[N, W + 1]`) of `lookup`'s points from `table` and the root's
