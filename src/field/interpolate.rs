@@ -170,6 +170,10 @@ impl Plan {
                 for g in 0..self.levels {
                     let fade = self.fade[g];
                     let grad = &grad[i * w + g * f..i * w + (g + 1) * f];
+                    // A level faded out, or one whose output nothing weighs, moves nothing.
+                    if fade == 0.0 || grad.iter().all(|&v| v == 0.0) {
+                        continue;
+                    }
                     for j in 0..c {
                         let at = i * per_point + g * c + j;
                         let row = self.rows[at] as usize;
