@@ -365,6 +365,37 @@ fn a_capture_whose_cameras_and_motion_disagree_is_refused_with_the_figure() {
 
 /// A COLMAP text model written from the scene (world-to-camera quaternions, one camera per
 /// intrinsics) imports with the same cameras; frames come from the numbers in the images' names.
+/// An imported scene remembers the capture's units and world, so a motion the fit gives back
+/// (`fit::motion_bvh`, the refined training motion's `motion.bvh`) is in the capture's terms:
+/// the given motion written back has the capture's joints, their distances (centimetres) and
+/// the root's positions, frame by frame.
+#[test]
+fn a_motion_goes_back_in_the_captures_units() {
+    let dir = TempDir::new("capture-motion-back");
+    let (_, capture) = scene_and_capture(dir.path());
+    let out = dir.path().join("imported");
+    import(&options(&capture, out.clone()), &|_, _| {}).unwrap();
+    let scene = Scene::load(&out).unwrap();
+    let world = scene.capture.clone().expect("an imported scene names its capture");
+    assert!((world.metres_per_unit - 0.01).abs() < 1e-12, "centimetres: {}", world.metres_per_unit);
+    let poses: Vec<(usize, umbra::skeleton::Pose)> = (0..scene.frames.len()).map(|f| (f, scene.frames[f].pose.clone())).collect();
+    let text = umbra::fit::motion_bvh(&scene, &poses).unwrap();
+    let back = bvh::parse(&text, Path::new("motion.bvh")).unwrap();
+    let original = bvh::read(&capture.join("motion.bvh")).unwrap();
+    assert_eq!(back.joints.iter().map(|j| &j.name).collect::<Vec<_>>(), original.joints.iter().map(|j| &j.name).collect::<Vec<_>>());
+    // Each joint as far from its parent (the joints' own axes are the scene's bones', which
+    // run along +Y to the next joint, not necessarily the capture's).
+    for (a, b) in back.joints.iter().zip(&original.joints) {
+        assert!((a.offset.length() - b.offset.length()).abs() < 1e-6, "{}: offset {} against {}", a.name, a.offset, b.offset);
+    }
+    for (f, frame) in back.frames.iter().enumerate() {
+        let original_frame = &original.frames[scene.frames[f].index as usize];
+        for c in 0..3 {
+            assert!((frame[c] - original_frame[c]).abs() < 1e-6, "frame {f}: root position {:?} against {:?}", &frame[..3], &original_frame[..3]);
+        }
+    }
+}
+
 #[test]
 fn a_colmap_text_model_imports_with_the_scenes_cameras() {
     let dir = TempDir::new("capture-colmap");

@@ -74,6 +74,26 @@ fn required_top_level_fields() {
     }
 }
 
+/// umbra's own `capture` key (what `umbra import` converted the scene from): its units and a
+/// rotation into scene/1's world, refused by path when it is anything else.
+#[test]
+fn capture_world_rules() {
+    let z_up = json!([[1, 0, 0, 0], [0, 0, 1, 0], [0, -1, 0, 0], [0, 0, 0, 1]]);
+    let dir = TempDir::new("capture-key");
+    let mut scene = valid_scene(dir.path());
+    scene["capture"] = json!({"metres_per_unit": 0.01, "to_scene": z_up});
+    write_scene_json(dir.path(), &scene);
+    let loaded = Scene::load(dir.path()).unwrap().capture.unwrap();
+    assert_eq!(loaded.metres_per_unit, 0.01);
+    assert!((loaded.to_scene.transform_vector3(glam::DVec3::Z) - glam::DVec3::Y).length() < 1e-12, "the capture's +Z is scene/1's up");
+    expect_path(broken(|s, _| s["capture"] = json!({"metres_per_unit": 0.0, "to_scene": z_up})), "capture.metres_per_unit", "> 0");
+    expect_path(broken(|s, _| s["capture"] = json!({"metres_per_unit": 1.0})), "capture.to_scene", "missing");
+    let scaled = json!([[2, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]);
+    expect_path(broken(|s, _| s["capture"] = json!({"metres_per_unit": 1.0, "to_scene": scaled})), "capture.to_scene", "");
+    let moved = json!([[1, 0, 0, 3], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]);
+    expect_path(broken(|s, _| s["capture"] = json!({"metres_per_unit": 1.0, "to_scene": moved})), "capture.to_scene", "rotation");
+}
+
 #[test]
 fn skeleton_rules() {
     expect_path(broken(|s, _| s["skeleton"]["bones"] = json!([])), "skeleton.bones", "at least one");

@@ -227,7 +227,7 @@ pub fn import(options: &ImportOptions, on: &(dyn Fn(usize, usize) + Sync)) -> Re
             .collect();
         let name = out.file_name().map(|f| f.to_string_lossy().into_owned()).unwrap_or_else(|| "capture".into());
         let scene = json!({
-            "format": "scene/1", "name": name, "generator": "umbra import", "skeleton": {"bones": bones},
+            "format": "scene/1", "name": name, "generator": "umbra import", "capture": world.json(), "skeleton": {"bones": bones},
             "cameras": cameras, "frames": frames, "lights": {light_name: light}, "images": image_entries,
         });
         let text = serde_json::to_string_pretty(&scene).map_err(|e| input(out, e.to_string()))?;

@@ -22,6 +22,15 @@ impl World {
     }
 }
 
+impl World {
+    /// The scene's `capture` key (umbra's own, `scene::CaptureWorld`): the capture's units and
+    /// its world turned into scene/1's, so that what a fit writes back (the refined motion) can
+    /// be in the capture's terms.
+    pub(super) fn json(&self) -> Value {
+        json!({"metres_per_unit": self.metres, "to_scene": rows(&self.up)})
+    }
+}
+
 fn rows(m: &DMat4) -> Value {
     json!((0..4).map(|r| m.row(r).to_array().to_vec()).collect::<Vec<_>>())
 }

@@ -274,22 +274,33 @@ fn write_results(trainer: &Trainer, out: &Path, history: &[(usize, StepStats)]) 
     losses_chart(history, &trainer.schedule, trainer.fit_light).render(900, 520).save_png(&out.join("losses.png")).map_err(|e| io(&out.join("losses.png"), e))
 }
 
-/// The training motion as the fit refined it (`train::motion`), as a BVH of the scene's
-/// bones in metres, one frame per training frame in time order; nothing when the fit does not
-/// refine the motion.
+/// The training motion as the fit refined it (`train::motion`), as a BVH of the scene's bones
+/// (an imported capture's joints), one frame per training frame in time order: in the capture's
+/// units and world when `umbra import` wrote the scene (`Scene::capture`), else in metres in
+/// the scene's; nothing when the fit does not refine the motion.
 fn write_refined_motion(trainer: &Trainer, out: &Path) -> Result<(), FitError> {
     let Some(motion) = trainer.state()?.motion.as_ref().filter(|_| trainer.motion_moved().is_some()) else { return Ok(()) };
-    let refined = motion.refined(&trainer.scene);
-    let frames: Vec<Vec<glam::DMat4>> = refined.iter().map(|(_, pose)| pose.bone_to_world.clone()).collect();
-    // The training frames' spacing in time (a BVH's frames are evenly spaced).
-    let times: Vec<f64> = refined.iter().filter_map(|(f, _)| trainer.scene.frames[*f].time).collect();
-    let frame_time = match (times.len() == refined.len() && times.len() > 1, times.first(), times.last()) {
+    let path = out.join(crate::run::REFINED_MOTION);
+    let text = motion_bvh(&trainer.scene, &motion.refined(&trainer.scene)).map_err(|e| io(&path, e))?;
+    write_text(&path, &text)
+}
+
+/// `poses` (scene frames with a pose each, in time order) as a BVH of the scene's bones: in the
+/// capture's units and world when `umbra import` wrote the scene (`Scene::capture`), else in
+/// metres in the scene's; the frames evenly spaced by their mean spacing in time (a thirtieth
+/// of a second when they have no times).
+pub fn motion_bvh(scene: &crate::scene::Scene, poses: &[(usize, crate::skeleton::Pose)]) -> Result<String, String> {
+    let (to_capture, units) = match &scene.capture {
+        Some(capture) => (capture.to_scene.inverse(), 1.0 / capture.metres_per_unit),
+        None => (glam::DMat4::IDENTITY, 1.0),
+    };
+    let frames: Vec<Vec<glam::DMat4>> = poses.iter().map(|(_, pose)| pose.bone_to_world.iter().map(|m| to_capture * *m).collect()).collect();
+    let times: Vec<f64> = poses.iter().filter_map(|(f, _)| scene.frames.get(*f).and_then(|frame| frame.time)).collect();
+    let frame_time = match (times.len() == poses.len() && times.len() > 1, times.first(), times.last()) {
         (true, Some(first), Some(last)) if last > first => (last - first) / (times.len() - 1) as f64,
         _ => 1.0 / 30.0,
     };
-    let path = out.join(crate::run::REFINED_MOTION);
-    let text = crate::capture::bvh::write(&trainer.scene.skeleton, &frames, frame_time, 1.0).map_err(|e| io(&path, e))?;
-    write_text(&path, &text)
+    crate::capture::bvh::write(&scene.skeleton, &frames, frame_time, units)
 }
 
 /// The fit's evaluation on the scene's test images (fit.json's `evaluation`), or why there is

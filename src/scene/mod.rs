@@ -66,11 +66,24 @@ pub struct View {
     pub plate: Option<std::sync::Arc<crate::silhouette::Plate>>,
 }
 
+/// The capture a scene was converted from by `umbra import` (`capture`, umbra's own key): its
+/// units and its world turned into scene/1's, so that what a fit gives back of the capture (the
+/// refined motion) can be in the capture's terms.
+#[derive(Clone, Debug, PartialEq)]
+pub struct CaptureWorld {
+    /// Metres per capture unit.
+    pub metres_per_unit: f64,
+    /// The capture's world to scene/1's: a rotation.
+    pub to_scene: glam::DMat4,
+}
+
 #[derive(Clone, Debug)]
 pub struct Scene {
     /// The folder holding `scene.json`.
     pub root: PathBuf,
     pub name: Option<String>,
+    /// The capture it was imported from, when `umbra import` wrote it.
+    pub capture: Option<CaptureWorld>,
     pub skeleton: Skeleton,
     pub cameras: Vec<Camera>,
     pub frames: Vec<Frame>,

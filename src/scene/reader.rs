@@ -35,12 +35,13 @@ impl Reader<'_> {
             return Err(format.error(format!("unsupported format {found:?}, expected {FORMAT:?}")));
         }
         let name = doc.opt_field("name")?.map(|n| n.str().map(str::to_string)).transpose()?;
+        let capture = doc.opt_field("capture")?.map(|c| capture_world(&c)).transpose()?;
         let skeleton = self.skeleton(&doc.field("skeleton")?)?;
         let cameras = doc.field("cameras")?.non_empty_array()?.iter().map(|c| self.camera(c)).collect::<Result<Vec<_>, _>>()?;
         let frames = self.frames(&doc.field("frames")?, &skeleton)?;
         let lights = self.lights(&doc.field("lights")?)?;
         let views = self.views(&doc.field("images")?, &cameras, frames.len(), &lights)?;
-        Ok(Scene { root: self.root.to_path_buf(), name, skeleton, cameras, frames, lights, views, footprint: std::sync::OnceLock::new() })
+        Ok(Scene { root: self.root.to_path_buf(), name, capture, skeleton, cameras, frames, lights, views, footprint: std::sync::OnceLock::new() })
     }
 
     pub(super) fn skeleton(&self, node: &At) -> Result<Skeleton, SceneError> {
@@ -394,4 +395,16 @@ pub(super) fn decode_mask(p: &Pending, w: usize, h: usize) -> Result<Mask, Scene
     let mask = imageio::read_mask(&p.file).map_err(|e| pending_error(p, image_message(e, &p.relative)))?;
     check_size(p, (mask.width, mask.height), (w, h))?;
     Ok(mask)
+}
+
+/// `capture`: the capture's metres per unit and its world's rotation into scene/1's.
+fn capture_world(node: &At) -> Result<super::CaptureWorld, SceneError> {
+    let metres_per_unit = node.field("metres_per_unit")?.positive_f64()?;
+    let turn = node.field("to_scene")?;
+    let to_scene = turn.mat4()?;
+    crate::skeleton::check_rigid(&to_scene, 1e-6).map_err(|e| turn.error(e))?;
+    if to_scene.w_axis.truncate().length() > 1e-9 {
+        return Err(turn.error("must be a rotation: its last column [0, 0, 0, 1]"));
+    }
+    Ok(super::CaptureWorld { metres_per_unit, to_scene })
 }
