@@ -25,8 +25,8 @@ struct Variant {
     one_render_thread: bool,
     /// Every sample through the differentiable pass (before `render::Sampling::cull`).
     every_sample: bool,
-    /// The training motion as given: the schedule's motion terms dropped (before
-    /// `train::motion`; the light stage is where it is refined).
+    /// The training motion as given, not refined (before `train::motion`; the light stage is
+    /// where it is refined).
     motion_given: bool,
 }
 
@@ -35,9 +35,8 @@ fn step_ms(scene: &Scene, schedule: &Schedule, variant: &Variant, iteration: usi
     let mut schedule = schedule.clone();
     schedule.field = variant.field.clone();
     schedule.cull_samples &= !variant.every_sample;
-    if variant.motion_given {
-        schedule.weights.retain(|name, _| !name.starts_with("motion"));
-    }
+    // The motion refined whatever the scene (`auto` refines an imported capture's only).
+    schedule.refine_motion = crate::schedule::Switch::Fixed(!variant.motion_given);
     let mut trainer = Trainer::new(scene.clone(), schedule, Backend::Flex, 0)?;
     trainer.render_missed_rays = variant.render_missed_rays;
     trainer.set_composite_lookup(variant.composite_lookup);

@@ -37,6 +37,7 @@ struct ScheduleFile {
     sun_search: Option<Count>,
     rebind_every: Option<Count>,
     density_at_shadow_scale: Option<Switch>,
+    refine_motion: Option<Switch>,
     error_rays: Option<ErrorRays>,
     footprint: Option<FootprintChoice>,
     learning_rates: Option<LearningRates>,
@@ -291,6 +292,7 @@ fn validate(written: ScheduleFile, file: &Path) -> Result<Schedule, ScheduleErro
         sun_search: count("sun_search", written.sun_search, 0, 0)?,
         rebind_every: count("rebind_every", written.rebind_every, 0, 0)?,
         density_at_shadow_scale: written.density_at_shadow_scale.unwrap_or(Switch::Fixed(false)),
+        refine_motion: written.refine_motion.unwrap_or(Switch::Fixed(false)),
         error_rays: match written.error_rays {
             None => ErrorRays::Share(0.0),
             Some(ErrorRays::Share(v)) if !(0.0..=1.0).contains(&v) => {

@@ -146,11 +146,11 @@ pub enum Switch {
 }
 
 impl Switch {
-    /// Whether it is on for a body that is loose or not.
-    pub fn on(self, loose: bool) -> bool {
+    /// Whether it is on, `auto` as `condition` says (a loose body, an imported capture).
+    pub fn on(self, condition: bool) -> bool {
         match self {
             Switch::Fixed(on) => on,
-            Switch::Auto => loose,
+            Switch::Auto => condition,
         }
     }
 }
@@ -230,6 +230,11 @@ pub struct Schedule {
     /// loose body alone (the default's choice; the measurements are in the default schedule).
     /// Schedules from before it: false.
     pub density_at_shadow_scale: Switch,
+    /// Whether the training motion is refined while fitting (`train::motion`, by the schedule's
+    /// motion terms), or `auto`: for a scene `umbra import` converted from a capture, whose
+    /// motion a tracker made, not for one that states its poses (a renderer's: refining exact
+    /// poses only moves them). Schedules from before it: false.
+    pub refine_motion: Switch,
     /// The share of the batch's third drawn anywhere in a view that is drawn instead where the
     /// fit is still wrong (`error_map`: tiles in proportion to their recent error), or `auto`
     /// (`ErrorRays::Auto`). These rays teach the field, the albedo and the Gaussians but not
