@@ -365,18 +365,24 @@ fn a_capture_whose_cameras_and_motion_disagree_is_refused_with_the_figure() {
 
 /// A COLMAP text model written from the scene (world-to-camera quaternions, one camera per
 /// intrinsics) imports with the same cameras; frames come from the numbers in the images' names.
-/// An imported scene remembers the capture's units and world, so a motion the fit gives back
+/// An imported scene remembers the capture's units and world (and has its motion refined by the
+/// default schedule, where a scene that states its poses keeps them), so a motion the fit gives back
 /// (`fit::motion_bvh`, the refined training motion's `motion.bvh`) is in the capture's terms:
 /// the given motion written back has the capture's joints, their distances (centimetres) and
 /// the root's positions, frame by frame.
 #[test]
 fn a_motion_goes_back_in_the_captures_units() {
     let dir = TempDir::new("capture-motion-back");
-    let (_, capture) = scene_and_capture(dir.path());
+    let (original, capture) = scene_and_capture(dir.path());
     let out = dir.path().join("imported");
     import(&options(&capture, out.clone()), &|_, _| {}).unwrap();
     let scene = Scene::load(&out).unwrap();
     let world = scene.capture.clone().expect("an imported scene names its capture");
+    // The default schedule refines an imported capture's motion, and keeps a scene's poses.
+    let schedule = umbra::schedule::Schedule::load(&Path::new(env!("CARGO_MANIFEST_DIR")).join("schedules/default.toml")).unwrap();
+    let refines = |scene: Scene| umbra::train::Trainer::new(scene, schedule.clone(), umbra::backend::Backend::Flex, 0).unwrap().motion_moved().is_some();
+    assert!(refines(scene.clone()), "an imported capture's motion is refined");
+    assert!(!refines(Scene::load(&original).unwrap()), "a scene's stated poses are kept");
     assert!((world.metres_per_unit - 0.01).abs() < 1e-12, "centimetres: {}", world.metres_per_unit);
     let poses: Vec<(usize, umbra::skeleton::Pose)> = (0..scene.frames.len()).map(|f| (f, scene.frames[f].pose.clone())).collect();
     let text = umbra::fit::motion_bvh(&scene, &poses).unwrap();
