@@ -7,7 +7,7 @@
 
 use std::path::Path;
 use umbra::scene::Scene;
-use umbra::train::motion::{joint_error, MotionCorrections, LEVER_ON_HUMAN};
+use umbra::train::motion::{joint_error, MotionCorrections};
 
 fn main() -> Result<(), Box<dyn std::error::Error>> {
     let args: Vec<String> = std::env::args().collect();
@@ -18,8 +18,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let truth = Scene::load(Path::new(truth))?;
     let state_path = Path::new(run).join(umbra::run::CHECKPOINT).join("state.json");
     let state: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&state_path)?)?;
-    let lever = umbra::skeleton::body_length(LEVER_ON_HUMAN, given.body_extent());
-    let mut motion = MotionCorrections::new(&given, lever).ok_or("the scene has no training frames")?;
+    let mut motion = MotionCorrections::new(&given).ok_or("the scene has no training frames")?;
     motion.restore(&state["motion"]).map_err(|e| format!("{}: motion: {e}", state_path.display()))?;
     let (mut before, mut after) = ((0.0, 0.0), (0.0, 0.0));
     let refined = motion.refined(&given);

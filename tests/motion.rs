@@ -178,7 +178,9 @@ fn corrections_step_against_their_gradient_and_survive_a_checkpoint() {
     let dir = common::TempDir::new("motion-corrections");
     let path = common::tiny_synth(dir.path(), umbra::synth::TrainingLight::Sun, 16, 2, vec![umbra::synth::TestKind::Poses], 3);
     let scene = umbra::scene::Scene::load(&path).unwrap();
-    let mut motion = MotionCorrections::new(&scene, 0.3).unwrap();
+    let mut motion = MotionCorrections::new(&scene).unwrap();
+    let lever = motion.lever();
+    assert!((lever - umbra::skeleton::body_length(umbra::train::motion::LEVER_ON_HUMAN, scene.body_extent())).abs() < 1e-12);
     let frames = motion.frames().to_vec();
     assert_eq!(frames.len(), 2, "two training frames");
     let (f, other) = (frames[0], frames[1]);
@@ -196,12 +198,12 @@ fn corrections_step_against_their_gradient_and_survive_a_checkpoint() {
     let angle = glam::DQuat::from_mat3(&(before.transpose() * turn(&moved))).to_scaled_axis();
     assert!((angle.x + 0.01).abs() < 1e-6 && angle.y.abs() < 1e-6, "bone 2 turned by {angle} in its own frame");
     let shift = moved.bone_to_world[0].w_axis - scene.frames[f].pose.bone_to_world[0].w_axis;
-    assert!((shift.y - 0.01 * 0.3).abs() < 1e-6 && shift.x.abs() < 1e-9, "the root moved by {shift}");
+    assert!((shift.y - 0.01 * lever).abs() < 1e-6 && shift.x.abs() < 1e-9, "the root moved by {shift}");
     assert_eq!(motion.pose(&scene.skeleton, other, &scene.frames[other].pose), scene.frames[other].pose);
     let moved_report = motion.moved(&scene.skeleton);
-    assert!((moved_report.largest_degrees - 0.01f64.to_degrees()).abs() < 1e-6 && (moved_report.largest_shift_cm - 0.3).abs() < 1e-6);
+    assert!((moved_report.largest_degrees - 0.01f64.to_degrees()).abs() < 1e-6 && (moved_report.largest_shift_cm - lever).abs() < 1e-6);
     // The checkpoint's copy.
-    let mut restored = MotionCorrections::new(&scene, 0.3).unwrap();
+    let mut restored = MotionCorrections::new(&scene).unwrap();
     restored.restore(&motion.to_json()).unwrap();
     assert_eq!(restored, motion);
     let mut other_frames = motion.to_json();

@@ -8,10 +8,6 @@
 use crate::scene::{Scene, Split};
 use burn::tensor::{Device, Int, Tensor, TensorData};
 
-/// Adam's decay rates and its guard against a zero second moment.
-const BETAS: (f64, f64) = (0.9, 0.999);
-const EPSILON: f64 = 1e-8;
-
 /// The cameras' log gains and their optimiser's state.
 #[derive(Clone, Debug, PartialEq)]
 pub struct CameraColours {
@@ -61,15 +57,8 @@ impl CameraColours {
             return;
         }
         self.steps += 1;
-        let (b1, b2) = BETAS;
-        let (c1, c2) = (1.0 - b1.powi(self.steps as i32), 1.0 - b2.powi(self.steps as i32));
-        for (k, &g) in gradient.iter().enumerate() {
-            let (row, c) = (k / 3, k % 3);
-            let g = g as f64;
-            self.first[row][c] = b1 * self.first[row][c] + (1.0 - b1) * g;
-            self.second[row][c] = b2 * self.second[row][c] + (1.0 - b2) * g * g;
-            self.log_gains[row][c] -= rate * (self.first[row][c] / c1) / ((self.second[row][c] / c2).sqrt() + EPSILON);
-        }
+        let rows: Vec<[f64; 3]> = gradient.chunks(3).map(|g| [g[0] as f64, g[1] as f64, g[2] as f64]).collect();
+        super::host_adam::step(&mut self.log_gains, &mut self.first, &mut self.second, &rows, self.steps, rate);
     }
 
     /// Each camera (scene index) with its normalised gain per channel.

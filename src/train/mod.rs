@@ -14,6 +14,7 @@
 mod batch;
 pub mod body;
 pub mod camera_colour;
+mod host_adam;
 mod light_search;
 pub mod motion;
 mod pixels;

@@ -15,10 +15,6 @@ use crate::skeleton::{Pose, Skeleton};
 use burn::tensor::{Device, Tensor, TensorData};
 use glam::{DMat3, DQuat, DVec3};
 
-/// Adam's decay rates and its guard against a zero second moment.
-const BETAS: (f64, f64) = (0.9, 0.999);
-const EPSILON: f64 = 1e-8;
-
 /// The lever (m on the reference human, scaled with the body) the skeleton's shift is measured
 /// in: a turn of one radian moves a point this far from its joint as far as a shift of one.
 pub const LEVER_ON_HUMAN: f64 = 0.3;
@@ -80,8 +76,10 @@ fn turn_between(a: DMat3, b: DMat3) -> DVec3 {
 }
 
 impl MotionCorrections {
-    /// For the scene's training frames (none without any), the shift measured in `lever` (m).
-    pub fn new(scene: &Scene, lever: f64) -> Option<Self> {
+    /// For the scene's training frames (none without any), the shift measured in the body's
+    /// lever (`LEVER_ON_HUMAN` scaled to it).
+    pub fn new(scene: &Scene) -> Option<Self> {
+        let lever = crate::skeleton::body_length(LEVER_ON_HUMAN, scene.body_extent());
         let mut frames: Vec<usize> = scene.views.iter().filter(|v| v.split == Split::Train).map(|v| v.frame).collect();
         // In time (a frame without a time by its index).
         let when = |f: usize| scene.frames[f].time.unwrap_or(scene.frames[f].index as f64);
@@ -164,29 +162,18 @@ impl MotionCorrections {
         let row = |g: &[f32], r: usize| DVec3::new(g[3 * r] as f64, g[3 * r + 1] as f64, g[3 * r + 2] as f64);
         // A turn dv in a bone's own frame is a world turn R dv about its head: the world
         // gradient seen from the bone's frame is R^T g. The shift is in levers.
-        let gradient: Vec<DVec3> = (0..rows)
+        let gradient: Vec<[f64; 3]> = (0..rows)
             .map(|r| {
                 let through_render = match (increment.is_empty(), pose.bone_to_world.get(r)) {
                     (true, _) => DVec3::ZERO,
                     (false, Some(m)) => DMat3::from_mat4(*m).transpose() * row(increment, r),
                     (false, None) => row(increment, r) * self.lever,
                 };
-                through_render + row(leaf, r)
+                (through_render + row(leaf, r)).to_array()
             })
             .collect();
         self.steps[k] += 1;
-        let (b1, b2) = BETAS;
-        let t = self.steps[k] as i32;
-        let (c1, c2) = (1.0 - b1.powi(t), 1.0 - b2.powi(t));
-        for (r, g) in gradient.iter().enumerate() {
-            for c in 0..3 {
-                let g = g[c];
-                let (m, v) = (&mut self.first[k][r][c], &mut self.second[k][r][c]);
-                *m = b1 * *m + (1.0 - b1) * g;
-                *v = b2 * *v + (1.0 - b2) * g * g;
-                self.values[k][r][c] -= rate * (*m / c1) / ((*v / c2).sqrt() + EPSILON);
-            }
-        }
+        super::host_adam::step(&mut self.values[k], &mut self.first[k], &mut self.second[k], &gradient, self.steps[k], rate);
     }
 
     /// How far the corrections moved the motion of `skeleton`.
@@ -218,6 +205,11 @@ impl MotionCorrections {
     /// The corrected training motion: each corrected scene frame, in time order, with its pose.
     pub fn refined(&self, scene: &Scene) -> Vec<(usize, Pose)> {
         self.frames.iter().map(|&f| (f, self.pose(&scene.skeleton, f, &scene.frames[f].pose))).collect()
+    }
+
+    /// The lever the skeleton's shift is measured in (m).
+    pub fn lever(&self) -> f64 {
+        self.lever
     }
 
     /// The scene frames corrected, in time order.

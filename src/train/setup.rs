@@ -293,9 +293,8 @@ impl Trainer {
         let footprint_estimate = scene.footprint();
         let camera_colours = super::camera_colour::CameraColours::new(&scene);
         // The motion is refined through the grid's lookups (the `mlp` field has no way in).
-        let lever = crate::skeleton::body_length(super::motion::LEVER_ON_HUMAN, extent);
         let refine = schedule.refine_motion.on(scene.capture.is_some());
-        let motion = model.field.grid.as_ref().filter(|_| refine).and_then(|_| super::motion::MotionCorrections::new(&scene, lever));
+        let motion = model.field.grid.as_ref().filter(|_| refine).and_then(|_| super::motion::MotionCorrections::new(&scene));
         let footprint = schedule.footprint.unwrap_or(footprint_estimate.footprint);
         Ok(Self {
             scene,

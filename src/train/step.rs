@@ -75,6 +75,19 @@ type Terms<'a> = Vec<(&'a str, f64, Tensor<1>)>;
 /// increments the render carried.
 type MotionLeaves = (usize, Tensor<2>, Vec<Tensor<2>>);
 
+/// One Adam step of the batch frame's motion correction at `rate`: its leaf's gradient (the
+/// motion's terms) and the sum of the increments' the render parts carried, from `grads`.
+fn step_motion(motion: &mut MotionCorrections, (k, leaf, increments): MotionLeaves, grads: &burn::tensor::Gradients, pose: &crate::skeleton::Pose, rate: f64) {
+    let read = |t: &Tensor<2>| t.grad(grads).map(crate::backend::host_values);
+    let rows = leaf.dims()[0] * 3;
+    let leaf = read(&leaf).unwrap_or_else(|| vec![0.0; rows]);
+    let mut through_render = vec![0.0f32; rows];
+    for g in increments.iter().filter_map(read) {
+        through_render.iter_mut().zip(g).for_each(|(a, b)| *a += b);
+    }
+    motion.step(k, &leaf, &through_render, pose, rate);
+}
+
 impl Trainer {
     /// One step on `batch` from `state`: forward, the weighted losses, backward, one Adam step
     /// per group. The batch carries every random number the step uses (`draw_batch`). The state
@@ -112,15 +125,8 @@ impl Trainer {
                 colours.step(&crate::backend::host_values(gradient), self.schedule.learning_rate("light", it));
             }
         }
-        if let (Some((k, leaf, increments)), Some(motion), Some((pose, _))) = (leaves, state.motion.as_mut(), batch.corrected.as_ref()) {
-            let read = |t: &Tensor<2>| t.grad(&grads).map(crate::backend::host_values);
-            let rows = leaf.dims()[0] * 3;
-            let leaf = read(&leaf).unwrap_or_else(|| vec![0.0; rows]);
-            let mut through_render = vec![0.0f32; rows];
-            for g in increments.iter().filter_map(read) {
-                through_render.iter_mut().zip(g).for_each(|(a, b)| *a += b);
-            }
-            motion.step(k, &leaf, &through_render, pose, self.schedule.learning_rate("motion", it));
+        if let (Some(leaves), Some(motion), Some((pose, _))) = (leaves, state.motion.as_mut(), batch.corrected.as_ref()) {
+            step_motion(motion, leaves, &grads, pose, self.schedule.learning_rate("motion", it));
         }
         let model = state.model;
         state.model = self.update(model, grads, forks, batch.light, &mut state.optimisers, it);
