@@ -10,6 +10,10 @@ pub enum Backend {
     Flex,
     /// burn-ndarray.
     Ndarray,
+    /// burn's wgpu backend: the best GPU the machine offers (Vulkan, Metal or DX12), or a
+    /// software driver where there is none. Built with the `gpu` feature.
+    #[cfg(feature = "gpu")]
+    Wgpu,
 }
 
 impl Backend {
@@ -18,6 +22,8 @@ impl Backend {
             Backend::Flex => Device::flex().autodiff(),
             #[allow(deprecated)]
             Backend::Ndarray => Device::ndarray().autodiff(),
+            #[cfg(feature = "gpu")]
+            Backend::Wgpu => Device::wgpu(burn::tensor::DeviceKind::DefaultDevice).autodiff(),
         }
     }
 }

@@ -36,24 +36,7 @@ fn fit_options(scene: &Path, out: std::path::PathBuf, schedule: &Path, iteration
     }
 }
 
-const QUICK: &str = r#"
-iterations = 60
-rays_per_batch = 256
-samples_per_ray = 16
-density_points = 64
-regulariser_points = 32
-checkpoint_every = 20
-light_from = 0
-[learning_rates]
-field = 3e-3
-gaussians = 5e-3
-light = 5e-2
-[losses]
-mask = 1.0
-rgb = 1.0
-eikonal = 0.05
-density = 0.5
-"#;
+use common::QUICK;
 
 /// A temp folder holding a tiny scene lit by `light` and `quick.toml`, the quick schedule cut
 /// to `iterations`.

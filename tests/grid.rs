@@ -1028,3 +1028,65 @@ fn a_culled_render_is_the_full_render_and_so_are_its_gradients() {
     }
     assert_same_gradients(&whole_grads, &culled_grads, "culled");
 }
+
+/// A random plan over a table of `table_rows` rows: 3 levels (the last faded out, the middle
+/// half in), 8 corners, tangents and carried derivatives.
+fn random_plan(points: usize, table_rows: usize, features: usize, stream: &mut Stream) -> umbra::field::interpolate::Plan {
+    let (levels, corners) = (3, 8);
+    let count = points * levels * corners;
+    let mut uniform = |k: usize| (0..k).map(|_| (stream.uniform() * 2.0 - 1.0) as f32).collect::<Vec<f32>>();
+    let (coefficients, tangents, carried) = (uniform(count), uniform(3 * count), uniform(3 * count));
+    let rows = (0..count).map(|_| (stream.uniform() * table_rows as f64) as u32 % table_rows as u32).collect();
+    umbra::field::interpolate::Plan {
+        points,
+        levels,
+        corners,
+        features,
+        rows,
+        coefficients,
+        tangents: Some(tangents),
+        carried: Some(carried),
+        fade: vec![1.0, 0.5, 0.0],
+        table_parts: 1,
+    }
+}
+
+/// The grid ops a GPU runs (`on_device`: the backend's own gather, product, sum and
+/// scatter-add) give the host ops' values and gradients (to the table and to a carried
+/// shift), both run here on flex.
+#[test]
+fn the_devices_grid_ops_are_the_hosts() {
+    use burn::backend::ops::FloatTensorOps;
+    use burn::backend::Flex;
+    use umbra::field::interpolate::{interpolate_carrying, Plan};
+    use umbra::field::on_device;
+    let device = Device::flex().autodiff();
+    let mut stream = Stream::new(6, 1, 0);
+    let (points, table_rows, features) = (40, 64, 4);
+    let table: Vec<f32> = (0..table_rows * features).map(|_| (stream.uniform() * 2.0 - 1.0) as f32).collect();
+    let plan = || random_plan(points, table_rows, features, &mut Stream::new(7, 1, 0));
+    let width = 3 * features;
+    let weights: Vec<f32> = (0..4 * points * width).map(|_| (stream.uniform() * 2.0 - 1.0) as f32).collect();
+    // On the host, through autodiff.
+    let leaf = Tensor::<2>::from_data(TensorData::new(table.clone(), [table_rows, features]), &device).require_grad();
+    let shift = Tensor::<2>::zeros([points, 3], &device).require_grad();
+    let out = interpolate_carrying(leaf.clone(), shift.clone(), plan());
+    let grads = (out.clone() * Tensor::from_data(TensorData::new(weights.clone(), [4 * points, width]), &device)).sum().backward();
+    let host = [values(out.inner()), values(leaf.grad(&grads).unwrap()), values(shift.grad(&grads).unwrap())];
+    // The device's ops, called on flex's tensors.
+    let flex = burn::backend::flex::FlexDevice;
+    let read = |t| burn::tensor::try_read_sync(Flex::float_into_data(t)).unwrap().unwrap().convert::<f32>().try_to_vec::<f32>().unwrap();
+    let up = |v: Vec<f32>, shape: [usize; 2]| Flex::float_from_data(TensorData::new(v, shape), &flex);
+    let plan: Plan = plan();
+    let device_ops = [
+        read(on_device::forward::<Flex>(up(table.clone(), [table_rows, features]), &plan)),
+        read(on_device::backward::<Flex>(up(weights.clone(), [4 * points, width]), &plan, table_rows)),
+        read(on_device::shift_backward::<Flex>(up(weights.clone(), [4 * points, width]), up(table, [table_rows, features]), &plan)),
+    ];
+    for ((what, a), b) in ["values", "table gradient", "shift gradient"].iter().zip(&device_ops).zip(&host) {
+        assert_eq!(a.len(), b.len(), "{what}");
+        let scale = b.iter().map(|v| v.abs()).fold(0.0f32, f32::max);
+        let worst = a.iter().zip(b).map(|(x, y)| (x - y).abs()).fold(0.0f32, f32::max);
+        assert!(scale > 0.1 && worst < 1e-5 * scale, "{what}: the device's ops differ by {worst} (largest {scale})");
+    }
+}

@@ -2,6 +2,7 @@
 //! measured in the same run and writes a Markdown table, a CSV and a PNG plot.
 
 mod breakdown;
+mod device;
 mod environment;
 mod fit;
 mod gradients;
@@ -12,6 +13,7 @@ pub mod shadows;
 mod steps;
 
 pub use breakdown::breakdown;
+pub use device::device;
 pub use environment::environment;
 pub use fit::{fit_curves, CurvePoint, FitBenchOptions};
 pub use gradients::gradients;

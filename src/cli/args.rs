@@ -88,7 +88,7 @@ pub enum Command {
         /// (the learning-rate decays and stages then follow the new one).
         #[arg(long, requires = "resume")]
         force_schedule: bool,
-        /// The tensor backend: `flex` (the default, fast on CPU) or `ndarray`.
+        /// The tensor backend: `flex` (the default, fast on CPU), `ndarray`, or `wgpu` (a GPU; built with `--features gpu`).
         #[arg(long, value_enum, default_value_t = crate::backend::Backend::Flex)]
         backend: crate::backend::Backend,
         /// Skip rendering and scoring the test images at the end.
@@ -106,7 +106,7 @@ pub enum Command {
         /// The scene to render (default: the one in RUN/fit.json), e.g. with more test images.
         #[arg(long)]
         scene: Option<PathBuf>,
-        /// The tensor backend: `flex` (the default, fast on CPU) or `ndarray`.
+        /// The tensor backend: `flex` (the default, fast on CPU), `ndarray`, or `wgpu` (a GPU; built with `--features gpu`).
         #[arg(long, value_enum, default_value_t = crate::backend::Backend::Flex)]
         backend: crate::backend::Backend,
         #[command(flatten)]
@@ -126,7 +126,7 @@ pub enum Command {
         /// Which images: `test` (into RUN/renders) or `train` (into RUN/renders-train).
         #[arg(long, value_enum, default_value_t = EvalSplit::Test)]
         split: EvalSplit,
-        /// The tensor backend: `flex` (the default, fast on CPU) or `ndarray`.
+        /// The tensor backend: `flex` (the default, fast on CPU), `ndarray`, or `wgpu` (a GPU; built with `--features gpu`).
         #[arg(long, value_enum, default_value_t = crate::backend::Backend::Flex)]
         backend: crate::backend::Backend,
     },
@@ -157,7 +157,7 @@ pub enum Command {
         /// Output folder (default: RUN/relit/LIGHT).
         #[arg(long)]
         out: Option<PathBuf>,
-        /// The tensor backend: `flex` (the default, fast on CPU) or `ndarray`.
+        /// The tensor backend: `flex` (the default, fast on CPU), `ndarray`, or `wgpu` (a GPU; built with `--features gpu`).
         #[arg(long, value_enum, default_value_t = crate::backend::Backend::Flex)]
         backend: crate::backend::Backend,
         /// Relight through a visibility basis of DIRECTIONS directions (default 1024) precomputed
@@ -201,7 +201,7 @@ pub enum Command {
         /// The scene whose cameras and poses to use (default: the run's).
         #[arg(long)]
         scene: Option<PathBuf>,
-        /// The tensor backend: `flex` (the default, fast on CPU) or `ndarray`.
+        /// The tensor backend: `flex` (the default, fast on CPU), `ndarray`, or `wgpu` (a GPU; built with `--features gpu`).
         #[arg(long, value_enum, default_value_t = crate::backend::Backend::Flex)]
         backend: crate::backend::Backend,
     },
@@ -223,7 +223,7 @@ pub enum Command {
         /// The scene whose poses to use (default: the run's).
         #[arg(long)]
         scene: Option<PathBuf>,
-        /// The tensor backend: `flex` (the default, fast on CPU) or `ndarray`.
+        /// The tensor backend: `flex` (the default, fast on CPU), `ndarray`, or `wgpu` (a GPU; built with `--features gpu`).
         #[arg(long, value_enum, default_value_t = crate::backend::Backend::Flex)]
         backend: crate::backend::Backend,
     },
@@ -245,7 +245,7 @@ pub enum Command {
         /// The scene whose poses to use (default: the run's).
         #[arg(long)]
         scene: Option<PathBuf>,
-        /// The tensor backend: `flex` (the default, fast on CPU) or `ndarray`.
+        /// The tensor backend: `flex` (the default, fast on CPU), `ndarray`, or `wgpu` (a GPU; built with `--features gpu`).
         #[arg(long, value_enum, default_value_t = crate::backend::Backend::Flex)]
         backend: crate::backend::Backend,
     },
@@ -263,7 +263,7 @@ pub enum Command {
         /// The scene whose poses to use (default: the run's).
         #[arg(long)]
         scene: Option<PathBuf>,
-        /// The tensor backend: `flex` (the default, fast on CPU) or `ndarray`.
+        /// The tensor backend: `flex` (the default, fast on CPU), `ndarray`, or `wgpu` (a GPU; built with `--features gpu`).
         #[arg(long, value_enum, default_value_t = crate::backend::Backend::Flex)]
         backend: crate::backend::Backend,
     },
@@ -288,7 +288,7 @@ pub enum Command {
         /// Replace earlier runs in OUT.
         #[arg(long)]
         force: bool,
-        /// The tensor backend: `flex` (the default, fast on CPU) or `ndarray`.
+        /// The tensor backend: `flex` (the default, fast on CPU), `ndarray`, or `wgpu` (a GPU; built with `--features gpu`).
         #[arg(long, value_enum, default_value_t = crate::backend::Backend::Flex)]
         backend: crate::backend::Backend,
     },
@@ -371,6 +371,9 @@ pub enum BenchKind {
     Fit,
     /// Where the time goes: milliseconds per part of a training step and of a render.
     Breakdown,
+    /// The CPU against the GPU (a build with `--features gpu`): milliseconds per training step
+    /// in two stages and the seconds of a short fit, on flex and on the wgpu device.
+    Device,
     /// Sky light: per-pixel MIS against the previous shared sampler and the research code's
     /// estimator, error against a 4096-sample reference at 16, 64 and 256 samples.
     Environment,

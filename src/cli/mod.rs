@@ -75,6 +75,10 @@ pub fn main() -> i32 {
             let scene = scene.unwrap_or_else(|| PathBuf::from("datasets-synthetic/human-sun-128"));
             crate::bench::steps(&scene, &schedule, &out, quick, run.as_deref()).map(|table| print!("{table}")).map_err(|e| e.to_string())
         }
+        Command::Bench { which: BenchKind::Device, out, quick, scene, schedule, .. } => {
+            let scene = scene.unwrap_or_else(|| PathBuf::from("datasets-synthetic/human-sun-128"));
+            crate::bench::device(&scene, &schedule, &out, quick, |line| eprintln!("{line}")).map(|table| print!("{table}")).map_err(|e| e.to_string())
+        }
         Command::Bench { which: BenchKind::Breakdown, out, quick, scene, schedule, run, .. } => {
             let scene = scene.unwrap_or_else(|| PathBuf::from("datasets-synthetic/human-sun-128"));
             crate::bench::breakdown(&scene, &schedule, &out, quick, run.as_deref()).map(|table| print!("{table}")).map_err(|e| e.to_string())

@@ -20,6 +20,8 @@ use burn::backend::autodiff::checkpoint::strategy::CheckpointStrategy;
 use burn::backend::autodiff::grads::Gradients;
 use burn::backend::autodiff::ops::{binary, unary, Backward, Ops, OpsKind};
 use burn::backend::tensor::FloatTensor;
+#[cfg(feature = "gpu")]
+use burn::backend::Cube;
 use burn::backend::{backend_extension, Autodiff, AutodiffBackend, Backend, Dispatch, Flex, NdArray, TensorMetadata};
 use burn::tensor::{Tensor, TensorData};
 use rayon::prelude::*;
@@ -217,6 +219,10 @@ trait HostValues: Backend {
 
 impl HostValues for NdArray {}
 
+/// The lookup without gradients brings the device's table down and its features up.
+#[cfg(feature = "gpu")]
+impl HostValues for Cube {}
+
 impl HostValues for Flex {
     fn with_host<R>(tensor: FloatTensor<Self>, f: impl FnOnce(&[f32]) -> R) -> R {
         match tensor.as_slice::<f32>() {
@@ -273,7 +279,7 @@ impl HostLookup {
 }
 
 /// The interpolation op; `Autodiff` adds its analytic backward.
-#[backend_extension(Flex, NdArray, Autodiff)]
+#[backend_extension(Flex, NdArray, Cube: cfg(feature = "gpu"), Autodiff)]
 pub trait GridOps: Backend {
     /// `[output_rows, levels x features]`: the plan's weighted sums of `table`'s rows.
     fn grid_interpolate(table: FloatTensor<Self>, plan: Arc<Plan>) -> FloatTensor<Self>;
@@ -289,43 +295,54 @@ pub trait GridOps: Backend {
     fn grid_shift_backward(grad: FloatTensor<Self>, table: FloatTensor<Self>, plan: Arc<Plan>) -> FloatTensor<Self>;
 }
 
-impl GridOps for Flex {
-    fn grid_interpolate(table: FloatTensor<Self>, plan: Arc<Plan>) -> FloatTensor<Self> {
-        forward_on_host::<Self>(table, &plan)
-    }
+/// `GridOps` on a backend through `HostValues`: the plan's sums run on the host.
+macro_rules! grid_ops_on_host {
+    ($backend:ty) => {
+        impl GridOps for $backend {
+            fn grid_interpolate(table: FloatTensor<Self>, plan: Arc<Plan>) -> FloatTensor<Self> {
+                forward_on_host::<Self>(table, &plan)
+            }
 
-    fn grid_interpolate_carrying(table: FloatTensor<Self>, _shift: FloatTensor<Self>, plan: Arc<Plan>) -> FloatTensor<Self> {
-        forward_on_host::<Self>(table, &plan)
-    }
+            fn grid_interpolate_carrying(table: FloatTensor<Self>, _shift: FloatTensor<Self>, plan: Arc<Plan>) -> FloatTensor<Self> {
+                forward_on_host::<Self>(table, &plan)
+            }
 
-    fn grid_shift_backward(grad: FloatTensor<Self>, table: FloatTensor<Self>, plan: Arc<Plan>) -> FloatTensor<Self> {
-        shift_backward_on_host::<Self>(grad, table, &plan)
-    }
+            fn grid_shift_backward(grad: FloatTensor<Self>, table: FloatTensor<Self>, plan: Arc<Plan>) -> FloatTensor<Self> {
+                shift_backward_on_host::<Self>(grad, table, &plan)
+            }
 
-    fn grid_interpolate_backward(grad: FloatTensor<Self>, plan: Arc<Plan>, table_rows: usize) -> FloatTensor<Self> {
-        backward_on_host::<Self>(grad, &plan, table_rows)
-    }
+            fn grid_interpolate_backward(grad: FloatTensor<Self>, plan: Arc<Plan>, table_rows: usize) -> FloatTensor<Self> {
+                backward_on_host::<Self>(grad, &plan, table_rows)
+            }
 
-    fn grid_lookup(table: FloatTensor<Self>, preference: FloatTensor<Self>, lookup: Arc<HostLookup>) -> FloatTensor<Self> {
-        lookup.run::<Self>(table, preference)
-    }
+            fn grid_lookup(table: FloatTensor<Self>, preference: FloatTensor<Self>, lookup: Arc<HostLookup>) -> FloatTensor<Self> {
+                lookup.run::<Self>(table, preference)
+            }
+        }
+    };
 }
 
-impl GridOps for NdArray {
+grid_ops_on_host!(Flex);
+grid_ops_on_host!(NdArray);
+
+/// On a device the plan goes up and the sums run there (`on_device`); the lookup without
+/// gradients, a host algorithm, still brings the table down.
+#[cfg(feature = "gpu")]
+impl GridOps for Cube {
     fn grid_interpolate(table: FloatTensor<Self>, plan: Arc<Plan>) -> FloatTensor<Self> {
-        forward_on_host::<Self>(table, &plan)
+        super::on_device::forward::<Self>(table, &plan)
     }
 
     fn grid_interpolate_carrying(table: FloatTensor<Self>, _shift: FloatTensor<Self>, plan: Arc<Plan>) -> FloatTensor<Self> {
-        forward_on_host::<Self>(table, &plan)
+        super::on_device::forward::<Self>(table, &plan)
     }
 
     fn grid_shift_backward(grad: FloatTensor<Self>, table: FloatTensor<Self>, plan: Arc<Plan>) -> FloatTensor<Self> {
-        shift_backward_on_host::<Self>(grad, table, &plan)
+        super::on_device::shift_backward::<Self>(grad, table, &plan)
     }
 
     fn grid_interpolate_backward(grad: FloatTensor<Self>, plan: Arc<Plan>, table_rows: usize) -> FloatTensor<Self> {
-        backward_on_host::<Self>(grad, &plan, table_rows)
+        super::on_device::backward::<Self>(grad, &plan, table_rows)
     }
 
     fn grid_lookup(table: FloatTensor<Self>, preference: FloatTensor<Self>, lookup: Arc<HostLookup>) -> FloatTensor<Self> {

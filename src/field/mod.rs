@@ -15,6 +15,7 @@ pub mod grid;
 pub mod interpolate;
 pub mod layout;
 pub mod lookup;
+pub mod on_device;
 
 use grid::{FeatureGrid, GridConfig, Skinning};
 

@@ -225,3 +225,23 @@ pub fn import_options(capture: &Path, out: PathBuf) -> umbra::capture::ImportOpt
         max_size: None,
     }
 }
+
+/// A short schedule for tiny scenes: 60 iterations of small batches, the light fitted from the start.
+pub const QUICK: &str = r#"
+iterations = 60
+rays_per_batch = 256
+samples_per_ray = 16
+density_points = 64
+regulariser_points = 32
+checkpoint_every = 20
+light_from = 0
+[learning_rates]
+field = 3e-3
+gaussians = 5e-3
+light = 5e-2
+[losses]
+mask = 1.0
+rgb = 1.0
+eikonal = 0.05
+density = 0.5
+"#;
