@@ -16,6 +16,13 @@ pub enum Backend {
     Wgpu,
 }
 
+impl std::fmt::Display for Backend {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let name = format!("{self:?}").to_lowercase();
+        f.write_str(&name)
+    }
+}
+
 impl Backend {
     pub fn device(self) -> Device {
         match self {
@@ -25,6 +32,44 @@ impl Backend {
             #[cfg(feature = "gpu")]
             Backend::Wgpu => Device::wgpu(burn::tensor::DeviceKind::DefaultDevice).autodiff(),
         }
+    }
+}
+
+/// Why a backend's device cannot be used.
+#[derive(Debug, thiserror::Error)]
+#[error("the {backend} backend found no usable device: {reason}")]
+pub struct DeviceError {
+    backend: Backend,
+    reason: String,
+}
+
+impl Backend {
+    /// The device, checked usable: on a GPU backend a first tensor is made and read back, so
+    /// that a machine with no adapter (or a broken driver) is refused with a reason here rather
+    /// than failing in the middle of a fit. The CPU backends are always usable.
+    pub fn open(self) -> Result<Device, DeviceError> {
+        let device = self.device();
+        if matches!(self, Backend::Flex | Backend::Ndarray) {
+            return Ok(device);
+        }
+        let probe = device.clone();
+        // The runtime panics when it finds no adapter: caught here, and said in words.
+        let outcome = std::panic::catch_unwind(move || {
+            let one = burn::tensor::Tensor::<1>::from_data(burn::tensor::TensorData::new(vec![1.0f32], [1]), &probe);
+            to_host(one + 1.0)
+        });
+        let reason = match outcome {
+            Ok(Ok(values)) if values == [2.0] => return Ok(device),
+            Ok(Ok(values)) => format!("1 + 1 came back as {values:?}"),
+            Ok(Err(e)) => e.to_string(),
+            Err(panic) => panic
+                .downcast_ref::<String>()
+                .cloned()
+                .or_else(|| panic.downcast_ref::<&str>().map(|s| s.to_string()))
+                .unwrap_or_else(|| "the runtime stopped".into()),
+        };
+        let hint = "the graphics runtime says why above. Is a Vulkan, Metal or DirectX 12 driver installed? Without a GPU, Mesa's software Vulkan driver (Debian: mesa-vulkan-drivers) runs it, slowly";
+        Err(DeviceError { backend: self, reason: format!("{reason}; {hint}") })
     }
 }
 

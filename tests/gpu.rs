@@ -168,9 +168,28 @@ fn a_fit_an_evaluation_and_a_relight_run_on_the_device() {
     common::succeeds(&cwd, &["eval", run_str, "--backend", "flex"]);
     for p in &device {
         let db = psnr(&copies.join(p.file_name().unwrap()), p);
+        eprintln!("{}: the device's render {db:.1} dB from the CPU's", p.display());
         assert!(db > 40.0, "{}: the device's render is {db:.1} dB from the CPU's", p.display());
     }
     let relit = dir.path().join("relit");
     common::succeeds(&cwd, &["relight", run_str, "--light", "sun", "--out", relit.to_str().unwrap(), "--backend", "wgpu"]);
     assert!(std::fs::read_dir(&relit).unwrap().any(|e| e.unwrap().path().extension().is_some_and(|e| e == "png")), "the relight wrote images");
+}
+
+/// Asked for a device the machine does not have, a fit is refused before it writes anything,
+/// with a reason and a hint, not a crash.
+#[test]
+fn a_missing_device_is_refused_before_anything_is_written() {
+    let dir = TempDir::new("gpu-missing");
+    let scene = common::tiny_synth(dir.path(), TrainingLight::Sun, 24, 3, vec![TestKind::Poses], 9);
+    let run = dir.path().join("run");
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_umbra"))
+        .args(["fit", scene.to_str().unwrap(), "--out", run.to_str().unwrap(), "--iterations", "2", "--no-eval", "--backend", "wgpu"])
+        .env("CUBECL_WGPU_DEFAULT_DEVICE", "DiscreteGpu(99)")
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(1), "{stderr}");
+    assert!(stderr.contains("error: the wgpu backend found no usable device") && stderr.contains("mesa-vulkan-drivers"), "{stderr}");
+    assert!(!run.exists(), "nothing written");
 }

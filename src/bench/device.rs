@@ -63,13 +63,13 @@ pub fn device(scene_path: &Path, schedule_path: &Path, out: &Path, quick: bool, 
     for (what, iteration) in &measures {
         let mut baseline = None;
         for backend in backends() {
-            log(&format!("bench device: {what} on {backend:?}"));
+            log(&format!("bench device: {what} on {backend}"));
             let value = match iteration {
                 Some(i) => step_ms(&scene, &schedule, backend, *i, budget)?,
                 None => fit_seconds(&scene, &schedule, backend, iterations)?,
             };
             let base = *baseline.get_or_insert(value);
-            rows.push((what.clone(), format!("{backend:?}").to_lowercase(), value, value / base));
+            rows.push((what.clone(), backend.to_string(), value, value / base));
         }
     }
     let mut md = format!(

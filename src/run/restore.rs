@@ -39,7 +39,7 @@ pub fn restore(run: &Path, scene: Option<&Path>, backend: crate::backend::Backen
     let state = verified_state(&checkpoint, &scene, None)?;
     let state_path = checkpoint.join("state.json");
     let lights = crate::train::training_lights(&scene, &schedule)?;
-    let device = backend.device();
+    let device = backend.open().map_err(|e| FitError::Input(e.to_string()))?;
     device.seed(0);
     let extent = scene.body_extent();
     // The field is recorded (or predates the root's skinning): the masks are never searched.

@@ -234,7 +234,7 @@ fn index_training(scene: &Scene, training: &[usize], device: &Device) -> (Vec<Fr
 
 impl Trainer {
     pub fn new(scene: Scene, schedule: Schedule, backend: Backend, seed: u64) -> Result<Self, FitError> {
-        let device = backend.device();
+        let device = backend.open().map_err(|e| FitError::Input(e.to_string()))?;
         device.seed(seed);
         let training = training_views(&scene)?;
         let TrainingLights { kind: light_kind, fit: fit_light, count: light_count, view_light } = training_lights(&scene, &schedule)?;
