@@ -73,6 +73,13 @@ impl Backend {
     }
 }
 
+/// Whether `device` keeps its tensors in host memory (the CPU backends), where a host algorithm
+/// reads them without a transfer; a GPU's would come down first.
+pub fn on_host(device: &Device) -> bool {
+    use burn::backend::DispatchDevice;
+    matches!(device.clone().without_autodiff().as_dispatch(), DispatchDevice::Flex(_) | DispatchDevice::NdArray(_))
+}
+
 /// Why a tensor's values could not be copied to the host.
 #[derive(Debug, thiserror::Error)]
 #[error("copying a tensor's values to the host: {0}")]

@@ -109,7 +109,8 @@ impl FeatureGrid {
         if let Some(motion) = motion.filter(|_| !tangents && tracked && !self.composite) {
             return self.encode_moving(points, frames, skinning, motion);
         }
-        if !tangents && !self.composite && !tracked {
+        // On a GPU the table stays there: the plan goes up and the sums run on the device.
+        if !tangents && !self.composite && !tracked && crate::backend::on_host(&device) {
             return self.encode_without_gradients(points, frames, skinning);
         }
         let (plan, n) = self.plan(points, frames, skinning, tangents);
