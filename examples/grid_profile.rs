@@ -29,6 +29,11 @@ fn main() {
         std::hint::black_box(lookup(&grid, &levels, &tensors.frames, skinning, &points, false));
     }
     println!("plan: {:.1} ms", t.elapsed().as_secs_f64() * 1e3 / repeat as f64);
+    let t = Instant::now();
+    for _ in 0..repeat {
+        std::hint::black_box(lookup(&grid, &levels, &tensors.frames, skinning, &points, true));
+    }
+    println!("plan with tangents: {:.1} ms", t.elapsed().as_secs_f64() * 1e3 / repeat as f64);
     let field = config.init(&device, 0);
     let input = Tensor::<2>::from_data(TensorData::new(points.clone(), [n, 3]), &device);
     // Where no gradient is wanted (an untracked table: a ray's search for the body) the lookup
@@ -72,6 +77,17 @@ fn main() {
             );
         }
     }
+    // A training step's lookup while the motion is refined: it carries a motion increment.
+    let mut moving = PoseTensors::new(&pose, &character.skeleton, &device);
+    moving.motion = Some(umbra::skeleton::MotionIncrement::new(&character.skeleton, &pose, &device));
+    let grid = field.grid.clone().unwrap();
+    let t = Instant::now();
+    for _ in 0..repeat {
+        let f = grid.encode(input.clone(), &moving.frames, skinning, false, moving.motion.as_ref());
+        let g = (f.features.sum() + f.prior.sum()).backward();
+        std::hint::black_box(grid.table.grad(&g));
+    }
+    println!("fused op carrying a motion increment: encode forward + backward: {:.1} ms", t.elapsed().as_secs_f64() * 1e3 / repeat as f64);
     let t = Instant::now();
     for _ in 0..repeat {
         let out = field.forward(input.clone(), &tensors);
