@@ -207,7 +207,7 @@ fn host<B: Backend>(tensor: FloatTensor<B>) -> Vec<f32> {
 /// Host access to a backend's float tensors: `with_host` lends a tensor's values as a slice,
 /// without a copy where the backend keeps them on the host in order (flex's contiguous f32
 /// tensors: the feature table, 4-8 MB, was copied once per lookup, a tenth of a training step).
-trait HostValues: Backend {
+pub(super) trait HostValues: Backend {
     fn with_host<R>(tensor: FloatTensor<Self>, f: impl FnOnce(&[f32]) -> R) -> R {
         f(&host::<Self>(tensor))
     }
@@ -265,7 +265,7 @@ pub struct HostLookup {
 }
 
 impl HostLookup {
-    fn run<B: HostValues>(&self, table: FloatTensor<B>, preference: FloatTensor<B>) -> FloatTensor<B> {
+    pub(super) fn run<B: HostValues>(&self, table: FloatTensor<B>, preference: FloatTensor<B>) -> FloatTensor<B> {
         let device = table.device();
         let n = self.points.len() / 3;
         let values = B::with_host(table, |table| {
@@ -324,31 +324,6 @@ macro_rules! grid_ops_on_host {
 
 grid_ops_on_host!(Flex);
 grid_ops_on_host!(NdArray);
-
-/// On a device the plan goes up and the sums run there (`on_device`); the lookup without
-/// gradients, a host algorithm, still brings the table down.
-#[cfg(feature = "gpu")]
-impl GridOps for Cube {
-    fn grid_interpolate(table: FloatTensor<Self>, plan: Arc<Plan>) -> FloatTensor<Self> {
-        super::on_device::forward::<Self>(table, &plan)
-    }
-
-    fn grid_interpolate_carrying(table: FloatTensor<Self>, _shift: FloatTensor<Self>, plan: Arc<Plan>) -> FloatTensor<Self> {
-        super::on_device::forward::<Self>(table, &plan)
-    }
-
-    fn grid_shift_backward(grad: FloatTensor<Self>, table: FloatTensor<Self>, plan: Arc<Plan>) -> FloatTensor<Self> {
-        super::on_device::shift_backward::<Self>(grad, table, &plan)
-    }
-
-    fn grid_interpolate_backward(grad: FloatTensor<Self>, plan: Arc<Plan>, table_rows: usize) -> FloatTensor<Self> {
-        super::on_device::backward::<Self>(grad, &plan, table_rows)
-    }
-
-    fn grid_lookup(table: FloatTensor<Self>, preference: FloatTensor<Self>, lookup: Arc<HostLookup>) -> FloatTensor<Self> {
-        lookup.run::<Self>(table, preference)
-    }
-}
 
 #[derive(Debug)]
 struct Interpolate;

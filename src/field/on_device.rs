@@ -91,3 +91,36 @@ pub fn shift_backward<B: Backend>(grad: FloatTensor<B>, table: FloatTensor<B>, p
     let summed = B::float_sum_dim(B::float_reshape(per_corner, Shape::new([plan.points, plan.levels * plan.corners, 3])), 1);
     B::float_reshape(summed, Shape::new([plan.points, 3]))
 }
+
+#[cfg(feature = "gpu")]
+mod device_ops {
+    use super::super::interpolate::{GridOps, HostLookup, Plan};
+    use super::{backward, forward, shift_backward};
+    use burn::backend::tensor::FloatTensor;
+    use burn::backend::Cube;
+    use std::sync::Arc;
+
+    /// On a device the plan goes up and the sums run there; the lookup without
+    /// gradients, a host algorithm, still brings the table down.
+    impl GridOps for Cube {
+        fn grid_interpolate(table: FloatTensor<Self>, plan: Arc<Plan>) -> FloatTensor<Self> {
+            forward::<Self>(table, &plan)
+        }
+
+        fn grid_interpolate_carrying(table: FloatTensor<Self>, _shift: FloatTensor<Self>, plan: Arc<Plan>) -> FloatTensor<Self> {
+            forward::<Self>(table, &plan)
+        }
+
+        fn grid_shift_backward(grad: FloatTensor<Self>, table: FloatTensor<Self>, plan: Arc<Plan>) -> FloatTensor<Self> {
+            shift_backward::<Self>(grad, table, &plan)
+        }
+
+        fn grid_interpolate_backward(grad: FloatTensor<Self>, plan: Arc<Plan>, table_rows: usize) -> FloatTensor<Self> {
+            backward::<Self>(grad, &plan, table_rows)
+        }
+
+        fn grid_lookup(table: FloatTensor<Self>, preference: FloatTensor<Self>, lookup: Arc<HostLookup>) -> FloatTensor<Self> {
+            lookup.run::<Self>(table, preference)
+        }
+    }
+}
