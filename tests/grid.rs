@@ -1035,7 +1035,10 @@ fn random_plan(points: usize, table_rows: usize, features: usize, stream: &mut S
     let (levels, corners) = (3, 8);
     let count = points * levels * corners;
     let mut uniform = |k: usize| (0..k).map(|_| (stream.uniform() * 2.0 - 1.0) as f32).collect::<Vec<f32>>();
-    let (coefficients, tangents, carried) = (uniform(count), uniform(3 * count), uniform(3 * count));
+    let (coefficients, tangents) = (uniform(count), uniform(3 * count));
+    // Cells' fractions in [0, 1], one axis in five outside the grid (marked by 2 added).
+    let fractions = uniform(3 * points * levels).into_iter().enumerate().map(|(k, v)| (v + 1.0) / 2.0 + if k % 5 == 0 { 2.0 } else { 0.0 }).collect();
+    let carried = umbra::field::interpolate::Carried { slots: 1, levels, fractions, axes: uniform(9 * points), per_cell: vec![4.0, 8.0, 16.0] };
     let rows = (0..count).map(|_| (stream.uniform() * table_rows as f64) as u32 % table_rows as u32).collect();
     umbra::field::interpolate::Plan {
         points,

@@ -22,7 +22,7 @@ use burn::module::{Module, Param};
 use burn::tensor::{Device, Int, Tensor, TensorData};
 
 pub use super::layout::{GridConfig, Level, RootSkinning, RootTable, FINEST_PER_EXTENT, MAX_TOP_BONES, REACH_PER_EXTENT};
-pub use super::lookup::{features_on_host, lookup, saturate, Lookup, Skinning};
+pub use super::lookup::{features_on_host, lookup, lookup_carried, saturate, Lookup, Skinning};
 
 pub use crate::skeleton::{BoneFrame, MotionIncrement};
 
@@ -134,7 +134,9 @@ impl FeatureGrid {
     /// planned world derivatives; second derivatives are not followed.
     fn encode_moving(&self, points: Tensor<2>, frames: &[BoneFrame], skinning: Skinning, motion: &MotionIncrement) -> GridFeatures {
         let device = points.device();
-        let (plan, n) = self.plan(points.clone(), frames, skinning, true);
+        let (values, n) = host_points(points.clone());
+        let levels = self.active_layout();
+        let mut plan = lookup_carried(&self.config, &levels, frames, skinning, &values);
         let k = self.config.top();
         let bones = frames.len();
         // The blend's weights from distance alone (the root's learned preference aside), per
@@ -154,21 +156,35 @@ impl FeatureGrid {
         let logit_shift = (logit_tangents * shift.clone().reshape([n, 1, 3])).sum_dim(2).reshape([n, k]);
         let prior_tangents: Tensor<2> = Tensor::from_data(TensorData::new(plan.prior_tangents.clone(), [n, 3]), &device);
         let prior = Tensor::<1>::from_data(TensorData::new(plan.prior.clone(), [n]), &device) + (prior_tangents * shift.clone()).sum_dim(1).reshape([n]);
-        let (per_bone, _, plan) = self.interpolate_fused(plan, n, false, Some(shift));
+        let carried = super::interpolate::Carried {
+            slots: k,
+            levels: self.config.levels,
+            fractions: std::mem::take(&mut plan.cell_fractions),
+            axes: plan.bones.iter().flat_map(|&b| frames.get(b as usize).map_or([[f32::NAN; 3]; 3], |frame| frame.axes).into_iter().flatten()).collect(),
+            per_cell: levels.iter().map(|level| 1.0 / level.cell).collect(),
+        };
+        let (per_bone, _, plan) = self.interpolate_fused(plan, n, false, Some((shift, carried)));
         let (features, _) = self.blend(&plan, n, per_bone, None, Some(logit_shift), &device);
         GridFeatures { features, prior, tangents: None }
     }
 
     /// Each chosen bone's features (`[N, K W]`) and their tangents (`[3N, K W]`) by the fused
-    /// op (`interpolate`); with a `shift` of the points (`[N, 3]`, the plan's coefficient
-    /// tangents planned), carrying its gradient instead of giving tangents.
+    /// op (`interpolate`); with a `shift` of the points (`[N, 3]`) and its cells
+    /// (`interpolate::Carried`), carrying its gradient instead of giving tangents.
     #[allow(clippy::type_complexity)]
-    fn interpolate_fused(&self, mut plan: Lookup, n: usize, tangents: bool, shift: Option<Tensor<2>>) -> (Tensor<2>, Option<Tensor<2>>, Lookup) {
+    fn interpolate_fused(
+        &self,
+        mut plan: Lookup,
+        n: usize,
+        tangents: bool,
+        shift: Option<(Tensor<2>, super::interpolate::Carried)>,
+    ) -> (Tensor<2>, Option<Tensor<2>>, Lookup) {
         let config = &self.config;
         let groups = config.top() * config.levels;
         let derivatives = std::mem::take(&mut plan.coefficient_tangents);
         let carrying = shift.is_some();
-        let (derivatives, carried) = if carrying { (None, Some(derivatives)) } else { (tangents.then_some(derivatives), None) };
+        let (shift, carried) = shift.unzip();
+        let derivatives = (tangents && !carrying).then_some(derivatives);
         let fused = super::interpolate::Plan {
             points: n,
             levels: groups,

@@ -40,13 +40,76 @@ pub struct Plan {
     pub rows: Vec<u32>,
     pub coefficients: Vec<f32>,
     pub tangents: Option<Vec<f32>>,
-    /// The coefficients' world derivatives (as `tangents`) when the lookup carries a shift of
-    /// its points (`interpolate_carrying`): only the shift's gradient reads them.
-    pub carried: Option<Vec<f32>>,
+    /// What the coefficients' world derivatives follow from when the lookup carries a shift of
+    /// its points (`interpolate_carrying`): only the shift's gradient reads it.
+    pub carried: Option<Carried>,
     pub fade: Vec<f32>,
     /// The table's rows are this many equal runs, group `g`'s rows lying in run
     /// `g % table_parts` (the grid's table is level-major: its level count; 1 for any table).
     pub table_parts: usize,
+}
+
+/// A carried lookup's cells, from which each corner coefficient's world derivative follows: a
+/// group is a (slot, level) pair (`groups = slots x levels`, slot-major), a slot one of the
+/// point's chosen bones. Per cell (point, group) the point's fractions along the slot's bone's
+/// local axes, plus 2 on an axis outside the grid (no derivative there); per point and slot the
+/// bone's local axes in the world (row-major 3 x 3: row m is axis m); per level 1 / its cell
+/// size. 3 floats a cell against the 24 of per-corner derivatives.
+#[derive(Debug)]
+pub struct Carried {
+    /// Chosen bones per point, and levels per bone: `slots x levels` groups.
+    pub slots: usize,
+    pub levels: usize,
+    pub fractions: Vec<f32>,
+    pub axes: Vec<f32>,
+    pub per_cell: Vec<f32>,
+}
+
+/// Corner `k`'s (bit 0 the x side, bit 1 y, bit 2 z) trilinear weight's derivatives along the
+/// cell's three fractions `f`.
+fn corner_slopes(f: [f32; 3], k: usize) -> [f32; 3] {
+    let bit = [k & 1, (k >> 1) & 1, k >> 2];
+    let factor = [0, 1, 2].map(|m| if bit[m] == 1 { f[m] } else { 1.0 - f[m] });
+    [0, 1, 2].map(|m| {
+        let sign = if bit[m] == 1 { 1.0 } else { -1.0 };
+        sign * factor[(m + 1) % 3] * factor[(m + 2) % 3]
+    })
+}
+
+impl Carried {
+    /// Cell `(point, group)`'s fractions, and the derivative of each fraction along the world
+    /// (row m: the slot's bone's axis m over the level's cell size; zero outside the grid).
+    fn cell(&self, point: usize, group: usize) -> ([f32; 3], [[f32; 3]; 3]) {
+        let cell = point * self.slots * self.levels + group;
+        let raw = [0, 1, 2].map(|m| self.fractions.get(cell * 3 + m).copied().unwrap_or(f32::NAN));
+        let (slot, level) = (group / self.levels, group % self.levels);
+        let at = (point * self.slots + slot) * 9;
+        let scale = self.per_cell.get(level).copied().unwrap_or(f32::NAN);
+        let rows = [0, 1, 2].map(|m| match raw[m] < 2.0 {
+            true => [0, 1, 2].map(|x| self.axes.get(at + m * 3 + x).copied().unwrap_or(f32::NAN) * scale),
+            false => [0.0; 3],
+        });
+        (raw.map(|v| if v < 2.0 { v } else { v - 2.0 }), rows)
+    }
+
+    /// Each corner coefficient's world derivative (`[P, 3]`, as `Plan::tangents`): what a device
+    /// multiplies out where the host contracts the corners first (`Plan::shift_backward`).
+    pub fn per_corner(&self, plan: &Plan) -> Vec<f32> {
+        let mut out = vec![0.0f32; plan.rows.len() * 3];
+        for i in 0..plan.points {
+            for g in 0..plan.levels {
+                let (f, rows) = self.cell(i, g);
+                for k in 0..plan.corners {
+                    let slopes = corner_slopes(f, k);
+                    let at = ((i * plan.levels + g) * plan.corners + k) * 3;
+                    for x in 0..3 {
+                        out[at + x] = (0..3).map(|m| slopes[m] * rows[m][x]).sum();
+                    }
+                }
+            }
+        }
+        out
+    }
 }
 
 impl Plan {
@@ -158,10 +221,11 @@ impl Plan {
 impl Plan {
     /// The gradient (`[N, 3]`, row-major) of a shift of the points, to first order, from the
     /// output's (`[N, W]`): per point, each corner's table row against the output's gradient,
-    /// times the level's fade and the coefficient's world derivative.
+    /// times the level's fade and the coefficient's world derivative, contracted per cell along
+    /// its fractions before it is turned into the world (`Carried`).
     fn shift_backward(&self, grad: &[f32], table: &[f32]) -> Vec<f32> {
         let (w, f, c) = (self.width(), self.features, self.corners);
-        let Some(d) = &self.carried else { return vec![0.0; 3 * self.points] };
+        let Some(carried) = &self.carried else { return vec![0.0; 3 * self.points] };
         let per_point = self.levels * c;
         let mut out = vec![0.0f32; 3 * self.points];
         // Points in chunks across threads: each point owns its three values.
@@ -176,16 +240,23 @@ impl Plan {
                     if fade == 0.0 || grad.iter().all(|&v| v == 0.0) {
                         continue;
                     }
+                    // The corners contracted along the cell's fractions first, then turned
+                    // into the world once per cell.
+                    let (fractions, rows) = carried.cell(i, g);
+                    let mut along_fractions = [0.0f32; 3];
                     for j in 0..c {
-                        let at = i * per_point + g * c + j;
-                        let row = self.rows[at] as usize;
+                        let row = self.rows[i * per_point + g * c + j] as usize;
                         let along: f32 = match table.get(row * f..(row + 1) * f) {
                             Some(entry) => entry.iter().zip(grad).map(|(t, g)| t * g).sum(),
                             None => f32::NAN,
                         };
-                        for (axis, s) in shift.iter_mut().enumerate() {
-                            *s += along * fade * d[at * 3 + axis];
+                        let slopes = corner_slopes(fractions, j);
+                        for m in 0..3 {
+                            along_fractions[m] += along * slopes[m];
                         }
+                    }
+                    for (axis, s) in shift.iter_mut().enumerate() {
+                        *s += fade * (0..3).map(|m| along_fractions[m] * rows[m][axis]).sum::<f32>();
                     }
                 }
             }

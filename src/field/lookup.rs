@@ -1,6 +1,7 @@
 //! Planning a grid lookup on the CPU: each point's nearest bones and their skinning, the
 //! trilinear corners of every level in each, with the coefficients' exact derivatives along the
-//! world axes when asked (`lookup`); or, where nothing is differentiated, the features summed
+//! world axes when asked (`lookup`; for a lookup carrying a shift, each cell's fractions,
+//! `lookup_carried`); or, where nothing is differentiated, the features summed
 //! as the corners are found (`features_on_host`).
 
 use super::layout::{GridConfig, Level, MAX_TOP_BONES};
@@ -55,6 +56,9 @@ pub struct Lookup {
     /// Per point and chosen bone, the bone (`[N * K]`), when tangents are planned: what a
     /// motion increment moves the point's lookup with.
     pub bones: Vec<u32>,
+    /// Per cell (point, chosen bone, level) its fractions (`[.., 3]`, `Cell::fraction`), when
+    /// planned for a carried shift (`lookup_carried`) instead of per-corner derivatives.
+    pub cell_fractions: Vec<f32>,
 }
 
 /// What the plan says about one point besides its feature rows.
@@ -73,16 +77,44 @@ struct PointSkin {
 
 /// Plans the lookup of `points` (`[N * 3]`, world) in the bones `frames`.
 pub fn lookup(config: &GridConfig, levels: &[Level], frames: &[BoneFrame], skinning: Skinning, points: &[f32], tangents: bool) -> Lookup {
+    plan(config, levels, frames, skinning, points, if tangents { Derivatives::PerCorner } else { Derivatives::None })
+}
+
+/// `lookup` with tangents for a lookup that carries a shift of its points
+/// (`interpolate::Carried`): the skinning's and the prior's tangents, and per cell its
+/// fractions instead of each corner's derivative (3 floats a cell instead of 24).
+pub fn lookup_carried(config: &GridConfig, levels: &[Level], frames: &[BoneFrame], skinning: Skinning, points: &[f32]) -> Lookup {
+    plan(config, levels, frames, skinning, points, Derivatives::Cells)
+}
+
+/// Which spatial derivatives a plan holds.
+#[derive(Clone, Copy, PartialEq, Eq)]
+enum Derivatives {
+    None,
+    /// Each corner coefficient's world derivative.
+    PerCorner,
+    /// Each cell's fractions (the coefficients' derivatives follow from them and the bone's axes).
+    Cells,
+}
+
+fn plan(config: &GridConfig, levels: &[Level], frames: &[BoneFrame], skinning: Skinning, points: &[f32], derivatives: Derivatives) -> Lookup {
+    let tangents = derivatives != Derivatives::None;
     let n = points.len() / 3;
     let c = config.corners();
     let mut rows = vec![0u32; n * c];
     let mut coefficients = vec![0.0f32; n * c];
-    let mut coefficient_tangents = if tangents { vec![0.0f32; n * c * 3] } else { Vec::new() };
+    // Per point: 3 floats per corner, or 3 per cell of 8 corners.
+    let per_point = match derivatives {
+        Derivatives::None => 0,
+        Derivatives::PerCorner => c * 3,
+        Derivatives::Cells => c / 8 * 3,
+    };
+    let mut coefficient_tangents = vec![0.0f32; n * per_point];
     let mut skins = vec![PointSkin::default(); n];
     // Points in chunks across threads; each chunk writes its own slices of the plan.
     const CHUNK: usize = 64;
     let tangent_chunks: Vec<&mut [f32]> =
-        if tangents { coefficient_tangents.chunks_mut(CHUNK * c * 3).collect() } else { (0..n.div_ceil(CHUNK)).map(|_| &mut [][..]).collect() };
+        if tangents { coefficient_tangents.chunks_mut(CHUNK * per_point).collect() } else { (0..n.div_ceil(CHUNK)).map(|_| &mut [][..]).collect() };
     rows.par_chunks_mut(CHUNK * c)
         .zip(coefficients.par_chunks_mut(CHUNK * c))
         .zip(skins.par_chunks_mut(CHUNK))
@@ -94,12 +126,27 @@ pub fn lookup(config: &GridConfig, levels: &[Level], frames: &[BoneFrame], skinn
                 let i = chunk * CHUNK + k;
                 let point = [points[3 * i], points[3 * i + 1], points[3 * i + 2]];
                 let span = k * c..(k + 1) * c;
-                let d_coefficients = if tangents { Some(&mut d_coefficients[k * c * 3..(k + 1) * c * 3]) } else { None };
-                *skin = plan_point(config, levels, frames, skinning, point, &mut scratch, &mut rows[span.clone()], &mut coefficients[span], d_coefficients);
+                let d_coefficients = if tangents { Some(&mut d_coefficients[k * per_point..(k + 1) * per_point]) } else { None };
+                *skin = plan_point(
+                    config,
+                    levels,
+                    frames,
+                    skinning,
+                    point,
+                    &mut scratch,
+                    &mut rows[span.clone()],
+                    &mut coefficients[span],
+                    d_coefficients,
+                    derivatives,
+                );
             }
         });
     let top = config.top();
-    let mut plan = Lookup { rows, coefficients, coefficient_tangents, ..Lookup::default() };
+    let (coefficient_tangents, cell_fractions) = match derivatives {
+        Derivatives::Cells => (Vec::new(), coefficient_tangents),
+        _ => (coefficient_tangents, Vec::new()),
+    };
+    let mut plan = Lookup { rows, coefficients, coefficient_tangents, cell_fractions, ..Lookup::default() };
     for skin in &skins {
         plan.logits.extend_from_slice(&skin.logits[..top]);
         plan.root_slot.extend((0..top).map(|j| if skin.root_slot == Some(j) { 1.0 } else { 0.0 }));
@@ -176,6 +223,8 @@ struct Cell {
     base: [usize; 3],
     weights: [f32; 8],
     gradients: [[f32; 3]; 8],
+    /// The point's place in the cell along the bone's local axes, as `Carried` keeps it.
+    fraction: [f32; 3],
 }
 
 /// The trilinear cell around `local` in a grid of `dims` vertices spaced `cell` apart from
@@ -225,7 +274,9 @@ fn trilinear<const TANGENTS: bool>(local: [f32; 3], reach: f32, cell: f32, dims:
             *gradient = [0, 1, 2].map(|x| d_tri[0] * du[0][x] + d_tri[1] * du[1][x] + d_tri[2] * du[2][x]);
         }
     }
-    Cell { base, weights, gradients }
+    // An axis outside the grid has no derivative: kept as its fraction plus 2.
+    let fraction = [0, 1, 2].map(|m| if inside[m] { fraction[m] } else { fraction[m] + 2.0 });
+    Cell { base, weights, gradients, fraction }
 }
 
 /// Plans one point's corners and returns the rest of its plan.
@@ -240,17 +291,23 @@ fn plan_point(
     rows: &mut [u32],
     coefficients: &mut [f32],
     d_coefficients: Option<&mut [f32]>,
+    derivatives: Derivatives,
 ) -> PointSkin {
     let tangents = d_coefficients.is_some();
     let skin = skin_point(config, frames, skinning, point, scratch, tangents);
     let chosen = &scratch.all[..config.top().min(scratch.all.len())];
-    match d_coefficients {
-        Some(d) => visit_cells::<true>(config, levels, frames, chosen, |k, _, cell_rows, cell| {
+    match (d_coefficients, derivatives) {
+        (Some(d), Derivatives::PerCorner) => visit_cells::<true>(config, levels, frames, chosen, |k, _, cell_rows, cell| {
             rows[k..k + 8].copy_from_slice(&cell_rows);
             coefficients[k..k + 8].copy_from_slice(&cell.weights);
             d[k * 3..(k + 8) * 3].copy_from_slice(cell.gradients.as_flattened());
         }),
-        None => visit_cells::<false>(config, levels, frames, chosen, |k, _, cell_rows, cell| {
+        (Some(d), _) => visit_cells::<false>(config, levels, frames, chosen, |k, _, cell_rows, cell| {
+            rows[k..k + 8].copy_from_slice(&cell_rows);
+            coefficients[k..k + 8].copy_from_slice(&cell.weights);
+            d[k / 8 * 3..k / 8 * 3 + 3].copy_from_slice(&cell.fraction);
+        }),
+        (None, _) => visit_cells::<false>(config, levels, frames, chosen, |k, _, cell_rows, cell| {
             rows[k..k + 8].copy_from_slice(&cell_rows);
             coefficients[k..k + 8].copy_from_slice(&cell.weights);
         }),

@@ -78,7 +78,7 @@ pub fn backward<B: Backend>(grad: FloatTensor<B>, plan: &Plan, table_rows: usize
 }
 
 /// The gradient (`[N, 3]`) of a shift of the points from the output's: per corner, its table row
-/// against the output's gradient, times its faded world derivative (`Plan::carried`).
+/// against the output's gradient, times its faded world derivative (`Carried::per_corner`).
 pub fn shift_backward<B: Backend>(grad: FloatTensor<B>, table: FloatTensor<B>, plan: &Plan) -> FloatTensor<B> {
     let device = grad.device();
     let Some(carried) = &plan.carried else {
@@ -86,6 +86,7 @@ pub fn shift_backward<B: Backend>(grad: FloatTensor<B>, table: FloatTensor<B>, p
     };
     let gathered = B::float_select(table, 0, rows::<B>(plan, &device));
     let along = B::float_sum_dim(B::float_mul(gathered, per_corner::<B>(grad, 0, plan)), 1);
+    let carried = carried.per_corner(plan);
     let axes: Vec<FloatTensor<B>> = (0..3).map(|axis| B::float_mul(along.clone(), faded::<B>(plan, |at| carried[at * 3 + axis], &device))).collect();
     let per_corner = B::float_cat(axes, 1);
     let summed = B::float_sum_dim(B::float_reshape(per_corner, Shape::new([plan.points, plan.levels * plan.corners, 3])), 1);
