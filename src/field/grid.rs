@@ -21,8 +21,9 @@
 use burn::module::{Module, Param};
 use burn::tensor::{Device, Int, Tensor, TensorData};
 
+pub use super::host_lookup::features_on_host;
 pub use super::layout::{GridConfig, Level, RootSkinning, RootTable, FINEST_PER_EXTENT, MAX_TOP_BONES, REACH_PER_EXTENT};
-pub use super::lookup::{features_on_host, lookup, lookup_carried, saturate, Lookup, Skinning};
+pub use super::lookup::{lookup, lookup_carried, saturate, Lookup, Skinning};
 
 pub use crate::skeleton::{BoneFrame, MotionIncrement};
 

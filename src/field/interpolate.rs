@@ -12,8 +12,9 @@
 // burn-ndarray is deprecated upstream but stays our `--backend ndarray`.
 #![allow(deprecated)]
 
+use super::host_lookup::add_row;
 use super::layout::{GridConfig, Level};
-use super::lookup::{add_row, Skinning};
+use super::lookup::Skinning;
 use crate::skeleton::BoneFrame;
 use burn::backend::autodiff::checkpoint::base::Checkpointer;
 use burn::backend::autodiff::checkpoint::strategy::CheckpointStrategy;
@@ -115,7 +116,16 @@ impl Carried {
 impl Plan {
     /// Output rows: the features, then the tangents axis-major when planned.
     pub fn output_rows(&self) -> usize {
-        self.points * if self.tangents.is_some() { 4 } else { 1 }
+        self.points * self.blocks()
+    }
+
+    /// Output blocks of `points` rows: the features, and the three tangents when planned.
+    pub fn blocks(&self) -> usize {
+        if self.tangents.is_some() {
+            4
+        } else {
+            1
+        }
     }
 
     fn width(&self) -> usize {
@@ -342,7 +352,7 @@ impl HostLookup {
         let values = B::with_host(table, |table| {
             B::with_host(preference, |preference| {
                 let preference = self.preference.then_some(preference);
-                super::lookup::features_on_host(&self.config, &self.levels, &self.frames, self.skinning, &self.points, table, preference, &self.fade)
+                super::host_lookup::features_on_host(&self.config, &self.levels, &self.frames, self.skinning, &self.points, table, preference, &self.fade)
             })
         });
         B::from_host(values, [n, self.config.width() + 1], &device)
@@ -366,35 +376,43 @@ pub trait GridOps: Backend {
     fn grid_shift_backward(grad: FloatTensor<Self>, table: FloatTensor<Self>, plan: Arc<Plan>) -> FloatTensor<Self>;
 }
 
-/// `GridOps` on a backend through `HostValues`: the plan's sums run on the host.
-macro_rules! grid_ops_on_host {
-    ($backend:ty) => {
-        impl GridOps for $backend {
-            fn grid_interpolate(table: FloatTensor<Self>, plan: Arc<Plan>) -> FloatTensor<Self> {
-                forward_on_host::<Self>(table, &plan)
+/// `GridOps` for `$backend` by its `forward`, `backward` and `shift_backward` (the host's here,
+/// the device's in `on_device`); the lookup without gradients runs on the host.
+macro_rules! grid_ops {
+    ($backend:ty, $forward:path, $backward:path, $shift_backward:path) => {
+        impl $crate::field::interpolate::GridOps for $backend {
+            fn grid_interpolate(table: FloatTensor<Self>, plan: std::sync::Arc<Plan>) -> FloatTensor<Self> {
+                $forward(table, &plan)
             }
 
-            fn grid_interpolate_carrying(table: FloatTensor<Self>, _shift: FloatTensor<Self>, plan: Arc<Plan>) -> FloatTensor<Self> {
-                forward_on_host::<Self>(table, &plan)
+            fn grid_interpolate_carrying(table: FloatTensor<Self>, _shift: FloatTensor<Self>, plan: std::sync::Arc<Plan>) -> FloatTensor<Self> {
+                $forward(table, &plan)
             }
 
-            fn grid_shift_backward(grad: FloatTensor<Self>, table: FloatTensor<Self>, plan: Arc<Plan>) -> FloatTensor<Self> {
-                shift_backward_on_host::<Self>(grad, table, &plan)
+            fn grid_shift_backward(grad: FloatTensor<Self>, table: FloatTensor<Self>, plan: std::sync::Arc<Plan>) -> FloatTensor<Self> {
+                $shift_backward(grad, table, &plan)
             }
 
-            fn grid_interpolate_backward(grad: FloatTensor<Self>, plan: Arc<Plan>, table_rows: usize) -> FloatTensor<Self> {
-                backward_on_host::<Self>(grad, &plan, table_rows)
+            fn grid_interpolate_backward(grad: FloatTensor<Self>, plan: std::sync::Arc<Plan>, table_rows: usize) -> FloatTensor<Self> {
+                $backward(grad, &plan, table_rows)
             }
 
-            fn grid_lookup(table: FloatTensor<Self>, preference: FloatTensor<Self>, lookup: Arc<HostLookup>) -> FloatTensor<Self> {
+            fn grid_lookup(
+                table: FloatTensor<Self>,
+                preference: FloatTensor<Self>,
+                lookup: std::sync::Arc<$crate::field::interpolate::HostLookup>,
+            ) -> FloatTensor<Self> {
                 lookup.run::<Self>(table, preference)
             }
         }
     };
 }
+// Used by `on_device` in the GPU build.
+#[cfg_attr(not(feature = "gpu"), allow(unused_imports))]
+pub(super) use grid_ops;
 
-grid_ops_on_host!(Flex);
-grid_ops_on_host!(NdArray);
+grid_ops!(Flex, forward_on_host::<Flex>, backward_on_host::<Flex>, shift_backward_on_host::<Flex>);
+grid_ops!(NdArray, forward_on_host::<NdArray>, backward_on_host::<NdArray>, shift_backward_on_host::<NdArray>);
 
 #[derive(Debug)]
 struct Interpolate;

@@ -1,7 +1,7 @@
 //! Planning a grid lookup on the CPU: each point's nearest bones and their skinning, the
 //! trilinear corners of every level in each, with the coefficients' exact derivatives along the
 //! world axes when asked (`lookup`; for a lookup carrying a shift, each cell's fractions,
-//! `lookup_carried`); or, where nothing is differentiated, the features summed
+//! `lookup_carried`); where nothing is differentiated, `host_lookup` sums the features
 //! as the corners are found (`features_on_host`).
 
 use super::layout::{GridConfig, Level, MAX_TOP_BONES};
@@ -63,14 +63,14 @@ pub struct Lookup {
 
 /// What the plan says about one point besides its feature rows.
 #[derive(Clone, Copy, Default)]
-struct PointSkin {
-    logits: [f32; MAX_TOP_BONES],
+pub(super) struct PointSkin {
+    pub(super) logits: [f32; MAX_TOP_BONES],
     logit_tangents: [[f32; 3]; MAX_TOP_BONES],
-    root_slot: Option<usize>,
-    root_rows: [u32; 8],
-    root_coefficients: [f32; 8],
+    pub(super) root_slot: Option<usize>,
+    pub(super) root_rows: [u32; 8],
+    pub(super) root_coefficients: [f32; 8],
     root_coefficient_tangents: [[f32; 3]; 8],
-    prior: f32,
+    pub(super) prior: f32,
     prior_tangent: [f32; 3],
     bones: [u32; MAX_TOP_BONES],
 }
@@ -165,7 +165,7 @@ fn plan(config: &GridConfig, levels: &[Level], frames: &[BoneFrame], skinning: S
 
 /// A bone's squared distance to a point: the true one (the capsule prior's) and the one the
 /// skinning weighs (`Skinning::distance_squared`), each with its world gradient.
-struct BoneDistance {
+pub(super) struct BoneDistance {
     bone: usize,
     d2: f32,
     gradient: [f32; 3],
@@ -177,9 +177,9 @@ struct BoneDistance {
 
 /// Buffers one thread reuses from point to point (a point's plan allocates nothing).
 #[derive(Default)]
-struct Scratch {
+pub(super) struct Scratch {
     /// The chosen bones' distances to the point, ascending by bone.
-    all: Vec<BoneDistance>,
+    pub(super) all: Vec<BoneDistance>,
     /// Every bone's skinning's squared distance while choosing: (distance, bone).
     nearest: Vec<(f32, usize)>,
     /// A softmax's weights and their world gradients.
@@ -219,9 +219,9 @@ fn softmax_with_gradient(out: &mut Vec<(f32, [f32; 3])>, terms: impl Iterator<It
 
 /// The trilinear cell around a point: its lowest vertex, and per corner (bit 0 the x side,
 /// bit 1 y, bit 2 z) its weight and the weight's world gradient (zero unless asked for).
-struct Cell {
+pub(super) struct Cell {
     base: [usize; 3],
-    weights: [f32; 8],
+    pub(super) weights: [f32; 8],
     gradients: [[f32; 3]; 8],
     /// The point's place in the cell along the bone's local axes, as `Carried` keeps it.
     fraction: [f32; 3],
@@ -318,7 +318,7 @@ fn plan_point(
 /// A point's skinning: the `top` nearest bones chosen (left, ascending by bone, at the head of
 /// `scratch.all`), their logits, the capsule prior and the root's preference corners, with
 /// their world gradients when `tangents` says.
-fn skin_point(config: &GridConfig, frames: &[BoneFrame], skinning: Skinning, point: [f32; 3], scratch: &mut Scratch, tangents: bool) -> PointSkin {
+pub(super) fn skin_point(config: &GridConfig, frames: &[BoneFrame], skinning: Skinning, point: [f32; 3], scratch: &mut Scratch, tangents: bool) -> PointSkin {
     // The skinning's squared distance to every bone segment first, and only then, for the `top`
     // nearest (a point is looked up in 3 of a human's 20 bones), the offset, its true distance and
     // their world gradients: the full record for every bone was a quarter of a render's lookups.
@@ -403,7 +403,7 @@ pub fn saturate(x: f32, cap: f32) -> (f32, f32) {
 /// cell)` with `k` the place of its first corner in the plan (bone, then level, then corner;
 /// an inactive level's 8 places are skipped, left at row 0 and weight 0), the weights' world
 /// gradients computed only when `TANGENTS`.
-fn visit_cells<const TANGENTS: bool>(
+pub(super) fn visit_cells<const TANGENTS: bool>(
     config: &GridConfig,
     levels: &[Level],
     frames: &[BoneFrame],
@@ -421,89 +421,5 @@ fn visit_cells<const TANGENTS: bool>(
             }
             k += 8;
         }
-    }
-}
-
-/// The features `[N, W]` and capsule prior of `points` straight from the table on the host, for
-/// points that need no gradient (the samples that search a ray for the body): the plan's
-/// skinning and corners and the fused op's weighted sum in one pass, so no plan is stored and
-/// read back. Per point `W + 1` values: its features, then its prior. `preference` is the root's
-/// preference grid (one logit per vertex) when the grid has one; `fade` weighs each level.
-#[allow(clippy::too_many_arguments)]
-pub fn features_on_host(
-    config: &GridConfig,
-    levels: &[Level],
-    frames: &[BoneFrame],
-    skinning: Skinning,
-    points: &[f32],
-    table: &[f32],
-    preference: Option<&[f32]>,
-    fade: &[f32],
-) -> Vec<f32> {
-    let (f, l) = (config.features, config.levels);
-    let w = l * f;
-    let n = points.len() / 3;
-    let mut out = vec![0.0f32; n * (w + 1)];
-    const CHUNK: usize = 64;
-    out.par_chunks_mut(CHUNK * (w + 1)).enumerate().for_each(|(chunk, out)| {
-        let mut scratch = Scratch::default();
-        let mut per_bone = vec![0.0f32; MAX_TOP_BONES * w];
-        for (k, out) in out.chunks_mut(w + 1).enumerate() {
-            let i = chunk * CHUNK + k;
-            let point = [points[3 * i], points[3 * i + 1], points[3 * i + 2]];
-            let skin = skin_point(config, frames, skinning, point, &mut scratch, false);
-            let chosen = &scratch.all[..config.top().min(scratch.all.len())];
-            per_bone.iter_mut().for_each(|v| *v = 0.0);
-            visit_cells::<false>(config, levels, frames, chosen, |k, level, rows, cell| {
-                // As the fused op sums: each coefficient times the level's fade, times the entry.
-                let sums = &mut per_bone[(k / 8) * f..(k / 8 + 1) * f];
-                for (&row, &weight) in rows.iter().zip(&cell.weights) {
-                    add_row(table, row as usize, weight * fade[level], sums);
-                }
-            });
-            // The skinning weights: a softmax of the logits plus the root's preference.
-            let mut logits = [0.0f32; MAX_TOP_BONES];
-            logits[..chosen.len()].copy_from_slice(&skin.logits[..chosen.len()]);
-            if let (Some(j), Some(preference)) = (skin.root_slot, preference) {
-                let value: f32 =
-                    skin.root_rows.iter().zip(&skin.root_coefficients).map(|(&r, &c)| c * preference.get(r as usize).copied().unwrap_or(f32::NAN)).sum();
-                logits[j] += value;
-            }
-            let logits = &mut logits[..chosen.len()];
-            let max = logits.iter().copied().fold(f32::NEG_INFINITY, f32::max);
-            logits.iter_mut().for_each(|v| *v = (*v - max).exp());
-            let total: f32 = logits.iter().sum();
-            let (features, prior) = out.split_at_mut(w);
-            for (j, &e) in logits.iter().enumerate() {
-                let weight = e / total;
-                features.iter_mut().zip(&per_bone[j * w..(j + 1) * w]).for_each(|(o, v)| *o += weight * v);
-            }
-            prior[0] = skin.prior;
-        }
-    });
-    out
-}
-
-/// Adds `coefficient` times table row `row` (`sums.len()` features wide) to `sums`: the one
-/// weighted sum of the planned op and of the one-pass lookup. A row outside the table (never
-/// planned) reads NaN, so it cannot pass unseen.
-#[inline]
-pub(super) fn add_row(table: &[f32], row: usize, coefficient: f32, sums: &mut [f32]) {
-    // Two features per entry (the default grid, as instant-NGP's) on a path of its own: the
-    // general one's loop and slice cost as much as the sum itself there.
-    if let [s0, s1] = sums {
-        match table.get(2 * row..2 * row + 2) {
-            Some(&[t0, t1]) => {
-                *s0 += coefficient * t0;
-                *s1 += coefficient * t1;
-            }
-            _ => (*s0, *s1) = (f32::NAN, f32::NAN),
-        }
-        return;
-    }
-    let start = row * sums.len();
-    match table.get(start..start + sums.len()) {
-        Some(entry) => sums.iter_mut().zip(entry).for_each(|(o, t)| *o += coefficient * t),
-        None => sums.iter_mut().for_each(|o| *o = f32::NAN),
     }
 }

@@ -12,6 +12,7 @@
 
 mod config;
 pub mod grid;
+pub mod host_lookup;
 pub mod interpolate;
 pub mod layout;
 pub mod lookup;

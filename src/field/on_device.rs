@@ -56,24 +56,26 @@ fn block_weight(plan: &Plan, block: usize) -> impl Fn(usize) -> f32 + '_ {
 /// The planned weighted sums (`[output_rows, W]`) of `table` (`[T, F]`).
 pub fn forward<B: Backend>(table: FloatTensor<B>, plan: &Plan) -> FloatTensor<B> {
     let device = table.device();
+    if plan.points == 0 {
+        return B::float_zeros(Shape::new([0, plan.levels * plan.features]), &device, FloatDType::F32);
+    }
     let gathered = B::float_select(table, 0, rows::<B>(plan, &device));
-    let blocks = plan.output_rows() / plan.points;
-    let sums = (0..blocks).map(|b| weighted_sum::<B>(gathered.clone(), faded::<B>(plan, block_weight(plan, b), &device), plan)).collect();
+    let sums = (0..plan.blocks()).map(|b| weighted_sum::<B>(gathered.clone(), faded::<B>(plan, block_weight(plan, b), &device), plan)).collect();
     B::float_cat(sums, 0)
 }
 
 /// The table's gradient (`[table_rows, F]`) from the output's (`[output_rows, W]`).
 pub fn backward<B: Backend>(grad: FloatTensor<B>, plan: &Plan, table_rows: usize) -> FloatTensor<B> {
     let device = grad.device();
-    let blocks = plan.output_rows() / plan.points;
-    let contributions = (0..blocks)
-        .map(|b| {
-            let weights = B::float_expand(faded::<B>(plan, block_weight(plan, b), &device), Shape::new([plan.rows.len(), plan.features]));
-            B::float_mul(per_corner::<B>(grad.clone(), b, plan), weights)
-        })
-        .reduce(B::float_add)
-        .expect("a plan has a block of values");
     let zeros = B::float_zeros(Shape::new([table_rows, plan.features]), &device, FloatDType::F32);
+    if plan.points == 0 {
+        return zeros;
+    }
+    let contribution = |b: usize| {
+        let weights = B::float_expand(faded::<B>(plan, block_weight(plan, b), &device), Shape::new([plan.rows.len(), plan.features]));
+        B::float_mul(per_corner::<B>(grad.clone(), b, plan), weights)
+    };
+    let contributions = (1..plan.blocks()).fold(contribution(0), |sum, b| B::float_add(sum, contribution(b)));
     B::float_select_assign(zeros, 0, rows::<B>(plan, &device), contributions, IndexingUpdateOp::Add)
 }
 
@@ -81,7 +83,7 @@ pub fn backward<B: Backend>(grad: FloatTensor<B>, plan: &Plan, table_rows: usize
 /// against the output's gradient, times its faded world derivative (`Carried::per_corner`).
 pub fn shift_backward<B: Backend>(grad: FloatTensor<B>, table: FloatTensor<B>, plan: &Plan) -> FloatTensor<B> {
     let device = grad.device();
-    let Some(carried) = &plan.carried else {
+    let Some(carried) = plan.carried.as_ref().filter(|_| plan.points > 0) else {
         return B::float_zeros(Shape::new([plan.points, 3]), &device, FloatDType::F32);
     };
     let gathered = B::float_select(table, 0, rows::<B>(plan, &device));
@@ -93,35 +95,7 @@ pub fn shift_backward<B: Backend>(grad: FloatTensor<B>, table: FloatTensor<B>, p
     B::float_reshape(summed, Shape::new([plan.points, 3]))
 }
 
+// On a device the plan goes up and the sums run there; the lookup without gradients, a host
+// algorithm, still brings the table down.
 #[cfg(feature = "gpu")]
-mod device_ops {
-    use super::super::interpolate::{GridOps, HostLookup, Plan};
-    use super::{backward, forward, shift_backward};
-    use burn::backend::tensor::FloatTensor;
-    use burn::backend::Cube;
-    use std::sync::Arc;
-
-    /// On a device the plan goes up and the sums run there; the lookup without
-    /// gradients, a host algorithm, still brings the table down.
-    impl GridOps for Cube {
-        fn grid_interpolate(table: FloatTensor<Self>, plan: Arc<Plan>) -> FloatTensor<Self> {
-            forward::<Self>(table, &plan)
-        }
-
-        fn grid_interpolate_carrying(table: FloatTensor<Self>, _shift: FloatTensor<Self>, plan: Arc<Plan>) -> FloatTensor<Self> {
-            forward::<Self>(table, &plan)
-        }
-
-        fn grid_shift_backward(grad: FloatTensor<Self>, table: FloatTensor<Self>, plan: Arc<Plan>) -> FloatTensor<Self> {
-            shift_backward::<Self>(grad, table, &plan)
-        }
-
-        fn grid_interpolate_backward(grad: FloatTensor<Self>, plan: Arc<Plan>, table_rows: usize) -> FloatTensor<Self> {
-            backward::<Self>(grad, &plan, table_rows)
-        }
-
-        fn grid_lookup(table: FloatTensor<Self>, preference: FloatTensor<Self>, lookup: Arc<HostLookup>) -> FloatTensor<Self> {
-            lookup.run::<Self>(table, preference)
-        }
-    }
-}
+super::interpolate::grid_ops!(burn::backend::Cube, forward::<burn::backend::Cube>, backward::<burn::backend::Cube>, shift_backward::<burn::backend::Cube>);
