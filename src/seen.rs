@@ -1,5 +1,5 @@
 //! Which points of a surface a set of cameras sees: the surface rasterised into a depth buffer
-//! per camera at `OVERSAMPLE` times its resolution (depth interpolated as 1/z across each
+//! per camera at `OVERSAMPLE` times its resolution (at most `MOST_BUFFER_SIDE`; depth interpolated as 1/z across each
 //! triangle, as perspective does). A point is seen by a camera when it faces the camera, lands
 //! in its image and lies no more than `TOLERANCE` buffer pixels' footprints behind the nearest
 //! surface there (a point on a slanted triangle is off its pixel's centre, where the buffer
@@ -9,29 +9,60 @@
 use crate::isosurface::Mesh;
 use crate::scene::{Camera, Scene, Split};
 use crate::skeleton::{skin_direction, skin_point, skin_points};
-use glam::{DMat4, DVec2, DVec3};
+use glam::{DMat3, DMat4, DVec2, DVec3};
+use rayon::prelude::*;
 
 /// Buffer pixels per image pixel, along each side.
 pub const OVERSAMPLE: usize = 4;
+/// The longest side of a depth buffer (pixels): a capture's images larger than this over
+/// `OVERSAMPLE` are rasterised at less than `OVERSAMPLE` times their size, so a 1024-pixel
+/// capture's 240 buffers take 250 MB, not 16 GB.
+pub const MOST_BUFFER_SIDE: usize = 512;
 /// How far (buffer pixels' footprints at the point's depth) a seen point may lie behind the
 /// buffer's nearest surface: a surface at 80 degrees to the view moves 2.8 footprints in depth
 /// across half a pixel.
 pub const TOLERANCE: f64 = 3.0;
 
+/// A camera's map from the world to its pixels, with its rotation inverted once
+/// (`Camera::project` inverts it at every call): what rasterising and testing a whole mesh
+/// against a camera repeat hundreds of thousands of times.
+struct Pinhole {
+    to_camera: DMat3,
+    centre: DVec3,
+    camera: Camera,
+}
+
+impl Pinhole {
+    fn new(camera: Camera) -> Self {
+        Self { to_camera: DMat3::from_mat4(camera.camera_to_world).inverse(), centre: camera.centre(), camera }
+    }
+
+    /// A world point's depth along the optical axis and its continuous pixel position (of no
+    /// meaning where the depth is not positive).
+    fn depth_and_pixel(&self, world: DVec3) -> (f64, DVec2) {
+        let c = self.to_camera * (world - self.centre);
+        let camera = &self.camera;
+        (c.z, DVec2::new(camera.fx * c.x / c.z + camera.cx, camera.fy * c.y / c.z + camera.cy))
+    }
+}
+
 /// The depth buffers of one surface, one per camera.
 pub struct Seen {
-    views: Vec<(Camera, Vec<f64>)>,
+    views: Vec<(Pinhole, Vec<f32>)>,
 }
 
 impl Seen {
-    /// `mesh` rasterised into every camera (at `OVERSAMPLE` times its resolution).
+    /// `mesh` rasterised into every camera (at `OVERSAMPLE` times its resolution, at most
+    /// `MOST_BUFFER_SIDE`), the cameras on every thread.
     pub fn new(mesh: &Mesh, cameras: &[Camera]) -> Self {
         let views = cameras
-            .iter()
+            .par_iter()
             .map(|camera| {
-                let camera = camera.resized(camera.width * OVERSAMPLE, camera.height * OVERSAMPLE);
-                let depth = depth_buffer(mesh, &camera);
-                (camera, depth)
+                let scale = (OVERSAMPLE as f64).min(MOST_BUFFER_SIDE as f64 / camera.width.max(camera.height) as f64);
+                let size = |side: usize| ((side as f64 * scale).round() as usize).max(1);
+                let pinhole = Pinhole::new(camera.resized(size(camera.width), size(camera.height)));
+                let depth = depth_buffer(mesh, &pinhole);
+                (pinhole, depth)
             })
             .collect();
         Self { views }
@@ -39,16 +70,16 @@ impl Seen {
 
     /// Whether some camera sees the surface point `point` whose outward normal is `normal`.
     pub fn sees(&self, point: DVec3, normal: DVec3) -> bool {
-        self.views.iter().any(|(camera, depth)| {
-            if normal.dot(camera.centre() - point) <= 0.0 {
+        self.views.iter().any(|(pinhole, depth)| {
+            if normal.dot(pinhole.centre - point) <= 0.0 {
                 return false;
             }
-            let z = camera.to_camera(point).z;
-            let Some(p) = camera.project(point) else { return false };
-            if p.x < 0.0 || p.y < 0.0 || p.x >= camera.width as f64 || p.y >= camera.height as f64 {
+            let camera = &pinhole.camera;
+            let (z, p) = pinhole.depth_and_pixel(point);
+            if z <= 1e-12 || !(p.x >= 0.0 && p.y >= 0.0 && p.x < camera.width as f64 && p.y < camera.height as f64) {
                 return false;
             }
-            let nearest = depth[p.y as usize * camera.width + p.x as usize];
+            let nearest = depth[p.y as usize * camera.width + p.x as usize] as f64;
             z <= nearest + TOLERANCE * z / camera.fx.min(camera.fy)
         })
     }
@@ -64,16 +95,19 @@ impl SeenInFrames {
     /// `mesh` of `scene`'s frame `frame`, with its vertices' skinning weights `(bone, weight)`.
     pub fn new(mesh: &Mesh, skinning: &[Vec<(usize, f32)>], scene: &Scene, frame: usize) -> Self {
         let from = &scene.frames[frame].pose;
-        let mut frames = Vec::new();
-        for target in scene.training_frames() {
-            let moves = from.moves_to(&scene.frames[target].pose);
-            let moved = Mesh { vertices: skin_points(&mesh.vertices, skinning, &moves), triangles: mesh.triangles.clone() };
-            let mut cameras: Vec<usize> = scene.views_in(Split::Train).filter(|v| v.frame == target).map(|v| v.camera).collect();
-            cameras.sort_unstable();
-            cameras.dedup();
-            let cameras: Vec<Camera> = cameras.iter().map(|&c| scene.cameras[c].clone()).collect();
-            frames.push((moves, Seen::new(&moved, &cameras)));
-        }
+        let frames = scene
+            .training_frames()
+            .into_par_iter()
+            .map(|target| {
+                let moves = from.moves_to(&scene.frames[target].pose);
+                let moved = Mesh { vertices: skin_points(&mesh.vertices, skinning, &moves), triangles: mesh.triangles.clone() };
+                let mut cameras: Vec<usize> = scene.views_in(Split::Train).filter(|v| v.frame == target).map(|v| v.camera).collect();
+                cameras.sort_unstable();
+                cameras.dedup();
+                let cameras: Vec<Camera> = cameras.iter().map(|&c| scene.cameras[c].clone()).collect();
+                (moves, Seen::new(&moved, &cameras))
+            })
+            .collect();
         Self { frames }
     }
 
@@ -86,16 +120,17 @@ impl SeenInFrames {
 
 /// The depth (along the optical axis) of the nearest triangle at each pixel's centre; infinity
 /// where none lies. Triangles reaching behind the camera are left out (a body is in front).
-fn depth_buffer(mesh: &Mesh, camera: &Camera) -> Vec<f64> {
-    let (w, h) = (camera.width, camera.height);
-    let mut depth = vec![f64::INFINITY; w * h];
+/// Each vertex is projected once, not once per triangle it corners.
+fn depth_buffer(mesh: &Mesh, pinhole: &Pinhole) -> Vec<f32> {
+    let (w, h) = (pinhole.camera.width, pinhole.camera.height);
+    let projected: Vec<(f64, DVec2)> = mesh.vertices.iter().map(|&v| pinhole.depth_and_pixel(v)).collect();
+    let mut depth = vec![f32::INFINITY; w * h];
     for triangle in &mesh.triangles {
-        let corners = triangle.map(|v| mesh.vertices[v]);
-        let z = corners.map(|c| camera.to_camera(c).z);
+        let corners = triangle.map(|v| projected[v]);
+        let (z, p) = (corners.map(|c| c.0), corners.map(|c| c.1));
         if z.iter().any(|&z| z <= 1e-9) {
             continue;
         }
-        let Some(p) = corners.iter().map(|&c| camera.project(c)).collect::<Option<Vec<DVec2>>>() else { continue };
         let area = edge(p[0], p[1], p[2]);
         if area.abs() < 1e-18 {
             continue;
@@ -115,7 +150,7 @@ fn depth_buffer(mesh: &Mesh, camera: &Camera) -> Vec<f64> {
                 if b.iter().any(|&b| b < 0.0) {
                     continue;
                 }
-                let at = 1.0 / (b[0] / z[0] + b[1] / z[1] + b[2] / z[2]);
+                let at = (1.0 / (b[0] / z[0] + b[1] / z[1] + b[2] / z[2])) as f32;
                 let cell = &mut depth[y * w + x];
                 *cell = cell.min(at);
             }

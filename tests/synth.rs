@@ -394,3 +394,38 @@ fn anti_aliased_captures_average_each_pixel_and_are_recognised() {
     let example = Scene::load(&std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/examples/quadruped-tiny")).unwrap();
     assert_eq!(example.footprint().footprint, umbra::scene::Footprint::Area, "{:?}", example.footprint());
 }
+
+#[test]
+fn each_relighting_light_can_see_the_novel_pose_views() {
+    // Three test frames seen by two cameras each: six novel-pose views.
+    let base = SynthOptions { cameras: 4, test_frames: 3, meshes: false, ..tiny(Kind::Human, TrainingLight::Sun) };
+    let pose_views = |plan: &umbra::synth::Plan| -> Vec<(usize, usize)> {
+        plan.views.iter().filter(|v| v.split == umbra::scene::Split::Test && v.light == "sun" && v.frame >= 2).map(|v| (v.camera, v.frame)).collect()
+    };
+    let relit = |plan: &umbra::synth::Plan, light: &str| -> Vec<(usize, usize)> {
+        plan.views.iter().filter(|v| v.light == light).map(|v| (v.camera, v.frame)).collect()
+    };
+    let one = base.plan().unwrap();
+    assert_eq!(pose_views(&one).len(), 6);
+    for light in ["sun2", "lamp", "sky"] {
+        assert_eq!(relit(&one, light).len(), 1, "{light}: one view by default");
+    }
+    for asked in [4, 6, 50] {
+        let plan = SynthOptions { relit_views: asked, ..base.clone() }.plan().unwrap();
+        assert_eq!(pose_views(&plan), pose_views(&one), "the novel-pose views do not change");
+        for light in ["sun2", "lamp", "sky"] {
+            let views = relit(&plan, light);
+            assert_eq!(views[0], relit(&one, light)[0], "{light}: the first view is the default's");
+            assert_eq!(views.len(), asked.min(6), "{light}: {views:?}");
+            let mut distinct = views.clone();
+            distinct.sort();
+            distinct.dedup();
+            assert_eq!(distinct.len(), views.len(), "{light}: no view twice");
+            assert!(views.iter().all(|v| pose_views(&plan).contains(v)), "{light}: {views:?} are novel-pose views");
+        }
+        let mut names: Vec<&str> = plan.views.iter().map(|v| v.name.as_str()).collect();
+        names.sort();
+        assert!(names.windows(2).all(|w| w[0] != w[1]), "every image has a name of its own");
+    }
+    assert!(SynthOptions { relit_views: 0, ..base }.plan().is_err());
+}

@@ -10,7 +10,7 @@ use crate::plot::{Chart, Series};
 use crate::run::albedo_scale;
 use crate::scene::{Scene, Split};
 use crate::schedule::{FieldKind, Schedule};
-use crate::scoring::{light_error, score_view, TestKinds};
+use crate::scoring::{light_error, score_views, TestKinds};
 use crate::train::Trainer;
 use burn::module::Module;
 use std::path::{Path, PathBuf};
@@ -76,7 +76,7 @@ fn score(trainer: &Trainer, run: &str, kind: FieldKind, iteration: usize, train_
     let model = trainer.fitted_model()?.valid();
     let device = trainer.device.clone().without_autodiff();
     let scale = albedo_scale(scene, &model);
-    let scored: Vec<_> = views.iter().map(|v| score_view(&model, scene, v, &Lighting::Fitted(0), scale, &device)).collect();
+    let scored: Vec<_> = views.iter().flat_map(|v| score_views(&model, scene, &[v], &[Lighting::Fitted(0)], scale, &device)).collect();
     let mean = |f: &dyn Fn(&crate::scoring::ScoredView) -> Option<f64>| {
         let values: Vec<f64> = scored.iter().filter_map(f).collect();
         (!values.is_empty()).then(|| values.iter().sum::<f64>() / values.len() as f64)

@@ -27,15 +27,16 @@ mod strata;
 mod surface;
 mod view;
 
-pub use view::render_view_layers;
+pub use view::{render_view_layers, render_view_lights};
 
-pub use surface::{frame_surface, surface_mesh};
+pub use surface::{coloured_frame_surface, frame_surface, surface_mesh, vertex_albedo_and_normals};
 
 fn values<const D: usize>(t: Tensor<D>) -> Vec<f32> {
     crate::backend::host_values(t)
 }
 
 /// The light a view is rendered in.
+#[derive(Clone, Copy)]
 pub enum Lighting<'a> {
     /// Fitted training light `k` (the albedo, for a uniformly lit fit).
     Fitted(usize),
@@ -82,6 +83,13 @@ pub fn render_view(model: &Avatar, scene: &Scene, camera: usize, frame: usize, s
 /// image is background: the image is the body over black, its colour premultiplied by it).
 pub struct ViewLayers {
     pub image: RgbImage,
+    pub albedo: Option<RgbImage>,
+    pub coverage: Vec<f32>,
+}
+
+/// `ViewLayers` of a view rendered in several lights (`render_view_lights`): an image per light.
+pub struct LitLayers {
+    pub images: Vec<RgbImage>,
     pub albedo: Option<RgbImage>,
     pub coverage: Vec<f32>,
 }
@@ -184,13 +192,17 @@ pub fn surfels(model: &Avatar, scene: &Scene, camera: usize, frame: usize, sampl
     out
 }
 
-/// What a ray through a view brings back: its shaded colour, its albedo (scaled; zero when not
-/// asked for) and its coverage.
+/// The most lights a view's one trace is shaded in (`render_view_lights` traces again for more):
+/// a test set's view is seen in a few (the training light, a second sun, a lamp, a sky).
+pub const LIGHTS_PER_TRACE: usize = 4;
+
+/// What a ray through a view brings back: its shaded colour in each light of the view (zero
+/// past the view's lights), its albedo (scaled; zero when not asked for) and its coverage.
 #[derive(Clone, Copy, Default)]
 pub(super) struct Traced {
-    pub(super) colour: [f32; 3],
+    pub(super) colours: [[f32; 3]; LIGHTS_PER_TRACE],
     pub(super) albedo: [f32; 3],
-    /// The fitted albedo as composited along the ray (unscaled, weighted by the coverage): the
+    /// The fitted albedo as composited along the ray (unscaled, weighted by the coverage): each
     /// colour is it times a shading term that does not depend on it (every light is Lambertian).
     pub(super) raw: [f32; 3],
     pub(super) coverage: f32,

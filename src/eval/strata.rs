@@ -3,7 +3,7 @@
 //! `silhouette_window`), and their 3 x 3 strata interpolated from the centres around them or
 //! averaged (`strata_from_centres`, `strata_mean`).
 
-use super::{Traced, TRACE_CHUNK, VIEW_PIXEL_RAYS};
+use super::{Traced, LIGHTS_PER_TRACE, TRACE_CHUNK, VIEW_PIXEL_RAYS};
 use crate::avatar::Avatar;
 use crate::skeleton::PoseTensors;
 use burn::tensor::{Device, Tensor, TensorData};
@@ -99,7 +99,7 @@ pub(super) const SIDE_CORNERS: [(usize, usize); 4] = [(0, 1), (0, 2), (1, 3), (2
 pub(super) fn midway(a: &Traced, b: &Traced) -> Traced {
     let mean = |x: [f32; 3], y: [f32; 3]| [0, 1, 2].map(|c| 0.5 * (x[c] + y[c]));
     Traced {
-        colour: mean(a.colour, b.colour),
+        colours: std::array::from_fn(|light| mean(a.colours[light], b.colours[light])),
         albedo: mean(a.albedo, b.albedo),
         raw: mean(a.raw, b.raw),
         coverage: 0.5 * (a.coverage + b.coverage),
@@ -112,8 +112,8 @@ pub(super) fn midway(a: &Traced, b: &Traced) -> Traced {
 pub(super) const STRATA_AGREE: f32 = 1.0 / 255.0;
 
 /// Whether a refined pixel's sides may be taken from its corners: its centre ray and four
-/// corner rays agree on coverage within an 8-bit step, and its colour (and albedo, when it is
-/// rendered) is bilinear over the pixel to within `STRATA_AGREE`: the centre lies that close
+/// corner rays agree on coverage within an 8-bit step, and its colour in every light (and its
+/// albedo, when it is rendered) is bilinear over the pixel to within `STRATA_AGREE`: the centre lies that close
 /// to the corners' mean. A ramp (a shading gradient, a blurred border) passes; a straight
 /// sharp edge (a silhouette, a checker's border, a shadow's) that crosses any of the 3 x 3
 /// strata does not: it splits the corners from each other (one from three leaves the centre
@@ -124,7 +124,7 @@ pub(super) fn strata_agree(centre: &Traced, corners: &[Traced], albedo: bool) ->
     let bilinear = |of: &dyn Fn(&Traced) -> [f32; 3]| {
         (0..3).all(|c| (srgb(of(centre)[c]) - corners.iter().map(|t| srgb(of(t)[c])).sum::<f32>() / corners.len() as f32).abs() <= STRATA_AGREE)
     };
-    hi - lo <= 1.0 / 255.0 && bilinear(&|t| t.colour) && (!albedo || bilinear(&|t| t.albedo))
+    hi - lo <= 1.0 / 255.0 && (0..LIGHTS_PER_TRACE).all(|light| bilinear(&|t| t.colours[light])) && (!albedo || bilinear(&|t| t.albedo))
 }
 
 /// A refined pixel as the mean of its 3 x 3 strata: the centre, the corners and the sides'
@@ -141,11 +141,12 @@ pub(super) fn strata_mean(centre: &Traced, corners: &[Traced], sides: Option<&[T
     };
     let ninth = 1.0 / 9.0;
     let strata = || std::iter::once(centre).chain(corners).chain(sides);
-    let mean = |of: fn(&Traced) -> [f32; 3]| strata().fold([0.0f32; 3], |a, t| [a[0] + of(t)[0] * ninth, a[1] + of(t)[1] * ninth, a[2] + of(t)[2] * ninth]);
+    let mean =
+        |of: &dyn Fn(&Traced) -> [f32; 3]| strata().fold([0.0f32; 3], |a, t| [a[0] + of(t)[0] * ninth, a[1] + of(t)[1] * ninth, a[2] + of(t)[2] * ninth]);
     Traced {
-        colour: mean(|t| t.colour),
-        albedo: mean(|t| t.albedo),
-        raw: mean(|t| t.raw),
+        colours: std::array::from_fn(|light| mean(&|t| t.colours[light])),
+        albedo: mean(&|t| t.albedo),
+        raw: mean(&|t| t.raw),
         coverage: strata().map(|t| t.coverage * ninth).sum(),
         depth: centre.depth,
     }
@@ -240,13 +241,13 @@ pub(super) fn quadrant_interpolates(pixels: &[Traced], w: usize, h: usize, p: us
 
 /// Stratum `offset` (within the pixel, `[0, 1)^2`) of pixel `p` from the centres around it:
 /// the four centres of its quadrant, bilinearly, give its depth, coverage and shading term
-/// (colour over albedo, per channel). Returns `(depth, coverage, shading)`.
-pub(super) fn stratum_from_centres(pixels: &[Traced], w: usize, p: usize, offset: [f64; 2]) -> (f32, f32, [f32; 3]) {
+/// (colour over albedo, per channel, in each light). Returns `(depth, coverage, shading)`.
+pub(super) fn stratum_from_centres(pixels: &[Traced], w: usize, p: usize, offset: [f64; 2]) -> (f32, f32, [[f32; 3]; LIGHTS_PER_TRACE]) {
     // A centre of zero weight is never read: it may lie outside the image.
     let corners: Vec<(&Traced, f32)> =
         quadrant(offset).into_iter().filter(|&(_, k)| k > 0.0).map(|((dx, dy), k)| (&pixels[(p as isize + dy * w as isize + dx) as usize], k)).collect();
     let blend = |of: &dyn Fn(&Traced) -> f32| corners.iter().map(|(t, k)| of(t) * k).sum::<f32>();
-    let shading = [0, 1, 2].map(|c| blend(&|t| t.colour[c] / t.raw[c]));
+    let shading = std::array::from_fn(|light| [0, 1, 2].map(|c| blend(&|t| t.colours[light][c] / t.raw[c])));
     (blend(&|t| t.depth), blend(&|t| t.coverage), shading)
 }
 
@@ -269,7 +270,7 @@ pub(super) fn strata_from_centres(
     albedo_scale: Option<DVec3>,
     device: &Device,
 ) -> Vec<Traced> {
-    let located: Vec<(f32, f32, [f32; 3], DVec3)> = at
+    let located: Vec<(f32, f32, [[f32; 3]; LIGHTS_PER_TRACE], DVec3)> = at
         .iter()
         .map(|&(p, s)| {
             let offset = offsets[s];
@@ -295,7 +296,7 @@ pub(super) fn strata_from_centres(
         .map(|(j, &(depth, coverage, shading, _))| {
             let raw = [0, 1, 2].map(|c| albedos.get(3 * j + c).copied().unwrap_or(f32::NAN) * coverage);
             Traced {
-                colour: [0, 1, 2].map(|c| raw[c] * shading[c]),
+                colours: shading.map(|shading| [0, 1, 2].map(|c| raw[c] * shading[c])),
                 albedo: scale.map_or([0.0; 3], |s| [0, 1, 2].map(|c| raw[c] * s[c])),
                 raw,
                 coverage,
@@ -325,7 +326,7 @@ mod tests {
             .iter()
             .map(|o| {
                 let v = image(o[0], o[1]);
-                Traced { colour: [v; 3], albedo: [v; 3], raw: [v; 3], coverage: 1.0, depth: 1.0 }
+                Traced { colours: [[v; 3]; LIGHTS_PER_TRACE], albedo: [v; 3], raw: [v; 3], coverage: 1.0, depth: 1.0 }
             })
             .collect()
     }
@@ -333,7 +334,7 @@ mod tests {
     #[test]
     fn the_corners_stand_for_the_sides_on_ramps_and_never_across_a_straight_edge() {
         let pick = |s: &[Traced], which: &[usize]| which.iter().map(|&k| s[k]).collect::<Vec<_>>();
-        let nine_mean = |s: &[Traced]| s.iter().map(|t| t.colour[0]).sum::<f32>() / 9.0;
+        let nine_mean = |s: &[Traced]| s.iter().map(|t| t.colours[0][0]).sum::<f32>() / 9.0;
         // A bilinear ramp (dim, where sRGB is steepest, and bright): the five agree and give the
         // nine strata's mean.
         for (base, slope) in [(0.02f32, 0.01f32), (0.4, 0.2)] {
@@ -342,9 +343,9 @@ mod tests {
             let corners = pick(&s, &CORNER_STRATA);
             assert!(strata_agree(&s[4], &corners, true), "ramp {base} {slope}");
             let mean = strata_mean(&s[4], &corners, None);
-            assert!((mean.colour[0] - nine_mean(&s)).abs() < 1e-6, "{} against {}", mean.colour[0], nine_mean(&s));
+            assert!((mean.colours[0][0] - nine_mean(&s)).abs() < 1e-6, "{} against {}", mean.colours[0][0], nine_mean(&s));
             let traced = strata_mean(&s[4], &corners, Some(&pick(&s, &SIDE_STRATA)));
-            assert!((traced.colour[0] - mean.colour[0]).abs() < 1e-6 && (traced.coverage - 1.0).abs() < 1e-6);
+            assert!((traced.colours[0][0] - mean.colours[0][0]).abs() < 1e-6 && (traced.coverage - 1.0).abs() < 1e-6);
         }
         // Any straight edge of a few 8-bit steps' contrast that splits the nine strata is seen by
         // the centre and corners: lines at 64 angles, through 64 offsets across the pixel.
@@ -357,7 +358,7 @@ mod tests {
                 let offset = -0.75 + 1.5 * o as f64 / 63.0;
                 let edge = |x: f64, y: f64| if (x - 0.5) * nx + (y - 0.5) * ny > offset { light } else { dark };
                 let s = strata(&edge);
-                if s.iter().all(|t| t.colour[0] == s[0].colour[0]) {
+                if s.iter().all(|t| t.colours[0][0] == s[0].colours[0][0]) {
                     continue;
                 }
                 split += 1;
@@ -381,7 +382,7 @@ mod tests {
                 .map(|p| {
                     let (x, y) = (p % w, p / w);
                     let coverage = if covered(x, y) { 1.0 } else { 0.0 };
-                    Traced { colour: [0.5; 3], albedo: [0.5; 3], raw: [0.5; 3], coverage, depth: 2.0 + slope * 0.02 * x as f32 }
+                    Traced { colours: [[0.5; 3]; LIGHTS_PER_TRACE], albedo: [0.5; 3], raw: [0.5; 3], coverage, depth: 2.0 + slope * 0.02 * x as f32 }
                 })
                 .collect()
         };
@@ -440,7 +441,13 @@ mod tests {
             .map(|p| {
                 let (depth, coverage, shading) = value((p % w) as f64, (p / w) as f64);
                 let raw = [0.4f32, 0.6, 0.2];
-                Traced { colour: [0, 1, 2].map(|c| raw[c] * shading[c] as f32), albedo: raw, raw, coverage: coverage as f32, depth: depth as f32 }
+                Traced {
+                    colours: [[0, 1, 2].map(|c| raw[c] * shading[c] as f32); LIGHTS_PER_TRACE],
+                    albedo: raw,
+                    raw,
+                    coverage: coverage as f32,
+                    depth: depth as f32,
+                }
             })
             .collect();
         let p = 2 * w + 2;
@@ -449,7 +456,7 @@ mod tests {
             let (d, c, s) = value(2.0 + offset[0] - 0.5, 2.0 + offset[1] - 0.5);
             assert!((depth as f64 - d).abs() < 1e-5 && (coverage as f64 - c).abs() < 1e-5, "{offset:?}: {depth} {d}, {coverage} {c}");
             for k in 0..3 {
-                assert!((shading[k] as f64 - s[k]).abs() < 1e-5, "{offset:?}: {shading:?} {s:?}");
+                assert!((shading[0][k] as f64 - s[k]).abs() < 1e-5, "{offset:?}: {shading:?} {s:?}");
             }
         }
         // Its shading is read off its neighbours only where each has some albedo in every

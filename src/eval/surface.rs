@@ -16,16 +16,8 @@ const BISECTIONS: usize = 10;
 const CHUNK: usize = 1 << 15;
 
 /// The fitted surface in one pose (`bones`: the posed bones' box; `extent`: the body's, from
-/// `Scene::body_extent`), with per-vertex albedo (times `scale`) and unit normals.
-#[allow(clippy::type_complexity)]
-pub fn surface_mesh(
-    model: &Avatar,
-    pose: &PoseTensors,
-    bones: (DVec3, DVec3),
-    extent: f64,
-    scale: DVec3,
-    device: &Device,
-) -> Result<(Mesh, Vec<DVec3>, Vec<DVec3>), FitError> {
+/// `Scene::body_extent`).
+pub fn surface_mesh(model: &Avatar, pose: &PoseTensors, bones: (DVec3, DVec3), extent: f64, device: &Device) -> Result<Mesh, FitError> {
     // As far as the field's grids reach (a loose body's root farther), so no surface the field
     // can hold is cut, at their finest cell.
     let (reach, cell) = model.field.surface_reach_and_cell(extent);
@@ -42,12 +34,23 @@ pub fn surface_mesh(
             }
         })
     });
-    if let Some(e) = failed {
-        return Err(e);
+    match failed {
+        Some(e) => Err(e),
+        None => Ok(mesh),
     }
-    let mut colours = Vec::with_capacity(mesh.vertices.len());
-    let mut normals = Vec::with_capacity(mesh.vertices.len());
-    for chunk in mesh.vertices.chunks(CHUNK) {
+}
+
+/// The fitted albedo (times `scale`) and the unit normal at each of a posed surface's vertices.
+pub fn vertex_albedo_and_normals(
+    model: &Avatar,
+    pose: &PoseTensors,
+    vertices: &[DVec3],
+    scale: DVec3,
+    device: &Device,
+) -> Result<(Vec<DVec3>, Vec<DVec3>), FitError> {
+    let mut colours = Vec::with_capacity(vertices.len());
+    let mut normals = Vec::with_capacity(vertices.len());
+    for chunk in vertices.chunks(CHUNK) {
         let points = tensor(chunk, device);
         let albedo = read(model.field.forward(points.clone(), pose).albedo, 3 * chunk.len())?;
         let (_, gradient) = model.field.sdf_and_gradient(points, pose);
@@ -57,31 +60,38 @@ pub fn surface_mesh(
             normals.push(DVec3::new(g[0] as f64, g[1] as f64, g[2] as f64).normalize_or(DVec3::Y));
         }
     }
-    Ok((mesh, colours, normals))
+    Ok((colours, normals))
 }
 
-/// A tensor's values, which must number `expected`.
-/// The fitted surface in `scene`'s frame `frame` (`surface_mesh`, colours times `scale`), cut
-/// to the frame's visual hull (`carve`): the mesh, its colours and normals, and what the cut
-/// removed.
-pub fn frame_surface(
+/// The fitted surface in `scene`'s frame `frame` (`surface_mesh`) cut to the frame's visual
+/// hull (`carve`): the mesh and what the cut removed.
+pub fn frame_surface(model: &Avatar, scene: &Scene, frame: usize, device: &Device) -> Result<(Mesh, crate::carve::Carved), FitError> {
+    let pose = &scene.frames[frame].pose;
+    let tensors = PoseTensors::new(pose, &scene.skeleton, device);
+    let mesh = surface_mesh(model, &tensors, pose.bounds(&scene.skeleton), scene.body_extent(), device)?;
+    // A pose without training images is judged in the training frames too, by its skinning.
+    let skinning: Option<Vec<Vec<(usize, f32)>>> = crate::carve::needs_skinning(scene, frame)
+        .then(|| mesh.vertices.iter().map(|v| model.field.skinning_weights(&tensors.frames, v.as_vec3().to_array())).collect());
+    let carved = crate::carve::carve(&mesh, scene, frame, skinning.as_deref());
+    Ok((carved.mesh.clone(), carved))
+}
+
+/// `frame_surface` with each kept vertex's albedo (times `scale`) and unit normal
+/// (`vertex_albedo_and_normals`): the mesh, its colours and normals, and what the cut removed.
+pub fn coloured_frame_surface(
     model: &Avatar,
     scene: &Scene,
     frame: usize,
     scale: DVec3,
     device: &Device,
 ) -> Result<(Mesh, Vec<DVec3>, Vec<DVec3>, crate::carve::Carved), FitError> {
-    let pose = &scene.frames[frame].pose;
-    let tensors = PoseTensors::new(pose, &scene.skeleton, device);
-    let (mesh, colours, normals) = surface_mesh(model, &tensors, pose.bounds(&scene.skeleton), scene.body_extent(), scale, device)?;
-    // A pose without training images is judged in the training frames too, by its skinning.
-    let skinning: Option<Vec<Vec<(usize, f32)>>> = crate::carve::needs_skinning(scene, frame)
-        .then(|| mesh.vertices.iter().map(|v| model.field.skinning_weights(&tensors.frames, v.as_vec3().to_array())).collect());
-    let carved = crate::carve::carve(&mesh, scene, frame, skinning.as_deref());
-    let (colours, normals) = (carved.keep(&colours), carved.keep(&normals));
-    Ok((carved.mesh.clone(), colours, normals, carved))
+    let (mesh, carved) = frame_surface(model, scene, frame, device)?;
+    let tensors = PoseTensors::new(&scene.frames[frame].pose, &scene.skeleton, device);
+    let (colours, normals) = vertex_albedo_and_normals(model, &tensors, &mesh.vertices, scale, device)?;
+    Ok((mesh, colours, normals, carved))
 }
 
+/// A tensor's values, which must number `expected`.
 fn read<const D: usize>(values: Tensor<D>, expected: usize) -> Result<Vec<f32>, FitError> {
     let values = crate::backend::to_host(values).map_err(|e| FitError::Input(format!("reading the field's output: {e}")))?;
     if values.len() != expected {
@@ -95,11 +105,10 @@ fn tensor(points: &[DVec3], device: &Device) -> Tensor<2> {
     Tensor::from_data(TensorData::new(flat, [points.len(), 3]), device)
 }
 
-/// The fitted SDF at world points, in chunks.
+/// The fitted SDF at world points, in chunks on every thread.
 fn sdf(model: &Avatar, pose: &PoseTensors, points: &[DVec3], device: &Device) -> Result<Vec<f32>, FitError> {
-    let mut out = Vec::with_capacity(points.len());
-    for chunk in points.chunks(CHUNK) {
-        out.extend(read(model.field.sdf(tensor(chunk, device), pose), chunk.len())?);
-    }
-    Ok(out)
+    use rayon::prelude::*;
+    let chunks: Vec<Vec<f32>> =
+        points.par_chunks(CHUNK).map(|chunk| read(model.field.sdf(tensor(chunk, device), pose), chunk.len())).collect::<Result<_, _>>()?;
+    Ok(chunks.concat())
 }

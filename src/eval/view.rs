@@ -8,22 +8,57 @@ use crate::scene::Camera;
 use crate::shading::FittedLight;
 use crate::shadow::tensor::GaussianTensors;
 
-/// A posed avatar seen through one camera in one light: what every ray of the view shares.
+/// What shading a view in one light needs besides its surface: the light, and the casters and
+/// sky sampler that light uses.
+struct Shader<'a> {
+    lighting: &'a Lighting<'a>,
+    fitted: &'a FittedLight,
+    casters: GaussianTensors,
+    /// Sky light per pixel: MIS of the map and the cosine lobe, each pixel its own stream.
+    sampler: Option<MisEstimator<'a>>,
+}
+
+impl<'a> Shader<'a> {
+    fn new(model: &'a Avatar, lighting: &'a Lighting<'a>, gaussians: &GaussianTensors, view_seed: u64) -> Self {
+        let fitted = match lighting {
+            Lighting::Fitted(k) => model.light_at(*k),
+            _ => &model.light,
+        };
+        let casters = fitted.shadow_casters(gaussians);
+        let sampler = match lighting {
+            Lighting::Known { light: Light::Environment { map, scale, .. }, samples, .. } => {
+                Some(MisEstimator::new(map, *scale, *samples, view_seed).with_shadow_start(model.light.shadow_start))
+            }
+            Lighting::Known { light: Light::Uniform { radiance }, samples, .. } => {
+                Some(MisEstimator::uniform(*radiance, *samples, view_seed).with_shadow_start(model.light.shadow_start))
+            }
+            _ => None,
+        };
+        Shader { lighting, fitted, casters, sampler }
+    }
+
+    fn needs_normals(&self, model: &Avatar) -> bool {
+        match self.lighting {
+            Lighting::Fitted(_) => model.light.kind != LightKind::Uniform,
+            Lighting::Albedo { .. } => false,
+            Lighting::Known { .. } => true,
+        }
+    }
+}
+
+/// A posed avatar seen through one camera in one or more lights (at most `LIGHTS_PER_TRACE`):
+/// what every ray of the view shares.
 struct View<'a> {
     model: &'a Avatar,
     camera: &'a Camera,
     device: &'a Device,
-    lighting: &'a Lighting<'a>,
+    shaders: Vec<Shader<'a>>,
     albedo_scale: Option<DVec3>,
     pose_tensors: PoseTensors,
     /// The posed Gaussians on the host, for `strata` and for the sky's shadows.
     posed: Vec<PosedGaussian>,
     gaussians: GaussianTensors,
-    fitted: &'a FittedLight,
-    casters: GaussianTensors,
     sky_casters: Vec<PosedGaussian>,
-    /// Sky light per pixel: MIS of the map and the cosine lobe, each pixel its own stream.
-    sampler: Option<MisEstimator<'a>>,
     needs_normals: bool,
 }
 
@@ -34,36 +69,21 @@ impl<'a> View<'a> {
         camera: usize,
         frame: usize,
         device: &'a Device,
-        lighting: &'a Lighting<'a>,
+        lightings: &'a [Lighting<'a>],
         albedo_scale: Option<DVec3>,
     ) -> Self {
         let pose = &scene.frames[frame].pose;
         let pose_tensors = crate::skeleton::PoseTensors::new(pose, &scene.skeleton, device);
         let posed = model.gaussians.to_set().pose(pose);
         let gaussians = model.gaussians.posed(&pose_tensors);
-        let fitted = match lighting {
-            Lighting::Fitted(k) => model.light_at(*k),
-            _ => &model.light,
-        };
-        let casters = fitted.shadow_casters(&gaussians);
-        let needs_normals = match lighting {
-            Lighting::Fitted(_) => model.light.kind != LightKind::Uniform,
-            Lighting::Albedo { .. } => false,
-            Lighting::Known { .. } => true,
-        };
+        // Every light's sky samples from the view's own stream: a view's render in a light does
+        // not depend on which other lights it is rendered in.
         let view_seed = (frame as u64) << 16 | camera as u64;
-        let sampler = match lighting {
-            Lighting::Known { light: Light::Environment { map, scale, .. }, samples, .. } => {
-                Some(MisEstimator::new(map, *scale, *samples, view_seed).with_shadow_start(model.light.shadow_start))
-            }
-            Lighting::Known { light: Light::Uniform { radiance }, samples, .. } => {
-                Some(MisEstimator::uniform(*radiance, *samples, view_seed).with_shadow_start(model.light.shadow_start))
-            }
-            _ => None,
-        };
+        let shaders: Vec<Shader> = lightings.iter().map(|lighting| Shader::new(model, lighting, &gaussians, view_seed)).collect();
+        let needs_normals = shaders.iter().any(|s| s.needs_normals(model));
         let sky_casters = model.light.shadow_casters_posed(&posed);
         let camera = &scene.cameras[camera];
-        View { model, camera, device, lighting, albedo_scale, pose_tensors, posed, gaussians, fitted, casters, sky_casters, sampler, needs_normals }
+        View { model, camera, device, shaders, albedo_scale, pose_tensors, posed, gaussians, sky_casters, needs_normals }
     }
 
     fn scaled(&self, albedo: Tensor<2>, scale: &DVec3) -> Tensor<2> {
@@ -71,17 +91,17 @@ impl<'a> View<'a> {
     }
 
     /// The colour `[N * 3]` of surface points of (premultiplied) fitted albedo `albedo` and unit
-    /// normals `normal` (when the light needs them) in the light asked for, each with its own
+    /// normals `normal` (when the light needs them) in `shader`'s light, each with its own
     /// stream id for the sky's samples.
-    fn shade_all(&self, albedo: Tensor<2>, surface: Tensor<2>, normal: Option<Tensor<2>>, ids: &[u64]) -> Vec<f32> {
+    fn shade_all(&self, shader: &Shader, albedo: Tensor<2>, surface: Tensor<2>, normal: Option<Tensor<2>>, ids: &[u64]) -> Vec<f32> {
         let model = self.model;
-        match (self.lighting, normal) {
-            (Lighting::Fitted(_), Some(normal)) => values(self.fitted.shade(albedo, surface, normal, &self.gaussians)),
+        match (shader.lighting, normal) {
+            (Lighting::Fitted(_), Some(normal)) => values(shader.fitted.shade(albedo, surface, normal, &self.gaussians)),
             (Lighting::Albedo { albedo_scale }, _) => values(self.scaled(albedo, albedo_scale)),
-            (Lighting::Known { light, albedo_scale, .. }, Some(normal)) => match (emitter(light, self.device), &self.sampler) {
+            (Lighting::Known { light, albedo_scale, .. }, Some(normal)) => match (emitter(light, self.device), &shader.sampler) {
                 (Some((emitter, ambient)), _) => {
                     let reflectance = self.scaled(albedo, albedo_scale);
-                    values(shade_lambertian(reflectance, surface, normal, &self.casters, ambient, &emitter, model.light.shadow_start, None))
+                    values(shade_lambertian(reflectance, surface, normal, &shader.casters, ambient, &emitter, model.light.shadow_start, None))
                 }
                 (None, Some(sampler)) => {
                     let points = vectors(values(surface));
@@ -99,29 +119,32 @@ impl<'a> View<'a> {
     /// Every light's colour is the albedo times the light it receives: a ray that carries no
     /// albedo (no sample of weight `albedo_floor` or more, `render_still`) is black under any
     /// light, so only the others are shaded (on a view, half its bounded rays miss the body).
-    /// `raw`: the albedo's values, `[N * 3]`.
-    fn shade(&self, albedo: Tensor<2>, raw: &[f32], surface: Tensor<2>, normal: Option<Tensor<2>>, ids: &[u64]) -> Vec<f32> {
+    /// `raw`: the albedo's values, `[N * 3]`. One `[N * 3]` colour per light of the view.
+    fn shade(&self, albedo: Tensor<2>, raw: &[f32], surface: Tensor<2>, normal: Option<Tensor<2>>, ids: &[u64]) -> Vec<Vec<f32>> {
         let lit: Vec<usize> = (0..ids.len()).filter(|&i| raw[3 * i..3 * i + 3].iter().any(|&a| a != 0.0)).collect();
         if lit.len() == ids.len() {
-            return self.shade_all(albedo, surface, normal, ids);
+            return self.shaders.iter().map(|shader| self.shade_all(shader, albedo.clone(), surface.clone(), normal.clone(), ids)).collect();
         }
-        let mut colour = vec![0.0f32; 3 * ids.len()];
+        let mut colours = vec![vec![0.0f32; 3 * ids.len()]; self.shaders.len()];
         if !lit.is_empty() {
             let index = crate::render::row_index(lit.iter().copied(), self.device);
             let pick = |t: Tensor<2>| t.select(0, index.clone());
             let lit_ids: Vec<u64> = lit.iter().map(|&i| ids[i]).collect();
-            let shaded = self.shade_all(pick(albedo), pick(surface), normal.map(pick), &lit_ids);
-            for (j, &i) in lit.iter().enumerate() {
-                colour[3 * i..3 * i + 3].copy_from_slice(shaded.get(3 * j..3 * j + 3).unwrap_or(&[f32::NAN; 3]));
+            let (albedo, surface, normal) = (pick(albedo), pick(surface), normal.map(pick));
+            for (shader, colour) in self.shaders.iter().zip(&mut colours) {
+                let shaded = self.shade_all(shader, albedo.clone(), surface.clone(), normal.clone(), &lit_ids);
+                for (j, &i) in lit.iter().enumerate() {
+                    colour[3 * i..3 * i + 3].copy_from_slice(shaded.get(3 * j..3 * j + 3).unwrap_or(&[f32::NAN; 3]));
+                }
             }
         }
-        colour
+        colours
     }
 
-    /// The colour, albedo (when asked) and coverage of rays through continuous pixel positions,
-    /// each with its own stream id for the sky's samples. A target may carry a window of
-    /// distances that holds its surface (`surface_window`): its ray is then sampled there only,
-    /// as `samples` says.
+    /// The colours, albedo (when asked) and coverage of rays through continuous pixel
+    /// positions, each with its own stream id for the sky's samples. A target may carry a
+    /// window of distances that holds its surface (`surface_window`): its ray is then sampled
+    /// there only, as `samples` says.
     fn trace(&self, targets: &[([f64; 2], u64)], windows: &[Option<(f64, f64)>], samples: Sampling) -> Vec<Traced> {
         // Chunks of a view on every thread (views are rendered several at once too; rayon
         // shares the threads between both levels), each chunk's samples its own.
@@ -144,7 +167,7 @@ impl<'a> View<'a> {
         };
         let ids: Vec<u64> = hit.iter().map(|&k| chunk[k].1).collect();
         let raw = values(deferred.albedo.clone());
-        let colour = self.shade(deferred.albedo.clone(), &raw, deferred.surface.clone(), deferred.normal.clone(), &ids);
+        let colours = self.shade(deferred.albedo.clone(), &raw, deferred.surface.clone(), deferred.normal.clone(), &ids);
         let coverage = values(deferred.accumulation.clone());
         let depth = values(deferred.depth.clone());
         let albedo = self.albedo_scale.as_ref().map(|scale| values(self.scaled(deferred.albedo.clone(), scale)));
@@ -153,7 +176,11 @@ impl<'a> View<'a> {
             .enumerate()
             .map(|(j, &k)| {
                 let albedo = albedo.as_ref().map_or([0.0; 3], |a| three(a, j));
-                (first + k, Traced { colour: three(&colour, j), albedo, raw: three(&raw, j), coverage: coverage[j], depth: depth[j] })
+                let mut each = [[0.0; 3]; LIGHTS_PER_TRACE];
+                for (light, colour) in colours.iter().enumerate() {
+                    each[light] = three(colour, j);
+                }
+                (first + k, Traced { colours: each, albedo, raw: three(&raw, j), coverage: coverage[j], depth: depth[j] })
             })
             .collect()
     }
@@ -176,42 +203,75 @@ pub fn render_view_layers(
     albedo_scale: Option<DVec3>,
     strata: Strata,
 ) -> ViewLayers {
-    let view = View::new(model, scene, camera, frame, device, lighting, albedo_scale);
-    let (w, h) = (view.camera.width, view.camera.height);
-    let centre = |p: usize| [(p % w) as f64 + 0.5, (p / w) as f64 + 0.5];
-    let mut pixels = view.trace(&(0..w * h).map(|p| (centre(p), p as u64)).collect::<Vec<_>>(), &[], samples);
-    // A capture whose pixels average their area: every pixel that may hold an edge is the mean
-    // of the centres of its 3 x 3 strata instead (`needs_area`); elsewhere the centre is that
-    // mean already, to within half an 8-bit step.
-    let area = scene.footprint().footprint == Footprint::Area;
-    if area {
-        for (p, traced) in over_area(&view, &pixels, samples, strata) {
-            pixels[p] = traced;
-        }
-    }
-    compose(pixels, w, h, area, albedo_scale.is_some())
+    let lit = render_view_lights(model, scene, camera, frame, samples, device, std::slice::from_ref(lighting), albedo_scale, strata);
+    let image = lit.images.into_iter().next().unwrap_or_else(|| RgbImage::new(0, 0));
+    ViewLayers { image, albedo: lit.albedo, coverage: lit.coverage }
 }
 
-/// The image, albedo and coverage of a view's traced pixels. Over a pixel's area, one the body
-/// covers by half or less is background, black, as the scene format's images and masks have
-/// it. At a centre sample the coverage is the chance the ray meets the body: the pixel is its
-/// expected value in the image's encoding (`imageio::composite_centre_sample`; the area's rule
-/// there cost human-sun 0.85 dB over the foreground).
-fn compose(pixels: Vec<Traced>, w: usize, h: usize, area: bool, with_albedo: bool) -> ViewLayers {
-    let mut image = RgbImage::new(w, h);
+/// `render_view_layers` in several lights at once: the view's geometry is traced once (up to
+/// `LIGHTS_PER_TRACE` lights a trace) and shaded in each light; over an area capture a pixel is
+/// rendered over its area where any light's image (or the albedo) needs it. An image, in the
+/// order of `lightings`, per light.
+#[allow(clippy::too_many_arguments)]
+pub fn render_view_lights(
+    model: &Avatar,
+    scene: &Scene,
+    camera: usize,
+    frame: usize,
+    samples: Sampling,
+    device: &Device,
+    lightings: &[Lighting],
+    albedo_scale: Option<DVec3>,
+    strata: Strata,
+) -> LitLayers {
+    let area = scene.footprint().footprint == Footprint::Area;
+    let mut images = Vec::with_capacity(lightings.len());
+    let mut first: Option<LitLayers> = None;
+    for (k, group) in lightings.chunks(LIGHTS_PER_TRACE).enumerate() {
+        // The albedo from the first trace only.
+        let view = View::new(model, scene, camera, frame, device, group, albedo_scale.filter(|_| k == 0));
+        let (w, h) = (view.camera.width, view.camera.height);
+        let centre = |p: usize| [(p % w) as f64 + 0.5, (p / w) as f64 + 0.5];
+        let mut pixels = view.trace(&(0..w * h).map(|p| (centre(p), p as u64)).collect::<Vec<_>>(), &[], samples);
+        // A capture whose pixels average their area: every pixel that may hold an edge is the
+        // mean of the centres of its 3 x 3 strata instead (`needs_area`); elsewhere the centre
+        // is that mean already, to within half an 8-bit step.
+        if area {
+            for (p, traced) in over_area(&view, &pixels, samples, strata) {
+                pixels[p] = traced;
+            }
+        }
+        let traced = compose(pixels, w, h, area, group.len(), view.albedo_scale.is_some());
+        images.extend(traced.images.iter().cloned());
+        first.get_or_insert(traced);
+    }
+    let (w, h) = (scene.cameras[camera].width, scene.cameras[camera].height);
+    let first = first.unwrap_or_else(|| LitLayers { images: Vec::new(), albedo: None, coverage: vec![0.0; w * h] });
+    LitLayers { images, albedo: first.albedo, coverage: first.coverage }
+}
+
+/// The images (one per light), albedo and coverage of a view's traced pixels. Over a pixel's
+/// area, one the body covers by half or less is background, black, as the scene format's images
+/// and masks have it. At a centre sample the coverage is the chance the ray meets the body: the
+/// pixel is its expected value in the image's encoding (`imageio::composite_centre_sample`; the
+/// area's rule there cost human-sun 0.85 dB over the foreground).
+fn compose(pixels: Vec<Traced>, w: usize, h: usize, area: bool, lights: usize, with_albedo: bool) -> LitLayers {
+    let mut images = vec![RgbImage::new(w, h); lights];
     let mut albedo = with_albedo.then(|| RgbImage::new(w, h));
     let pixel = |c: [f32; 3], coverage: f32| if area { c } else { crate::imageio::composite_centre_sample(c, coverage) };
     let mut coverage = vec![0.0; w * h];
     for (p, traced) in pixels.into_iter().enumerate() {
         if !area || traced.coverage > 0.5 {
-            image.pixels[p] = pixel(traced.colour, traced.coverage);
+            for (image, colour) in images.iter_mut().zip(traced.colours) {
+                image.pixels[p] = pixel(colour, traced.coverage);
+            }
             coverage[p] = if area { 1.0 } else { traced.coverage };
             if let Some(albedo) = albedo.as_mut() {
                 albedo.pixels[p] = pixel(traced.albedo, traced.coverage);
             }
         }
     }
-    ViewLayers { image, albedo, coverage }
+    LitLayers { images, albedo, coverage }
 }
 
 /// The pixels of an area capture that may hold an edge, and what they are over their area.
@@ -291,10 +351,10 @@ fn over_area(view: &View, pixels: &[Traced], samples: Sampling, strata: Strata) 
     let (w, h, fx) = (view.camera.width, view.camera.height, view.camera.fx);
     let coverage: Vec<f32> = pixels.iter().map(|p| p.coverage).collect();
     let encode = |c: [f32; 3]| c.map(|v| crate::imageio::linear_to_srgb(v.max(0.0)));
-    let colours: Vec<[f32; 3]> = pixels.iter().map(|p| encode(p.colour)).collect();
-    let albedos: Option<Vec<[f32; 3]>> = view.albedo_scale.map(|_| pixels.iter().map(|p| encode(p.albedo)).collect());
-    let refine: Vec<usize> =
-        (0..w * h).filter(|&p| needs_area(&colours, &coverage, w, h, p) || albedos.as_ref().is_some_and(|a| needs_area(a, &coverage, w, h, p))).collect();
+    // Each light's image and the albedo, encoded: a pixel any of them needs is refined.
+    let mut images: Vec<Vec<[f32; 3]>> = (0..view.shaders.len()).map(|light| pixels.iter().map(|p| encode(p.colours[light])).collect()).collect();
+    images.extend(view.albedo_scale.map(|_| pixels.iter().map(|p| encode(p.albedo)).collect()));
+    let refine: Vec<usize> = (0..w * h).filter(|&p| images.iter().any(|image| needs_area(image, &coverage, w, h, p))).collect();
     // Inside the body the surface a pixel's rays meet lies within its neighbours' depths: those
     // rays are sampled there, at half the cost; at a depth step the rays search their whole
     // bound as the centres did. Along silhouettes too, where the centres around a pixel that
@@ -313,7 +373,7 @@ fn over_area(view: &View, pixels: &[Traced], samples: Sampling, strata: Strata) 
     // edge through the pixel, so where the five agree the pixel holds none and a side stratum
     // that would have to be traced is its two corners' mean instead.
     let corners = pass.strata_at(&(0..refine.len()).flat_map(|r| CORNER_STRATA.map(|s| (r, s))).collect::<Vec<_>>());
-    let agree: Vec<bool> = (0..refine.len()).map(|k| strata_agree(&pixels[refine[k]], &corners[k * 4..k * 4 + 4], albedos.is_some())).collect();
+    let agree: Vec<bool> = (0..refine.len()).map(|k| strata_agree(&pixels[refine[k]], &corners[k * 4..k * 4 + 4], view.albedo_scale.is_some())).collect();
     let mut sides: Vec<Traced> = (0..refine.len()).flat_map(|k| SIDE_CORNERS.map(|(a, b)| midway(&corners[k * 4 + a], &corners[k * 4 + b]))).collect();
     // The sides found after all (a place in `sides`, a stratum): where the five disagree, and
     // wherever one is read off its centres, which costs less than a corners' mean errs.

@@ -6,7 +6,7 @@
 pub mod gltf;
 pub mod ply;
 
-use crate::eval::frame_surface;
+use crate::eval::{coloured_frame_surface, frame_surface};
 use crate::fit_error::{io, FitError};
 use crate::messages::TrainMessage;
 use crate::skeleton::PoseTensors;
@@ -82,7 +82,7 @@ pub fn export_meshes(options: &ExportOptions, mut on: impl FnMut(TrainMessage)) 
     on(TrainMessage::Evaluating { images: targets.len() });
     let mut done = Vec::new();
     for (k, (frame, path)) in targets.iter().enumerate() {
-        let (mesh, colours, normals, _) = frame_surface(&model, scene, *frame, scale, &device)?;
+        let (mesh, colours, normals, _) = coloured_frame_surface(&model, scene, *frame, scale, &device)?;
         if let Some(parent) = path.parent().filter(|p| !p.as_os_str().is_empty()) {
             std::fs::create_dir_all(parent).map_err(|e| io(parent, e))?;
         }
@@ -167,8 +167,7 @@ fn skin_check(
     device: &burn::tensor::Device,
 ) -> Result<Option<crate::geometry::GeometryScores>, FitError> {
     let pose = &scene.frames[frame].pose;
-    let scale = crate::run::albedo_scale(scene, model);
-    let (meshed, _, _, _) = frame_surface(model, scene, frame, scale, device)?;
+    let (meshed, _) = frame_surface(model, scene, frame, device)?;
     let vertices = gltf::skin_vertices(skinned, &scene.frames[0].pose, pose);
     let posed = crate::isosurface::Mesh { vertices, triangles: skinned.mesh.triangles.clone() };
     Ok(crate::geometry::compare(&posed, &meshed, SKIN_CHECK_SAMPLES, 0, None))
@@ -213,7 +212,7 @@ pub fn skinned_mesh(model: &crate::avatar::Avatar, scene: &crate::scene::Scene, 
     let bind = &scene.frames[0].pose;
     let tensors = PoseTensors::new(bind, &scene.skeleton, device);
     let scale = crate::run::albedo_scale(scene, model);
-    let (mesh, colours, normals, _) = frame_surface(model, scene, 0, scale, device)?;
+    let (mesh, colours, normals, _) = coloured_frame_surface(model, scene, 0, scale, device)?;
     let weights = mesh.vertices.iter().map(|v| gltf::four_largest(model.field.skinning_weights(&tensors.frames, v.as_vec3().to_array()))).collect();
     Ok(gltf::SkinnedMesh { mesh, normals, colours, weights })
 }

@@ -4,7 +4,7 @@
 //! scene's; and the `render` and `eval` commands that restore a run to do it.
 
 use crate::avatar::{Avatar, Fitted};
-use crate::eval::{render_view_layers, Lighting};
+use crate::eval::Lighting;
 use crate::fit_error::{io, FitError};
 use crate::imageio::RgbImage;
 use crate::messages::TrainMessage;
@@ -105,18 +105,63 @@ pub fn evaluate_split(scene: &Scene, fitted: &Fitted, dir: &Path, split: Split, 
     let model = fitted.model.valid();
     let device = fitted.device.clone().without_autodiff();
     let albedo_scale = albedo_scale(scene, &model);
-    let mut rows = Vec::new();
-    let mut compare: Vec<(String, Vec<RgbImage>)> = Vec::new();
     // As many views at once as there are threads (one view's render keeps about one busy);
     // each view's samples are seeded by its own camera and frame, so the images do not depend
-    // on the schedule.
+    // on the schedule, nor on which other lights a view is rendered in.
     let lighting_of = |view: &crate::scene::View| match kinds.of(view).relit {
         false => Lighting::Fitted(kinds.training_light(view)),
         true => Lighting::Known { light: &scene.lights[&view.light], albedo_scale, samples: SKY_SAMPLES },
     };
-    let render = |k: usize| score_view(&model, scene, tests[k], &lighting_of(tests[k]), albedo_scale, &device);
-    in_order_while_rendering(tests.len(), render, |done, scored| {
-        let view = tests[done];
+    // The views that share a camera and a frame are traced once and shaded in each one's light.
+    let groups = same_camera_and_frame(&tests);
+    let render = |k: usize| {
+        let views: Vec<&crate::scene::View> = groups[k].iter().map(|&i| tests[i]).collect();
+        let lightings: Vec<Lighting> = views.iter().map(|v| lighting_of(v)).collect();
+        groups[k].iter().copied().zip(score_views(&model, scene, &views, &lightings, albedo_scale, &device)).collect::<Vec<_>>()
+    };
+    // Each view is taken in the test set's order, as soon as it and every one before it are.
+    let mut taken = Taken { scene, kinds: &kinds, dir: dir.clone(), total: tests.len(), rows: Vec::new(), compare: Vec::new() };
+    let mut waiting = BTreeMap::new();
+    in_order_while_rendering(groups.len(), render, |_, scored| {
+        waiting.extend(scored);
+        while let Some(scored) = waiting.remove(&taken.rows.len()) {
+            let done = taken.rows.len();
+            taken.take(done, tests[done], scored, on)?;
+        }
+        Ok::<(), FitError>(())
+    })?;
+    let Taken { rows, compare, .. } = taken;
+    compare_sheet(&compare).save_png(&dir.join("compare.png")).map_err(FitError::Input)?;
+    let groups = group_means(&rows);
+    write_text(&dir.join("metrics.csv"), &metrics_csv(&rows))?;
+    let mut evaluation = evaluation_json(&rows, &groups, albedo_scale);
+    let geometry = geometry_scores(scene, &model, &device, on)?;
+    let light = light_error(scene, fitted.fit_light, 0, &model.light.report());
+    let mut markdown = metrics_markdown(&rows, &groups);
+    markdown += &geometry_markdown(geometry.as_array().map(|f| f.as_slice()).unwrap_or_default());
+    write_text(&dir.join("metrics.md"), &markdown)?;
+    evaluation.insert("geometry".into(), geometry);
+    evaluation.insert("light_error".into(), light);
+    let evaluation = serde_json::Value::Object(evaluation);
+    write_text(&dir.join("metrics.json"), &serde_json::to_string_pretty(&evaluation).unwrap_or_default())?;
+    Ok(evaluation)
+}
+
+/// What an evaluation has taken of its rendered views so far: their scores, and the rows of
+/// `compare.png`.
+struct Taken<'a> {
+    scene: &'a Scene,
+    kinds: &'a TestKinds,
+    dir: PathBuf,
+    total: usize,
+    rows: Vec<ImageScore>,
+    compare: Vec<(String, Vec<RgbImage>)>,
+}
+
+impl Taken<'_> {
+    /// Writes view `done`'s render (and its albedo) into the folder, scores it and reports it.
+    fn take(&mut self, done: usize, view: &crate::scene::View, scored: ScoredView, on: &mut impl FnMut(TrainMessage)) -> Result<(), FitError> {
+        let (scene, kinds, dir) = (self.scene, self.kinds, &self.dir);
         let TestKind { novel_pose, novel_view, relit, group } = kinds.of(view);
         let name = render_name(scene, view);
         save_png(&dir.join(&name), &scored.image)?;
@@ -129,7 +174,7 @@ pub fn evaluate_split(scene: &Scene, fitted: &Fitted, dir: &Path, split: Split, 
             }
         }
         let label = format!("{} {}: {:.1} dB", name.trim_start_matches("images_").trim_end_matches(".png"), group, scored.scores.foreground_psnr);
-        compare.push((label, row));
+        self.compare.push((label, row));
         // Relit images and albedos again after one per-channel least-squares scale: what is
         // left when the absolute scale the fit cannot know is forgiven.
         let relit_scaled = relit.then(|| crate::metrics::score_scaled(&scored.image, &truth, view.mask.as_ref()).0);
@@ -138,10 +183,10 @@ pub fn evaluate_split(scene: &Scene, fitted: &Fitted, dir: &Path, split: Split, 
             _ => None,
         };
         let (scores, albedo) = (scored.scores, scored.albedo.map(|a| a.1));
-        on(TrainMessage::Rendered { done: done + 1, total: tests.len(), name: name.clone(), psnr: Some(scores.psnr) });
+        on(TrainMessage::Rendered { done: done + 1, total: self.total, name: name.clone(), psnr: Some(scores.psnr) });
         let error_sums = view.mask.as_ref().map(|mask| crate::metrics::error_regions(&scored.image, &truth, mask));
         let error_share = error_sums.map(|e| e.shares());
-        rows.push(ImageScore {
+        self.rows.push(ImageScore {
             image: name,
             light: view.light.clone(),
             group,
@@ -155,22 +200,8 @@ pub fn evaluate_split(scene: &Scene, fitted: &Fitted, dir: &Path, split: Split, 
             novel_view,
             relit,
         });
-        Ok::<(), FitError>(())
-    })?;
-    compare_sheet(&compare).save_png(&dir.join("compare.png")).map_err(FitError::Input)?;
-    let groups = group_means(&rows);
-    write_text(&dir.join("metrics.csv"), &metrics_csv(&rows))?;
-    let mut evaluation = evaluation_json(&rows, &groups, albedo_scale);
-    let geometry = geometry_scores(scene, &model, albedo_scale, &device, on)?;
-    let light = light_error(scene, fitted.fit_light, 0, &model.light.report());
-    let mut markdown = metrics_markdown(&rows, &groups);
-    markdown += &geometry_markdown(geometry.as_array().map(|f| f.as_slice()).unwrap_or_default());
-    write_text(&dir.join("metrics.md"), &markdown)?;
-    evaluation.insert("geometry".into(), geometry);
-    evaluation.insert("light_error".into(), light);
-    let evaluation = serde_json::Value::Object(evaluation);
-    write_text(&dir.join("metrics.json"), &serde_json::to_string_pretty(&evaluation).unwrap_or_default())?;
-    Ok(evaluation)
+        Ok(())
+    }
 }
 
 /// Renders items `0..count` on rayon's threads in about their order (`par_bridge` hands each
@@ -219,13 +250,7 @@ const GEOMETRY_FRAMES: usize = 6;
 
 /// The fitted surface (`eval::surface_mesh`) against every ground-truth mesh of the scene's
 /// frames, one entry per frame with a mesh (metres, degrees).
-fn geometry_scores(
-    scene: &Scene,
-    model: &Avatar,
-    albedo_scale: glam::DVec3,
-    device: &burn::tensor::Device,
-    on: &mut impl FnMut(TrainMessage),
-) -> Result<serde_json::Value, FitError> {
+fn geometry_scores(scene: &Scene, model: &Avatar, device: &burn::tensor::Device, on: &mut impl FnMut(TrainMessage)) -> Result<serde_json::Value, FitError> {
     let with_meshes: Vec<usize> = (0..scene.frames.len()).filter(|&f| scene.frames[f].mesh.is_some()).collect();
     // Evenly spread, at most GEOMETRY_FRAMES: meshing every frame of a long capture took longer
     // than its training.
@@ -237,7 +262,7 @@ fn geometry_scores(
         let frame = &scene.frames[position];
         let Some(path) = &frame.mesh else { continue };
         let truth = crate::geometry::load_obj(path).map_err(|e| io(path, e))?;
-        let (fitted, _, _, carved) = crate::eval::frame_surface(model, scene, position, albedo_scale, device)?;
+        let (fitted, carved) = crate::eval::frame_surface(model, scene, position, device)?;
         // What the training images saw of it: carried into their frames by its skinning (the
         // carve's, when it needed it too).
         let bones = PoseTensors::new(&frame.pose, &scene.skeleton, device).frames;
@@ -306,27 +331,59 @@ pub struct ScoredView {
     pub albedo: Option<(RgbImage, ImageScores)>,
 }
 
-/// Renders one test view (`eval::VIEW_SAMPLING`) in `lighting`, and its albedo where the scene
-/// has the truth, and scores both (`metrics::score`).
-pub fn score_view(
+/// The test views that share a camera and a frame (a view's indices into `views`), groups in
+/// the order of their first view.
+fn same_camera_and_frame(views: &[&crate::scene::View]) -> Vec<Vec<usize>> {
+    let mut groups: Vec<Vec<usize>> = Vec::new();
+    let mut group_of: BTreeMap<(usize, usize), usize> = BTreeMap::new();
+    for (k, view) in views.iter().enumerate() {
+        let g = *group_of.entry((view.camera, view.frame)).or_insert_with(|| {
+            groups.push(Vec::new());
+            groups.len() - 1
+        });
+        groups[g].push(k);
+    }
+    groups
+}
+
+/// Renders test views of one camera and frame (`eval::VIEW_SAMPLING`), each in its lighting,
+/// from one trace of the geometry (`eval::render_view_lights`), with the albedo where any of
+/// them has its truth, and scores each (`metrics::score`).
+pub fn score_views(
     model: &Avatar,
     scene: &Scene,
-    view: &crate::scene::View,
-    lighting: &Lighting,
+    views: &[&crate::scene::View],
+    lightings: &[Lighting],
     albedo_scale: glam::DVec3,
     device: &burn::tensor::Device,
-) -> ScoredView {
-    // The image and its albedo from one trace of the field.
-    let wants_albedo = view.albedo.is_some().then_some(albedo_scale);
-    let layers =
-        render_view_layers(model, scene, view.camera, view.frame, crate::eval::VIEW_SAMPLING, device, lighting, wants_albedo, crate::eval::Strata::Shortcuts);
-    let (image, albedo) = (layers.image, layers.albedo);
-    let scores = score(&image, &view.colour.to_rgb(), view.mask.as_ref());
-    let albedo = view.albedo.as_ref().zip(albedo).map(|(truth, albedo)| {
-        let s = score(&albedo, truth, view.mask.as_ref());
-        (albedo, s)
-    });
-    ScoredView { image, scores, albedo }
+) -> Vec<ScoredView> {
+    let Some(first) = views.first() else {
+        return Vec::new();
+    };
+    let wants_albedo = views.iter().any(|v| v.albedo.is_some()).then_some(albedo_scale);
+    let layers = crate::eval::render_view_lights(
+        model,
+        scene,
+        first.camera,
+        first.frame,
+        crate::eval::VIEW_SAMPLING,
+        device,
+        lightings,
+        wants_albedo,
+        crate::eval::Strata::Shortcuts,
+    );
+    views
+        .iter()
+        .zip(layers.images)
+        .map(|(view, image)| {
+            let scores = score(&image, &view.colour.to_rgb(), view.mask.as_ref());
+            let albedo = view.albedo.as_ref().zip(layers.albedo.clone()).map(|(truth, albedo)| {
+                let s = score(&albedo, truth, view.mask.as_ref());
+                (albedo, s)
+            });
+            ScoredView { image, scores, albedo }
+        })
+        .collect()
 }
 
 /// A render's file name: the test image's path inside the scene, flattened.

@@ -70,6 +70,12 @@ pub struct SynthOptions {
     /// Which test images to make.
     #[arg(long, value_enum, value_delimiter = ',', default_value = "poses,views,relight")]
     pub test: Vec<TestKind>,
+    /// With `--test relight`: how many test views (camera and novel pose) each relighting light
+    /// is rendered in, the same views as the novel-pose images where there are that many, so
+    /// one geometry is seen under several lights as a light-stage capture's test set has it.
+    #[arg(long, default_value_t = 1)]
+    #[serde(default = "one_relit_view", skip_serializing_if = "is_one_relit_view")]
+    pub relit_views: usize,
     /// Monte Carlo samples per pixel for uniform and environment light.
     #[arg(long, default_value_t = 256)]
     pub samples: usize,
@@ -156,6 +162,14 @@ fn is_one_pixel_sample(n: &usize) -> bool {
     *n == 1
 }
 
+fn one_relit_view() -> usize {
+    1
+}
+
+fn is_one_relit_view(n: &usize) -> bool {
+    *n == 1
+}
+
 fn one_sun() -> usize {
     1
 }
@@ -182,6 +196,7 @@ impl Default for SynthOptions {
             frames: 12,
             test_frames: 3,
             test: vec![TestKind::Poses, TestKind::Views, TestKind::Relight],
+            relit_views: 1,
             samples: 256,
             pattern: Pattern::Plain,
             seed: 0,

@@ -73,6 +73,9 @@ impl SynthOptions {
         if self.test_frames > 100 {
             return bad("--test-frames must be at most 100");
         }
+        if self.relit_views == 0 || self.relit_views > 200 {
+            return bad("--relit-views must be within 1..=200");
+        }
         if self.samples == 0 {
             return bad("--samples must be positive");
         }
@@ -234,14 +237,18 @@ impl SynthOptions {
             }
         }
         let test_frames: Vec<usize> = (first_test_frame..frames.len()).collect();
+        // The novel-pose views (camera, frame): two cameras half the ring apart per test frame.
+        let pose_views: Vec<(usize, usize)> = test_frames
+            .iter()
+            .enumerate()
+            .flat_map(|(j, &frame)| {
+                let cameras = [j % self.cameras, (j + self.cameras / 2) % self.cameras];
+                cameras.into_iter().take(if self.cameras == 1 { 1 } else { 2 }).map(move |camera| (camera, frame))
+            })
+            .collect();
         if self.test.contains(&TestKind::Poses) {
-            for (j, &frame) in test_frames.iter().enumerate() {
-                for camera in [j % self.cameras, (j + self.cameras / 2) % self.cameras] {
-                    add(camera, frame, &lit_by(camera, frame), Split::Test);
-                    if self.cameras == 1 {
-                        break;
-                    }
-                }
+            for &(camera, frame) in &pose_views {
+                add(camera, frame, &lit_by(camera, frame), Split::Test);
             }
         }
         if novel_view {
@@ -258,6 +265,13 @@ impl SynthOptions {
             for (j, name) in light_names.iter().enumerate() {
                 let frame = test_frames.get(j % test_frames.len().max(1)).copied().unwrap_or(0);
                 add(j % self.cameras, frame, name, Split::Test);
+                // The next novel-pose views after this one, as many as asked and as there are.
+                let stride = if self.cameras == 1 { 1 } else { 2 };
+                let first = (j % self.cameras, frame);
+                let more = pose_views.iter().cycle().skip(stride * j + 1).take((self.relit_views - 1).min(pose_views.len().saturating_sub(1)));
+                for &(camera, frame) in more.filter(|&&view| view != first) {
+                    add(camera, frame, name, Split::Test);
+                }
             }
         }
         views
