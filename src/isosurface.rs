@@ -2,7 +2,8 @@
 //! regular grid (six tetrahedra per cube sharing its main diagonal, so neighbouring cubes agree
 //! along faces and the mesh is closed and manifold wherever the surface stays inside the grid),
 //! with every crossing placed by a caller-supplied refinement of all crossings at once (exact
-//! bisection of an analytic SDF, or batched bisection of a fitted field), and OBJ output.
+//! bisection of an analytic SDF, or batched bisection of a fitted field), the grid's values
+//! sampled whole only near the surface (`narrow_band_values`), and OBJ output.
 
 use glam::DVec3;
 use std::collections::HashMap;
@@ -57,6 +58,75 @@ impl Grid {
     }
 }
 
+/// Points of a coarse block's side, in the grid's cells, of `narrow_band_values`.
+pub const BAND_BLOCK: usize = 4;
+
+/// How far, as a multiple of a block's diagonal, a block's nearest corner value must lie from
+/// zero for `narrow_band_values` to leave the block's inside unsampled: a signed distance
+/// changes no faster than distance (its gradient has length 1 where it is one), and half again
+/// as much is left for a fitted field's that is steeper.
+pub const BAND_LIPSCHITZ: f64 = 1.5;
+
+/// The values of a signed distance `sdf` (a batch of points in, their values out) at every
+/// point of `grid` (in `Grid::points` order) for `extract`, sampled only where the surface may
+/// be: first at the corners of blocks of `BAND_BLOCK` cells a side, then at every point of the
+/// blocks whose corners change sign or come within `BAND_LIPSCHITZ` block diagonals of zero.
+/// The other blocks hold no surface, and their points get the value of one of their corners
+/// (all of one sign), so `extract` finds the same crossings as from the grid sampled whole.
+pub fn narrow_band_values<E>(grid: &Grid, mut sdf: impl FnMut(&[DVec3]) -> Result<Vec<f64>, E>) -> Result<Vec<f64>, E> {
+    // The coarse sample indices along each axis: every BAND_BLOCK-th point and the last.
+    let coarse = |n: usize| -> Vec<usize> {
+        let mut at: Vec<usize> = (0..n).step_by(BAND_BLOCK).collect();
+        if at.last() != Some(&(n.saturating_sub(1))) && n > 0 {
+            at.push(n - 1);
+        }
+        at
+    };
+    let axes = [coarse(grid.counts[0]), coarse(grid.counts[1]), coarse(grid.counts[2])];
+    let mut corners = Vec::with_capacity(axes.iter().map(Vec::len).product());
+    for &k in &axes[2] {
+        for &j in &axes[1] {
+            corners.extend(axes[0].iter().map(|&i| grid.at(i, j, k)));
+        }
+    }
+    let corner_values = sdf(&corners)?;
+    let corner_value = |a: usize, b: usize, c: usize| corner_values[(c * axes[1].len() + b) * axes[0].len() + a];
+    let mut values = vec![f64::NAN; grid.len()];
+    let mut wanted = vec![false; grid.len()];
+    for c in 0..axes[2].len().saturating_sub(1) {
+        for b in 0..axes[1].len().saturating_sub(1) {
+            for a in 0..axes[0].len().saturating_sub(1) {
+                let (i0, i1, j0, j1, k0, k1) = (axes[0][a], axes[0][a + 1], axes[1][b], axes[1][b + 1], axes[2][c], axes[2][c + 1]);
+                let v: Vec<f64> = (0..8).map(|q| corner_value(a + (q & 1), b + ((q >> 1) & 1), c + ((q >> 2) & 1))).collect();
+                let diagonal = grid.cell * (((i1 - i0).pow(2) + (j1 - j0).pow(2) + (k1 - k0).pow(2)) as f64).sqrt();
+                let one_sign = v.iter().all(|&x| x < 0.0) || v.iter().all(|&x| !(x < 0.0));
+                let far = v.iter().all(|x| x.abs() > BAND_LIPSCHITZ * diagonal);
+                for k in k0..=k1 {
+                    for j in j0..=j1 {
+                        for i in i0..=i1 {
+                            let id = grid.index(i, j, k);
+                            if one_sign && far {
+                                if values[id].is_nan() {
+                                    values[id] = v[0];
+                                }
+                            } else {
+                                wanted[id] = true;
+                            }
+                        }
+                    }
+                }
+            }
+        }
+    }
+    let ids: Vec<usize> = (0..grid.len()).filter(|&id| wanted[id]).collect();
+    let points: Vec<DVec3> =
+        ids.iter().map(|&id| grid.at(id % grid.counts[0], (id / grid.counts[0]) % grid.counts[1], id / (grid.counts[0] * grid.counts[1]))).collect();
+    for (id, value) in ids.into_iter().zip(sdf(&points)?) {
+        values[id] = value;
+    }
+    Ok(values)
+}
+
 /// A grid edge the surface crosses: its end with a negative value and its end without.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Crossing {
@@ -87,6 +157,14 @@ pub fn extract(grid: &Grid, values: &[f64], refine: impl FnOnce(&[Crossing]) -> 
         for j in 0..ny - 1 {
             for i in 0..nx - 1 {
                 let corner = |c: usize| (i + (c & 1), j + ((c >> 1) & 1), k + ((c >> 2) & 1));
+                // Most cells lie wholly inside or outside: none of their tetrahedra is cut.
+                let below = (0..8).filter(|&c| {
+                    let (a, b, d) = corner(c);
+                    values[grid.index(a, b, d)] < 0.0
+                });
+                if matches!(below.count(), 0 | 8) {
+                    continue;
+                }
                 for tet in TETRAHEDRA {
                     let ids = tet.map(|c| {
                         let (a, b, d) = corner(c);
@@ -228,6 +306,42 @@ mod tests {
         let volume: f64 = mesh.triangles.iter().map(|t| mesh.vertices[t[0]].dot(mesh.vertices[t[1]].cross(mesh.vertices[t[2]])) / 6.0).sum();
         let exact = 4.0 / 3.0 * std::f64::consts::PI * 0.3f64.powi(3);
         assert!((volume / exact - 1.0).abs() < 0.03, "volume {volume} against {exact}");
+    }
+
+    /// Two balls and a rod thinner than a grid cell, their union's distance (exact outside
+    /// the pieces, a lower bound on the distance inside their overlaps).
+    fn balls_and_rod(p: DVec3) -> f64 {
+        let rod = {
+            let (a, b) = (DVec3::new(-0.35, -0.3, 0.0), DVec3::new(0.3, 0.35, 0.1));
+            let t = ((p - a).dot(b - a) / (b - a).length_squared()).clamp(0.0, 1.0);
+            (p - (a + (b - a) * t)).length() - 0.012
+        };
+        sphere(p).min((p - DVec3::new(-0.3, -0.25, 0.2)).length() - 0.08).min(rod)
+    }
+
+    #[test]
+    fn the_narrow_band_finds_the_same_mesh_from_fewer_samples() {
+        // Grids of several sizes, so blocks end short of the grid's last point too.
+        for (cell, lo, hi) in [(0.008, -0.5, 0.5), (0.007, -0.47, 0.53), (0.011, -0.61, 0.49)] {
+            let grid = Grid::covering(DVec3::splat(lo), DVec3::splat(hi), cell);
+            let whole: Vec<f64> = grid.points().into_iter().map(balls_and_rod).collect();
+            let mut sampled = 0;
+            let band = narrow_band_values(&grid, |points| {
+                sampled += points.len();
+                Ok::<_, ()>(points.iter().map(|&p| balls_and_rod(p)).collect())
+            })
+            .unwrap();
+            let refine = |c: &[Crossing]| bisect(c, 20, |points| points.iter().map(|&p| balls_and_rod(p) < 0.0).collect());
+            let (a, b) = (extract(&grid, &whole, refine), extract(&grid, &band, refine));
+            assert!(a.triangles.len() > 1000, "{}", a.triangles.len());
+            assert_eq!(a.vertices, b.vertices, "cell {cell}");
+            assert_eq!(a.triangles, b.triangles, "cell {cell}");
+            // Every point of a block near the surface is its true value; the rest only keep
+            // their sign.
+            assert!(band.iter().zip(&whole).all(|(b, w)| (*b < 0.0) == (*w < 0.0)));
+            // Measured: 31%, 27% and 31% of the points.
+            assert!(sampled * 5 < grid.len() * 2, "{sampled} of {} points sampled", grid.len());
+        }
     }
 
     #[test]

@@ -4,7 +4,7 @@
 
 use crate::avatar::Avatar;
 use crate::fit_error::FitError;
-use crate::isosurface::{bisect, extract, Grid, Mesh};
+use crate::isosurface::{bisect, extract, narrow_band_values, Grid, Mesh};
 use crate::scene::Scene;
 use crate::skeleton::PoseTensors;
 use burn::tensor::{Device, Tensor, TensorData};
@@ -23,7 +23,9 @@ pub fn surface_mesh(model: &Avatar, pose: &PoseTensors, bones: (DVec3, DVec3), e
     let (reach, cell) = model.field.surface_reach_and_cell(extent);
     let reach = DVec3::splat(reach);
     let grid = Grid::covering(bones.0 - reach, bones.1 + reach, cell);
-    let values: Vec<f64> = sdf(model, pose, &grid.points(), device)?.into_iter().map(f64::from).collect();
+    // Sampled whole only near the surface (the SDF on a human's grid, about a million points,
+    // took longer than the rest of the mesh).
+    let values = narrow_band_values(&grid, |points| Ok::<_, FitError>(sdf(model, pose, points, device)?.into_iter().map(f64::from).collect()))?;
     let mut failed = None;
     let mesh = extract(&grid, &values, |crossings| {
         bisect(crossings, BISECTIONS, |points| match sdf(model, pose, points, device) {
