@@ -39,7 +39,8 @@ pub enum TrainMessage {
         width: usize,
         height: usize,
     },
-    /// One frame's fitted surface meshed and compared with the scene's ground-truth mesh.
+    /// `done` of `total` frames' fitted surfaces meshed and compared with the scene's
+    /// ground-truth meshes (0 as the check starts, then after each frame).
     Meshed {
         done: usize,
         total: usize,

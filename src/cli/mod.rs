@@ -189,7 +189,7 @@ fn fit(options: &crate::fit::FitOptions) -> Result<(), String> {
             bar.set_position(done as u64);
             bar.set_message(psnr.map(|p| format!("{name}: {p:.2} dB")).unwrap_or(name));
         }
-        TrainMessage::Meshed { done, total } => bar.println(format!("meshing frame {}/{total} against the scene's mesh", done + 1)),
+        TrainMessage::Meshed { done, total } => meshing(&bar, done, total),
         TrainMessage::Done => bar.finish_and_clear(),
     })
     .map_err(|e| e.to_string())?;
@@ -236,6 +236,20 @@ fn fit(options: &crate::fit::FitOptions) -> Result<(), String> {
     Ok(())
 }
 
+/// The evaluation's geometry check on `bar`: `done` of `total` frames meshed and compared with
+/// the scene's meshes, with the time left.
+fn meshing(bar: &crate::progress::Progress, done: usize, total: usize) {
+    if done == 0 {
+        bar.set_what("meshing frames against the scene's meshes");
+        bar.set_message(String::new());
+        bar.set_length(total as u64);
+        bar.set_position(0);
+        bar.reset_eta();
+    } else {
+        bar.set_position(done as u64);
+    }
+}
+
 /// Follows a command that renders or writes images one by one on `bar`.
 fn image_progress(bar: &crate::progress::Progress) -> impl FnMut(crate::messages::TrainMessage) + '_ {
     use crate::messages::TrainMessage;
@@ -249,7 +263,7 @@ fn image_progress(bar: &crate::progress::Progress) -> impl FnMut(crate::messages
             bar.set_position(done as u64);
             bar.set_message(psnr.map(|p| format!("{name}: {p:.2} dB")).unwrap_or(name));
         }
-        TrainMessage::Meshed { done, total } => bar.println(format!("meshing frame {}/{total} against the scene's mesh", done + 1)),
+        TrainMessage::Meshed { done, total } => meshing(bar, done, total),
         _ => {}
     }
 }

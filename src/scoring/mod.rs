@@ -257,8 +257,10 @@ fn geometry_scores(scene: &Scene, model: &Avatar, device: &burn::tensor::Device,
     let count = with_meshes.len().min(GEOMETRY_FRAMES);
     let chosen: Vec<usize> = (0..count).map(|k| with_meshes[k * with_meshes.len() / count]).collect();
     let mut out = Vec::new();
+    if !chosen.is_empty() {
+        on(TrainMessage::Meshed { done: 0, total: chosen.len() });
+    }
     for (done, &position) in chosen.iter().enumerate() {
-        on(TrainMessage::Meshed { done, total: chosen.len() });
         let frame = &scene.frames[position];
         let Some(path) = &frame.mesh else { continue };
         let truth = crate::geometry::load_obj(path).map_err(|e| io(path, e))?;
@@ -277,6 +279,7 @@ fn geometry_scores(scene: &Scene, model: &Avatar, device: &burn::tensor::Device,
             "seen": scores.and_then(|s| s.seen), "seen_within_2cm": scores.and_then(|s| s.seen_within_2cm),
             "closed": fitted.is_closed_manifold(),
         }));
+        on(TrainMessage::Meshed { done: done + 1, total: chosen.len() });
     }
     Ok(json!(out))
 }
