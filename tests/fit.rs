@@ -411,6 +411,7 @@ fn evaluation_renders_and_scores_every_test_image_and_umbra_render_repeats_it() 
         assert!(table.lines().any(|l| l.starts_with(&format!("| {light}")) && l.ends_with("x |")), "{table}");
     }
     assert!(dir.path().join("bench/render.png").exists() && table.contains("at once"));
+    assert!(table.contains("The view in those 4 lights from one trace"), "{table}");
     // `umbra report`: a self-contained page (images and data inline, nothing fetched) with the
     // relighting panel, and its Markdown twin; a bad camera is refused and changes nothing.
     let run = cli(&["report", out.to_str().unwrap(), "--directions", "64"]);

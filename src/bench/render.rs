@@ -1,11 +1,12 @@
 //! Render time per view of a fitted run (`umbra bench render RUN`): one test view (its camera
 //! and frame) in the fitted light, under a sun, a point light and a sky at 64 samples per pixel,
-//! timed with every thread and inside a one-thread pool, the ratio taken in the same run; then
-//! the evaluation's way, a batch of views one after another against several at once.
+//! timed with every thread and inside a one-thread pool, the ratio taken in the same run; the
+//! view in all four lights from one trace against the four renders; then the evaluation's way,
+//! a batch of views one after another against several at once.
 
 use super::fit::peak_rss_mib;
 use crate::backend::Backend;
-use crate::eval::{render_view, render_view_layers, Lighting, Strata, VIEW_SAMPLING};
+use crate::eval::{render_view, render_view_layers, render_view_lights, Lighting, Strata, VIEW_SAMPLING};
 use crate::fit_error::{io, FitError};
 use crate::light::Light;
 use crate::plot::BarChart;
@@ -80,6 +81,13 @@ pub fn render(run: &Path, out: &Path, quick: bool) -> Result<String, FitError> {
         });
         rows.push((name.to_string(), all, one));
     }
+    // The view in all four lights from one trace (as the evaluation renders a view its test set
+    // has in several lights), against the four renders above.
+    let lightings: Vec<Lighting> = cases.iter().map(|(_, lighting)| *lighting).collect();
+    let shared = super::time(budget, || {
+        render_view_lights(&model, scene, camera, frame, VIEW_SAMPLING, &device, &lightings, None, Strata::Shortcuts);
+    });
+    let lights_at_once = (lightings.len(), shared, rows.iter().map(|r| r.1).sum::<f64>());
     // The evaluation's way: `threads` views of the fitted light one after another, and at once.
     let views: Vec<(usize, usize)> = scene.views_in(crate::scene::Split::Test).map(|v| (v.camera, v.frame)).take(threads.max(2)).collect();
     let fitted = Lighting::Fitted(0);
@@ -108,7 +116,7 @@ pub fn render(run: &Path, out: &Path, quick: bool) -> Result<String, FitError> {
             start.elapsed().as_secs_f64() / strata_views.len().max(1) as f64
         })
     });
-    let timings = Timings { rows, views: views.len(), sequential, together, native, enlarged, strata: strata_times.map(|t| (t, strata_views.len())) };
+    let timings = Timings { rows, lights_at_once, views: views.len(), sequential, together, native, enlarged, strata: strata_times.map(|t| (t, strata_views.len())) };
     write_tables(run, out, &scene.cameras[camera], (camera, frame), &timings)
 }
 
@@ -116,6 +124,9 @@ pub fn render(run: &Path, out: &Path, quick: bool) -> Result<String, FitError> {
 struct Timings {
     /// Per light: all threads, one thread.
     rows: Vec<(String, f64, f64)>,
+    /// The view in every light of `rows` from one trace: how many lights, its time and the sum
+    /// of their renders on their own (all threads).
+    lights_at_once: (usize, f64, f64),
     /// Test views rendered one after another, and at once.
     views: usize,
     sequential: f64,
@@ -158,6 +169,13 @@ fn write_tables(run: &Path, out: &Path, camera: &crate::scene::Camera, (camera_i
         md += &format!("| {name} | {all:.3} | {one:.3} | {:.2}x |\n", all / one);
         csv_rows.push([name.to_string(), format!("{all:.5}"), format!("{one:.5}")]);
     }
+    let (lights, shared, apart) = t.lights_at_once;
+    md += &format!(
+        "\nThe view in those {lights} lights from one trace of its geometry, as the evaluation renders a view it has in several lights (`eval::render_view_lights`): {shared:.3} s against {apart:.3} s for the {lights} renders on their own ({:.2}x).\n",
+        shared / apart
+    );
+    csv_rows.push([format!("{lights} lights from one trace"), format!("{shared:.5}"), String::new()]);
+    csv_rows.push([format!("{lights} lights rendered apart"), format!("{apart:.5}"), String::new()]);
     md += &format!(
         "\n{} test views of the fitted light, as the evaluation renders them: {sequential:.3} s per view one after another, {together:.3} s per view {} at once ({:.2}x). Peak memory {} MiB.\n",
         views,
