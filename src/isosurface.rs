@@ -90,7 +90,8 @@ pub fn narrow_band_values<E>(grid: &Grid, mut sdf: impl FnMut(&[DVec3]) -> Resul
         }
     }
     let corner_values = sdf(&corners)?;
-    let corner_value = |a: usize, b: usize, c: usize| corner_values[(c * axes[1].len() + b) * axes[0].len() + a];
+    // A value the field did not return counts as zero: its blocks are sampled whole.
+    let corner_value = |a: usize, b: usize, c: usize| corner_values.get((c * axes[1].len() + b) * axes[0].len() + a).copied().unwrap_or(0.0);
     let mut values = vec![f64::NAN; grid.len()];
     let mut wanted = vec![false; grid.len()];
     for c in 0..axes[2].len().saturating_sub(1) {

@@ -116,7 +116,8 @@ pub fn render(run: &Path, out: &Path, quick: bool) -> Result<String, FitError> {
             start.elapsed().as_secs_f64() / strata_views.len().max(1) as f64
         })
     });
-    let timings = Timings { rows, lights_at_once, views: views.len(), sequential, together, native, enlarged, strata: strata_times.map(|t| (t, strata_views.len())) };
+    let timings =
+        Timings { rows, lights_at_once, views: views.len(), sequential, together, native, enlarged, strata: strata_times.map(|t| (t, strata_views.len())) };
     write_tables(run, out, &scene.cameras[camera], (camera, frame), &timings)
 }
 
