@@ -1031,16 +1031,16 @@ fn a_culled_render_is_the_full_render_and_so_are_its_gradients() {
 
 /// A random plan over a table of `table_rows` rows: 3 levels (the last faded out, the middle
 /// half in), 8 corners, tangents and carried derivatives.
-fn random_plan(points: usize, table_rows: usize, features: usize, stream: &mut Stream) -> umbra::field::interpolate::Plan {
+fn random_plan(points: usize, table_rows: usize, features: usize, stream: &mut Stream) -> umbra::field::plan::Plan {
     let (levels, corners) = (3, 8);
     let count = points * levels * corners;
     let mut uniform = |k: usize| (0..k).map(|_| (stream.uniform() * 2.0 - 1.0) as f32).collect::<Vec<f32>>();
     let (coefficients, tangents) = (uniform(count), uniform(3 * count));
     // Cells' fractions in [0, 1], one axis in five outside the grid (marked by 2 added).
     let fractions = uniform(3 * points * levels).into_iter().enumerate().map(|(k, v)| (v + 1.0) / 2.0 + if k % 5 == 0 { 2.0 } else { 0.0 }).collect();
-    let carried = umbra::field::interpolate::Carried { slots: 1, levels, fractions, axes: uniform(9 * points), per_cell: vec![4.0, 8.0, 16.0] };
+    let carried = umbra::field::plan::Carried { slots: 1, levels, fractions, axes: uniform(9 * points), per_cell: vec![4.0, 8.0, 16.0] };
     let rows = (0..count).map(|_| (stream.uniform() * table_rows as f64) as u32 % table_rows as u32).collect();
-    umbra::field::interpolate::Plan {
+    umbra::field::plan::Plan {
         points,
         levels,
         corners,
@@ -1061,8 +1061,9 @@ fn random_plan(points: usize, table_rows: usize, features: usize, stream: &mut S
 fn the_devices_grid_ops_are_the_hosts() {
     use burn::backend::ops::FloatTensorOps;
     use burn::backend::Flex;
-    use umbra::field::interpolate::{interpolate_carrying, Plan};
+    use umbra::field::interpolate::interpolate_carrying;
     use umbra::field::on_device;
+    use umbra::field::plan::Plan;
     let device = Device::flex().autodiff();
     let mut stream = Stream::new(6, 1, 0);
     let (points, table_rows, features) = (40, 64, 4);

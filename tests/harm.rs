@@ -46,6 +46,30 @@ fn synth_args(out: &str, force: bool) -> Vec<&str> {
 }
 
 #[test]
+fn synth_refuses_a_relit_views_count_it_cannot_make() {
+    let dir = TempDir::new("synth-relit-views");
+    for (value, test) in [("0", None), ("-1", None), ("NaN", None), ("1e39", None), ("18446744073709551616", None), ("201", None), ("2", Some("poses"))] {
+        let option = format!("--relit-views={value}");
+        let mut args = synth_args("scene", false);
+        args.push(&option);
+        if let Some(test) = test {
+            args.extend(["--test", test]);
+        }
+        let stderr = fails(dir.path(), &args);
+        assert!(stderr.contains("relit-views"), "{value}: {stderr}");
+        assert!(!dir.path().join("scene").exists(), "{value}: nothing is written");
+    }
+    // A negative count after a space reads as an option of its own: refused as such.
+    let mut args = synth_args("scene", false);
+    args.extend(["--relit-views", "-1"]);
+    fails(dir.path(), &args);
+    assert!(!dir.path().join("scene").exists());
+    let mut args = synth_args("scene", false);
+    args.extend(["--relit-views", "2"]);
+    succeeds(dir.path(), &args);
+}
+
+#[test]
 fn synth_force_never_removes_what_it_did_not_write() {
     let dir = TempDir::new("synth-force");
     let work = dir.path().join("x");

@@ -226,7 +226,8 @@ pub fn render_view_lights(
 ) -> LitLayers {
     let area = scene.footprint().footprint == Footprint::Area;
     let mut images = Vec::with_capacity(lightings.len());
-    let mut first: Option<LitLayers> = None;
+    let (w, h) = (scene.cameras[camera].width, scene.cameras[camera].height);
+    let (mut albedo, mut coverage) = (None, vec![0.0; w * h]);
     for (k, group) in lightings.chunks(LIGHTS_PER_TRACE).enumerate() {
         // The albedo from the first trace only.
         let view = View::new(model, scene, camera, frame, device, group, albedo_scale.filter(|_| k == 0));
@@ -242,12 +243,12 @@ pub fn render_view_lights(
             }
         }
         let traced = compose(pixels, w, h, area, group.len(), view.albedo_scale.is_some());
-        images.extend(traced.images.iter().cloned());
-        first.get_or_insert(traced);
+        images.extend(traced.images);
+        if k == 0 {
+            (albedo, coverage) = (traced.albedo, traced.coverage);
+        }
     }
-    let (w, h) = (scene.cameras[camera].width, scene.cameras[camera].height);
-    let first = first.unwrap_or_else(|| LitLayers { images: Vec::new(), albedo: None, coverage: vec![0.0; w * h] });
-    LitLayers { images, albedo: first.albedo, coverage: first.coverage }
+    LitLayers { images, albedo, coverage }
 }
 
 /// The images (one per light), albedo and coverage of a view's traced pixels. Over a pixel's

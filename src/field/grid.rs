@@ -157,7 +157,7 @@ impl FeatureGrid {
         let logit_shift = (logit_tangents * shift.clone().reshape([n, 1, 3])).sum_dim(2).reshape([n, k]);
         let prior_tangents: Tensor<2> = Tensor::from_data(TensorData::new(plan.prior_tangents.clone(), [n, 3]), &device);
         let prior = Tensor::<1>::from_data(TensorData::new(plan.prior.clone(), [n]), &device) + (prior_tangents * shift.clone()).sum_dim(1).reshape([n]);
-        let carried = super::interpolate::Carried {
+        let carried = super::plan::Carried {
             slots: k,
             levels: self.config.levels,
             fractions: std::mem::take(&mut plan.cell_fractions),
@@ -171,14 +171,14 @@ impl FeatureGrid {
 
     /// Each chosen bone's features (`[N, K W]`) and their tangents (`[3N, K W]`) by the fused
     /// op (`interpolate`); with a `shift` of the points (`[N, 3]`) and its cells
-    /// (`interpolate::Carried`), carrying its gradient instead of giving tangents.
+    /// (`plan::Carried`), carrying its gradient instead of giving tangents.
     #[allow(clippy::type_complexity)]
     fn interpolate_fused(
         &self,
         mut plan: Lookup,
         n: usize,
         tangents: bool,
-        shift: Option<(Tensor<2>, super::interpolate::Carried)>,
+        shift: Option<(Tensor<2>, super::plan::Carried)>,
     ) -> (Tensor<2>, Option<Tensor<2>>, Lookup) {
         let config = &self.config;
         let groups = config.top() * config.levels;
@@ -186,7 +186,7 @@ impl FeatureGrid {
         let carrying = shift.is_some();
         let (shift, carried) = shift.unzip();
         let derivatives = (tangents && !carrying).then_some(derivatives);
-        let fused = super::interpolate::Plan {
+        let fused = super::plan::Plan {
             points: n,
             levels: groups,
             corners: 8,
@@ -255,7 +255,7 @@ impl FeatureGrid {
         let tangents = per_bone_tangents.is_some();
         // The root's preference at each point (and its gradient), by the same fused op.
         let preference = self.root_preference.as_ref().map(|table| {
-            let lookup = super::interpolate::Plan {
+            let lookup = super::plan::Plan {
                 points: n,
                 levels: 1,
                 corners: 8,

@@ -81,7 +81,7 @@ pub fn lookup(config: &GridConfig, levels: &[Level], frames: &[BoneFrame], skinn
 }
 
 /// `lookup` with tangents for a lookup that carries a shift of its points
-/// (`interpolate::Carried`): the skinning's and the prior's tangents, and per cell its
+/// (`plan::Carried`): the skinning's and the prior's tangents, and per cell its
 /// fractions instead of each corner's derivative (3 floats a cell instead of 24).
 pub fn lookup_carried(config: &GridConfig, levels: &[Level], frames: &[BoneFrame], skinning: Skinning, points: &[f32]) -> Lookup {
     plan(config, levels, frames, skinning, points, Derivatives::Cells)

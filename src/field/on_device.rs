@@ -5,7 +5,7 @@
 //! device. The CPU backends sum on the host instead (`interpolate`), where the same work without
 //! the `[points x corners, features]` intermediates is several times faster.
 
-use super::interpolate::Plan;
+use super::plan::Plan;
 use burn::backend::tensor::{FloatTensor, IntTensor};
 use burn::backend::{Backend, TensorMetadata};
 use burn::tensor::{FloatDType, IndexingUpdateOp, Shape, Slice, TensorData};

@@ -380,9 +380,10 @@ pub fn score_views(
         .zip(layers.images)
         .map(|(view, image)| {
             let scores = score(&image, &view.colour.to_rgb(), view.mask.as_ref());
-            let albedo = view.albedo.as_ref().zip(layers.albedo.clone()).map(|(truth, albedo)| {
-                let s = score(&albedo, truth, view.mask.as_ref());
-                (albedo, s)
+            // The albedo is the view's, whatever its light: each image with its truth gets a copy.
+            let albedo = view.albedo.as_ref().zip(layers.albedo.as_ref()).map(|(truth, albedo)| {
+                let s = score(albedo, truth, view.mask.as_ref());
+                (albedo.clone(), s)
             });
             ScoredView { image, scores, albedo }
         })

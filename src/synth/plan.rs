@@ -76,6 +76,9 @@ impl SynthOptions {
         if self.relit_views == 0 || self.relit_views > 200 {
             return bad("--relit-views must be within 1..=200");
         }
+        if self.relit_views > 1 && !self.test.contains(&TestKind::Relight) {
+            return bad("--relit-views needs the relighting tests (--test relight)");
+        }
         if self.samples == 0 {
             return bad("--samples must be positive");
         }

@@ -1,0 +1,254 @@
+//! A planned lookup of the grid's table, and its arithmetic on the host: per point and level
+//! the corner rows and their coefficients (`Plan`), what a carried shift's gradient follows
+//! from (`Carried`), and the weighted sums, the table's gradient and the shift's gradient that
+//! the CPU backends' fused op (`interpolate`) computes from them.
+
+use super::host_lookup::add_row;
+use rayon::prelude::*;
+
+/// A planned interpolation of `points` points: per point and level, `corners` table rows with
+/// their coefficients (point-major, then level, then corner) and, when the tangents are
+/// wanted, each coefficient's derivative along the three world axes; `fade` weighs each level
+/// (coarse to fine).
+#[derive(Debug)]
+pub struct Plan {
+    pub points: usize,
+    pub levels: usize,
+    pub corners: usize,
+    pub features: usize,
+    pub rows: Vec<u32>,
+    pub coefficients: Vec<f32>,
+    pub tangents: Option<Vec<f32>>,
+    /// What the coefficients' world derivatives follow from when the lookup carries a shift of
+    /// its points (`interpolate_carrying`): only the shift's gradient reads it.
+    pub carried: Option<Carried>,
+    pub fade: Vec<f32>,
+    /// The table's rows are this many equal runs, group `g`'s rows lying in run
+    /// `g % table_parts` (the grid's table is level-major: its level count; 1 for any table).
+    pub table_parts: usize,
+}
+
+/// A carried lookup's cells, from which each corner coefficient's world derivative follows: a
+/// group is a (slot, level) pair (`groups = slots x levels`, slot-major), a slot one of the
+/// point's chosen bones. Per cell (point, group) the point's fractions along the slot's bone's
+/// local axes, plus 2 on an axis outside the grid (no derivative there); per point and slot the
+/// bone's local axes in the world (row-major 3 x 3: row m is axis m); per level 1 / its cell
+/// size. 3 floats a cell against the 24 of per-corner derivatives.
+#[derive(Debug)]
+pub struct Carried {
+    /// Chosen bones per point, and levels per bone: `slots x levels` groups.
+    pub slots: usize,
+    pub levels: usize,
+    pub fractions: Vec<f32>,
+    pub axes: Vec<f32>,
+    pub per_cell: Vec<f32>,
+}
+
+/// Corner `k`'s (bit 0 the x side, bit 1 y, bit 2 z) trilinear weight's derivatives along the
+/// cell's three fractions `f`.
+fn corner_slopes(f: [f32; 3], k: usize) -> [f32; 3] {
+    let bit = [k & 1, (k >> 1) & 1, k >> 2];
+    let factor = [0, 1, 2].map(|m| if bit[m] == 1 { f[m] } else { 1.0 - f[m] });
+    [0, 1, 2].map(|m| {
+        let sign = if bit[m] == 1 { 1.0 } else { -1.0 };
+        sign * factor[(m + 1) % 3] * factor[(m + 2) % 3]
+    })
+}
+
+impl Carried {
+    /// Cell `(point, group)`'s fractions, and the derivative of each fraction along the world
+    /// (row m: the slot's bone's axis m over the level's cell size; zero outside the grid).
+    fn cell(&self, point: usize, group: usize) -> ([f32; 3], [[f32; 3]; 3]) {
+        let cell = point * self.slots * self.levels + group;
+        let raw = [0, 1, 2].map(|m| self.fractions.get(cell * 3 + m).copied().unwrap_or(f32::NAN));
+        let (slot, level) = (group / self.levels, group % self.levels);
+        let at = (point * self.slots + slot) * 9;
+        let scale = self.per_cell.get(level).copied().unwrap_or(f32::NAN);
+        let rows = [0, 1, 2].map(|m| match raw[m] < 2.0 {
+            true => [0, 1, 2].map(|x| self.axes.get(at + m * 3 + x).copied().unwrap_or(f32::NAN) * scale),
+            false => [0.0; 3],
+        });
+        (raw.map(|v| if v < 2.0 { v } else { v - 2.0 }), rows)
+    }
+
+    /// Each corner coefficient's world derivative (`[P, 3]`, as `Plan::tangents`): what a device
+    /// multiplies out where the host contracts the corners first (`Plan::shift_backward`).
+    pub fn per_corner(&self, plan: &Plan) -> Vec<f32> {
+        let mut out = vec![0.0f32; plan.rows.len() * 3];
+        for i in 0..plan.points {
+            for g in 0..plan.levels {
+                let (f, rows) = self.cell(i, g);
+                for k in 0..plan.corners {
+                    let slopes = corner_slopes(f, k);
+                    let at = ((i * plan.levels + g) * plan.corners + k) * 3;
+                    for x in 0..3 {
+                        out[at + x] = (0..3).map(|m| slopes[m] * rows[m][x]).sum();
+                    }
+                }
+            }
+        }
+        out
+    }
+}
+
+impl Plan {
+    /// Output rows: the features, then the tangents axis-major when planned.
+    pub fn output_rows(&self) -> usize {
+        self.points * self.blocks()
+    }
+
+    /// Output blocks of `points` rows: the features, and the three tangents when planned.
+    pub fn blocks(&self) -> usize {
+        if self.tangents.is_some() {
+            4
+        } else {
+            1
+        }
+    }
+
+    pub(super) fn width(&self) -> usize {
+        self.levels * self.features
+    }
+
+    /// The weighted sums (`[output_rows, W]`, row-major) of `table` (`[T, F]`, row-major).
+    pub(super) fn forward(&self, table: &[f32]) -> Vec<f32> {
+        let (n, w, c) = (self.points, self.width(), self.corners);
+        let mut out = vec![0.0f32; self.output_rows() * w];
+        let (values, tangents) = out.split_at_mut(n * w);
+        // Points in chunks across threads: each point owns its output rows.
+        const CHUNK: usize = 256;
+        let tangent_chunks: Vec<&mut [f32]> = match self.tangents {
+            Some(_) => tangents.chunks_mut(n * w).collect(),
+            None => Vec::new(),
+        };
+        let per_point = self.levels * c;
+        values.par_chunks_mut(CHUNK * w).enumerate().for_each(|(chunk, values)| {
+            for (k, row_out) in values.chunks_mut(w).enumerate() {
+                let i = chunk * CHUNK + k;
+                let rows = &self.rows[i * per_point..(i + 1) * per_point];
+                let coefficients = &self.coefficients[i * per_point..(i + 1) * per_point];
+                self.accumulate(table, rows, coefficients.iter().copied(), row_out);
+            }
+        });
+        if let Some(d) = &self.tangents {
+            // One axis per task: each writes its own `[N, W]` block.
+            tangent_chunks.into_par_iter().enumerate().for_each(|(axis, block)| {
+                for (i, row_out) in block.chunks_mut(w).enumerate() {
+                    let rows = &self.rows[i * per_point..(i + 1) * per_point];
+                    let d = &d[i * per_point * 3..(i + 1) * per_point * 3];
+                    self.accumulate(table, rows, d.iter().skip(axis).step_by(3).copied(), row_out);
+                }
+            });
+        }
+        out
+    }
+
+    /// One point's weighted sum into `row_out` (`[W]`): level by level, each of its corners'
+    /// table rows (`rows`, `levels x corners`) times its coefficient and the level's fade. A row
+    /// outside the table (never planned) reads NaN, so it cannot pass unseen.
+    fn accumulate(&self, table: &[f32], rows: &[u32], coefficients: impl Iterator<Item = f32>, row_out: &mut [f32]) {
+        let (f, c) = (self.features, self.corners);
+        let mut coefficients = coefficients;
+        for ((out, level_rows), &fade) in row_out.chunks_mut(f).zip(rows.chunks(c)).zip(&self.fade) {
+            for &row in level_rows {
+                add_row(table, row as usize, coefficients.next().unwrap_or(0.0) * fade, out);
+            }
+        }
+    }
+
+    /// The table's gradient (`[table_rows, F]`) from the output's (`[output_rows, W]`). The
+    /// table's rows are level-major (`table_parts` runs), so each thread takes a run of
+    /// consecutive levels and fills their rows alone: no per-thread copies of the table to zero
+    /// and add up (4-8 MB each, a quarter of this op's time).
+    pub(super) fn backward(&self, grad: &[f32], table_rows: usize) -> Vec<f32> {
+        let (n, w, f, c) = (self.points, self.width(), self.features, self.corners);
+        let parts = self.table_parts.max(1);
+        let part_rows = table_rows / parts;
+        let tasks = rayon::current_num_threads().clamp(1, parts);
+        // Task t's levels, and the slice of the table holding their rows.
+        let levels_of = |t: usize| (t * parts / tasks)..((t + 1) * parts / tasks);
+        let mut total = vec![0.0f32; table_rows * f];
+        let mut slices = Vec::with_capacity(tasks);
+        let mut rest = total.as_mut_slice();
+        for t in 0..tasks {
+            let take = if t + 1 == tasks { rest.len() } else { levels_of(t).len() * part_rows * f };
+            let (slice, tail) = rest.split_at_mut(take);
+            slices.push(slice);
+            rest = tail;
+        }
+        slices.into_par_iter().enumerate().for_each(|(t, values)| {
+            let levels = levels_of(t);
+            let (first, count) = (levels.start * part_rows, values.len() / f);
+            let groups: Vec<usize> = (0..self.levels).filter(|g| levels.contains(&(g % parts))).collect();
+            for i in 0..n {
+                for &g in &groups {
+                    let fade = self.fade[g];
+                    for j in 0..c {
+                        let at = (i * self.levels + g) * c + j;
+                        // A row outside this task's run (or the table) is a level left out of
+                        // the plan: row 0, coefficient 0, nothing to add.
+                        let Some(row) = (self.rows[at] as usize).checked_sub(first).filter(|&r| r < count) else { continue };
+                        for q in 0..f {
+                            let column = g * f + q;
+                            let mut sum = self.coefficients[at] * grad[i * w + column];
+                            if let Some(d) = &self.tangents {
+                                for axis in 0..3 {
+                                    sum += d[at * 3 + axis] * grad[(n + axis * n + i) * w + column];
+                                }
+                            }
+                            values[row * f + q] += sum * fade;
+                        }
+                    }
+                }
+            }
+        });
+        total
+    }
+}
+
+impl Plan {
+    /// The gradient (`[N, 3]`, row-major) of a shift of the points, to first order, from the
+    /// output's (`[N, W]`): per point, each corner's table row against the output's gradient,
+    /// times the level's fade and the coefficient's world derivative, contracted per cell along
+    /// its fractions before it is turned into the world (`Carried`).
+    pub(super) fn shift_backward(&self, grad: &[f32], table: &[f32]) -> Vec<f32> {
+        let (w, f, c) = (self.width(), self.features, self.corners);
+        let Some(carried) = &self.carried else { return vec![0.0; 3 * self.points] };
+        let per_point = self.levels * c;
+        let mut out = vec![0.0f32; 3 * self.points];
+        // Points in chunks across threads: each point owns its three values.
+        const CHUNK: usize = 256;
+        out.par_chunks_mut(3 * CHUNK).enumerate().for_each(|(chunk, shifts)| {
+            for (k, shift) in shifts.chunks_mut(3).enumerate() {
+                let i = chunk * CHUNK + k;
+                for g in 0..self.levels {
+                    let fade = self.fade[g];
+                    let grad = &grad[i * w + g * f..i * w + (g + 1) * f];
+                    // A level faded out, or one whose output nothing weighs, moves nothing.
+                    if fade == 0.0 || grad.iter().all(|&v| v == 0.0) {
+                        continue;
+                    }
+                    // The corners contracted along the cell's fractions first, then turned
+                    // into the world once per cell.
+                    let (fractions, rows) = carried.cell(i, g);
+                    let mut along_fractions = [0.0f32; 3];
+                    for j in 0..c {
+                        let row = self.rows[i * per_point + g * c + j] as usize;
+                        let along: f32 = match table.get(row * f..(row + 1) * f) {
+                            Some(entry) => entry.iter().zip(grad).map(|(t, g)| t * g).sum(),
+                            None => f32::NAN,
+                        };
+                        let slopes = corner_slopes(fractions, j);
+                        for m in 0..3 {
+                            along_fractions[m] += along * slopes[m];
+                        }
+                    }
+                    for (axis, s) in shift.iter_mut().enumerate() {
+                        *s += fade * (0..3).map(|m| along_fractions[m] * rows[m][axis]).sum::<f32>();
+                    }
+                }
+            }
+        });
+        out
+    }
+}
