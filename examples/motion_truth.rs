@@ -1,12 +1,15 @@
-//! How far a fit's refined training motion, and the motion it was given, lie from the true one
-//! (`cargo run --release --example motion_truth -- SCENE TRUE_SCENE RUN`): SCENE is the scene
+//! How far a fit's refined training motion and cameras, and the ones it was given, lie from the
+//! true ones (`cargo run --release --example motion_truth -- SCENE TRUE_SCENE RUN`): SCENE is the scene
 //! the fit ran on (a capture imported with a tracker's errors: `umbra synth --export nerfstudio
 //! --errors joints=2.5,root=1`), TRUE_SCENE the same capture imported without errors (the same
 //! seed), RUN the fit's run folder (its checkpoint's corrections). Prints each bone's rotation
-//! error (degrees, mean over bones and training frames) and the root's (cm), given and refined.
+//! error (degrees, mean over bones and training frames) and the root's (cm), given and refined;
+//! and, when the fit refined the cameras (`--errors camera_turn=..,camera_move=..`), each training
+//! camera's turn (degrees) and centre (mm) from the true camera's, given and refined.
 
 use std::path::Path;
 use umbra::scene::Scene;
+use umbra::train::camera_pose::CameraPoses;
 use umbra::train::motion::{joint_error, MotionCorrections};
 
 fn main() -> Result<(), Box<dyn std::error::Error>> {
@@ -70,5 +73,50 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let (gs, gt) = split(&|f| given.frames[f].pose.clone());
     let (rs, rt) = split(&|f| refined.iter().find(|(g, _)| *g == f).map(|(_, p)| p.clone()).unwrap_or_else(|| given.frames[f].pose.clone()));
     println!("bone directions in the world (swing): given {gs:.3}, refined {rs:.3} degrees; turns about the bones (twist): given {gt:.3}, refined {rt:.3}");
+    cameras(&given, &truth, &state)
+}
+
+/// Each training camera's pose against the true scene's, given and refined (when refined): its
+/// turn from the true camera's (degrees), and how far it sees the true bones' heads of its
+/// training frames from where the true camera sees them (pixels), the error a fit feels (a
+/// few millimetres of a centre look like a hundredth of a degree of a turn from metres away).
+fn cameras(given: &Scene, truth: &Scene, state: &serde_json::Value) -> Result<(), Box<dyn std::error::Error>> {
+    let Some(mut poses) = CameraPoses::new(given) else { return Ok(()) };
+    if state["cameras"].is_null() {
+        return Ok(());
+    }
+    poses.restore(&state["cameras"]).map_err(|e| format!("cameras: {e}"))?;
+    let turn = |a: &umbra::scene::Camera, b: &umbra::scene::Camera| {
+        let (ra, rb) = (glam::DMat3::from_mat4(a.camera_to_world), glam::DMat3::from_mat4(b.camera_to_world));
+        glam::DQuat::from_mat3(&(ra.transpose() * rb)).normalize().to_scaled_axis().length().to_degrees()
+    };
+    // Pixels between where `camera` and `exact` see the true heads of `camera`'s training frames.
+    let pixels = |c: usize, camera: &umbra::scene::Camera, exact: &umbra::scene::Camera| {
+        let (mut sum, mut n) = (0.0, 0.0);
+        for view in given.views.iter().filter(|v| v.camera == c && v.split == umbra::scene::Split::Train) {
+            for m in &truth.frames[view.frame].pose.bone_to_world {
+                if let (Some(a), Some(b)) = (camera.project(m.w_axis.truncate()), exact.project(m.w_axis.truncate())) {
+                    sum += (a - b).length();
+                    n += 1.0;
+                }
+            }
+        }
+        sum / f64::max(n, 1.0)
+    };
+    // Each training image's true camera: the true scene's image of the same name.
+    let stem = |v: &umbra::scene::View| v.path.file_stem().map(|s| s.to_owned());
+    let (mut before, mut after, mut n) = ((0.0, 0.0), (0.0, 0.0), 0.0);
+    for (c, camera) in given.cameras.iter().enumerate().filter(|(c, _)| poses.row(*c).is_some()) {
+        let view = given.views.iter().find(|v| v.camera == c && v.split == umbra::scene::Split::Train).ok_or("a refined camera without a training image")?;
+        let exact = truth.views.iter().find(|t| stem(t) == stem(view)).map(|t| &truth.cameras[t.camera]).ok_or("the true scene lacks a training image")?;
+        let refined = poses.corrected_camera(c, camera);
+        let (b, a) = ((turn(camera, exact), pixels(c, camera, exact)), (turn(&refined, exact), pixels(c, &refined, exact)));
+        println!("  {:<14} turn {:.3} -> {:.3} degrees, the bones seen {:.3} -> {:.3} px off", camera.name, b.0, a.0, b.1, a.1);
+        before = (before.0 + b.0, before.1 + b.1);
+        after = (after.0 + a.0, after.1 + a.1);
+        n += 1.0;
+    }
+    println!("cameras given:   turn {:.3} degrees, the bones seen {:.3} px off (mean over {n} cameras)", before.0 / n, before.1 / n);
+    println!("cameras refined: turn {:.3} degrees, the bones seen {:.3} px off", after.0 / n, after.1 / n);
     Ok(())
 }

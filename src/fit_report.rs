@@ -126,13 +126,26 @@ pub fn motion_line(capture: &serde_json::Value) -> Option<String> {
     ))
 }
 
+/// How far the fit moved the training cameras (fit.json's `capture.cameras_refined`) in a line;
+/// none when they were not refined.
+pub fn cameras_line(capture: &serde_json::Value) -> Option<String> {
+    let moved = capture.get("cameras_refined").filter(|m| m.is_object())?;
+    let number = |key: &str| moved[key].as_f64();
+    Some(format!(
+        "cameras refined: {} training cameras, turned {:.3} degrees on average (at most {:.3}) about their centres",
+        moved["cameras"].as_array()?.len(),
+        number("mean_degrees")?,
+        number("largest_degrees")?,
+    ))
+}
+
 fn spread(gain: &[f64; 3]) -> f64 {
     gain.iter().map(|g| (g - 1.0).abs()).sum()
 }
 
 #[cfg(test)]
 mod tests {
-    use super::{camera_colours_line, motion_line};
+    use super::{camera_colours_line, cameras_line, motion_line};
     use serde_json::json;
 
     #[test]
@@ -151,5 +164,12 @@ mod tests {
             "motion refined: 12 training frames, bones turned 1.23 degrees on average (at most 6.50), the root moved 0.71 cm (at most 1.90)"
         );
         assert_eq!(motion_line(&json!({"motion_refined": null})), None);
+    }
+
+    #[test]
+    fn the_cameras_refinement_is_one_line() {
+        let capture = json!({"cameras_refined": {"cameras": [{}, {}, {}], "mean_degrees": 0.0812, "largest_degrees": 0.15}});
+        assert_eq!(cameras_line(&capture).unwrap(), "cameras refined: 3 training cameras, turned 0.081 degrees on average (at most 0.150) about their centres");
+        assert_eq!(cameras_line(&json!({"cameras_refined": null})), None);
     }
 }

@@ -1,6 +1,6 @@
 //! The loss terms of the supplement (section 4.1), each a function of tensors: RGB L1, mask,
 //! grey, Gaussian density fit, the sigma (eq. 5) and mean (eq. 6) regularisers, ambient,
-//! Eikonal and curvature, and the refined motion's prior and smoothness; and `TERMS`, the one list of them: each term's name (the schedule's
+//! Eikonal and curvature, the refined motion's prior and smoothness, and the refined cameras' prior; and `TERMS`, the one list of them: each term's name (the schedule's
 //! `[losses]` key, the losses table's column), what it is computed from (`Input`: a step
 //! computes, and a batch draws samples for, only what an active term needs) and its value from
 //! a step's `Inputs`. Adding a term is an entry here and its weight in a schedule. Weights come
@@ -31,6 +31,10 @@ pub enum Input {
     /// The batch frame's motion correction, refined with the field (`train::motion`): a step
     /// carries it through the render and the terms that weigh it hold it near the given motion.
     Motion,
+    /// The training cameras' pose corrections, refined with the field (`train::camera_pose`):
+    /// a step sees each ray from its camera as corrected and carries an increment of them
+    /// through the render; the term that weighs them holds them near the given poses.
+    Cameras,
 }
 
 /// What a step computed for its batch; a part an active term does not need is absent.
@@ -53,6 +57,8 @@ pub struct Inputs {
     /// skeleton's shift in levers) and where its neighbouring frames would have it for a
     /// smooth motion (the corrected motion's second difference there zero).
     pub motion: Option<(Tensor<2>, Tensor<2>)>,
+    /// The training cameras' turns about their centres (`[C, 3]`, radians).
+    pub cameras: Option<Tensor<2>>,
 }
 
 /// A loss term: its name, what it needs, its value (none when a step lacks an input).
@@ -66,7 +72,7 @@ pub struct Term {
 }
 
 /// Every loss term, in the order a step sums them.
-pub const TERMS: [Term; 11] = [
+pub const TERMS: [Term; 12] = [
     Term { name: "rgb", needs: &[Input::Colour], always: false, value: |i| Some(rgb(i.colour.clone()?, i.target.clone())) },
     Term { name: "mask", needs: &[], always: true, value: |i| Some(mask(i.accumulation.clone(), i.mask.clone(), i.mask_weights.clone())) },
     Term { name: "grey", needs: &[], always: false, value: |i| Some(grey(i.albedo.clone(), i.mask.clone())) },
@@ -83,6 +89,7 @@ pub const TERMS: [Term; 11] = [
     Term { name: "curvature", needs: &[Input::NormalPairs], always: false, value: |i| i.normal_pairs.clone().map(|(n, p)| curvature(n, p)) },
     Term { name: "motion_prior", needs: &[Input::Motion], always: false, value: |i| i.motion.clone().map(|(c, _)| squared(c)) },
     Term { name: "motion_smoothness", needs: &[Input::Motion], always: false, value: |i| i.motion.clone().map(|(c, smooth)| squared(c - smooth)) },
+    Term { name: "camera_prior", needs: &[Input::Cameras], always: false, value: |i| i.cameras.clone().map(squared) },
 ];
 
 /// The terms' names, in `TERMS`' order.

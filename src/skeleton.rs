@@ -2,7 +2,7 @@
 //! per-frame rigid `bone_to_world` transforms, the maps between bone-local and world space, and a
 //! pose as tensors (`PoseTensors`) and CPU bone frames for the field and the Gaussians.
 
-use burn::tensor::{Device, Tensor, TensorData};
+use burn::tensor::{Device, Int, Tensor, TensorData};
 use glam::{DMat3, DMat4, DVec3};
 use serde::{Deserialize, Serialize};
 
@@ -160,6 +160,61 @@ pub struct PoseTensors {
     /// A rigid increment of each bone's pose whose gradient a training step reads (the motion's
     /// refinement), when the lookups are to carry one.
     pub motion: Option<MotionIncrement>,
+    /// A rigid increment of the camera each ray is seen from, whose gradient a training step
+    /// reads (the cameras' refinement), when the render's lookups are to carry one.
+    pub view: Option<ViewIncrement>,
+}
+
+/// A zero-valued increment of the cameras' poses that gradients flow through: per camera a
+/// world turn about its centre (`leaf`, `[C, 3]`, radians). A camera turned so sees the world
+/// point `x` of one of its rays where the unturned camera would see `x + w x (x - o)` (`o` the
+/// ray's origin, the camera's centre). The render attaches each differentiable sample's camera
+/// row and ray origin (`along`); a lookup of other points (the regularisers', the Gaussians'
+/// fit) carries nothing of it.
+#[derive(Clone, Debug)]
+pub struct ViewIncrement {
+    pub leaf: Tensor<2>,
+    /// The step (m) over which the render differences the SDF's gradient to carry the increment
+    /// into a shading normal (`render`): the surface a turned camera sees is shaded with the
+    /// normal there, not here.
+    pub stencil: f32,
+    along: Option<(Tensor<1, Int>, Tensor<2>)>,
+}
+
+impl ViewIncrement {
+    /// A fresh leaf of zeros for `cameras` cameras, its normals differenced over `stencil` (m).
+    pub fn new(cameras: usize, stencil: f32, device: &Device) -> Self {
+        Self { leaf: Tensor::zeros([cameras.max(1), 3], device).require_grad(), stencil, along: None }
+    }
+
+    /// The same increment as a new leaf (a graph of its own, for another thread).
+    pub fn fork(&self) -> Self {
+        Self { leaf: Tensor::zeros(self.leaf.dims(), &self.leaf.device()).require_grad(), stencil: self.stencil, along: None }
+    }
+
+    /// The increment for a lookup of points each on a ray: per point its camera's row and its
+    /// ray's origin (`[N, 3]`, flat).
+    pub fn along(&self, rows: &[u32], origins: Vec<f32>) -> Self {
+        let device = self.leaf.device();
+        let n = rows.len();
+        let index = Tensor::<1, Int>::from_data(TensorData::new(rows.iter().map(|&r| r as i64).collect::<Vec<_>>(), [n]), &device);
+        let origins = Tensor::from_data(TensorData::new(origins, [n, 3]), &device);
+        Self { leaf: self.leaf.clone(), stencil: self.stencil, along: Some((index, origins)) }
+    }
+
+    /// Points the increment follows: as many as `along` was given (none before).
+    pub fn points(&self) -> usize {
+        self.along.as_ref().map_or(0, |(rows, _)| rows.dims()[0])
+    }
+
+    /// Where each of `points` (`[N, 3]`, the `along` points) is seen from the turned cameras,
+    /// less where it is: `w x (x - o)` (`[N, 3]`; zeros without `along`).
+    pub fn seen_shift(&self, points: Tensor<2>) -> Tensor<2> {
+        match &self.along {
+            Some((rows, origins)) => cross_rows(self.leaf.clone().select(0, rows.clone()), points - origins.clone()),
+            None => points.zeros_like(),
+        }
+    }
 }
 
 /// A zero-valued increment of a pose that gradients flow through: per bone a world rotation
@@ -240,6 +295,7 @@ impl PoseTensors {
         Self {
             frames,
             motion: None,
+            view: None,
             rotations: Tensor::from_data(TensorData::new(rotations, [b, 3, 3]), device),
             translations: Tensor::from_data(TensorData::new(translations, [b, 3]), device),
             lengths: Tensor::from_data(TensorData::new(lengths, [b]), device),

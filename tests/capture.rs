@@ -402,6 +402,65 @@ fn a_motion_goes_back_in_the_captures_units() {
     }
 }
 
+/// The default schedule refines an imported capture's cameras and keeps a scene's; the refined
+/// cameras go back as nerfstudio's `transforms.json` in the capture's units and world: the
+/// cameras as given read back as the capture's own, and a camera turned and moved reads back
+/// turned and moved.
+#[test]
+fn the_cameras_go_back_in_the_captures_units() {
+    let dir = TempDir::new("capture-cameras-back");
+    let (original, capture) = scene_and_capture(dir.path());
+    let out = dir.path().join("imported");
+    import(&options(&capture, out.clone()), &|_, _| {}).unwrap();
+    let scene = Scene::load(&out).unwrap();
+    let schedule = umbra::schedule::Schedule::load(&Path::new(env!("CARGO_MANIFEST_DIR")).join("schedules/default.toml")).unwrap();
+    let trainer = |scene: Scene| umbra::train::Trainer::new(scene, schedule.clone(), umbra::backend::Backend::Flex, 0).unwrap();
+    let imported = trainer(scene.clone());
+    assert_eq!(imported.cameras_moved().map(|m| m.cameras.len()), Some(3), "an imported capture's three cameras are refined");
+    assert!(trainer(Scene::load(&original).unwrap()).cameras_moved().is_none(), "a scene's stated cameras are kept");
+    // Read a transforms.json back: each image's camera-to-world in the scene's world (metres).
+    let world = scene.capture.clone().unwrap();
+    let read_back = |transforms: &serde_json::Value, name: &str| {
+        let path = dir.path().join(name);
+        std::fs::write(&path, serde_json::to_string(transforms).unwrap()).unwrap();
+        let images = umbra::capture::nerfstudio::read(&path).unwrap();
+        images
+            .into_iter()
+            .map(|i| {
+                let mut m = world.to_scene * i.camera_to_world;
+                m.w_axis = (m.w_axis.truncate() * world.metres_per_unit).extend(1.0);
+                (stem(&i.path), i.time, m)
+            })
+            .collect::<Vec<_>>()
+    };
+    let given = read_back(&umbra::fit::cameras_transforms(&scene, &scene.cameras), "given.json");
+    let train: Vec<_> = scene.views.iter().filter(|v| v.split == umbra::scene::Split::Train).collect();
+    assert_eq!(given.len(), train.len(), "one frame per training image");
+    let captured: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(capture.join("transforms.json")).unwrap()).unwrap();
+    for ((name, time, m), view) in given.iter().zip(&train) {
+        assert_eq!(*name, stem(&view.path));
+        assert!(max_difference(m, &scene.cameras[view.camera].camera_to_world) < 1e-9, "{name}");
+        assert_eq!(*time, scene.frames[view.frame].time, "{name}: the scene's time");
+        let own = captured["frames"].as_array().unwrap().iter().find(|f| f["file_path"].as_str().is_some_and(|p| p.contains(name.as_str()))).unwrap();
+        let transform = matrix(&own["transform_matrix"]);
+        let written = given.iter().find(|g| g.0 == *name).unwrap();
+        let mut back = world.to_scene.inverse() * written.2;
+        back.w_axis = (back.w_axis.truncate() / world.metres_per_unit).extend(1.0);
+        assert!(max_difference(&(back * umbra::capture::nerfstudio::flip_yz()), &transform) < 1e-6, "{name}: the capture's own transform");
+    }
+    // A camera turned 0.2 degrees about its centre and moved 4 mm reads back so.
+    let mut moved = scene.cameras.clone();
+    let centre = moved[0].centre();
+    let turn = DMat4::from_axis_angle(DVec3::new(0.3, 1.0, -0.2).normalize(), 0.2f64.to_radians());
+    moved[0].camera_to_world =
+        DMat4::from_translation(centre + DVec3::new(0.004, 0.0, 0.0)) * turn * DMat4::from_translation(-centre) * moved[0].camera_to_world;
+    let back = read_back(&umbra::fit::cameras_transforms(&scene, &moved), "moved.json");
+    for ((name, _, m), view) in back.iter().zip(&train) {
+        assert!(max_difference(m, &moved[view.camera].camera_to_world) < 1e-9, "{name}");
+    }
+    assert!(back.iter().zip(&given).any(|(a, b)| max_difference(&a.2, &b.2) > 1e-3), "the moved camera moved");
+}
+
 #[test]
 fn a_colmap_text_model_imports_with_the_scenes_cameras() {
     let dir = TempDir::new("capture-colmap");

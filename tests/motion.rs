@@ -210,3 +210,143 @@ fn corrections_step_against_their_gradient_and_survive_a_checkpoint() {
     other_frames["frames"] = serde_json::json!([0, 7]);
     assert!(restored.restore(&other_frames).unwrap_err().contains("frames"));
 }
+
+/// The view increment's gradient (each camera's world turn about its centre) against central
+/// differences of the loss with the camera turned: every point of a ray seen where the turned
+/// camera's ray of the same pixel meets it (`CameraPoses::corrected_ray`'s rule,
+/// `o + R (x - o)`). Two cameras; the points of each are weighed apart, so each camera's row
+/// must carry its own points' gradient and none of the other's.
+#[test]
+fn the_view_increment_carries_the_gradient_of_the_turned_cameras() {
+    use umbra::skeleton::ViewIncrement;
+    let device = Device::flex().autodiff();
+    let character = Character::new(Kind::Human);
+    let pose = character.pose(0.3, 0.2, DVec3::new(0.05, 0.0, -0.1));
+    let field = field(&character, &pose, &device);
+    let (pts, _) = points(&character, &pose);
+    let centres = [DVec3::new(0.4, 1.1, 3.0), DVec3::new(-2.6, 0.9, 0.8)];
+    let rows: Vec<u32> = (0..pts.len()).map(|i| (i % 2) as u32).collect();
+    let origins: Vec<f32> = rows.iter().flat_map(|&r| centres[r as usize].as_vec3().to_array()).collect();
+    let mut stream = Stream::new(5, 6, 7);
+    let w: Vec<f32> = pts.iter().map(|_| (stream.uniform() * 2.0 - 1.0) as f32).collect();
+    let weights = Tensor::<1>::from_data(TensorData::new(w.clone(), [pts.len()]), &device);
+    let mut tensors = PoseTensors::new(&pose, &character.skeleton, &device);
+    let view = ViewIncrement::new(2, 0.01, &device);
+    tensors.view = Some(view.along(&rows, origins));
+    let flat: Vec<f32> = pts.iter().flat_map(|p| p.as_vec3().to_array()).collect();
+    let sdf = field.decode(Tensor::<2>::from_data(TensorData::new(flat, [pts.len(), 3]), &device), &tensors).sdf;
+    let grads = (sdf * weights).sum().backward();
+    let gradient = values(view.leaf.grad(&grads).expect("the view increment is in the graph"));
+    let plain = PoseTensors::new(&pose, &character.skeleton, &device);
+    // Camera `camera` turned by `turn` about its centre: the loss in f64.
+    let value = |camera: usize, turn: DVec3| {
+        let rotation = DMat3::from_quat(glam::DQuat::from_scaled_axis(turn));
+        let moved: Vec<f32> = pts
+            .iter()
+            .zip(&rows)
+            .flat_map(|(p, &r)| {
+                let o = centres[r as usize];
+                let seen = if r as usize == camera { o + rotation * (*p - o) } else { *p };
+                seen.as_vec3().to_array()
+            })
+            .collect();
+        let sdf = values(field.decode(Tensor::<2>::from_data(TensorData::new(moved, [pts.len(), 3]), &device), &plain).sdf.inner());
+        sdf.iter().zip(&w).map(|(s, w)| *s as f64 * *w as f64).sum::<f64>()
+    };
+    let mut checked = 0;
+    for camera in 0..2 {
+        for axis in [DVec3::X, DVec3::Y, DVec3::Z] {
+            // Points 1-3 m away move by 0.1-0.3 mm, small beside the finest cell.
+            let h = 1e-4;
+            let fd = (value(camera, axis * h) - value(camera, -axis * h)) / (2.0 * h);
+            let analytic = gradient[3 * camera..3 * camera + 3].iter().zip(axis.to_array()).map(|(g, a)| *g as f64 * a).sum::<f64>();
+            let scale = fd.abs().max(analytic.abs()).max(0.05);
+            assert!((fd - analytic).abs() < 0.03 * scale, "camera {camera} axis {axis}: finite difference {fd} vs gradient {analytic}");
+            checked += (fd.abs() > 0.05) as usize;
+        }
+    }
+    assert!(checked >= 4, "too few of the differences were large enough to test ({checked})");
+}
+
+/// A training step's camera gradient points down its loss: each camera value's first Adam step
+/// (against its gradient's sign) agrees with central differences of the step's loss on the same
+/// batch, its rays cast again from the cameras turned (their sampling intervals kept, as a
+/// step's gradient keeps its samples' distances along the rays). Under uniform light, where
+/// a ray's colour is its albedo's: the whole path from the batch's camera rows through the
+/// render's parts to the Adam step, exact. (A sun's shading carries the increment into its
+/// normals by a difference over a stencil, and a grid's normals jump at its cells' faces, so
+/// there the step's loss is too rough for a difference to judge.)
+#[test]
+fn a_steps_camera_gradient_points_down_its_loss() {
+    use umbra::train::{TrainState, Trainer};
+    let dir = common::TempDir::new("camera-gradient");
+    let path = common::tiny_synth(dir.path(), umbra::synth::TrainingLight::Uniform, 32, 3, vec![umbra::synth::TestKind::Poses], 4);
+    let scene = umbra::scene::Scene::load(&path).unwrap();
+    let default = std::fs::read_to_string(std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("schedules/default.toml")).unwrap();
+    // The samples stratified over each ray's bound alone (no search for the surface), so the
+    // loss is smooth in the cameras: a search's fine samples move by jumps.
+    let text = default
+        .replace("refine_cameras = \"auto\"", "refine_cameras = true")
+        .replace("rays_per_batch = 512", "rays_per_batch = 384")
+        .replace("samples_per_ray = 16 ", "samples_per_ray = 48 ")
+        .replace("fine_samples_per_ray = 16", "fine_samples_per_ray = 0")
+        .replace("probe_samples_per_ray = 16", "probe_samples_per_ray = 0")
+        .replace("cull_samples = true", "cull_samples = false");
+    let schedule_path = dir.path().join("schedule.toml");
+    std::fs::write(&schedule_path, text).unwrap();
+    let schedule = umbra::schedule::Schedule::load(&schedule_path).unwrap();
+    let mut trainer = Trainer::new(scene, schedule, umbra::backend::Backend::Flex, 0).unwrap();
+    for _ in 0..60 {
+        trainer.iterate().unwrap();
+    }
+    // Past the silhouette stage: the colour, the mask and the cameras' prior all weigh.
+    trainer.set_iteration(800).unwrap();
+    let batch = trainer.draw_batch().unwrap();
+    assert!(batch.cameras_corrected && !batch.rays.cameras.is_empty(), "the batch's rays carry their cameras");
+    let state = trainer.state().unwrap().clone();
+    let given = state.cameras.as_ref().unwrap().to_json();
+    // The step's loss with camera value `k` (row-major over the `[C, 3]` turns) moved
+    // by `h`, the batch's rays cast from the moved cameras.
+    let loss_with = |k: usize, h: f64| -> f64 {
+        let mut moved = given.clone();
+        let value = &mut moved["turns"][k / 3][k % 3];
+        *value = serde_json::json!(value.as_f64().unwrap() + h);
+        let mut state: TrainState = state.clone();
+        let cameras = state.cameras.as_mut().unwrap();
+        cameras.restore(&moved).unwrap();
+        let mut recast = batch.clone();
+        for (i, &(view, pixel, _)) in batch.sources.iter().enumerate() {
+            let c = trainer.scene.views[view].camera;
+            let camera = &trainer.scene.cameras[c];
+            let ray = cameras.corrected_ray(c, camera.pixel_ray(pixel % camera.width, pixel / camera.width));
+            recast.rays.origins[3 * i..3 * i + 3].copy_from_slice(&ray.origin.as_vec3().to_array());
+            recast.rays.directions[3 * i..3 * i + 3].copy_from_slice(&ray.direction.as_vec3().to_array());
+        }
+        let stats = trainer.step(recast, state).1.unwrap();
+        // The terms a ray's colour and coverage make: the others (the Gaussians' fit, the
+        // regularisers) are evaluated at the rays' samples but say nothing of the cameras.
+        let it = trainer.state().unwrap().iteration;
+        stats
+            .terms
+            .iter()
+            .filter(|(name, _)| ["mask", "rgb", "grey", "camera_prior"].contains(&name.as_str()))
+            .map(|(name, v)| v * trainer.schedule.weight(name, it))
+            .sum::<f64>()
+    };
+    let (after, stats) = trainer.step(batch.clone(), state.clone());
+    stats.unwrap();
+    let moved = after.cameras.as_ref().unwrap().to_json();
+    let rows = given["turns"].as_array().unwrap().len();
+    let (mut agreed, mut tested) = (0, 0);
+    for k in 0..3 * rows {
+        let step = moved["turns"][k / 3][k % 3].as_f64().unwrap() - given["turns"][k / 3][k % 3].as_f64().unwrap();
+        let h: f64 = std::env::var("H").ok().and_then(|v| v.parse().ok()).unwrap_or(2e-4);
+        let slope = (loss_with(k, h) - loss_with(k, -h)) / (2.0 * h);
+        if slope.abs() > 1e-3 {
+            tested += 1;
+            agreed += (step * slope < 0.0) as usize;
+        }
+    }
+    assert!(tested >= 6, "too few of the slopes were large enough to test ({tested})");
+    assert_eq!(agreed, tested, "each camera value steps down its loss's slope");
+}

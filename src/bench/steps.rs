@@ -28,6 +28,8 @@ struct Variant {
     /// The training motion as given, not refined (before `train::motion`; the light stage is
     /// where it is refined).
     motion_given: bool,
+    /// The training cameras refined too (`train::camera_pose`, from 400 with the motion).
+    cameras_refined: bool,
 }
 
 /// Milliseconds per step of `variant` from `iteration` (its stage), over `budget` seconds.
@@ -37,6 +39,7 @@ fn step_ms(scene: &Scene, schedule: &Schedule, variant: &Variant, iteration: usi
     schedule.cull_samples &= !variant.every_sample;
     // The motion refined whatever the scene (`auto` refines an imported capture's only).
     schedule.refine_motion = crate::schedule::Switch::Fixed(!variant.motion_given);
+    schedule.refine_cameras = crate::schedule::Switch::Fixed(variant.cameras_refined);
     let mut trainer = Trainer::new(scene.clone(), schedule, Backend::Flex, 0)?;
     trainer.render_missed_rays = variant.render_missed_rays;
     trainer.set_composite_lookup(variant.composite_lookup);
@@ -69,24 +72,26 @@ fn variants(scene: &Scene) -> Vec<Variant> {
     let grid = |top_bones: Option<usize>| FieldSettings { top_bones, ..FieldSettings::of(FieldKind::Grid) };
     let mlp = FieldSettings::of(FieldKind::Mlp);
     // [render missed rays, composite lookup, one render thread, every sample differentiated,
-    // the motion as given]
-    let v = |name: &'static str, field: FieldSettings, [render_missed_rays, composite_lookup, one_render_thread, every_sample, motion_given]: [bool; 5]| {
-        Variant { name, field, render_missed_rays, composite_lookup, one_render_thread, every_sample, motion_given }
+    // the motion as given, the cameras refined]
+    let v = |name: &'static str, field: FieldSettings, flags: [bool; 6]| {
+        let [render_missed_rays, composite_lookup, one_render_thread, every_sample, motion_given, cameras_refined] = flags;
+        Variant { name, field, render_missed_rays, composite_lookup, one_render_thread, every_sample, motion_given, cameras_refined }
     };
     vec![
-        v("mlp, every ray rendered (before), one render thread", mlp.clone(), [true, false, true, false, false]),
-        v("mlp, missed rays skipped, one render thread", mlp.clone(), [false, false, true, false, false]),
-        v("mlp, missed rays skipped", mlp, [false, false, false, false, false]),
+        v("mlp, every ray rendered (before), one render thread", mlp.clone(), [true, false, true, false, false, false]),
+        v("mlp, missed rays skipped, one render thread", mlp.clone(), [false, false, true, false, false, false]),
+        v("mlp, missed rays skipped", mlp, [false, false, false, false, false, false]),
         v(
             "grid, nearest 8 bones (the most a lookup takes), composite lookup",
             grid(Some(scene.skeleton.len().min(crate::field::grid::MAX_TOP_BONES))),
-            [false, true, false, false, false],
+            [false, true, false, false, false, false],
         ),
-        v("grid, nearest 3 bones, composite lookup", grid(None), [false, true, false, false, false]),
-        v("grid, nearest 3 bones, fused lookup op, one render thread", grid(None), [false, false, true, false, false]),
-        v("grid, nearest 3 bones, fused lookup op, every sample differentiated", grid(None), [false, false, false, true, false]),
-        v("grid, nearest 3 bones, fused lookup op, the motion as given", grid(None), [false, false, false, false, true]),
-        v("grid, nearest 3 bones, fused lookup op (the motion refined from 400)", grid(None), [false, false, false, false, false]),
+        v("grid, nearest 3 bones, composite lookup", grid(None), [false, true, false, false, false, false]),
+        v("grid, nearest 3 bones, fused lookup op, one render thread", grid(None), [false, false, true, false, false, false]),
+        v("grid, nearest 3 bones, fused lookup op, every sample differentiated", grid(None), [false, false, false, true, false, false]),
+        v("grid, nearest 3 bones, fused lookup op, the motion as given", grid(None), [false, false, false, false, true, false]),
+        v("grid, nearest 3 bones, fused lookup op (the motion refined from 400)", grid(None), [false, false, false, false, false, false]),
+        v("grid, nearest 3 bones, fused lookup op, the motion and the cameras refined", grid(None), [false, false, false, false, false, true]),
     ]
 }
 

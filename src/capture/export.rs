@@ -79,7 +79,7 @@ fn write_cameras_and_motion(
     chosen: &[usize],
     names: &dyn Fn(usize) -> (String, Option<String>),
 ) -> Result<(), ImportError> {
-    let transforms = super::nerfstudio::write(scene, chosen, units, FRAME_TIME, names);
+    let transforms = super::nerfstudio::write(scene, &scene.cameras, chosen, units, FRAME_TIME, names);
     let text = serde_json::to_string_pretty(&transforms).map_err(|e| input(dir, e.to_string()))?;
     write(&dir.join("transforms.json"), text.as_bytes())?;
     let frames: Vec<Vec<glam::DMat4>> = scene.frames.iter().map(|f| f.pose.bone_to_world.clone()).collect();

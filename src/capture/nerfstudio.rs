@@ -8,7 +8,7 @@
 
 use super::{CaptureImage, Distortion, Intrinsics};
 use crate::scene::json::At;
-use crate::scene::{Scene, SceneError, Split};
+use crate::scene::{Camera, Scene, SceneError, Split};
 use glam::{DMat4, DVec4};
 use serde_json::{json, Value};
 use std::path::Path;
@@ -143,15 +143,16 @@ fn intrinsics(node: &At, shared: Option<&(Intrinsics, Distortion)>, model: &str)
     Ok(Some((intrinsics, distortion)))
 }
 
-/// `scene`'s images `chosen` as nerfstudio's `transforms.json`: cameras in OpenGL axes,
-/// positions in `units` per metre, each image's `time` its frame's position times `frame_time`,
-/// `file_path` and `mask_path` as `name` gives them for image `k`.
-pub fn write(scene: &Scene, chosen: &[usize], units: f64, frame_time: f64, name: impl Fn(usize) -> (String, Option<String>)) -> Value {
+/// `scene`'s images `chosen` as nerfstudio's `transforms.json`, seen through `cameras` (one per
+/// scene camera): cameras in OpenGL axes, positions in `units` per metre, each image's `time`
+/// its frame's position times `frame_time`, `file_path` and `mask_path` as `name` gives them for
+/// image `k`.
+pub fn write(scene: &Scene, cameras: &[Camera], chosen: &[usize], units: f64, frame_time: f64, name: impl Fn(usize) -> (String, Option<String>)) -> Value {
     let frames: Vec<Value> = chosen
         .iter()
-        .map(|&k| {
+        .filter_map(|&k| {
             let view = &scene.views[k];
-            let camera = &scene.cameras[view.camera];
+            let camera = cameras.get(view.camera)?;
             let mut opengl = camera.camera_to_world * flip_yz();
             opengl.w_axis = (opengl.w_axis.truncate() * units).extend(1.0);
             let rows: Vec<Vec<f64>> = (0..4).map(|r| opengl.row(r).to_array().to_vec()).collect();
@@ -166,7 +167,7 @@ pub fn write(scene: &Scene, chosen: &[usize], units: f64, frame_time: f64, name:
             if let Some(mask) = mask_path {
                 frame["mask_path"] = json!(mask);
             }
-            frame
+            Some(frame)
         })
         .collect();
     let split_names = |split: Split| -> Vec<String> { chosen.iter().filter(|&&k| scene.views[k].split == split).map(|&k| name(k).0).collect() };

@@ -228,6 +228,9 @@ fn fit(options: &crate::fit::FitOptions) -> Result<(), String> {
     if let Some(line) = crate::fit_report::camera_colours_line(&report.capture) {
         println!("{line}");
     }
+    if let Some(line) = crate::fit_report::cameras_line(&report.capture) {
+        println!("{line}");
+    }
     if let Some(line) = crate::fit_report::motion_line(&report.capture) {
         println!("{line}; the refined training motion: {}", options.out.join(crate::run::REFINED_MOTION).display());
     }

@@ -25,7 +25,7 @@ pub use super::host_lookup::features_on_host;
 pub use super::layout::{GridConfig, Level, RootSkinning, RootTable, FINEST_PER_EXTENT, MAX_TOP_BONES, REACH_PER_EXTENT};
 pub use super::lookup::{lookup, lookup_carried, saturate, Lookup, Skinning};
 
-pub use crate::skeleton::{BoneFrame, MotionIncrement};
+pub use crate::skeleton::{BoneFrame, MotionIncrement, ViewIncrement};
 
 /// The learnable table: `levels x 2^table_log2` rows of `features`.
 #[derive(Module, Debug)]
@@ -105,10 +105,25 @@ impl FeatureGrid {
     /// Looks `points` up in the posed bones `frames`. With a `motion` increment, a tracked lookup
     /// that asks for no tangents carries it (`encode_moving`).
     pub fn encode(&self, points: Tensor<2>, frames: &[BoneFrame], skinning: Skinning, tangents: bool, motion: Option<&MotionIncrement>) -> GridFeatures {
+        self.encode_carrying(points, frames, skinning, tangents, motion, None)
+    }
+
+    /// `encode`, the tracked lookup also carrying a `view` increment of the cameras when it
+    /// follows these points (`ViewIncrement::points`).
+    pub fn encode_carrying(
+        &self,
+        points: Tensor<2>,
+        frames: &[BoneFrame],
+        skinning: Skinning,
+        tangents: bool,
+        motion: Option<&MotionIncrement>,
+        view: Option<&ViewIncrement>,
+    ) -> GridFeatures {
         let device = points.device();
         let tracked = self.table.val().is_require_grad();
-        if let Some(motion) = motion.filter(|_| !tangents && tracked && !self.composite) {
-            return self.encode_moving(points, frames, skinning, motion);
+        let view = view.filter(|v| v.points() == points.dims()[0]);
+        if (motion.is_some() || view.is_some()) && !tangents && tracked && !self.composite {
+            return self.encode_moving(points, frames, skinning, motion, view);
         }
         // On a GPU the table stays there: the plan goes up and the sums run on the device.
         if !tangents && !self.composite && !tracked && crate::backend::on_host(&device) {
@@ -133,26 +148,43 @@ impl FeatureGrid {
     /// The shift reaches the trilinear corners through the fused op's backward
     /// (`interpolate_carrying`), and the skinning's logits and the capsule prior through their
     /// planned world derivatives; second derivatives are not followed.
-    fn encode_moving(&self, points: Tensor<2>, frames: &[BoneFrame], skinning: Skinning, motion: &MotionIncrement) -> GridFeatures {
+    ///
+    /// A `view` increment moves the camera each point is seen from: the point is looked up
+    /// where the moved camera sees it (`ViewIncrement::seen_shift`), the same way in.
+    fn encode_moving(
+        &self,
+        points: Tensor<2>,
+        frames: &[BoneFrame],
+        skinning: Skinning,
+        motion: Option<&MotionIncrement>,
+        view: Option<&ViewIncrement>,
+    ) -> GridFeatures {
         let device = points.device();
         let (values, n) = host_points(points.clone());
         let levels = self.active_layout();
         let mut plan = lookup_carried(&self.config, &levels, frames, skinning, &values);
         let k = self.config.top();
         let bones = frames.len();
-        // The blend's weights from distance alone (the root's learned preference aside), per
-        // point over every bone.
-        let mut weights = vec![0.0f32; n * bones];
-        for (i, (logits, chosen)) in plan.logits.chunks(k).zip(plan.bones.chunks(k)).enumerate() {
-            let total: f32 = logits.iter().map(|l| l.exp()).sum();
-            for (l, &b) in logits.iter().zip(chosen) {
-                if let Some(w) = weights.get_mut(i * bones + b as usize) {
-                    *w += l.exp() / total;
+        // The motion's blend weighs the bones from distance alone (the root's learned preference
+        // aside), per point over every bone.
+        let blended = |motion: &MotionIncrement| {
+            let mut weights = vec![0.0f32; n * bones];
+            for (i, (logits, chosen)) in plan.logits.chunks(k).zip(plan.bones.chunks(k)).enumerate() {
+                let total: f32 = logits.iter().map(|l| l.exp()).sum();
+                for (l, &b) in logits.iter().zip(chosen) {
+                    if let Some(w) = weights.get_mut(i * bones + b as usize) {
+                        *w += l.exp() / total;
+                    }
                 }
             }
-        }
-        let weights: Tensor<2> = Tensor::from_data(TensorData::new(weights, [n, bones]), &device);
-        let shift = motion.blended_motion(points, weights).neg();
+            motion.blended_motion(points.clone(), Tensor::from_data(TensorData::new(weights, [n, bones]), &device))
+        };
+        let shift = match (motion, view) {
+            (Some(motion), Some(view)) => view.seen_shift(points.clone()) - blended(motion),
+            (Some(motion), None) => blended(motion).neg(),
+            (None, Some(view)) => view.seen_shift(points.clone()),
+            (None, None) => points.zeros_like(),
+        };
         let logit_tangents: Tensor<3> = Tensor::from_data(TensorData::new(plan.logit_tangents.clone(), [n, k, 3]), &device);
         let logit_shift = (logit_tangents * shift.clone().reshape([n, 1, 3])).sum_dim(2).reshape([n, k]);
         let prior_tangents: Tensor<2> = Tensor::from_data(TensorData::new(plan.prior_tangents.clone(), [n, 3]), &device);

@@ -281,7 +281,7 @@ impl AvatarField {
     fn features(&self, points: Tensor<2>, pose: &PoseTensors, tangents: bool) -> (Tensor<2>, Tensor<1>, Option<(Tensor<2>, Tensor<2>)>) {
         match &self.grid {
             Some(grid) => {
-                let g = grid.encode(points, &pose.frames, self.config.skinning(), tangents, pose.motion.as_ref());
+                let g = grid.encode_carrying(points, &pose.frames, self.config.skinning(), tangents, pose.motion.as_ref(), pose.view.as_ref());
                 (g.features, g.prior, g.tangents)
             }
             None => {

@@ -224,6 +224,7 @@ pub fn fit(options: &FitOptions, mut on: impl FnMut(TrainMessage)) -> Result<Fit
     let segment_seconds = train(&mut trainer, &schedule, out, &mut history, &mut on)?;
     write_results(&trainer, out, &history)?;
     write_refined_motion(&trainer, out)?;
+    write_refined_cameras(&trainer, out)?;
     let (evaluation, evaluation_skipped) = evaluation(&trainer, options, trainer.iteration() > first_iteration_here, &mut on)?;
     let model: &Avatar = trainer.model()?;
     let light = model.light.report();
@@ -283,6 +284,47 @@ fn write_refined_motion(trainer: &Trainer, out: &Path) -> Result<(), FitError> {
     let path = out.join(crate::run::REFINED_MOTION);
     let text = motion_bvh(&trainer.scene, &motion.refined(&trainer.scene)).map_err(|e| io(&path, e))?;
     write_text(&path, &text)
+}
+
+/// The training cameras as the fit refined them (`train::camera_pose`), as nerfstudio's
+/// `transforms.json` of the training images (their paths in the scene's folder): in the
+/// capture's units and world when `umbra import` wrote the scene, else in metres in the
+/// scene's; nothing when the fit does not refine the cameras.
+fn write_refined_cameras(trainer: &Trainer, out: &Path) -> Result<(), FitError> {
+    if trainer.cameras_moved().is_none() {
+        return Ok(());
+    }
+    let path = out.join(crate::run::REFINED_CAMERAS);
+    let text = serde_json::to_string_pretty(&cameras_transforms(&trainer.scene, &trainer.corrected_cameras())).map_err(|e| io(&path, e))?;
+    write_text(&path, &text)
+}
+
+/// The training images of `scene` seen through `cameras` (one per scene camera) as nerfstudio's
+/// `transforms.json`, in the capture's units and world when the scene has one.
+pub fn cameras_transforms(scene: &crate::scene::Scene, cameras: &[crate::scene::Camera]) -> serde_json::Value {
+    let (to_capture, units) = match &scene.capture {
+        Some(capture) => (capture.to_scene.inverse(), 1.0 / capture.metres_per_unit),
+        None => (glam::DMat4::IDENTITY, 1.0),
+    };
+    let seen: Vec<crate::scene::Camera> =
+        cameras.iter().map(|c| crate::scene::Camera { camera_to_world: to_capture * c.camera_to_world, ..c.clone() }).collect();
+    let train: Vec<usize> = (0..scene.views.len()).filter(|&k| scene.views[k].split == Split::Train).collect();
+    let name = |k: usize| {
+        let path = &scene.views[k].path;
+        (path.strip_prefix(&scene.root).unwrap_or(path).to_string_lossy().into_owned(), None)
+    };
+    let times: Vec<Option<f64>> = scene.frames.iter().map(|f| f.time).collect();
+    let mut transforms = crate::capture::nerfstudio::write(scene, &seen, &train, units, 1.0, name);
+    // Each image's time as the scene states it (the writer's is its frame's index).
+    if let Some(frames) = transforms["frames"].as_array_mut() {
+        for (frame, &k) in frames.iter_mut().zip(&train) {
+            match times.get(scene.views[k].frame).copied().flatten() {
+                Some(time) => frame["time"] = serde_json::json!(time),
+                None => frame["time"] = serde_json::json!(scene.views[k].frame),
+            }
+        }
+    }
+    transforms
 }
 
 /// `poses` (scene frames with a pose each, in time order) as a BVH of the scene's bones: in the

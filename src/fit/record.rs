@@ -128,6 +128,9 @@ pub(super) fn capture_report(trainer: &Trainer) -> serde_json::Value {
         // How far the refinement moved the training motion (each bone's turn, degrees; the
         // skeleton's shift, cm), when the schedule refines it.
         "motion_refined": trainer.motion_moved(),
+        // How far the refinement turned each training camera about its centre (degrees), when
+        // the schedule refines them.
+        "cameras_refined": trainer.cameras_moved(),
         "monocular": training_cameras.len() == 1,
         "light_start": match trainer.searches.first().and_then(|s| s.as_ref()) {
             Some(r) if r.best.position.is_some() => "point light search over directions and distances around the body, then gradient descent",

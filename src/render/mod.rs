@@ -73,6 +73,9 @@ pub struct RaySet {
     pub directions: Vec<f32>,
     pub near: Vec<f32>,
     pub far: Vec<f32>,
+    /// Per ray, its camera's row in the pose's view increment (`PoseTensors::view`), when the
+    /// render is to carry one (else empty).
+    pub cameras: Vec<u32>,
 }
 
 impl RaySet {
@@ -102,6 +105,21 @@ impl RaySet {
             directions: self.directions[3 * lo..3 * hi].to_vec(),
             near: self.near[lo..hi].to_vec(),
             far: self.far[lo..hi].to_vec(),
+            cameras: self.cameras.get(lo..hi).map(<[u32]>::to_vec).unwrap_or_default(),
+        }
+    }
+
+    /// `pose` for a lookup of the points `rows` (indices into `[R * S]`, `s` samples a ray):
+    /// its view increment following them when it has one and the rays carry their cameras.
+    fn pose_along(&self, pose: &PoseTensors, s: usize, rows: impl Iterator<Item = usize>) -> PoseTensors {
+        match &pose.view {
+            Some(view) if self.cameras.len() == self.len() => {
+                let rays: Vec<usize> = rows.map(|k| k / s).collect();
+                let cameras: Vec<u32> = rays.iter().map(|&i| self.cameras[i]).collect();
+                let origins: Vec<f32> = rays.iter().flat_map(|&i| self.origins[3 * i..3 * i + 3].to_vec()).collect();
+                PoseTensors { view: Some(view.along(&cameras, origins)), ..pose.clone() }
+            }
+            _ => pose.clone(),
         }
     }
 
@@ -129,6 +147,8 @@ pub struct Deferred {
     /// The motion increments the render's lookups carried (`PoseTensors::motion`), one per
     /// part rendered on its own thread: their gradients sum to the increment's.
     pub motion_leaves: Vec<Tensor<2>>,
+    /// The same for the view increment of the cameras (`PoseTensors::view`).
+    pub view_leaves: Vec<Tensor<2>>,
 }
 
 /// The parts of `render` whose time `Deferred::seconds` holds.
@@ -313,6 +333,7 @@ pub fn render_still(
         seconds,
         evaluated: 0,
         motion_leaves: Vec::new(),
+        view_leaves: Vec::new(),
     }
 }
 
@@ -343,7 +364,8 @@ pub fn render(
     let points = sample_points(&origins, &directions, &t);
     let (weights, albedo, density, evaluated) = match kept {
         Some(kept) => {
-            let (weights, albedo, density) = culled_pass(field, pose, rays, &samples.t, &kept, delta, device);
+            let along = rays.pose_along(pose, s, kept.iter().copied());
+            let (weights, albedo, density) = culled_pass(field, &along, rays, &samples.t, &kept, delta, device);
             // The density-fit and regulariser points are drawn from every sample: a culled
             // one's density (detached there) is the search's.
             let mut left_out: Vec<f32> = searched.iter().map(|&d| if d.is_finite() { d } else { 0.0 }).collect();
@@ -354,7 +376,7 @@ pub fn render(
             (weights, albedo, density, kept.len())
         }
         None => {
-            let decoded = field.decode(points.clone(), pose);
+            let decoded = field.decode(points.clone(), &rays.pose_along(pose, s, 0..r * s));
             let density = field.density(decoded.sdf.clone());
             let weights = compositing_weights(density.clone().reshape([r, s]), delta); // [R, S]
             let albedo = composite_albedo(field, &decoded, &weights, sampling.albedo_floor);
@@ -365,13 +387,55 @@ pub fn render(
     let depth = (weights * t).sum_dim(1).reshape([r]) / (accumulation.clone() + 1e-6);
     let surface = origins + directions * depth.clone().reshape([r, 1]);
     let forward = start.elapsed().as_secs_f64();
+    // With the cameras refined, the surface point follows its ray's camera too, and so do the
+    // shading's normal and shadows at it.
+    let seen = rays.pose_along(pose, 1, 0..r).view.map(|view| (view.seen_shift(surface.clone()), view.stencil));
     let normal = normals.map(|method| {
         let gradient = field.sdf_gradient(surface.clone(), pose, method);
-        unit_rows(gradient)
+        match &seen {
+            Some((shift, stencil)) => unit_rows(gradient.clone() + slope_along(field, pose, &surface, &gradient, shift, *stencil, method)),
+            None => unit_rows(gradient),
+        }
     });
+    let surface = match seen {
+        Some((shift, _)) => surface + shift,
+        None => surface,
+    };
     let seconds = [located, forward - located, start.elapsed().as_secs_f64() - forward];
     let motion_leaves = pose.motion.iter().map(|m| m.leaf.clone()).collect();
-    Deferred { accumulation, albedo, depth, surface, normal, sample_points: points, sample_density: density, seconds, evaluated, motion_leaves }
+    let view_leaves = pose.view.iter().map(|v| v.leaf.clone()).collect();
+    Deferred { accumulation, albedo, depth, surface, normal, sample_points: points, sample_density: density, seconds, evaluated, motion_leaves, view_leaves }
+}
+
+/// How the SDF's gradient at `surface` (`gradient`, `[R, 3]`) changes as the points move by
+/// `shift` (`[R, 3]`, carrying an increment): its slope along each axis differenced over
+/// `stencil` (m) without gradients, times the shift's component along it. The field's
+/// second derivatives are not followed; this carries an increment into a shading normal.
+fn slope_along(
+    field: &AvatarField,
+    pose: &PoseTensors,
+    surface: &Tensor<2>,
+    gradient: &Tensor<2>,
+    shift: &Tensor<2>,
+    stencil: f32,
+    method: GradientMethod,
+) -> Tensor<2> {
+    let [r, _] = surface.dims();
+    let device = surface.device();
+    let here = crate::backend::host_values(surface.clone().detach());
+    let g = crate::backend::host_values(gradient.clone().detach());
+    let offsets: Vec<f32> =
+        (0..3).flat_map(|axis| here.chunks(3).flat_map(move |p| std::array::from_fn::<f32, 3, _>(|c| p[c] + if c == axis { stencil } else { 0.0 }))).collect();
+    let still = field.valid();
+    let offset = Tensor::<2>::from_data(TensorData::new(offsets, [3 * r, 3]), &device).without_autodiff();
+    let there = crate::backend::host_values(still.sdf_gradient(offset, pose, method));
+    let mut total = Tensor::<2>::zeros([r, 3], &device);
+    for axis in 0..3 {
+        let slope: Vec<f32> = (0..3 * r).map(|k| (there.get(axis * 3 * r + k).copied().unwrap_or(0.0) - g[k]) / stencil).collect();
+        let slope = Tensor::<2>::from_data(TensorData::new(slope, [r, 3]), &device);
+        total = total + slope * shift.clone().narrow(1, axis, 1);
+    }
+    total
 }
 
 /// The differentiable pass over the `kept` samples only (`contributing`): the field decoded at
@@ -424,6 +488,7 @@ impl Deferred {
             seconds,
             evaluated: parts.iter().map(|p| p.evaluated).sum(),
             motion_leaves: parts.iter().flat_map(|p| p.motion_leaves.iter().cloned()).collect(),
+            view_leaves: parts.iter().flat_map(|p| p.view_leaves.iter().cloned()).collect(),
         }
     }
 }

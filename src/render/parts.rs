@@ -35,8 +35,10 @@ pub fn render_in_parts(
     use rayon::prelude::*;
     let per_part = r.div_ceil(parts);
     let forks: Vec<AvatarField> = (0..parts).map(|_| field.clone().fork(device)).collect();
-    // A motion increment, like the field, is a leaf of each part's own graph.
-    let poses: Vec<PoseTensors> = (0..parts).map(|_| PoseTensors { motion: pose.motion.as_ref().map(|m| m.fork()), ..pose.clone() }).collect();
+    // A motion or view increment, like the field, is a leaf of each part's own graph.
+    let poses: Vec<PoseTensors> = (0..parts)
+        .map(|_| PoseTensors { motion: pose.motion.as_ref().map(|m| m.fork()), view: pose.view.as_ref().map(|v| v.fork()), ..pose.clone() })
+        .collect();
     let rendered: Vec<Deferred> = forks
         .par_iter()
         .zip(&poses)

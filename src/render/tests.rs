@@ -59,7 +59,7 @@ fn a_views_coarse_pass_skips_only_samples_the_sdf_shows_empty_or_the_rounds_befo
 }
 
 fn one_ray(near: f32, far: f32) -> RaySet {
-    RaySet { origins: vec![0.0; 3], directions: vec![0.0, 0.0, 1.0], near: vec![near], far: vec![far] }
+    RaySet { origins: vec![0.0; 3], directions: vec![0.0, 0.0, 1.0], near: vec![near], far: vec![far], cameras: Vec::new() }
 }
 
 #[test]
@@ -110,8 +110,11 @@ fn merged_intervals_tile_the_bound_and_probes_sharpen_the_draws() {
 #[test]
 fn host_weights_match_the_differentiable_compositing() {
     let (r, n) = (3, 7);
-    let samples =
-        stratified(&RaySet { origins: vec![0.0; 3 * r], directions: vec![0.0; 3 * r], near: vec![0.5, 1.0, 0.0], far: vec![2.0, 1.5, 4.0] }, n, &[0.3; 21]);
+    let samples = stratified(
+        &RaySet { origins: vec![0.0; 3 * r], directions: vec![0.0; 3 * r], near: vec![0.5, 1.0, 0.0], far: vec![2.0, 1.5, 4.0], cameras: Vec::new() },
+        n,
+        &[0.3; 21],
+    );
     let density: Vec<f32> = (0..r * n).map(|k| [0.0, 3.0, 40.0, 0.5, 900.0, 0.0, 12.0][k % n] * (1.0 + k as f32 * 0.1)).collect();
     let device = Device::flex();
     let tensor = compositing_weights(

@@ -153,6 +153,9 @@ fn summary_rows(fit: &FitReport, truth: Option<&Light>) -> Vec<(String, String)>
     if let Some(line) = crate::fit_report::camera_colours_line(&fit.capture) {
         rows.push(("cameras' colours".into(), line.trim_start_matches("camera colours: ").to_string()));
     }
+    if let Some(line) = crate::fit_report::cameras_line(&fit.capture) {
+        rows.push(("training cameras".into(), line.trim_start_matches("cameras refined: ").to_string()));
+    }
     if let Some(line) = crate::fit_report::motion_line(&fit.capture) {
         rows.push(("training motion".into(), line.trim_start_matches("motion refined: ").to_string()));
     }

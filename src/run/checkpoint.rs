@@ -79,6 +79,7 @@ pub fn save_checkpoint_until(trainer: &Trainer, out: &Path, history: &[(usize, S
         "error_maps": trainer.error_maps().into_iter().map(|(view, errors)| json!({"view": view, "errors": errors})).collect::<Vec<_>>(),
         "camera_colours": trainer.camera_colours_json(),
         "motion": trainer.motion_json(),
+        "cameras": trainer.cameras_json(),
     });
     write_text(&temp.join("state.json"), &state.to_string())?;
     let sum = file_checksum(&temp.join("state.json")).map_err(|e| io(&temp.join("state.json"), e))?;
@@ -318,6 +319,9 @@ pub(crate) fn load_checkpoint(trainer: &mut Trainer, out: &Path) -> Result<Vec<(
     // Checkpoints from before the motion was refined have none: the given motion.
     let motion = state.get("motion").cloned().unwrap_or(serde_json::Value::Null);
     trainer.restore_motion(&motion).map_err(|e| io(&state_path, format!("motion: {e}")))?;
+    // Checkpoints from before the cameras were refined have none: the given poses.
+    let cameras = state.get("cameras").cloned().unwrap_or(serde_json::Value::Null);
+    trainer.restore_cameras(&cameras).map_err(|e| io(&state_path, format!("cameras: {e}")))?;
     let csv = crate::files::read_text(&dir.join("losses.csv"), crate::files::STATE_BYTES).map_err(|e| io(&dir.join("losses.csv"), e))?;
     Ok(parse_losses_csv(&csv))
 }

@@ -26,10 +26,14 @@ pub const SCHEDULE_COPY: &str = "schedule.toml";
 pub const REPORT_FILES: [&str; 3] = ["report.html", "report.md", "report-relit.png"];
 
 /// What a fit writes beside its checkpoint (besides the evaluation's folders and the report).
-pub const FIT_FILES: [&str; 5] = ["fit.json", "gaussians.json", "losses.csv", "losses.png", REFINED_MOTION];
+pub const FIT_FILES: [&str; 6] = ["fit.json", "gaussians.json", "losses.csv", "losses.png", REFINED_MOTION, REFINED_CAMERAS];
 
 /// The training motion as a fit refined it (a BVH; a fit that refines no motion writes none).
 pub const REFINED_MOTION: &str = "motion.bvh";
+
+/// The training cameras as a fit refined them (nerfstudio's `transforms.json` format; a fit
+/// that refines no cameras writes none).
+pub const REFINED_CAMERAS: &str = "cameras.json";
 
 /// The folders an evaluation renders into.
 pub const RENDER_FOLDERS: [&str; 2] = ["renders", "renders-train"];

@@ -38,6 +38,7 @@ struct ScheduleFile {
     rebind_every: Option<Count>,
     density_at_shadow_scale: Option<Switch>,
     refine_motion: Option<Switch>,
+    refine_cameras: Option<Switch>,
     error_rays: Option<ErrorRays>,
     footprint: Option<FootprintChoice>,
     learning_rates: Option<LearningRates>,
@@ -63,6 +64,9 @@ struct LearningRates {
     /// The motion's corrections (radians a step, and the skeleton's shift in levers:
     /// `train::motion`), not a parameter group of the model.
     motion: Option<f64>,
+    /// The cameras' turns (radians a step: `train::camera_pose`), not a parameter group of the
+    /// model.
+    cameras: Option<f64>,
 }
 
 /// The motion's learning rate unless a schedule gives one: Adam's step in radians (0.3
@@ -71,6 +75,12 @@ struct LearningRates {
 /// the refined joints' error 2.12 -> 1.90 degrees (given 3.46), foreground novel pose 20.56 ->
 /// 22.03 dB; on the exact human-sun 27.71 -> 28.03 dB.
 pub const MOTION_LEARNING_RATE: f64 = 5e-3;
+
+/// The cameras' learning rate unless a schedule gives one: Adam's step in radians (0.01
+/// degrees), a tenth of a calibration's error of 0.1 degrees: every batch moves every camera
+/// it draws from, about a thousand times over a fit, so a small rate still crosses a degree
+/// and leaves little jitter at the end.
+pub const CAMERA_LEARNING_RATE: f64 = 2e-4;
 
 impl LearningRates {
     /// Each group (`GROUPS`'s order) with its rate, or its default.
@@ -293,6 +303,7 @@ fn validate(written: ScheduleFile, file: &Path) -> Result<Schedule, ScheduleErro
         rebind_every: count("rebind_every", written.rebind_every, 0, 0)?,
         density_at_shadow_scale: written.density_at_shadow_scale.unwrap_or(Switch::Fixed(false)),
         refine_motion: written.refine_motion.unwrap_or(Switch::Fixed(false)),
+        refine_cameras: written.refine_cameras.unwrap_or(Switch::Fixed(false)),
         error_rays: match written.error_rays {
             None => ErrorRays::Share(0.0),
             Some(ErrorRays::Share(v)) if !(0.0..=1.0).contains(&v) => {
@@ -326,6 +337,11 @@ fn learning_rates(written: LearningRates, file: &Path) -> Result<BTreeMap<String
         return Err(err(file, "learning_rates.motion", format!("must be within (0, 1), found {motion}")));
     }
     rates.insert("motion".into(), motion);
+    let cameras = written.cameras.unwrap_or(CAMERA_LEARNING_RATE);
+    if !(cameras > 0.0 && cameras < 1.0) {
+        return Err(err(file, "learning_rates.cameras", format!("must be within (0, 1), found {cameras}")));
+    }
+    rates.insert("cameras".into(), cameras);
     Ok(rates)
 }
 

@@ -235,6 +235,11 @@ pub struct Schedule {
     /// motion a tracker made, not for one that states its poses (a renderer's: refining exact
     /// poses only moves them). Schedules from before it: false.
     pub refine_motion: Switch,
+    /// Whether each training camera's pose is refined while fitting (`train::camera_pose`, by
+    /// the schedule's `camera_prior` term), or `auto`: for a scene `umbra import` converted
+    /// from a capture of two or more cameras, whose poses a calibration estimated, not for one
+    /// that states them. Schedules from before it: false.
+    pub refine_cameras: Switch,
     /// The share of the batch's third drawn anywhere in a view that is drawn instead where the
     /// fit is still wrong (`error_map`: tiles in proportion to their recent error), or `auto`
     /// (`ErrorRays::Auto`). These rays teach the field, the albedo and the Gaussians but not
@@ -340,7 +345,7 @@ impl Schedule {
         let base = self.learning_rates.get(group).copied().unwrap_or(1e-3);
         let (decay, from) = match group {
             "light" => (self.light_lr_decay, self.light_from),
-            "field" | "features" | "motion" => (self.field_lr_decay, self.field_lr_decay_from),
+            "field" | "features" | "motion" | "cameras" => (self.field_lr_decay, self.field_lr_decay_from),
             _ => return base,
         };
         let span = self.iterations.saturating_sub(from).max(1) as f64;

@@ -28,6 +28,7 @@ fn takes_share(j: usize, share: f64) -> bool {
 
 /// A training batch: pixels of one frame's views under one training light, and the random
 /// numbers the step draws its samples with.
+#[derive(Clone)]
 pub struct Batch {
     /// The training frame (an index into the trainer's frames) and light.
     pub frame: usize,
@@ -35,6 +36,9 @@ pub struct Batch {
     /// The frame's pose as the motion's refinement has corrected it so far, while it is refined
     /// (else the step renders the given pose).
     pub corrected: Option<(crate::skeleton::Pose, crate::field::PoseTensors)>,
+    /// Whether the rays leave their cameras as the cameras' refinement has corrected them so
+    /// far (each ray's camera row in `rays.cameras`), while the cameras are refined.
+    pub cameras_corrected: bool,
     /// Rays that meet a Gaussian's bound first (`hits` of them, only they enter the field),
     /// then the others, which are background: colour and accumulation zero.
     pub rays: RaySet,
@@ -113,6 +117,7 @@ impl Trainer {
             _ => None,
         };
         let posed = set.pose(corrected.as_ref().map_or(given, |c| &c.0));
+        let cameras = self.state.as_ref().and_then(|s| s.cameras.as_ref()).filter(|_| self.schedule.needs(Input::Cameras, self.iteration()));
         let pixel_count = self.schedule.rays_per_batch.max(1);
         let mut drawn = Vec::with_capacity(pixel_count);
         let mut colours = Vec::with_capacity(pixel_count * 3);
@@ -144,12 +149,13 @@ impl Trainer {
             };
             let mask = view.mask.as_ref().map(|m| m.foreground[pixel] as u8 as f32).unwrap_or(0.0);
             let ray = camera.pixel_ray(pixel % camera.width, pixel / camera.width);
+            let ray = cameras.map_or(ray, |c| c.corrected_ray(view.camera, ray));
             let bounds = ray_bounds(ray.origin, ray.direction, &posed, self.min_bound_radius());
             let behind = match &view.plate {
                 Some(plate) if self.views[v].near_edge.contains(pixel as u32) => Some(plate.colour.pixels[pixel]),
                 _ => None,
             };
-            drawn.push((ray, bounds, view.colour.pixel(pixel), mask, behind));
+            drawn.push((ray, bounds, view.colour.pixel(pixel), mask, behind, view.camera));
             sources.push((v, pixel, wrong.is_some()));
         }
         // A stable partition: hits first, in the order drawn.
@@ -160,6 +166,10 @@ impl Trainer {
         for &d in &order {
             let (ray, bounds, ..) = &drawn[d];
             rays.push(ray.origin, ray.direction, *bounds);
+        }
+        // Each ray's camera row: a camera not refined (no training view) cannot be drawn here.
+        if let Some(cameras) = cameras {
+            rays.cameras = order.iter().map(|&d| cameras.row(drawn[d].5).unwrap_or(0) as u32).collect();
         }
         // One ray per pixel: the targets follow the rays' order.
         let (mut backgrounds, mut mask_weights) = (Vec::new(), Vec::new());
@@ -176,6 +186,7 @@ impl Trainer {
             frame,
             light,
             corrected,
+            cameras_corrected: cameras.is_some(),
             rays,
             hits,
             rendered: 0,

@@ -5,92 +5,58 @@
 //! which is in that camera's colour already. Three numbers a camera: they live on the host, with
 //! their own Adam moments, and go up as one small tensor a step.
 
-use crate::scene::{Scene, Split};
+use super::host_adam::CameraRows;
+use crate::scene::Scene;
 use burn::tensor::{Device, Int, Tensor, TensorData};
 
-/// The cameras' log gains and their optimiser's state.
+/// The cameras' log gains (unnormalised) and their optimiser's state.
 #[derive(Clone, Debug, PartialEq)]
 pub struct CameraColours {
-    /// Per scene camera, its row (none for a camera without training images).
-    rows: Vec<Option<usize>>,
-    /// Per row: the camera's index in the scene, and its log gain per channel (unnormalised).
-    cameras: Vec<usize>,
-    log_gains: Vec<[f64; 3]>,
-    first: Vec<[f64; 3]>,
-    second: Vec<[f64; 3]>,
-    steps: u64,
+    log_gains: CameraRows,
 }
 
 impl CameraColours {
     /// For a scene whose training images come from two or more cameras; none otherwise (one
     /// camera has nothing to be told apart from).
     pub fn new(scene: &Scene) -> Option<Self> {
-        let mut rows = vec![None; scene.cameras.len()];
-        let mut cameras = Vec::new();
-        for view in scene.views.iter().filter(|v| v.split == Split::Train) {
-            if rows[view.camera].is_none() {
-                rows[view.camera] = Some(cameras.len());
-                cameras.push(view.camera);
-            }
-        }
-        let n = cameras.len();
-        (n >= 2).then(|| Self { rows, cameras, log_gains: vec![[0.0; 3]; n], first: vec![[0.0; 3]; n], second: vec![[0.0; 3]; n], steps: 0 })
+        CameraRows::of_training_cameras(scene).map(|log_gains| Self { log_gains })
     }
 
     /// The log gains as a leaf tensor `[cameras, 3]` whose gradient a step reads back.
     pub fn leaf(&self, device: &Device) -> Tensor<2> {
-        let values: Vec<f32> = self.log_gains.iter().flatten().map(|&v| v as f32).collect();
-        Tensor::from_data(TensorData::new(values, [self.cameras.len(), 3]), device).require_grad()
+        let values: Vec<f32> = self.log_gains.values.iter().flatten().map(|&v| v as f32).collect();
+        Tensor::from_data(TensorData::new(values, [self.log_gains.values.len(), 3]), device).require_grad()
     }
 
     /// Per ray, its camera's normalised gain `[rays, 3]` from the leaf, for rays of the given
     /// scene cameras.
     pub fn per_ray(&self, leaf: Tensor<2>, cameras: &[usize], device: &Device) -> Tensor<2> {
-        let rows: Vec<i64> = cameras.iter().map(|&c| self.rows.get(c).copied().flatten().unwrap_or(0) as i64).collect();
+        let rows: Vec<i64> = cameras.iter().map(|&c| self.log_gains.row(c).unwrap_or(0) as i64).collect();
         let index = Tensor::<1, Int>::from_data(TensorData::new(rows, [cameras.len()]), device);
         normalised(leaf).select(0, index)
     }
 
     /// One Adam step of `rate` on the leaf's gradient (`[cameras, 3]`, row-major).
     pub fn step(&mut self, gradient: &[f32], rate: f64) {
-        if gradient.len() != 3 * self.cameras.len() || gradient.iter().any(|g| !g.is_finite()) {
-            return;
-        }
-        self.steps += 1;
-        let rows: Vec<[f64; 3]> = gradient.chunks(3).map(|g| [g[0] as f64, g[1] as f64, g[2] as f64]).collect();
-        super::host_adam::step(&mut self.log_gains, &mut self.first, &mut self.second, &rows, self.steps, rate);
+        self.log_gains.step(gradient, rate);
     }
 
     /// Each camera (scene index) with its normalised gain per channel.
     pub fn gains(&self) -> Vec<(usize, [f64; 3])> {
-        let n = self.cameras.len() as f64;
-        let mean: [f64; 3] = std::array::from_fn(|c| self.log_gains.iter().map(|g| g[c].exp()).sum::<f64>() / n);
-        self.cameras.iter().zip(&self.log_gains).map(|(&camera, g)| (camera, std::array::from_fn(|c| g[c].exp() / mean[c]))).collect()
+        let logs = &self.log_gains.values;
+        let n = logs.len() as f64;
+        let mean: [f64; 3] = std::array::from_fn(|c| logs.iter().map(|g| g[c].exp()).sum::<f64>() / n);
+        self.log_gains.cameras().iter().zip(logs).map(|(&camera, g)| (camera, std::array::from_fn(|c| g[c].exp() / mean[c]))).collect()
     }
 
     /// The state a checkpoint keeps.
     pub fn to_json(&self) -> serde_json::Value {
-        serde_json::json!({"cameras": self.cameras, "log_gains": self.log_gains, "first": self.first, "second": self.second, "steps": self.steps})
+        self.log_gains.to_json("log_gains")
     }
 
     /// The state from a checkpoint's `to_json`, refused when it is not this scene's cameras.
     pub fn restore(&mut self, value: &serde_json::Value) -> Result<(), String> {
-        let cameras: Vec<usize> = serde_json::from_value(value["cameras"].clone()).map_err(|e| format!("cameras: {e}"))?;
-        if cameras != self.cameras {
-            return Err(format!("cameras {cameras:?}, the scene's training cameras are {:?}", self.cameras));
-        }
-        let rows = |key: &str| -> Result<Vec<[f64; 3]>, String> {
-            let rows: Vec<[f64; 3]> = serde_json::from_value(value[key].clone()).map_err(|e| format!("{key}: {e}"))?;
-            match rows.len() == cameras.len() && rows.iter().flatten().all(|v| v.is_finite()) {
-                true => Ok(rows),
-                false => Err(format!("{key}: one finite [r, g, b] per camera")),
-            }
-        };
-        self.log_gains = rows("log_gains")?;
-        self.first = rows("first")?;
-        self.second = rows("second")?;
-        self.steps = value["steps"].as_u64().ok_or("steps: missing")?;
-        Ok(())
+        self.log_gains.restore(value, "log_gains")
     }
 }
 
@@ -141,19 +107,14 @@ mod tests {
     /// state survives a checkpoint's round trip.
     #[test]
     fn adam_steps_and_the_checkpoint_round_trip() {
-        let mut colours = CameraColours {
-            rows: vec![Some(0), None, Some(1)],
-            cameras: vec![0, 2],
-            log_gains: vec![[0.0; 3]; 2],
-            first: vec![[0.0; 3]; 2],
-            second: vec![[0.0; 3]; 2],
-            steps: 0,
-        };
+        let fresh = || CameraColours { log_gains: CameraRows::zeros(vec![Some(0), None, Some(1)], vec![0, 2]) };
+        let mut colours = fresh();
         colours.step(&[1.0, -2.0, 0.0, 0.5, 0.0, -0.1], 0.01);
-        assert!((colours.log_gains[0][0] + 0.01).abs() < 1e-6 && (colours.log_gains[0][1] - 0.01).abs() < 1e-6 && colours.log_gains[0][2] == 0.0);
+        let logs = &colours.log_gains.values;
+        assert!((logs[0][0] + 0.01).abs() < 1e-6 && (logs[0][1] - 0.01).abs() < 1e-6 && logs[0][2] == 0.0);
         colours.step(&[f32::NAN; 6], 0.01);
-        assert_eq!(colours.steps, 1, "a non-finite gradient is not taken");
-        let mut back = CameraColours { log_gains: vec![[0.0; 3]; 2], first: vec![[0.0; 3]; 2], second: vec![[0.0; 3]; 2], steps: 0, ..colours.clone() };
+        assert_eq!(colours.log_gains.steps(), 1, "a non-finite gradient is not taken");
+        let mut back = fresh();
         back.restore(&colours.to_json()).unwrap();
         assert_eq!(back, colours);
         let gains = colours.gains();

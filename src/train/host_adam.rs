@@ -1,6 +1,7 @@
 //! Adam on a few numbers kept on the host, in rows of three with their moments: the cameras'
-//! colours (`camera_colour`) and the motion's corrections (`motion`), too small to be worth a
-//! parameter group on the device.
+//! colours and turns (`camera_colour`, `camera_pose`: `CameraRows`, a row per training camera)
+//! and the motion's corrections (`motion`), too small to be worth a parameter group on the
+//! device.
 
 /// Adam's decay rates and its guard against a zero second moment (burn's defaults).
 const BETAS: (f64, f64) = (0.9, 0.999);
@@ -18,5 +19,94 @@ pub fn step(values: &mut [[f64; 3]], first: &mut [[f64; 3]], second: &mut [[f64;
             v[c] = b2 * v[c] + (1.0 - b2) * g[c] * g[c];
             value[c] -= rate * (m[c] / c1) / ((v[c] / c2).sqrt() + EPSILON);
         }
+    }
+}
+
+/// A row of three numbers per training camera with their Adam moments: the cameras' colours
+/// (`camera_colour`) and turns (`camera_pose`), kept by a checkpoint under the cameras they
+/// belong to.
+#[derive(Clone, Debug, PartialEq)]
+pub struct CameraRows {
+    /// Per scene camera, its row (none for a camera without training images).
+    rows: Vec<Option<usize>>,
+    /// Per row, its scene camera.
+    cameras: Vec<usize>,
+    pub values: Vec<[f64; 3]>,
+    first: Vec<[f64; 3]>,
+    second: Vec<[f64; 3]>,
+    steps: u64,
+}
+
+impl CameraRows {
+    /// Zeros for each camera of the scene's training images, in their first image's order; none
+    /// for fewer than two (one camera has nothing to be told apart from).
+    pub fn of_training_cameras(scene: &crate::scene::Scene) -> Option<Self> {
+        let mut rows = vec![None; scene.cameras.len()];
+        let mut cameras = Vec::new();
+        for view in scene.views.iter().filter(|v| v.split == crate::scene::Split::Train) {
+            if rows.get(view.camera).is_some_and(|r| r.is_none()) {
+                rows[view.camera] = Some(cameras.len());
+                cameras.push(view.camera);
+            }
+        }
+        (cameras.len() >= 2).then(|| Self::zeros(rows, cameras))
+    }
+
+    /// Zeros for `cameras`, scene camera `c`'s row `rows[c]`.
+    pub fn zeros(rows: Vec<Option<usize>>, cameras: Vec<usize>) -> Self {
+        let zeros = vec![[0.0; 3]; cameras.len()];
+        Self { rows, cameras, values: zeros.clone(), first: zeros.clone(), second: zeros, steps: 0 }
+    }
+
+    /// Scene camera `camera`'s row, if it has one.
+    pub fn row(&self, camera: usize) -> Option<usize> {
+        self.rows.get(camera).copied().flatten()
+    }
+
+    /// The scene cameras, one per row.
+    pub fn cameras(&self) -> &[usize] {
+        &self.cameras
+    }
+
+    /// The Adam steps taken.
+    #[cfg(test)]
+    pub fn steps(&self) -> u64 {
+        self.steps
+    }
+
+    /// One Adam step of `rate` on `gradient` (`[cameras, 3]`, row-major); none when it is not
+    /// one finite row per camera.
+    pub fn step(&mut self, gradient: &[f32], rate: f64) {
+        if gradient.len() != 3 * self.cameras.len() || gradient.iter().any(|g| !g.is_finite()) {
+            return;
+        }
+        self.steps += 1;
+        let rows: Vec<[f64; 3]> = gradient.chunks(3).map(|g| [g[0] as f64, g[1] as f64, g[2] as f64]).collect();
+        step(&mut self.values, &mut self.first, &mut self.second, &rows, self.steps, rate);
+    }
+
+    /// The state a checkpoint keeps, the values under `key`.
+    pub fn to_json(&self, key: &str) -> serde_json::Value {
+        serde_json::json!({"cameras": self.cameras, key: self.values, "first": self.first, "second": self.second, "steps": self.steps})
+    }
+
+    /// The state from `to_json(key)`'s output, refused when it is not of these cameras.
+    pub fn restore(&mut self, value: &serde_json::Value, key: &str) -> Result<(), String> {
+        let cameras: Vec<usize> = serde_json::from_value(value["cameras"].clone()).map_err(|e| format!("cameras: {e}"))?;
+        if cameras != self.cameras {
+            return Err(format!("cameras {cameras:?}, the scene's training cameras are {:?}", self.cameras));
+        }
+        let rows = |key: &str| -> Result<Vec<[f64; 3]>, String> {
+            let rows: Vec<[f64; 3]> = serde_json::from_value(value[key].clone()).map_err(|e| format!("{key}: {e}"))?;
+            match rows.len() == cameras.len() && rows.iter().flatten().all(|v| v.is_finite()) {
+                true => Ok(rows),
+                false => Err(format!("{key}: one finite [x, y, z] per camera")),
+            }
+        };
+        self.values = rows(key)?;
+        self.first = rows("first")?;
+        self.second = rows("second")?;
+        self.steps = value["steps"].as_u64().ok_or("steps: missing")?;
+        Ok(())
     }
 }

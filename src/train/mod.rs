@@ -14,6 +14,7 @@
 mod batch;
 pub mod body;
 pub mod camera_colour;
+pub mod camera_pose;
 mod host_adam;
 mod light_search;
 pub mod motion;
@@ -98,6 +99,7 @@ struct ViewData {
 
 /// What one training step changes (`Trainer::step` takes it and gives it back): the model, its
 /// named optimisers, the iteration, the field's moving average and the error maps.
+#[derive(Clone)]
 pub struct TrainState {
     pub model: Avatar,
     pub optimisers: Optimisers,
@@ -112,6 +114,8 @@ pub struct TrainState {
     pub camera_colours: Option<camera_colour::CameraColours>,
     /// The training motion's corrections (a grid field's fit).
     pub motion: Option<motion::MotionCorrections>,
+    /// The training cameras' pose corrections (a grid field's fit of two or more cameras).
+    pub cameras: Option<camera_pose::CameraPoses>,
 }
 
 pub struct Trainer {
@@ -306,6 +310,35 @@ impl Trainer {
             (_, true) => Ok(()),
             (Some(motion), false) => motion.restore(value),
             (None, false) => Err("this fit does not refine the motion".into()),
+        }
+    }
+
+    /// How far the refinement has moved the training cameras (none for a fit that does not
+    /// refine them).
+    pub fn cameras_moved(&self) -> Option<camera_pose::CamerasMoved> {
+        let refines = self.schedule.weights.get("camera_prior").is_some_and(|ramp| ramp.from > 0.0 || ramp.to > 0.0);
+        self.state.as_ref().and_then(|s| s.cameras.as_ref()).filter(|_| refines).map(|c| c.moved(&self.scene.cameras))
+    }
+
+    /// The training cameras as refined so far (each as given where it is not refined).
+    pub fn corrected_cameras(&self) -> Vec<crate::scene::Camera> {
+        let poses = self.state.as_ref().and_then(|s| s.cameras.as_ref());
+        self.scene.cameras.iter().enumerate().map(|(c, given)| poses.map_or_else(|| given.clone(), |p| p.corrected_camera(c, given))).collect()
+    }
+
+    /// The cameras' corrections as a checkpoint keeps them (null for none).
+    pub fn cameras_json(&self) -> serde_json::Value {
+        self.state.as_ref().and_then(|s| s.cameras.as_ref()).map(|c| c.to_json()).unwrap_or(serde_json::Value::Null)
+    }
+
+    /// Restores `cameras_json`'s output; null (a checkpoint before the cameras were refined)
+    /// keeps the given poses.
+    pub fn restore_cameras(&mut self, value: &serde_json::Value) -> Result<(), String> {
+        let state = self.state_mut().map_err(|e| e.to_string())?;
+        match (state.cameras.as_mut(), value.is_null()) {
+            (_, true) => Ok(()),
+            (Some(cameras), false) => cameras.restore(value),
+            (None, false) => Err("this fit does not refine the cameras".into()),
         }
     }
 

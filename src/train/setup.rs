@@ -295,12 +295,23 @@ impl Trainer {
         // The motion is refined through the grid's lookups (the `mlp` field has no way in).
         let refine = schedule.refine_motion.on(scene.capture.is_some());
         let motion = model.field.grid.as_ref().filter(|_| refine).and_then(|_| super::motion::MotionCorrections::new(&scene));
+        let refine_cameras = schedule.refine_cameras.on(scene.capture.is_some());
+        let cameras = model.field.grid.as_ref().filter(|_| refine_cameras).and_then(|_| super::camera_pose::CameraPoses::new(&scene));
         let footprint = schedule.footprint.unwrap_or(footprint_estimate.footprint);
         Ok(Self {
             scene,
             schedule,
             device,
-            state: Some(super::TrainState { model, optimisers: super::Optimisers::new(), iteration: 0, average: None, error_maps, camera_colours, motion }),
+            state: Some(super::TrainState {
+                model,
+                optimisers: super::Optimisers::new(),
+                iteration: 0,
+                average: None,
+                error_maps,
+                camera_colours,
+                motion,
+                cameras,
+            }),
             frames,
             plates: views.iter().any(|v| !v.near_edge.is_empty()),
             views,

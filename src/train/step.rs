@@ -11,7 +11,7 @@ use crate::losses::{Input, Inputs};
 use crate::messages::{StepStats, PHASES};
 use crate::render::{render_in_parts, sum_gradients, Deferred};
 use crate::shading::{FittedLight, LightKind};
-use crate::skeleton::MotionIncrement;
+use crate::skeleton::{MotionIncrement, ViewIncrement};
 use burn::optim::GradientsParams;
 use burn::tensor::{Device, Int, Tensor, TensorData};
 use std::time::Instant;
@@ -75,16 +75,38 @@ type Terms<'a> = Vec<(&'a str, f64, Tensor<1>)>;
 /// increments the render carried.
 type MotionLeaves = (usize, Tensor<2>, Vec<Tensor<2>>);
 
-/// One Adam step of the batch frame's motion correction at `rate`: its leaf's gradient (the
-/// motion's terms) and the sum of the increments' the render parts carried, from `grads`.
-fn step_motion(motion: &mut MotionCorrections, (k, leaf, increments): MotionLeaves, grads: &burn::tensor::Gradients, pose: &crate::skeleton::Pose, rate: f64) {
+/// The step (m on the reference human, scaled with the body) over which a step differences the
+/// SDF's gradient to carry the cameras' increment into the shading normals: about the finest
+/// grid cell, so the slope is the surface's bend, not one cell's trilinear kink.
+const NORMAL_STENCIL_ON_HUMAN: f64 = 0.01;
+
+/// The cameras' leaves of a step: their corrections' leaf and the increments the render carried.
+type CameraLeaves = (Tensor<2>, Vec<Tensor<2>>);
+
+/// The host-side leaves a step's backward pass fills: the motion's and the cameras'.
+#[derive(Default)]
+struct Leaves {
+    motion: Option<MotionLeaves>,
+    cameras: Option<CameraLeaves>,
+}
+
+/// A leaf's gradient on the host, and the sum of the gradients of `increments` (zeros where a
+/// leaf has none: it was not reached).
+fn leaf_and_increments(leaf: &Tensor<2>, increments: &[Tensor<2>], grads: &burn::tensor::Gradients) -> (Vec<f32>, Vec<f32>) {
     let read = |t: &Tensor<2>| t.grad(grads).map(crate::backend::host_values);
     let rows = leaf.dims()[0] * 3;
-    let leaf = read(&leaf).unwrap_or_else(|| vec![0.0; rows]);
+    let leaf = read(leaf).unwrap_or_else(|| vec![0.0; rows]);
     let mut through_render = vec![0.0f32; rows];
     for g in increments.iter().filter_map(read) {
         through_render.iter_mut().zip(g).for_each(|(a, b)| *a += b);
     }
+    (leaf, through_render)
+}
+
+/// One Adam step of the batch frame's motion correction at `rate`: its leaf's gradient (the
+/// motion's terms) and the sum of the increments' the render parts carried, from `grads`.
+fn step_motion(motion: &mut MotionCorrections, (k, leaf, increments): MotionLeaves, grads: &burn::tensor::Gradients, pose: &crate::skeleton::Pose, rate: f64) {
+    let (leaf, through_render) = leaf_and_increments(&leaf, &increments, grads);
     motion.step(k, &leaf, &through_render, pose, rate);
 }
 
@@ -106,7 +128,8 @@ impl Trainer {
         // The frame's motion correction, while it is refined.
         let refined = state.motion.as_ref().filter(|_| self.schedule.needs(Input::Motion, it) && batch.corrected.is_some());
         let motion_row = refined.and_then(|m| m.row(self.frames[batch.frame].position).map(|k| (m, k)));
-        let (terms, forks, leaves) = self.losses(&state.model, &batch, it, &mut state.error_maps, colours.clone(), motion_row, &mut clock);
+        let cameras = state.cameras.as_ref().filter(|_| batch.cameras_corrected);
+        let (terms, forks, leaves) = self.losses(&state.model, &batch, it, &mut state.error_maps, colours.clone(), motion_row, cameras, &mut clock);
         let colour_leaf = colours.map(|(_, leaf)| leaf);
         let mut total = terms[0].2.clone() * terms[0].1;
         for (_, weight, value) in terms.iter().skip(1) {
@@ -125,8 +148,12 @@ impl Trainer {
                 colours.step(&crate::backend::host_values(gradient), self.schedule.learning_rate("light", it));
             }
         }
-        if let (Some(leaves), Some(motion), Some((pose, _))) = (leaves, state.motion.as_mut(), batch.corrected.as_ref()) {
+        if let (Some(leaves), Some(motion), Some((pose, _))) = (leaves.motion, state.motion.as_mut(), batch.corrected.as_ref()) {
             step_motion(motion, leaves, &grads, pose, self.schedule.learning_rate("motion", it));
+        }
+        if let (Some((leaf, increments)), Some(cameras)) = (leaves.cameras, state.cameras.as_mut()) {
+            let (leaf, through_render) = leaf_and_increments(&leaf, &increments, &grads);
+            cameras.step(&leaf, &through_render, self.schedule.learning_rate("cameras", it));
         }
         let model = state.model;
         state.model = self.update(model, grads, forks, batch.light, &mut state.optimisers, it);
@@ -156,13 +183,16 @@ impl Trainer {
         error_maps: &mut [Option<crate::error_map::ErrorMap>],
         colours: Option<(&super::camera_colour::CameraColours, Tensor<2>)>,
         motion: Option<(&MotionCorrections, usize)>,
+        cameras: Option<&super::camera_pose::CameraPoses>,
         clock: &mut PhaseClock,
-    ) -> (Terms<'a>, Vec<AvatarField>, Option<MotionLeaves>) {
+    ) -> (Terms<'a>, Vec<AvatarField>, Leaves) {
         let device = self.device.clone();
         let needs = |input: Input| self.schedule.needs(input, it);
         // With the motion refined, the render's lookups carry an increment of the pose.
         let increment = motion.zip(batch.corrected.as_ref()).map(|(_, (pose, _))| MotionIncrement::new(&self.scene.skeleton, pose, &device));
-        let pose = PoseTensors { motion: increment, ..self.batch_pose(batch).clone() };
+        // With the cameras refined, an increment of every camera's pose.
+        let view = cameras.map(|c| ViewIncrement::new(c.len(), crate::skeleton::body_length(NORMAL_STENCIL_ON_HUMAN, self.body_extent) as f32, &device));
+        let pose = PoseTensors { motion: increment, view, ..self.batch_pose(batch).clone() };
         let (r, rendered) = (batch.rays.len(), batch.rendered);
         let sampling = self.schedule.sampling();
         let shading = self.fit_light && needs(Input::Colour);
@@ -218,8 +248,12 @@ impl Trainer {
             gradient: None,
             normal_pairs: None,
             motion: motion.map(|(m, k)| m.leaf_and_smooth(k, &device)),
+            cameras: cameras.map(|c| c.leaf(&device)),
         };
-        let leaves = motion.zip(inputs.motion.as_ref()).map(|((_, k), (leaf, _))| (k, leaf.clone(), deferred.motion_leaves.clone()));
+        let leaves = Leaves {
+            motion: motion.zip(inputs.motion.as_ref()).map(|((_, k), (leaf, _))| (k, leaf.clone(), deferred.motion_leaves.clone())),
+            cameras: inputs.cameras.clone().map(|leaf| (leaf, deferred.view_leaves.clone())),
+        };
         if self.error_rays > 0.0 {
             record_errors(error_maps, batch, &inputs);
         }
