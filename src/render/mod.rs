@@ -116,7 +116,8 @@ impl RaySet {
             Some(view) if self.cameras.len() == self.len() => {
                 let rays: Vec<usize> = rows.map(|k| k / s).collect();
                 let cameras: Vec<u32> = rays.iter().map(|&i| self.cameras[i]).collect();
-                let origins: Vec<f32> = rays.iter().flat_map(|&i| self.origins[3 * i..3 * i + 3].to_vec()).collect();
+                let mut origins = Vec::with_capacity(3 * rays.len());
+                rays.iter().for_each(|&i| origins.extend_from_slice(&self.origins[3 * i..3 * i + 3]));
                 PoseTensors { view: Some(view.along(&cameras, origins)), ..pose.clone() }
             }
             _ => pose.clone(),

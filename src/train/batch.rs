@@ -36,11 +36,10 @@ pub struct Batch {
     /// The frame's pose as the motion's refinement has corrected it so far, while it is refined
     /// (else the step renders the given pose).
     pub corrected: Option<(crate::skeleton::Pose, crate::field::PoseTensors)>,
-    /// Whether the rays leave their cameras as the cameras' refinement has corrected them so
-    /// far (each ray's camera row in `rays.cameras`), while the cameras are refined.
-    pub cameras_corrected: bool,
     /// Rays that meet a Gaussian's bound first (`hits` of them, only they enter the field),
-    /// then the others, which are background: colour and accumulation zero.
+    /// then the others, which are background: colour and accumulation zero. While the cameras
+    /// are refined, they leave their cameras as refined so far, each with its camera's row
+    /// (`RaySet::cameras`; empty otherwise).
     pub rays: RaySet,
     pub hits: usize,
     /// How many rays are rendered: the hits (at least one, so the graph is never empty), or
@@ -186,7 +185,6 @@ impl Trainer {
             frame,
             light,
             corrected,
-            cameras_corrected: cameras.is_some(),
             rays,
             hits,
             rendered: 0,

@@ -128,7 +128,7 @@ impl Trainer {
         // The frame's motion correction, while it is refined.
         let refined = state.motion.as_ref().filter(|_| self.schedule.needs(Input::Motion, it) && batch.corrected.is_some());
         let motion_row = refined.and_then(|m| m.row(self.frames[batch.frame].position).map(|k| (m, k)));
-        let cameras = state.cameras.as_ref().filter(|_| batch.cameras_corrected);
+        let cameras = state.cameras.as_ref().filter(|_| !batch.rays.cameras.is_empty());
         let (terms, forks, leaves) = self.losses(&state.model, &batch, it, &mut state.error_maps, colours.clone(), motion_row, cameras, &mut clock);
         let colour_leaf = colours.map(|(_, leaf)| leaf);
         let mut total = terms[0].2.clone() * terms[0].1;
