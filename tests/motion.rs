@@ -30,6 +30,14 @@ fn field(character: &Character, pose: &Pose, device: &Device) -> AvatarField {
     field
 }
 
+/// The walking human mid-stride and a busy field on it.
+fn walking(device: &Device) -> (Character, Pose, AvatarField) {
+    let character = Character::new(Kind::Human);
+    let pose = character.pose(0.3, 0.2, DVec3::new(0.05, 0.0, -0.1));
+    let field = field(&character, &pose, device);
+    (character, pose, field)
+}
+
 /// Points along the middle of every bone, a few centimetres off its axis: carried by one bone
 /// (given beside each).
 fn points(character: &Character, pose: &Pose) -> (Vec<DVec3>, Vec<usize>) {
@@ -93,9 +101,7 @@ fn moved(character: &Character, pose: &Pose, bone: Option<usize>, axis: DVec3, a
 #[test]
 fn the_motion_increment_carries_the_gradient_of_the_corrected_pose() {
     let device = Device::flex().autodiff();
-    let character = Character::new(Kind::Human);
-    let pose = character.pose(0.3, 0.2, DVec3::new(0.05, 0.0, -0.1));
-    let field = field(&character, &pose, &device);
+    let (character, pose, field) = walking(&device);
     let (pts, carriers) = points(&character, &pose);
     let b = character.skeleton.len();
     let limb = character.skeleton.bones.iter().position(|bone| bone.name.contains("forearm") || bone.name.contains("shin")).unwrap_or(b - 1);
@@ -171,8 +177,9 @@ fn a_corrected_pose_undoes_the_error_it_inverts() {
 }
 
 /// The corrections start at the given motion, an Adam step moves a frame's against its
-/// gradient by the learning rate (and no other frame), and a checkpoint's copy restores them
-/// exactly but is refused for another scene's frames.
+/// gradient by the learning rate less what every frame would then share (so the other frame
+/// moves the other way by as much), and a checkpoint's copy restores them exactly but is
+/// refused for another scene's frames.
 #[test]
 fn corrections_step_against_their_gradient_and_survive_a_checkpoint() {
     let dir = common::TempDir::new("motion-corrections");
@@ -192,16 +199,22 @@ fn corrections_step_against_their_gradient_and_survive_a_checkpoint() {
     let mut increment = vec![0.0f32; 3 * rows];
     increment[3 * (rows - 1) + 1] = -2.0;
     motion.step(0, &leaf, &increment, &scene.frames[f].pose, 0.01);
-    let moved = motion.pose(&scene.skeleton, f, &scene.frames[f].pose);
+    // Adam's first step moves frame 0 by the rate against its gradient's sign; what the two
+    // frames would share is taken out, so each frame keeps half, in opposite senses.
     let turn = |p: &Pose| DMat3::from_mat4(p.bone_to_world[2]);
-    let before = turn(&scene.frames[f].pose);
-    let angle = glam::DQuat::from_mat3(&(before.transpose() * turn(&moved))).to_scaled_axis();
-    assert!((angle.x + 0.01).abs() < 1e-6 && angle.y.abs() < 1e-6, "bone 2 turned by {angle} in its own frame");
-    let shift = moved.bone_to_world[0].w_axis - scene.frames[f].pose.bone_to_world[0].w_axis;
-    assert!((shift.y - 0.01 * lever).abs() < 1e-6 && shift.x.abs() < 1e-9, "the root moved by {shift}");
-    assert_eq!(motion.pose(&scene.skeleton, other, &scene.frames[other].pose), scene.frames[other].pose);
+    let turned = |frame: usize| {
+        let moved = motion.pose(&scene.skeleton, frame, &scene.frames[frame].pose);
+        let angle = glam::DQuat::from_mat3(&(turn(&scene.frames[frame].pose).transpose() * turn(&moved))).to_scaled_axis();
+        let shift = moved.bone_to_world[0].w_axis - scene.frames[frame].pose.bone_to_world[0].w_axis;
+        (angle, shift)
+    };
+    for (frame, sense) in [(f, 1.0), (other, -1.0)] {
+        let (angle, shift) = turned(frame);
+        assert!((angle.x + sense * 0.005).abs() < 1e-6 && angle.y.abs() < 1e-6, "bone 2 of frame {frame} turned by {angle} in its own frame");
+        assert!((shift.y - sense * 0.005 * lever).abs() < 1e-6 && shift.x.abs() < 1e-9, "the root of frame {frame} moved by {shift}");
+    }
     let moved_report = motion.moved(&scene.skeleton);
-    assert!((moved_report.largest_degrees - 0.01f64.to_degrees()).abs() < 1e-6 && (moved_report.largest_shift_cm - lever).abs() < 1e-6);
+    assert!((moved_report.largest_degrees - 0.005f64.to_degrees()).abs() < 1e-6 && (moved_report.largest_shift_cm - 0.5 * lever).abs() < 1e-6);
     // The checkpoint's copy.
     let mut restored = MotionCorrections::new(&scene).unwrap();
     restored.restore(&motion.to_json()).unwrap();
@@ -220,9 +233,7 @@ fn corrections_step_against_their_gradient_and_survive_a_checkpoint() {
 fn the_view_increment_carries_the_gradient_of_the_turned_cameras() {
     use umbra::skeleton::ViewIncrement;
     let device = Device::flex().autodiff();
-    let character = Character::new(Kind::Human);
-    let pose = character.pose(0.3, 0.2, DVec3::new(0.05, 0.0, -0.1));
-    let field = field(&character, &pose, &device);
+    let (character, pose, field) = walking(&device);
     let (pts, _) = points(&character, &pose);
     let centres = [DVec3::new(0.4, 1.1, 3.0), DVec3::new(-2.6, 0.9, 0.8)];
     let rows: Vec<u32> = (0..pts.len()).map(|i| (i % 2) as u32).collect();
@@ -349,4 +360,30 @@ fn a_steps_camera_gradient_points_down_its_loss() {
     }
     assert!(tested >= 6, "too few of the slopes were large enough to test ({tested})");
     assert_eq!(agreed, tested, "each camera value steps down its loss's slope");
+}
+
+/// A lookup that carries a zero motion increment is the plain lookup: the same SDF and the same
+/// gradient of the feature table, so refining the motion changes what the field learns only by
+/// the corrections themselves.
+#[test]
+fn carrying_the_motion_leaves_the_fields_values_and_table_gradient_alone() {
+    let device = Device::flex().autodiff();
+    let (character, pose, field) = walking(&device);
+    let (pts, _) = points(&character, &pose);
+    let mut stream = Stream::new(4, 5, 0);
+    let w: Vec<f32> = pts.iter().map(|_| (stream.uniform() * 2.0 - 1.0) as f32).collect();
+    let weights = Tensor::<1>::from_data(TensorData::new(w, [pts.len()]), &device);
+    let table = |motion: bool| {
+        let (l, _) = loss(&field, &character, &pose, &pts, &weights, motion, &device);
+        let value = values(l.clone().inner())[0];
+        let grads = l.backward();
+        let grid = field.grid.as_ref().unwrap();
+        (value, values(grid.table.val().grad(&grads).expect("the table is in the graph")))
+    };
+    let (plain, plain_gradient) = table(false);
+    let (carried, carried_gradient) = table(true);
+    assert!((plain - carried).abs() <= 1e-5 * plain.abs().max(1.0), "the loss {plain} plain, {carried} carrying the motion");
+    let largest = plain_gradient.iter().fold(0.0f32, |a, g| a.max(g.abs()));
+    let apart = plain_gradient.iter().zip(&carried_gradient).fold(0.0f32, |a, (p, c)| a.max((p - c).abs()));
+    assert!(largest > 0.0 && apart <= 1e-5 * largest, "the table's gradient {apart} apart (largest {largest})");
 }
