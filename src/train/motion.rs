@@ -174,28 +174,6 @@ impl MotionCorrections {
             .collect();
         self.steps[k] += 1;
         super::host_adam::step(&mut self.values[k], &mut self.first[k], &mut self.second[k], &gradient, self.steps[k], rate);
-        self.centre();
-    }
-
-    /// Each row's mean over the training frames taken from every frame's correction. A
-    /// correction shared by every training frame is one the field can take up instead (a limb's
-    /// content turned in its bone's frame) and that new motion never gets: the fit drifts along
-    /// it on exact motion, driven by whatever the body model lacks, and renders every new pose
-    /// off by it. So the corrections refine each frame against the others and the shared part
-    /// stays the body's.
-    fn centre(&mut self) {
-        let n = self.values.len();
-        if n < 2 {
-            return;
-        }
-        for r in 0..self.values[0].len() {
-            let mean: [f64; 3] = std::array::from_fn(|c| self.values.iter().map(|v| v[r][c]).sum::<f64>() / n as f64);
-            for v in self.values.iter_mut() {
-                for (value, m) in v[r].iter_mut().zip(mean) {
-                    *value -= m;
-                }
-            }
-        }
     }
 
     /// How far the corrections moved the motion of `skeleton`.
