@@ -262,16 +262,15 @@ impl MotionIncrement {
         MotionIncrement { leaf: Tensor::zeros([rows, 3], &self.leaf.device()).require_grad(), chains: self.chains.clone(), heads: self.heads.clone() }
     }
 
-    /// How each of `points` (`[N, 3]`) moves when carried by the bones with weights
-    /// `weights` (`[N, B]`, rows summing to one): the bones' motions at the point, blended,
-    /// `(W E) x - W P + t` (`[N, 3]`).
-    pub fn blended_motion(&self, points: Tensor<2>, weights: Tensor<2>) -> Tensor<2> {
+    /// How each of `points` (`[N, 3]`) moves when carried by bone `bones[i]` (`[N]`):
+    /// `E_b x - P_b + t` (`[N, 3]`).
+    pub fn motion_of(&self, points: Tensor<2>, bones: Tensor<1, Int>) -> Tensor<2> {
         let b = self.heads.dims()[0];
         let turns = self.leaf.clone().narrow(0, 0, b);
         let shift = self.leaf.clone().narrow(0, b, 1);
         let e = self.chains.clone().matmul(turns.clone()); // [B, 3]
         let p = self.chains.clone().matmul(cross_rows(turns, self.heads.clone())); // [B, 3]
-        cross_rows(weights.clone().matmul(e), points) - weights.matmul(p) + shift
+        cross_rows(e.select(0, bones.clone()), points) - p.select(0, bones) + shift
     }
 }
 

@@ -237,12 +237,19 @@ fn plan_tangents_match_finite_differences_with(s: &Setup, skin: Skinning) {
                 assert!((analytic - central).abs() < 5e-3 * scale, "point {p} axis {axis} corner {k}: {analytic} vs {central}");
                 checked += 1;
             }
+            // Each logit's tangent is its own bone's distance's; the logits are shifted so the
+            // largest is 0, so their differences are what the shifted logits' show.
             let top = grid.top();
+            let lead = (0..top).find(|&j| here.logits[j] == 0.0).expect("a logit leads");
+            let tangent = |j: usize| plan.logit_tangents[(p * top + j) * 3 + axis];
             for j in 0..top {
                 let fd = (plus.logits[j] - minus.logits[j]) / (2.0 * h);
-                let analytic = plan.logit_tangents[(p * top + j) * 3 + axis];
+                let analytic = tangent(j) - tangent(lead);
                 assert!((analytic - fd).abs() < 2e-3 * fd.abs().max(1.0 / grid.finest_cell), "point {p} logit {j}: {analytic} vs {fd}");
             }
+            // The prior's tangent is the sum of its parts through each bone.
+            let parts: f32 = (0..top).map(|j| plan.prior_slot_tangents[(p * top + j) * 3 + axis]).sum();
+            assert!((parts - plan.prior_tangents[p * 3 + axis]).abs() < 1e-5, "prior parts {parts} vs {}", plan.prior_tangents[p * 3 + axis]);
             for k in 0..8 {
                 let fd = (plus.root_coefficients[k] - minus.root_coefficients[k]) / (2.0 * h);
                 let analytic = plan.root_coefficient_tangents[(p * 8 + k) * 3 + axis];

@@ -74,6 +74,30 @@ fn loss(
     ((sdf * weights.clone()).sum(), tensors)
 }
 
+/// The increment's gradient (`[B + 1, 3]`, flattened) of `sum_i w_i sdf(x_i)` in `pose`, and
+/// that loss in any pose, summed in f64 on the host so that a small step's difference is not
+/// rounding.
+fn gradient_and_loss<'a>(
+    field: &'a AvatarField,
+    character: &'a Character,
+    pose: &Pose,
+    pts: &'a [DVec3],
+    w: &'a [f32],
+    device: &'a Device,
+) -> (Vec<f32>, impl Fn(&Pose) -> f64 + 'a) {
+    let weights = Tensor::<1>::from_data(TensorData::new(w.to_vec(), [pts.len()]), device);
+    let (l, tensors) = loss(field, character, pose, pts, &weights, true, device);
+    let grads = l.backward();
+    let gradient = values(tensors.motion.as_ref().unwrap().leaf.clone().grad(&grads).expect("the increment is in the graph"));
+    let value = move |p: &Pose| {
+        let tensors = PoseTensors::new(p, &character.skeleton, device);
+        let flat: Vec<f32> = pts.iter().flat_map(|p| p.as_vec3().to_array()).collect();
+        let sdf = values(field.decode(Tensor::<2>::from_data(TensorData::new(flat, [pts.len(), 3]), device), &tensors).sdf.inner());
+        sdf.iter().zip(w).map(|(s, w)| *s as f64 * *w as f64).sum::<f64>()
+    };
+    (gradient, value)
+}
+
 /// The pose with bone `bone` (and every bone below it) turned by `angle` about world `axis`
 /// through its head, or the whole skeleton shifted by `shift`.
 fn moved(character: &Character, pose: &Pose, bone: Option<usize>, axis: DVec3, angle: f64, shift: DVec3) -> Pose {
@@ -112,18 +136,7 @@ fn the_motion_increment_carries_the_gradient_of_the_corrected_pose() {
         let mut stream = Stream::new(4, 4, row as u64);
         let w: Vec<f32> =
             carriers.iter().map(|&c| if bone.is_none_or(|j| below(&character, c, j)) { (stream.uniform() * 2.0 - 1.0) as f32 } else { 0.0 }).collect();
-        let weights = Tensor::<1>::from_data(TensorData::new(w.clone(), [pts.len()]), &device);
-        let (l, tensors) = loss(&field, &character, &pose, &pts, &weights, true, &device);
-        let grads = l.backward();
-        let leaf = tensors.motion.as_ref().unwrap().leaf.clone();
-        let gradient = values(leaf.grad(&grads).expect("the increment is in the graph"));
-        // The loss summed in f64 on the host, so that a small step's difference is not rounding.
-        let value = |p: &Pose| {
-            let tensors = PoseTensors::new(p, &character.skeleton, &device);
-            let flat: Vec<f32> = pts.iter().flat_map(|p| p.as_vec3().to_array()).collect();
-            let sdf = values(field.decode(Tensor::<2>::from_data(TensorData::new(flat, [pts.len(), 3]), &device), &tensors).sdf.inner());
-            sdf.iter().zip(&w).map(|(s, w)| *s as f64 * *w as f64).sum::<f64>()
-        };
+        let (gradient, value) = gradient_and_loss(&field, &character, &pose, &pts, &w, &device);
         for axis in [DVec3::X, DVec3::Y, DVec3::Z] {
             // Small beside the finest cell (1/160 of the body), so few points cross a cell's
             // face, where the trilinear slope jumps.
@@ -379,4 +392,42 @@ fn carrying_the_motion_leaves_the_fields_values_and_table_gradient_alone() {
     let largest = plain_gradient.iter().fold(0.0f32, |a, g| a.max(g.abs()));
     let apart = plain_gradient.iter().zip(&carried_gradient).fold(0.0f32, |a, (p, c)| a.max((p - c).abs()));
     assert!(largest > 0.0 && apart <= 1e-5 * largest, "the table's gradient {apart} apart (largest {largest})");
+}
+
+/// Points within a few centimetres of bone `joint`'s head, where it and its parent blend.
+fn near_joint(pose: &Pose, joint: usize) -> Vec<DVec3> {
+    let mut stream = Stream::new(9, 3, joint as u64);
+    (0..48)
+        .map(|_| {
+            let local = DVec3::new(stream.uniform() - 0.5, stream.uniform() - 0.5, stream.uniform() - 0.5) * 0.08;
+            pose.to_world(joint, local)
+        })
+        .collect()
+}
+
+/// Where two bones blend (about a joint), the increment's gradient still follows the field in
+/// the corrected pose: each bone's content moves with its own bone, not with their blend, so a
+/// turn of the bone below the joint moves only its share of a point's lookup.
+#[test]
+fn the_motion_increment_carries_the_gradient_where_bones_blend() {
+    let device = Device::flex().autodiff();
+    let (character, pose, field) = walking(&device);
+    let bone = |name: &str| character.skeleton.bones.iter().position(|b| b.name == name).expect("the human has the bone");
+    let mut worst = 0.0f64;
+    for name in ["upper_arm_l", "forearm_r", "shin_l", "thigh_r"] {
+        let j = bone(name);
+        let pts = near_joint(&pose, j);
+        let mut stream = Stream::new(4, 6, j as u64);
+        let w: Vec<f32> = pts.iter().map(|_| (stream.uniform() * 2.0 - 1.0) as f32).collect();
+        let (gradient, value) = gradient_and_loss(&field, &character, &pose, &pts, &w, &device);
+        for axis in [DVec3::X, DVec3::Y, DVec3::Z] {
+            let h = 2e-4;
+            let fd = (value(&moved(&character, &pose, Some(j), axis, h, DVec3::ZERO)) - value(&moved(&character, &pose, Some(j), axis, -h, DVec3::ZERO)))
+                / (2.0 * h);
+            let analytic = gradient[3 * j..3 * j + 3].iter().zip(axis.to_array()).map(|(g, a)| *g as f64 * a).sum::<f64>();
+            let scale = fd.abs().max(analytic.abs()).max(0.02);
+            worst = worst.max((fd - analytic).abs() / scale);
+        }
+    }
+    assert!(worst < 0.03, "the increment's gradient is {worst} of the finite difference's scale off");
 }

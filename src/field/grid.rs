@@ -142,15 +142,16 @@ impl FeatureGrid {
     }
 
     /// A tracked lookup that carries a motion increment: the same features and prior, with the
-    /// increment's gradient. A bone moved by `m` carries its content with it, so a point is
-    /// looked up as if it had moved by `-m`: by its chosen bones' motions blended by their
-    /// skinning weights (a linear-blend warp of the point; exact where one bone carries it).
-    /// The shift reaches the trilinear corners through the fused op's backward
-    /// (`interpolate_carrying`), and the skinning's logits and the capsule prior through their
-    /// planned world derivatives; second derivatives are not followed.
+    /// increment's gradient. A bone moved by `m` carries its content with it, so a point's
+    /// lookup in each chosen bone is made as if the point had moved by `-m` of that bone: its
+    /// features there, that bone's skinning logit and its part of the capsule prior (the
+    /// field in the corrected pose, to first order, where bones blend too). The shifts reach the
+    /// trilinear corners through the fused op's backward (`interpolate_carrying`), the logits,
+    /// the prior and the root's preference through their planned world derivatives; second
+    /// derivatives are not followed.
     ///
     /// A `view` increment moves the camera each point is seen from: the point is looked up
-    /// where the moved camera sees it (`ViewIncrement::seen_shift`), the same way in.
+    /// where the moved camera sees it (`ViewIncrement::seen_shift`), in every bone alike.
     fn encode_moving(
         &self,
         points: Tensor<2>,
@@ -165,30 +166,25 @@ impl FeatureGrid {
         let mut plan = lookup_carried(&self.config, &levels, frames, skinning, &values);
         let k = self.config.top();
         let bones = frames.len();
-        // The motion's blend weighs the bones from distance alone (the root's learned preference
-        // aside), per point over every bone.
-        let blended = |motion: &MotionIncrement| {
-            let mut weights = vec![0.0f32; n * bones];
-            for (i, (logits, chosen)) in plan.logits.chunks(k).zip(plan.bones.chunks(k)).enumerate() {
-                let total: f32 = logits.iter().map(|l| l.exp()).sum();
-                for (l, &b) in logits.iter().zip(chosen) {
-                    if let Some(w) = weights.get_mut(i * bones + b as usize) {
-                        *w += l.exp() / total;
-                    }
-                }
-            }
-            motion.blended_motion(points.clone(), Tensor::from_data(TensorData::new(weights, [n, bones]), &device))
+        // Rows of `[N, 3]` once per chosen bone (`[N K, 3]`); each point's motion in each.
+        let per_slot = |rows: Tensor<2>| rows.reshape([n, 1, 3]).expand([n, k, 3]).reshape([n * k, 3]);
+        let moved_by = |motion: &MotionIncrement| {
+            let chosen: Vec<i64> = plan.bones.iter().map(|&b| (b as usize).min(bones.saturating_sub(1)) as i64).collect();
+            motion.motion_of(per_slot(points.clone()), Tensor::<1, Int>::from_data(TensorData::new(chosen, [n * k]), &device))
         };
         let shift = match (motion, view) {
-            (Some(motion), Some(view)) => view.seen_shift(points.clone()) - blended(motion),
-            (Some(motion), None) => blended(motion).neg(),
-            (None, Some(view)) => view.seen_shift(points.clone()),
-            (None, None) => points.zeros_like(),
-        };
-        let logit_tangents: Tensor<3> = Tensor::from_data(TensorData::new(plan.logit_tangents.clone(), [n, k, 3]), &device);
-        let logit_shift = (logit_tangents * shift.clone().reshape([n, 1, 3])).sum_dim(2).reshape([n, k]);
-        let prior_tangents: Tensor<2> = Tensor::from_data(TensorData::new(plan.prior_tangents.clone(), [n, 3]), &device);
-        let prior = Tensor::<1>::from_data(TensorData::new(plan.prior.clone(), [n]), &device) + (prior_tangents * shift.clone()).sum_dim(1).reshape([n]);
+            (Some(motion), Some(view)) => per_slot(view.seen_shift(points.clone())) - moved_by(motion),
+            (Some(motion), None) => moved_by(motion).neg(),
+            (None, Some(view)) => per_slot(view.seen_shift(points.clone())),
+            (None, None) => Tensor::zeros([n * k, 3], &device),
+        }
+        .reshape([n, k, 3]);
+        let slot_tangents = |values: &[f32]| Tensor::<3>::from_data(TensorData::new(values.to_vec(), [n, k, 3]), &device);
+        let logit_shift = (slot_tangents(&plan.logit_tangents) * shift.clone()).sum_dim(2).reshape([n, k]);
+        let prior_shift = (slot_tangents(&plan.prior_slot_tangents) * shift.clone()).sum_dim(2).sum_dim(1).reshape([n]);
+        let prior = Tensor::<1>::from_data(TensorData::new(plan.prior.clone(), [n]), &device) + prior_shift;
+        let root_slot: Tensor<3> = Tensor::from_data(TensorData::new(plan.root_slot.clone(), [n, k, 1]), &device);
+        let root_shift = (shift.clone() * root_slot).sum_dim(1).reshape([n, 3]);
         let carried = super::plan::Carried {
             slots: k,
             levels: self.config.levels,
@@ -196,8 +192,8 @@ impl FeatureGrid {
             axes: plan.bones.iter().flat_map(|&b| frames.get(b as usize).map_or([[f32::NAN; 3]; 3], |frame| frame.axes).into_iter().flatten()).collect(),
             per_cell: levels.iter().map(|level| 1.0 / level.cell).collect(),
         };
-        let (per_bone, _, plan) = self.interpolate_fused(plan, n, false, Some((shift, carried)));
-        let (features, _) = self.blend(&plan, n, per_bone, None, Some(logit_shift), &device);
+        let (per_bone, _, plan) = self.interpolate_fused(plan, n, false, Some((shift.reshape([n, 3 * k]), carried)));
+        let (features, _) = self.blend(&plan, n, per_bone, None, Some((logit_shift, root_shift)), &device);
         GridFeatures { features, prior, tangents: None }
     }
 
@@ -273,18 +269,21 @@ impl FeatureGrid {
         n: usize,
         per_bone: Tensor<2>,
         per_bone_tangents: Option<Tensor<2>>,
-        logit_shift: Option<Tensor<2>>,
+        carried: Option<(Tensor<2>, Tensor<2>)>,
         device: &Device,
     ) -> (Tensor<2>, Option<Tensor<2>>) {
         let config = &self.config;
         let (k, w) = (config.top(), config.width());
         let logits: Tensor<2> = Tensor::from_data(TensorData::new(plan.logits.clone(), [n, k]), device);
-        let logits = match logit_shift {
-            Some(shift) => logits + shift,
-            None => logits,
+        // A carried shift: the logits' (`[N, K]`) and the root's lookup's (`[N, 3]`).
+        let (logits, root_shift) = match carried {
+            Some((logit_shift, root_shift)) => (logits + logit_shift, Some(root_shift)),
+            None => (logits, None),
         };
         let root_slot: Tensor<2> = Tensor::from_data(TensorData::new(plan.root_slot.clone(), [n, k]), device);
         let tangents = per_bone_tangents.is_some();
+        // The preference's world gradient, for its tangents or to carry the root's shift.
+        let preference_tangents = tangents || root_shift.is_some();
         // The root's preference at each point (and its gradient), by the same fused op.
         let preference = self.root_preference.as_ref().map(|table| {
             let lookup = super::plan::Plan {
@@ -294,16 +293,20 @@ impl FeatureGrid {
                 features: 1,
                 rows: plan.root_rows.clone(),
                 coefficients: plan.root_coefficients.clone(),
-                tangents: tangents.then(|| plan.root_coefficient_tangents.clone()),
+                tangents: preference_tangents.then(|| plan.root_coefficient_tangents.clone()),
                 carried: None,
                 fade: vec![1.0],
                 table_parts: 1,
             };
             super::interpolate::interpolate(table.val(), lookup)
         });
-        let logits = match &preference {
-            Some(p) => logits + root_slot.clone() * p.clone().slice([0..n, 0..1]),
-            None => logits,
+        let logits = match (&preference, root_shift) {
+            (Some(p), Some(shift)) => {
+                let along = (p.clone().slice([n..4 * n, 0..1]).reshape([3, n]).transpose() * shift).sum_dim(1);
+                logits + root_slot.clone() * (p.clone().slice([0..n, 0..1]) + along)
+            }
+            (Some(p), None) => logits + root_slot.clone() * p.clone().slice([0..n, 0..1]),
+            (None, _) => logits,
         };
         let weights = burn::tensor::activation::softmax(logits, 1); // [N, K]
         let per_bone = per_bone.reshape([n, k, w]);

@@ -81,7 +81,7 @@ fn backward_on_host<B: HostValues>(grad: FloatTensor<B>, plan: &Plan, table_rows
 fn shift_backward_on_host<B: HostValues>(grad: FloatTensor<B>, table: FloatTensor<B>, plan: &Plan) -> FloatTensor<B> {
     let device = grad.device();
     let values = B::with_host(grad, |grad| B::with_host(table, |table| plan.shift_backward(grad, table)));
-    B::from_host(values, [plan.points, 3], &device)
+    B::from_host(values, [plan.points, plan.shift_width()], &device)
 }
 
 /// A lookup with no gradients wanted (`grid::features_on_host`): the points, the posed bones and
@@ -122,10 +122,11 @@ pub trait GridOps: Backend {
     /// `[N, levels x features + 1]`: the features and the prior of a lookup with no gradients,
     /// straight from `table` and the root's `preference` grid.
     fn grid_lookup(table: FloatTensor<Self>, preference: FloatTensor<Self>, lookup: Arc<HostLookup>) -> FloatTensor<Self>;
-    /// `grid_interpolate` of points that carry a zero-valued `shift` (`[N, 3]`): the same values,
-    /// with a gradient to the shift (`grid_shift_backward`) as well as to the table.
+    /// `grid_interpolate` of points that carry a zero-valued `shift` of their lookup in each
+    /// chosen bone (`[N, 3 S]`): the same values, with a gradient to the shift
+    /// (`grid_shift_backward`) as well as to the table.
     fn grid_interpolate_carrying(table: FloatTensor<Self>, shift: FloatTensor<Self>, plan: Arc<Plan>) -> FloatTensor<Self>;
-    /// `[N, 3]`: the shift's gradient from the interpolation's (`grad`) and the `table`.
+    /// `[N, 3 S]`: the shift's gradient from the interpolation's (`grad`) and the `table`.
     fn grid_shift_backward(grad: FloatTensor<Self>, table: FloatTensor<Self>, plan: Arc<Plan>) -> FloatTensor<Self>;
 }
 
@@ -247,7 +248,7 @@ pub fn interpolate(table: Tensor<2>, plan: Plan) -> Tensor<2> {
     Tensor::from_dispatch(<Dispatch as GridOps>::grid_interpolate(table.into_dispatch(), Arc::new(plan)))
 }
 
-/// `interpolate` of points that carry `shift` (`[N, 3]`, zero in value): the same values, with
+/// `interpolate` of points that carry `shift` (`[N, 3 S]`, zero in value, per chosen bone): the same values, with
 /// the gradient to the shift as well (the plan's `carried` coefficient derivatives).
 pub fn interpolate_carrying(table: Tensor<2>, shift: Tensor<2>, plan: Plan) -> Tensor<2> {
     Tensor::from_dispatch(<Dispatch as GridOps>::grid_interpolate_carrying(table.into_dispatch(), shift.into_dispatch(), Arc::new(plan)))

@@ -53,6 +53,10 @@ pub struct Lookup {
     pub root_coefficient_tangents: Vec<f32>,
     pub prior: Vec<f32>,
     pub prior_tangents: Vec<f32>,
+    /// Per point and chosen bone, the capsule prior's world gradient through that bone's
+    /// distance alone (`[N * K, 3]`; they sum to `prior_tangents`), when tangents are planned:
+    /// what a bone's own motion moves the prior by.
+    pub prior_slot_tangents: Vec<f32>,
     /// Per point and chosen bone, the bone (`[N * K]`), when tangents are planned: what a
     /// motion increment moves the point's lookup with.
     pub bones: Vec<u32>,
@@ -72,6 +76,7 @@ pub(super) struct PointSkin {
     root_coefficient_tangents: [[f32; 3]; 8],
     pub(super) prior: f32,
     prior_tangent: [f32; 3],
+    prior_slot_tangents: [[f32; 3]; MAX_TOP_BONES],
     bones: [u32; MAX_TOP_BONES],
 }
 
@@ -157,6 +162,7 @@ fn plan(config: &GridConfig, levels: &[Level], frames: &[BoneFrame], skinning: S
             plan.logit_tangents.extend(skin.logit_tangents[..top].iter().flatten());
             plan.root_coefficient_tangents.extend(skin.root_coefficient_tangents.iter().flatten());
             plan.prior_tangents.extend_from_slice(&skin.prior_tangent);
+            plan.prior_slot_tangents.extend(skin.prior_slot_tangents[..top].iter().flatten());
             plan.bones.extend_from_slice(&skin.bones[..top]);
         }
     }
@@ -182,8 +188,8 @@ pub(super) struct Scratch {
     pub(super) all: Vec<BoneDistance>,
     /// Every bone's skinning's squared distance while choosing: (distance, bone).
     nearest: Vec<(f32, usize)>,
-    /// A softmax's weights and their world gradients.
-    weights: Vec<(f32, [f32; 3])>,
+    /// A softmax's weights.
+    weights: Vec<f32>,
 }
 
 /// The weights the grid field blends its bones' features with at `point` (the root's learned
@@ -197,23 +203,18 @@ pub fn skinning_weights(config: &GridConfig, frames: &[BoneFrame], skinning: Ski
     chosen.iter().enumerate().map(|(j, a)| (a.bone, skin.logits[j].exp() / sum)).collect()
 }
 
-/// Softmax weights of logits `sharpness d2` over `(d2, gradient of d2)` pairs, with the
-/// weights' world gradients `w_j (d logit_j - sum_k w_k d logit_k)`, into `out`.
-fn softmax_with_gradient(out: &mut Vec<(f32, [f32; 3])>, terms: impl Iterator<Item = (f32, [f32; 3])>, sharpness: f32) {
+/// Softmax weights of logits `sharpness d2`, into `out`.
+fn softmax(out: &mut Vec<f32>, d2: impl Iterator<Item = f32>, sharpness: f32) {
     out.clear();
-    out.extend(terms.map(|(d2, g)| (d2 * sharpness, g.map(|v| v * sharpness))));
+    out.extend(d2.map(|d2| d2 * sharpness));
     // Shifted by the largest logit, so the exponentials stay finite.
-    let max = out.iter().map(|w| w.0).fold(f32::NEG_INFINITY, f32::max);
+    let max = out.iter().copied().fold(f32::NEG_INFINITY, f32::max);
     for w in out.iter_mut() {
-        w.0 = (w.0 - max).exp();
+        *w = (*w - max).exp();
     }
-    let sum: f32 = out.iter().map(|w| w.0).sum();
+    let sum: f32 = out.iter().sum();
     for w in out.iter_mut() {
-        w.0 /= sum;
-    }
-    let mean_d_logit = [0, 1, 2].map(|x| out.iter().map(|w| w.0 * w.1[x]).sum::<f32>());
-    for w in out.iter_mut() {
-        w.1 = [0, 1, 2].map(|x| w.0 * (w.1[x] - mean_d_logit[x]));
+        *w /= sum;
     }
 }
 
@@ -348,30 +349,45 @@ pub(super) fn skin_point(config: &GridConfig, frames: &[BoneFrame], skinning: Sk
     let chosen = &mut all[..];
     let mut skin = PointSkin::default();
     // The skinning's logits from distance, shifted so the largest is 0 (a softmax's weights
-    // do not change), with their gradients.
+    // do not change), with their gradients. Each gradient is its own bone's distance's alone
+    // (the shift's gradient, common to all, moves no weight): a bone's motion moves its logit
+    // and no other.
     let lead = (0..chosen.len()).min_by(|&a, &b| chosen[a].skinning_d2.total_cmp(&chosen[b].skinning_d2)).unwrap_or(0);
-    let (max, d_max) = (chosen[lead].skinning_d2 * skinning.sharpness, chosen[lead].skinning_gradient.map(|g| g * skinning.sharpness));
+    let max = chosen[lead].skinning_d2 * skinning.sharpness;
     for (j, a) in chosen.iter().enumerate() {
         skin.bones[j] = a.bone as u32;
         skin.logits[j] = a.skinning_d2 * skinning.sharpness - max;
-        skin.logit_tangents[j] = [0, 1, 2].map(|x| a.skinning_gradient[x] * skinning.sharpness - d_max[x]);
+        skin.logit_tangents[j] = a.skinning_gradient.map(|g| g * skinning.sharpness);
     }
     // The capsule prior: the distance to the segments, weighted by a softmax of the true
     // distances (the root's cap would mix distances that differ by the whole cap where the
     // weights turn, a gradient far steeper than a distance's), minus the radius.
-    softmax_with_gradient(&mut scratch.weights, chosen.iter().map(|a| (a.d2, a.gradient)), skinning.sharpness);
-    skin.prior = -skinning.prior_radius;
-    for (a, &(weight, d_weight)) in chosen.iter().zip(&scratch.weights) {
-        let distance = (a.d2 + 1e-8).sqrt();
-        skin.prior += weight * distance;
-        for ((tangent, d_weight), gradient) in skin.prior_tangent.iter_mut().zip(d_weight).zip(a.gradient) {
-            *tangent += d_weight * distance + weight * gradient / (2.0 * distance);
-        }
+    // Its gradient is split by bone: through bone j's distance alone, sharpness w_j (d_j - mean)
+    // (the softmax's weights) plus w_j / (2 d_j), times the squared distance's gradient.
+    softmax(&mut scratch.weights, chosen.iter().map(|a| a.d2), skinning.sharpness);
+    let mut distances = [0.0f32; MAX_TOP_BONES];
+    for (d, a) in distances.iter_mut().zip(chosen.iter()) {
+        *d = (a.d2 + 1e-8).sqrt();
     }
-    if let Some(cap) = skinning.prior_cap {
-        let (value, slope) = saturate(skin.prior, cap);
-        skin.prior = value;
-        skin.prior_tangent = skin.prior_tangent.map(|t| t * slope);
+    let mean: f32 = scratch.weights.iter().zip(&distances).map(|(w, d)| w * d).sum();
+    skin.prior = mean - skinning.prior_radius;
+    for (j, ((a, &weight), distance)) in chosen.iter().zip(&scratch.weights).zip(&distances).enumerate() {
+        let through = skinning.sharpness * weight * (distance - mean) + weight / (2.0 * distance);
+        skin.prior_slot_tangents[j] = a.gradient.map(|g| through * g);
+    }
+    let slope = match skinning.prior_cap {
+        Some(cap) => {
+            let (value, slope) = saturate(skin.prior, cap);
+            skin.prior = value;
+            slope
+        }
+        None => 1.0,
+    };
+    for slot in skin.prior_slot_tangents.iter_mut().take(chosen.len()) {
+        *slot = slot.map(|t| t * slope);
+        for (tangent, part) in skin.prior_tangent.iter_mut().zip(*slot) {
+            *tangent += part;
+        }
     }
     // The root's preference grid, when the root is chosen.
     if let (Some(root), Some(j)) = (config.root, chosen.iter().position(|a| Some(a.bone) == config.root.map(|r| r.bone))) {

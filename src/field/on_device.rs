@@ -79,20 +79,22 @@ pub fn backward<B: Backend>(grad: FloatTensor<B>, plan: &Plan, table_rows: usize
     B::float_select_assign(zeros, 0, rows::<B>(plan, &device), contributions, IndexingUpdateOp::Add)
 }
 
-/// The gradient (`[N, 3]`) of a shift of the points from the output's: per corner, its table row
-/// against the output's gradient, times its faded world derivative (`Carried::per_corner`).
+/// The gradient (`[N, 3 S]`) of a shift of the points' lookups in their `S` chosen bones from the
+/// output's: per corner, its table row against the output's gradient, times its faded world
+/// derivative (`Carried::per_corner`), summed over each slot's levels and corners.
 pub fn shift_backward<B: Backend>(grad: FloatTensor<B>, table: FloatTensor<B>, plan: &Plan) -> FloatTensor<B> {
     let device = grad.device();
     let Some(carried) = plan.carried.as_ref().filter(|_| plan.points > 0) else {
-        return B::float_zeros(Shape::new([plan.points, 3]), &device, FloatDType::F32);
+        return B::float_zeros(Shape::new([plan.points, plan.shift_width()]), &device, FloatDType::F32);
     };
+    let slots = carried.slots.max(1);
     let gathered = B::float_select(table, 0, rows::<B>(plan, &device));
     let along = B::float_sum_dim(B::float_mul(gathered, per_corner::<B>(grad, 0, plan)), 1);
     let carried = carried.per_corner(plan);
     let axes: Vec<FloatTensor<B>> = (0..3).map(|axis| B::float_mul(along.clone(), faded::<B>(plan, |at| carried[at * 3 + axis], &device))).collect();
     let per_corner = B::float_cat(axes, 1);
-    let summed = B::float_sum_dim(B::float_reshape(per_corner, Shape::new([plan.points, plan.levels * plan.corners, 3])), 1);
-    B::float_reshape(summed, Shape::new([plan.points, 3]))
+    let summed = B::float_sum_dim(B::float_reshape(per_corner, Shape::new([plan.points, slots, plan.levels / slots * plan.corners, 3])), 2);
+    B::float_reshape(summed, Shape::new([plan.points, 3 * slots]))
 }
 
 // On a device the plan goes up and the sums run there; the lookup without gradients, a host

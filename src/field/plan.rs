@@ -97,6 +97,11 @@ impl Plan {
         self.points * self.blocks()
     }
 
+    /// A carried shift's values per point: three per chosen bone (three without a carry).
+    pub fn shift_width(&self) -> usize {
+        3 * self.carried.as_ref().map_or(1, |c| c.slots)
+    }
+
     /// Output blocks of `points` rows: the features, and the three tangents when planned.
     pub fn blocks(&self) -> usize {
         if self.tangents.is_some() {
@@ -207,19 +212,21 @@ impl Plan {
 }
 
 impl Plan {
-    /// The gradient (`[N, 3]`, row-major) of a shift of the points, to first order, from the
-    /// output's (`[N, W]`): per point, each corner's table row against the output's gradient,
+    /// The gradient (`[N, 3 S]`, row-major: per point, per slot, per axis) of a shift of each
+    /// point's lookup in each of its `S` chosen bones, to first order, from the output's
+    /// (`[N, W]`): per point and slot, each corner's table row against the output's gradient,
     /// times the level's fade and the coefficient's world derivative, contracted per cell along
     /// its fractions before it is turned into the world (`Carried`).
     pub(super) fn shift_backward(&self, grad: &[f32], table: &[f32]) -> Vec<f32> {
         let (w, f, c) = (self.width(), self.features, self.corners);
-        let Some(carried) = &self.carried else { return vec![0.0; 3 * self.points] };
+        let row = self.shift_width();
+        let Some(carried) = &self.carried else { return vec![0.0; row * self.points] };
         let per_point = self.levels * c;
-        let mut out = vec![0.0f32; 3 * self.points];
-        // Points in chunks across threads: each point owns its three values.
+        let mut out = vec![0.0f32; row * self.points];
+        // Points in chunks across threads: each point owns its row.
         const CHUNK: usize = 256;
-        out.par_chunks_mut(3 * CHUNK).enumerate().for_each(|(chunk, shifts)| {
-            for (k, shift) in shifts.chunks_mut(3).enumerate() {
+        out.par_chunks_mut(row * CHUNK).enumerate().for_each(|(chunk, shifts)| {
+            for (k, point_shifts) in shifts.chunks_mut(row).enumerate() {
                 let i = chunk * CHUNK + k;
                 for g in 0..self.levels {
                     let fade = self.fade[g];
@@ -243,7 +250,8 @@ impl Plan {
                             along_fractions[m] += along * slopes[m];
                         }
                     }
-                    for (axis, s) in shift.iter_mut().enumerate() {
+                    let slot = g / carried.levels;
+                    for (axis, s) in point_shifts.iter_mut().skip(3 * slot).take(3).enumerate() {
                         *s += fade * (0..3).map(|m| along_fractions[m] * rows[m][axis]).sum::<f32>();
                     }
                 }
