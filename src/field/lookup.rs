@@ -371,10 +371,6 @@ pub(super) fn skin_point(config: &GridConfig, frames: &[BoneFrame], skinning: Sk
     }
     let mean: f32 = scratch.weights.iter().zip(&distances).map(|(w, d)| w * d).sum();
     skin.prior = mean - skinning.prior_radius;
-    for (j, ((a, &weight), distance)) in chosen.iter().zip(&scratch.weights).zip(&distances).enumerate() {
-        let through = skinning.sharpness * weight * (distance - mean) + weight / (2.0 * distance);
-        skin.prior_slot_tangents[j] = a.gradient.map(|g| through * g);
-    }
     let slope = match skinning.prior_cap {
         Some(cap) => {
             let (value, slope) = saturate(skin.prior, cap);
@@ -383,10 +379,14 @@ pub(super) fn skin_point(config: &GridConfig, frames: &[BoneFrame], skinning: Sk
         }
         None => 1.0,
     };
-    for slot in skin.prior_slot_tangents.iter_mut().take(chosen.len()) {
-        *slot = slot.map(|t| t * slope);
-        for (tangent, part) in skin.prior_tangent.iter_mut().zip(*slot) {
-            *tangent += part;
+    // (A lookup without gradients, the surface search's and a render's, needs none of it.)
+    if tangents {
+        for (j, ((a, &weight), distance)) in chosen.iter().zip(&scratch.weights).zip(&distances).enumerate() {
+            let through = slope * (skinning.sharpness * weight * (distance - mean) + weight / (2.0 * distance));
+            skin.prior_slot_tangents[j] = a.gradient.map(|g| through * g);
+            for (tangent, part) in skin.prior_tangent.iter_mut().zip(skin.prior_slot_tangents[j]) {
+                *tangent += part;
+            }
         }
     }
     // The root's preference grid, when the root is chosen.
