@@ -2,7 +2,7 @@
 //! relightable-characters supplement does: milliseconds per part of a training iteration
 //! (`messages::PHASES`: batch sampling, field forward and normals, shading with shadows, the
 //! losses, the SDF gradients of the regularisers, backward, optimiser) in the silhouette and
-//! the light stage, and of rendering one test view (the field alone, with sun shading and
+//! the light stage (also with the training motion refined), and of rendering one test view (the field alone, with sun shading and
 //! shadows, with sky sampling), with the process's peak memory after each. burn's CPU
 //! backends run eagerly, so each part's tensor work is done within its span.
 
@@ -116,6 +116,11 @@ pub fn breakdown(scene_path: &Path, schedule_path: &Path, out: &Path, quick: boo
     std::fs::create_dir_all(out).map_err(|e| io(out, e))?;
     let mut parts = training_parts(&scene, &schedule, "silhouette stage", 0, steps)?;
     parts.extend(training_parts(&scene, &schedule, "light stage", schedule.light_from + 200, steps)?);
+    // The same stage with the training motion refined whatever the scene (`auto` refines an
+    // imported capture's only): what the refinement adds to a step, part by part.
+    let mut refined = schedule.clone();
+    refined.refine_motion = crate::schedule::Switch::Fixed(true);
+    parts.extend(training_parts(&scene, &refined, "light stage, motion refined", schedule.light_from + 200, steps)?);
     if let Some(run) = run {
         let mut trainer = super::fitted_trainer(run)?;
         parts.extend(trainer_parts(&mut trainer, "fitted field", steps)?);
@@ -153,10 +158,14 @@ pub fn breakdown(scene_path: &Path, schedule_path: &Path, out: &Path, quick: boo
     }
     let csv = crate::table::to_csv(&["stage", "part", "ms", "share", "peak_mib"], csv_rows);
     md += "\nPeak memory is the process's high-water mark after each stage (it only grows).\n";
+    let whole = |stage: &str| parts.iter().find(|p| p.stage == stage && p.part == "whole step").map(|p| p.ms);
+    if let (Some(given), Some(refined)) = (whole("light stage"), whole("light stage, motion refined")) {
+        md += &format!("A light-stage step with the training motion refined costs {:.2}x one with it as given.\n", refined / given);
+    }
     let write = |name: &str, text: &str| crate::imageio::write_atomic(&out.join(name), text.as_bytes()).map_err(|e| io(&out.join(name), e));
     write("breakdown.md", &md)?;
     write("breakdown.csv", &csv)?;
-    let stages = ["silhouette stage", "light stage"];
+    let stages = ["silhouette stage", "light stage", "light stage, motion refined"];
     let chart = BarChart {
         title: "ms per part of a training step".into(),
         unit: "ms".into(),
