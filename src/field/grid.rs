@@ -170,8 +170,7 @@ impl FeatureGrid {
         let per_slot = |rows: Tensor<2>| rows.reshape([n, 1, 3]).expand([n, k, 3]).reshape([n * k, 3]);
         let moved_by = |motion: &MotionIncrement| {
             let chosen: Vec<i64> = plan.bones.iter().map(|&b| (b as usize).min(bones.saturating_sub(1)) as i64).collect();
-            let per_slot_points: Vec<f32> = values.chunks_exact(3).flat_map(|x| std::iter::repeat_n(x, k).flatten().copied()).collect();
-            motion.motion_of(&per_slot_points, Tensor::<1, Int>::from_data(TensorData::new(chosen, [n * k]), &device))
+            motion.motion_of(&values, k, Tensor::<1, Int>::from_data(TensorData::new(chosen, [n * k]), &device))
         };
         let shift = match (motion, view) {
             (Some(motion), Some(view)) => per_slot(view.seen_shift(points.clone())) - moved_by(motion),
