@@ -73,6 +73,17 @@ impl Backend {
     }
 }
 
+/// The bytes `device`'s allocator holds reserved (its pools' pages, in use or kept for reuse),
+/// where the device reports them: a GPU's. `None` on the CPU backends, whose tensors are the
+/// process's own memory (`files::peak_memory_bytes`). After a step, which has read its losses
+/// back, asking waits on nothing more.
+pub fn device_memory_bytes(device: &Device) -> Option<u64> {
+    if on_host(device) {
+        return None;
+    }
+    device.memory_pool_usage().map(|usage| usage.bytes_reserved)
+}
+
 /// Whether `device` keeps its tensors in host memory (the CPU backends), where a host algorithm
 /// reads them without a transfer; a GPU's would come down first.
 pub fn on_host(device: &Device) -> bool {

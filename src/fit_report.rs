@@ -52,6 +52,10 @@ pub struct FitReport {
     /// The most memory the fit held at once (`None` where the system does not say).
     #[serde(default)]
     pub peak_memory_bytes: Option<u64>,
+    /// The most the device's allocator held after a step of this process's training (a GPU's
+    /// memory; `None` on the CPU backends, whose memory is `peak_memory_bytes`).
+    #[serde(default)]
+    pub peak_device_memory_bytes: Option<u64>,
     /// `scoring::evaluate`'s figures, or null when nothing was evaluated.
     #[serde(default)]
     pub evaluation: Value,

@@ -69,6 +69,10 @@ pub struct StepStats {
     /// direction or a point light's position (m); none when no light is fitted. Kept in
     /// `losses.csv`, so a run's path of the light survives `--resume` (`fit.json`: `light_path`).
     pub light: Option<[f64; 3]>,
+    /// What the device's allocator held after the step (`backend::device_memory_bytes`): a
+    /// GPU's, none on the CPU backends.
+    #[serde(skip)]
+    pub device_memory_bytes: Option<u64>,
 }
 
 /// The parts of a training step `StepStats::phases` times.

@@ -132,6 +132,24 @@ fn a_short_fit_on_the_device_follows_the_cpu() {
     }
 }
 
+/// A step on the device says what the device's allocator holds: at least the parameters it
+/// trains, with their Adam moments once a step has taken them (three copies); a step on the CPU
+/// says nothing, its memory being the process's (`fit.json` keeps both).
+#[test]
+fn a_step_on_the_device_reports_the_device_memory() {
+    let dir = TempDir::new("gpu-memory");
+    let scene = common::tiny_synth(dir.path(), TrainingLight::Sun, 32, 4, vec![TestKind::Poses], 5);
+    let schedule = Schedule::parse(&common::QUICK.replace("iterations = 60", "iterations = 2"), Path::new("quick.toml")).unwrap();
+    let scene = umbra::scene::Scene::load(&scene).unwrap();
+    let mut device = Trainer::new(scene.clone(), schedule.clone(), Backend::Wgpu, 1).unwrap();
+    let parameters = device.model().unwrap().num_params() as u64;
+    let held: Vec<u64> = (0..2).map(|_| device.iterate().unwrap().device_memory_bytes.expect("the device reports its memory")).collect();
+    eprintln!("{parameters} parameters; the device held {held:?} bytes after each step");
+    assert!(held.iter().all(|&bytes| bytes >= 3 * 4 * parameters), "{held:?} bytes hold fewer than three f32 copies of {parameters} parameters");
+    let mut cpu = Trainer::new(scene, schedule, Backend::Flex, 1).unwrap();
+    assert_eq!(cpu.iterate().unwrap().device_memory_bytes, None);
+}
+
 /// The peak signal-to-noise ratio (dB) of one PNG against another.
 fn psnr(a: &Path, b: &Path) -> f64 {
     let (a, b) = (image::open(a).unwrap().to_rgb8(), image::open(b).unwrap().to_rgb8());
@@ -156,6 +174,12 @@ fn a_fit_an_evaluation_and_a_relight_run_on_the_device() {
     let (scene, run_str) = (scene.to_str().unwrap(), run.to_str().unwrap());
     common::succeeds(&cwd, &["fit", scene, "--out", run_str, "--iterations", "4", "--no-eval", "--backend", "wgpu"]);
     assert!(run.join("checkpoint/state.json").is_file() || run.join("fit.json").is_file(), "the fit wrote its run");
+    let report: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(run.join("fit.json")).unwrap()).unwrap();
+    assert!(
+        report["peak_device_memory_bytes"].as_u64().is_some_and(|bytes| bytes > 0),
+        "fit.json says what the device held: {}",
+        report["peak_device_memory_bytes"]
+    );
     common::succeeds(&cwd, &["eval", run_str, "--backend", "wgpu"]);
     let device =
         std::fs::read_dir(run.join("renders")).unwrap().map(|e| e.unwrap().path()).filter(|p| p.extension().is_some_and(|e| e == "png")).collect::<Vec<_>>();

@@ -1,7 +1,8 @@
 //! Memory and time at real capture sizes: a scene's training images upscaled (nearest, the
 //! intrinsics with them) to a small and a large size and repeated to a count of images, each
-//! fitted for a few iterations in a process of its own; its peak resident memory (`fit.json`) and
-//! wall time, and the large size's against the small one's, in one table.
+//! fitted for a few iterations in a process of its own; its peak resident memory (`fit.json`),
+//! on a GPU backend the most its device's allocator held, and its wall time, the large size's
+//! against the small one's, in one table.
 
 use serde_json::{json, Value};
 use std::path::{Path, PathBuf};
@@ -14,6 +15,8 @@ pub struct MemoryBenchOptions {
     /// The two image sizes (longest side, pixels): the baseline and the large one.
     pub sizes: (usize, usize),
     pub iterations: usize,
+    /// The backend the fits run on.
+    pub backend: crate::backend::Backend,
 }
 
 /// One variant's measurement.
@@ -21,6 +24,8 @@ struct Measured {
     size: usize,
     images: usize,
     peak_bytes: u64,
+    /// The device allocator's most (a GPU backend's).
+    device_bytes: Option<u64>,
     seconds: f64,
 }
 
@@ -88,12 +93,24 @@ fn upscaled(scene_dir: &Path, dir: &Path, factor: usize, images: usize) -> Resul
     crate::imageio::write_atomic(&dir.join("scene.json"), text.as_bytes()).map_err(|e| e.to_string())
 }
 
-/// Fits `scene` for `iterations` in a child process; its peak memory and wall seconds.
-fn measure(scene: &Path, run: &Path, iterations: usize) -> Result<(u64, f64), String> {
+/// Fits `scene` for `iterations` on `backend` in a child process; its peak memory, its device's
+/// (a GPU backend's) and wall seconds.
+fn measure(scene: &Path, run: &Path, iterations: usize, backend: crate::backend::Backend) -> Result<(u64, Option<u64>, f64), String> {
     let exe = std::env::current_exe().map_err(|e| e.to_string())?;
     let start = std::time::Instant::now();
     let status = std::process::Command::new(exe)
-        .args(["fit", &scene.display().to_string(), "--out", &run.display().to_string(), "--iterations", &iterations.to_string(), "--no-eval", "--force"])
+        .args([
+            "fit",
+            &scene.display().to_string(),
+            "--out",
+            &run.display().to_string(),
+            "--iterations",
+            &iterations.to_string(),
+            "--no-eval",
+            "--force",
+            "--backend",
+            &backend.to_string(),
+        ])
         .stdout(std::process::Stdio::null())
         .status()
         .map_err(|e| e.to_string())?;
@@ -103,7 +120,7 @@ fn measure(scene: &Path, run: &Path, iterations: usize) -> Result<(u64, f64), St
     }
     let report = crate::fit_report::FitReport::read(&run.join("fit.json")).map_err(|e| e.to_string())?;
     let peak = report.peak_memory_bytes.ok_or("fit.json: no peak_memory_bytes (this system does not report it)")?;
-    Ok((peak, seconds))
+    Ok((peak, report.peak_device_memory_bytes, seconds))
 }
 
 /// Runs the benchmark; writes `memory.md` and `memory.csv` into `out`, returns the Markdown.
@@ -119,15 +136,20 @@ pub fn memory(options: &MemoryBenchOptions, mut on: impl FnMut(&str)) -> Result<
         let _ = std::fs::remove_dir_all(&dir);
         upscaled(&options.scene, &dir, factor, options.images)?;
         on(&format!("fitting {name} for {} iterations", options.iterations));
-        let (peak_bytes, seconds) = measure(&dir, &options.out.join(format!("run-{name}")), options.iterations)?;
-        measured.push(Measured { size: side * factor, images: options.images, peak_bytes, seconds });
+        let (peak_bytes, device_bytes, seconds) = measure(&dir, &options.out.join(format!("run-{name}")), options.iterations, options.backend)?;
+        measured.push(Measured { size: side * factor, images: options.images, peak_bytes, device_bytes, seconds });
     }
     let base = &measured[0];
+    let mib = |bytes: u64| bytes as f64 / (1 << 20) as f64;
+    let device = measured.iter().any(|m| m.device_bytes.is_some());
     let mut md = format!(
-        "# Memory at capture sizes\n\n{} training images of `{}` upscaled, {} iterations each, one process per size.\n\n| size | images | peak memory (MiB) | per training image (KiB) | wall (s) | memory / smallest | wall / smallest |\n|---|---|---|---|---|---|---|\n",
+        "# Memory at capture sizes\n\n{} training images of `{}` upscaled, {} iterations each on the {} backend, one process per size.\n\n| size | images | peak memory (MiB) | per training image (KiB) | wall (s) | memory / smallest | wall / smallest |{}\n|---|---|---|---|---|---|---|{}\n",
         options.images,
         options.scene.display(),
-        options.iterations
+        options.iterations,
+        options.backend,
+        if device { " device memory (MiB) |" } else { "" },
+        if device { "---|" } else { "" },
     );
     let mut rows = Vec::new();
     for m in &measured {
@@ -137,12 +159,16 @@ pub fn memory(options: &MemoryBenchOptions, mut on: impl FnMut(&str)) -> Result<
             "| {0}x{0} | {1} | {2:.0} | {3:.0} | {4:.1} | {5:.2} | {6:.2} |\n",
             m.size,
             m.images,
-            m.peak_bytes as f64 / (1 << 20) as f64,
+            mib(m.peak_bytes),
             per_image / 1024.0,
             m.seconds,
             memory_ratio,
             time_ratio
         );
+        if device {
+            md.pop();
+            md += &format!(" {} |\n", m.device_bytes.map_or("-".to_string(), |b| format!("{:.0}", mib(b))));
+        }
         rows.push(vec![
             m.size.to_string(),
             m.images.to_string(),
@@ -151,6 +177,7 @@ pub fn memory(options: &MemoryBenchOptions, mut on: impl FnMut(&str)) -> Result<
             format!("{:.3}", m.seconds),
             format!("{memory_ratio:.3}"),
             format!("{time_ratio:.3}"),
+            m.device_bytes.map_or(String::new(), |b| b.to_string()),
         ]);
     }
     if let [small, large] = measured.as_slice() {
@@ -164,7 +191,7 @@ pub fn memory(options: &MemoryBenchOptions, mut on: impl FnMut(&str)) -> Result<
     }
     std::fs::create_dir_all(&options.out).map_err(|e| e.to_string())?;
     crate::imageio::write_atomic(&options.out.join("memory.md"), md.as_bytes()).map_err(|e| e.to_string())?;
-    let csv = crate::table::to_csv(&["size", "images", "peak_bytes", "bytes_per_image", "seconds", "memory_ratio", "time_ratio"], &rows);
+    let csv = crate::table::to_csv(&["size", "images", "peak_bytes", "bytes_per_image", "seconds", "memory_ratio", "time_ratio", "device_bytes"], &rows);
     crate::imageio::write_atomic(&options.out.join("memory.csv"), csv.as_bytes()).map_err(|e| e.to_string())?;
     Ok(md)
 }

@@ -88,10 +88,10 @@ pub fn main() -> i32 {
             let options = crate::bench::ScenesBenchOptions { scenes, schedule, iterations, seeds, out };
             crate::bench::scenes(&options, |line| eprintln!("{line}")).map(|table| print!("{table}")).map_err(|e| e.to_string())
         }
-        Command::Bench { which: BenchKind::Memory, out, quick, scene, iterations, images, .. } => {
+        Command::Bench { which: BenchKind::Memory, out, quick, scene, iterations, images, backend, .. } => {
             let scene = scene.unwrap_or_else(|| PathBuf::from("datasets-synthetic/human-sun"));
-            let options =
-                crate::bench::MemoryBenchOptions { scene, out, images, sizes: (128, if quick { 512 } else { 1024 }), iterations: iterations.unwrap_or(30) };
+            let sizes = (128, if quick { 512 } else { 1024 });
+            let options = crate::bench::MemoryBenchOptions { scene, out, images, sizes, iterations: iterations.unwrap_or(30), backend };
             crate::bench::memory(&options, |line| eprintln!("{line}")).map(|table| print!("{table}"))
         }
         Command::Bench { which: BenchKind::Gradients, out, quick, scene, .. } => {
@@ -236,6 +236,9 @@ fn fit(options: &crate::fit::FitOptions) -> Result<(), String> {
     }
     print_evaluation(&report.evaluation);
     println!("wall time: {:.1} s", report.wall_seconds);
+    if let Some(bytes) = report.peak_device_memory_bytes {
+        println!("device memory: {:.0} MiB at most, held by the {} backend's allocator", bytes as f64 / (1u64 << 20) as f64, report.backend);
+    }
     Ok(())
 }
 

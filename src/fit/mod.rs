@@ -252,6 +252,7 @@ pub fn fit(options: &FitOptions, mut on: impl FnMut(TrainMessage)) -> Result<Fit
         final_total: last.total,
         wall_seconds: wall.elapsed().as_secs_f64(),
         peak_memory_bytes: crate::files::peak_memory_bytes(),
+        peak_device_memory_bytes: history.iter().filter_map(|(_, stats)| stats.device_memory_bytes).max(),
         evaluation,
         evaluation_skipped,
         light_error_against_scene: light_error,

@@ -141,9 +141,11 @@ fn summary_rows(fit: &FitReport, truth: Option<&Light>) -> Vec<(String, String)>
         ("scene".to_string(), fit.scene.clone()),
         ("iterations".into(), fit.iterations.to_string()),
         ("wall time".into(), format!("{:.1} s", fit.wall_seconds)),
-        ("recovered light".into(), format!("{}: {recovered}", light["type"].as_str().unwrap_or("?"))),
-        ("the scene's training light".into(), truth),
     ];
+    if let Some(bytes) = fit.peak_device_memory_bytes {
+        rows.push(("device memory, at most".into(), format!("{:.0} MiB", bytes as f64 / (1u64 << 20) as f64)));
+    }
+    rows.extend([("recovered light".into(), format!("{}: {recovered}", light["type"].as_str().unwrap_or("?"))), ("the scene's training light".into(), truth)]);
     if let Some(error) = fit.direction_error() {
         rows.push(("light direction error against the scene's".into(), format!("{error:.2} degrees")));
     }

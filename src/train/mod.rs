@@ -376,6 +376,7 @@ impl Trainer {
         phases.append(&mut stats.phases);
         stats.phases = phases;
         stats.seconds = start.elapsed().as_secs_f64();
+        stats.device_memory_bytes = crate::backend::device_memory_bytes(&self.device);
         Ok(stats)
     }
 
