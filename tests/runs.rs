@@ -272,6 +272,13 @@ fn bench_memory_measures_two_sizes_in_one_table() {
     assert_eq!((rows[0][column("size")].as_str(), rows[1][column("size")].as_str()), ("120", "504"), "{rows:?}");
     let report: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(out.join("run-504px-200-images/fit.json")).unwrap()).unwrap();
     assert_eq!(report["peak_memory_bytes"].as_f64(), Some(peak(1)));
+    // On the CPU there is no device memory to report: the column stays empty, as fit.json's.
+    assert!(rows.iter().all(|r| r[column("device_bytes")].is_empty()) && report["peak_device_memory_bytes"].is_null(), "{rows:?}");
+    // A backend is for this benchmark alone: another refuses it rather than run on flex unasked.
+    let other = out.join("steps");
+    let refused = fails(&root, &["bench", "steps", "--backend", "flex", "--out", other.to_str().unwrap(), "--quick"]);
+    assert!(refused.contains("--backend flex is for `bench memory`"), "{refused}");
+    assert!(!other.exists(), "nothing written");
 }
 
 /// `bench scenes --seeds` fits every scene once per seed into `OUT/NAME-seedS`, one row each,

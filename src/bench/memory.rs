@@ -156,19 +156,16 @@ pub fn memory(options: &MemoryBenchOptions, mut on: impl FnMut(&str)) -> Result<
         let per_image = m.peak_bytes as f64 / m.images as f64;
         let (memory_ratio, time_ratio) = (m.peak_bytes as f64 / base.peak_bytes as f64, m.seconds / base.seconds);
         md += &format!(
-            "| {0}x{0} | {1} | {2:.0} | {3:.0} | {4:.1} | {5:.2} | {6:.2} |\n",
+            "| {0}x{0} | {1} | {2:.0} | {3:.0} | {4:.1} | {5:.2} | {6:.2} |{7}\n",
             m.size,
             m.images,
             mib(m.peak_bytes),
             per_image / 1024.0,
             m.seconds,
             memory_ratio,
-            time_ratio
+            time_ratio,
+            if device { format!(" {} |", m.device_bytes.map_or("-".to_string(), |b| format!("{:.0}", mib(b)))) } else { String::new() },
         );
-        if device {
-            md.pop();
-            md += &format!(" {} |\n", m.device_bytes.map_or("-".to_string(), |b| format!("{:.0}", mib(b))));
-        }
         rows.push(vec![
             m.size.to_string(),
             m.images.to_string(),

@@ -343,10 +343,10 @@ pub enum Command {
         /// whose fitted field's steps to time as well (`steps`: with and without culling).
         #[arg(long)]
         run: Option<PathBuf>,
-        /// `memory`: the tensor backend its fits run on (`wgpu`, built with `--features gpu`,
-        /// also reports the device's memory).
-        #[arg(long, value_enum, default_value_t = crate::backend::Backend::Flex)]
-        backend: crate::backend::Backend,
+        /// `memory`: the tensor backend its fits run on (default flex; `wgpu`, built with
+        /// `--features gpu`, also reports the device's memory).
+        #[arg(long, value_enum)]
+        backend: Option<crate::backend::Backend>,
     },
 }
 

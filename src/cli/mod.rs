@@ -60,6 +60,9 @@ pub fn main() -> i32 {
         Command::Report { run, camera, frame, directions, scene, backend } => {
             report(&crate::report::ReportOptions { run, scene, camera, frame, directions, backend })
         }
+        Command::Bench { which, backend: Some(backend), .. } if !matches!(which, BenchKind::Memory) => {
+            Err(format!("--backend {backend} is for `bench memory`; `bench device` compares the CPU with the device, the other benchmarks run on flex"))
+        }
         Command::Bench { which: BenchKind::Render, out, quick, run, .. } => match run {
             Some(run) => crate::bench::render(&run, &out, quick).map(|table| print!("{table}")).map_err(|e| e.to_string()),
             None => Err("bench render needs --run RUN (the folder of a fit)".into()),
@@ -91,6 +94,7 @@ pub fn main() -> i32 {
         Command::Bench { which: BenchKind::Memory, out, quick, scene, iterations, images, backend, .. } => {
             let scene = scene.unwrap_or_else(|| PathBuf::from("datasets-synthetic/human-sun"));
             let sizes = (128, if quick { 512 } else { 1024 });
+            let backend = backend.unwrap_or(crate::backend::Backend::Flex);
             let options = crate::bench::MemoryBenchOptions { scene, out, images, sizes, iterations: iterations.unwrap_or(30), backend };
             crate::bench::memory(&options, |line| eprintln!("{line}")).map(|table| print!("{table}"))
         }
