@@ -150,6 +150,22 @@ fn a_step_on_the_device_reports_the_device_memory() {
     assert_eq!(cpu.iterate().unwrap().device_memory_bytes, None);
 }
 
+/// The check after each update, that no parameter went NaN or infinite, counts them on the
+/// device by their bits and reads one number back; it finds them there as on the CPU.
+#[test]
+fn a_parameter_gone_nan_is_found_on_the_device() {
+    use burn::nn::{Linear, LinearConfig};
+    use umbra::avatar::first_non_finite;
+    let device = Backend::Wgpu.device();
+    let layer: Linear = LinearConfig::new(2, 2).init(&device);
+    assert_eq!(first_non_finite(&layer), None);
+    for bad in [f32::NAN, f32::INFINITY] {
+        let mut broken = layer.clone();
+        broken.weight = Param::from_tensor(Tensor::from_data(TensorData::new(vec![0.5, bad, 1e30, -2.0], [2, 2]), &device));
+        assert_eq!(first_non_finite(&broken).as_deref(), Some("weight"), "{bad}");
+    }
+}
+
 /// The peak signal-to-noise ratio (dB) of one PNG against another.
 fn psnr(a: &Path, b: &Path) -> f64 {
     let (a, b) = (image::open(a).unwrap().to_rgb8(), image::open(b).unwrap().to_rgb8());
