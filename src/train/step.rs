@@ -64,10 +64,6 @@ fn keep_in_cone(mut light: FittedLight, axis: glam::DVec3, angle: f64, device: &
     light
 }
 
-fn scalar(t: &Tensor<1>) -> f64 {
-    crate::backend::host_scalar(t.clone()) as f64
-}
-
 /// The step's losses: name, weight and value, in the order they are summed.
 type Terms<'a> = Vec<(&'a str, f64, Tensor<1>)>;
 
@@ -135,7 +131,17 @@ impl Trainer {
         for (_, weight, value) in terms.iter().skip(1) {
             total = total + value.clone() * *weight;
         }
-        let mut stats = StepStats { total: scalar(&total), terms: terms.iter().map(|(n, _, v)| (n.to_string(), scalar(v))).collect(), ..StepStats::default() };
+        // The total and every term come down together: one read a step, not one per term.
+        let read = crate::backend::host_values(Tensor::cat(
+            std::iter::once(&total).chain(terms.iter().map(|(_, _, v)| v)).map(|v| v.clone().detach().narrow(0, 0, 1)).collect(),
+            0,
+        ));
+        let value = |k: usize| read.get(k).map_or(f64::NAN, |&v| v as f64);
+        let mut stats = StepStats {
+            total: value(0),
+            terms: terms.iter().enumerate().map(|(k, (n, _, _))| (n.to_string(), value(k + 1))).collect(),
+            ..StepStats::default()
+        };
         clock.mark(7);
         if !stats.total.is_finite() {
             let bad = stats.terms.iter().find(|(_, v)| !v.is_finite()).map(|(n, _)| format!("the {n} loss")).unwrap_or_else(|| "the total loss".into());
