@@ -279,6 +279,20 @@ fn bench_memory_measures_two_sizes_in_one_table() {
     let refused = fails(&root, &["bench", "steps", "--backend", "flex", "--out", other.to_str().unwrap(), "--quick"]);
     assert!(refused.contains("--backend flex is for `bench memory`"), "{refused}");
     assert!(!other.exists(), "nothing written");
+    // Run again, it replaces its own scenes and runs; a folder of the user's in the way of one
+    // is refused before anything is written, and kept.
+    let again = ["bench", "memory", "--scene", scene.to_str().unwrap(), "--out", out.to_str().unwrap(), "--iterations", "2", "--images", "200", "--quick"];
+    succeeds(&root, &again);
+    let user = dir.path().join("user");
+    std::fs::create_dir_all(user.join("504px-200-images")).unwrap();
+    std::fs::write(user.join("504px-200-images/mine.txt"), "mine").unwrap();
+    let refused = fails(
+        &root,
+        &["bench", "memory", "--scene", scene.to_str().unwrap(), "--out", user.to_str().unwrap(), "--iterations", "2", "--images", "200", "--quick"],
+    );
+    assert!(refused.contains("504px-200-images") && refused.contains("nothing was written"), "{refused}");
+    assert_eq!(std::fs::read_to_string(user.join("504px-200-images/mine.txt")).unwrap(), "mine");
+    assert_eq!(std::fs::read_dir(&user).unwrap().count(), 1, "nothing else written");
 }
 
 /// `bench scenes --seeds` fits every scene once per seed into `OUT/NAME-seedS`, one row each,

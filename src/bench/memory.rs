@@ -19,6 +19,9 @@ pub struct MemoryBenchOptions {
     pub backend: crate::backend::Backend,
 }
 
+/// The command its folders' manifests name (`written`).
+const COMMAND: &str = "bench memory";
+
 /// One variant's measurement.
 struct Measured {
     size: usize,
@@ -127,16 +130,32 @@ fn measure(scene: &Path, run: &Path, iterations: usize, backend: crate::backend:
 pub fn memory(options: &MemoryBenchOptions, mut on: impl FnMut(&str)) -> Result<String, String> {
     let scene = crate::scene::Scene::load(&options.scene).map_err(|e| e.to_string())?;
     let side = scene.cameras.iter().map(|c| c.width.max(c.height)).max().unwrap_or(1);
+    let sizes: Vec<(usize, String)> = [options.sizes.0, options.sizes.1]
+        .into_iter()
+        .map(|size| {
+            let factor = (size / side).max(1);
+            (factor, format!("{}px-{}-images", side * factor, options.images))
+        })
+        .collect();
+    // Each scene and run folder is this benchmark's own (new, or marked by an earlier run of it)
+    // before anything is written: a folder of the user's under --out is neither removed nor
+    // fitted over.
+    let claim = |dir: PathBuf| crate::written::OutputFolder::claim(&dir, COMMAND, &[]);
+    let mut folders = Vec::new();
+    for (_, name) in &sizes {
+        folders.push((claim(options.out.join(name))?, claim(options.out.join(format!("run-{name}")))?));
+    }
     let mut measured = Vec::new();
-    for size in [options.sizes.0, options.sizes.1] {
-        let factor = (size / side).max(1);
-        let name = format!("{}px-{}-images", side * factor, options.images);
-        let dir = options.out.join(&name);
+    for ((factor, name), (scene_folder, run_folder)) in sizes.iter().zip(&folders) {
         on(&format!("writing {name}"));
-        let _ = std::fs::remove_dir_all(&dir);
-        upscaled(&options.scene, &dir, factor, options.images)?;
+        if scene_folder.dir().exists() {
+            std::fs::remove_dir_all(scene_folder.dir()).map_err(|e| format!("{}: {e}", scene_folder.dir().display()))?;
+        }
+        upscaled(&options.scene, scene_folder.dir(), *factor, options.images)?;
+        scene_folder.begin(&[]).map_err(|e| format!("{}: {e}", scene_folder.dir().display()))?;
         on(&format!("fitting {name} for {} iterations", options.iterations));
-        let (peak_bytes, device_bytes, seconds) = measure(&dir, &options.out.join(format!("run-{name}")), options.iterations, options.backend)?;
+        let (peak_bytes, device_bytes, seconds) = measure(scene_folder.dir(), run_folder.dir(), options.iterations, options.backend)?;
+        run_folder.begin(&[]).map_err(|e| format!("{}: {e}", run_folder.dir().display()))?;
         measured.push(Measured { size: side * factor, images: options.images, peak_bytes, device_bytes, seconds });
     }
     let base = &measured[0];
