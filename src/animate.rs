@@ -105,8 +105,9 @@ pub fn animate_run(options: &AnimateOptions, mut on: impl FnMut(TrainMessage)) -
     let scene = &restored.scene;
     let motion = crate::capture::read_clip(&options.motion).map_err(|e| FitError::Input(e.to_string()))?;
     let units = options.units.unwrap_or_else(|| Units::for_extent(crate::capture::joint_extent(&motion)));
-    let driven = retarget::drive(&scene.skeleton, &scene.frames[0].pose, &motion, units.metres())
+    let mut driven = retarget::drive(&scene.skeleton, &scene.frames[0].pose, &motion, units.metres())
         .map_err(|e| io(&options.motion, format!("{e} (nothing was written)")))?;
+    driven.poses = driven.poses.into_iter().map(|pose| restored.shown_motion(pose)).collect();
     let (animated, cameras, frames) = animated_scene(scene, &driven, options)?;
     if let Some(ground) = options.ground {
         ground.check(&animated, &cameras, &frames)?;

@@ -120,14 +120,21 @@ pub fn camera_colours_line(capture: &serde_json::Value) -> Option<String> {
 pub fn motion_line(capture: &serde_json::Value) -> Option<String> {
     let moved = capture.get("motion_refined").filter(|m| m.is_object())?;
     let number = |key: &str| moved[key].as_f64();
-    Some(format!(
+    let line = format!(
         "motion refined: {} training frames, bones turned {:.2} degrees on average (at most {:.2}), the root moved {:.2} cm (at most {:.2})",
         moved["frames"].as_u64()?,
         number("mean_degrees")?,
         number("largest_degrees")?,
         number("mean_shift_cm")?,
         number("largest_shift_cm")?,
-    ))
+    );
+    // Runs from before the shared turns were shown in other poses do not record them.
+    Some(match (number("shared_mean_degrees"), number("shared_largest_degrees")) {
+        (Some(mean), Some(largest)) => {
+            format!("{line}; turned alike in every frame {mean:.2} degrees on average (at most {largest:.2}), which every pose is shown with")
+        }
+        _ => line,
+    })
 }
 
 /// How far the fit moved the training cameras (fit.json's `capture.cameras_refined`) in a line;
@@ -166,6 +173,11 @@ mod tests {
         assert_eq!(
             motion_line(&capture).unwrap(),
             "motion refined: 12 training frames, bones turned 1.23 degrees on average (at most 6.50), the root moved 0.71 cm (at most 1.90)"
+        );
+        let capture = json!({"motion_refined": {"frames": 12, "mean_degrees": 1.234, "largest_degrees": 6.5, "mean_shift_cm": 0.71, "largest_shift_cm": 1.9, "shared_mean_degrees": 0.414, "shared_largest_degrees": 0.9}});
+        assert_eq!(
+            motion_line(&capture).unwrap(),
+            "motion refined: 12 training frames, bones turned 1.23 degrees on average (at most 6.50), the root moved 0.71 cm (at most 1.90); turned alike in every frame 0.41 degrees on average (at most 0.90), which every pose is shown with"
         );
         assert_eq!(motion_line(&json!({"motion_refined": null})), None);
     }

@@ -431,3 +431,60 @@ fn the_motion_increment_carries_the_gradient_where_bones_blend() {
     }
     assert!(worst < 0.03, "the increment's gradient is {worst} of the finite difference's scale off");
 }
+
+/// What every training frame's correction shares is the avatar's: every pose, a test pose's
+/// and a training frame's alike, is shown turned by each bone's mean correction where the frames
+/// agree on it, and by nothing of the shift; a checkpoint's copy gives the same turns.
+#[test]
+fn the_turns_every_training_frame_shares_are_shown_in_every_other_pose() {
+    let dir = common::TempDir::new("motion-shared");
+    let path = common::tiny_synth(dir.path(), umbra::synth::TrainingLight::Sun, 16, 2, vec![umbra::synth::TestKind::Poses], 3);
+    let mut scene = umbra::scene::Scene::load(&path).unwrap();
+    let mut motion = MotionCorrections::new(&scene).unwrap();
+    let frames = motion.frames().to_vec();
+    let test = (0..scene.frames.len()).find(|f| !frames.contains(f)).expect("a test frame");
+    let rows = scene.skeleton.len() + 1;
+    // Frame 0 turns bone 3 by 0.02 rad about x and moves the root; frame 1 turns it by 0.04
+    // about x and bone 5 by -0.01 about z.
+    let mut values = vec![vec![[0.0f64; 3]; rows]; 2];
+    values[0][3] = [0.02, 0.0, 0.0];
+    values[0][rows - 1] = [0.0, 0.05, 0.0];
+    values[1][3] = [0.04, 0.0, 0.0];
+    values[1][5] = [0.0, 0.0, -0.01];
+    let mut state = motion.to_json();
+    state["values"] = serde_json::json!(values);
+    motion.restore(&state).unwrap();
+    let shared = motion.shared_turns();
+    assert_eq!(shared.len(), scene.skeleton.len());
+    // The mean's squared standard error: the frames' squared scatter about it over their count
+    // squared. Bone 3's mean, 0.03, stands sqrt(18) standard errors (each 0.01 / sqrt(2)) out:
+    // it is kept but for 2 / 18 of it. Bone 5's, -0.005, sqrt(2) of them: nothing shows.
+    let error = (2.0 * 0.01f64.powi(2)) / 4.0;
+    let keep = 1.0 - umbra::train::motion::SHARED_TURN_EVIDENCE * error / 0.03f64.powi(2);
+    assert!((keep - 8.0 / 9.0).abs() < 1e-12);
+    assert!((shared[3][0] - 0.03 * keep).abs() < 1e-12 && shared[3][1] == 0.0, "bone 3 shows {:?}", shared[3]);
+    assert!(shared[5] == [0.0; 3] && shared[0] == [0.0; 3], "bone 5 shows {:?}", shared[5]);
+    assert_eq!(MotionCorrections::shared_turns_in(&state).unwrap(), shared);
+    let given = scene.frames[test].pose.clone();
+    let shown = umbra::train::motion::shown_pose(&scene.skeleton, &given, &shared);
+    assert_eq!(shown, given.corrected(&scene.skeleton, &shared, [0.0; 3]));
+    // Bone 3 turned in its parent's frame, the root not moved.
+    let local = |p: &Pose, b: usize| DMat3::from_mat4(p.bone_to_world[scene.skeleton.bones[b].parent.unwrap()].inverse() * p.bone_to_world[b]);
+    let turn = glam::DQuat::from_mat3(&(local(&given, 3).transpose() * local(&shown, 3))).to_scaled_axis();
+    assert!((turn - DVec3::new(0.03 * keep, 0.0, 0.0)).length() < 1e-9, "bone 3 turned by {turn}");
+    assert_eq!(shown.bone_to_world[0], given.bone_to_world[0]);
+    let report = motion.moved(&scene.skeleton);
+    assert!((report.shared_largest_degrees - (0.03 * keep).to_degrees()).abs() < 1e-9);
+    // A scene shown so: every frame, a training frame too, turned alike.
+    let before = scene.clone();
+    umbra::train::motion::show_in(&mut scene, &shared);
+    for f in [test, frames[0]] {
+        assert_eq!(scene.frames[f].pose, before.frames[f].pose.corrected(&before.skeleton, &shared, [0.0; 3]));
+    }
+    // No shared turn: every pose as given, to the bit.
+    let zeros = vec![[0.0; 3]; shared.len()];
+    assert_eq!(umbra::train::motion::shown_pose(&scene.skeleton, &given, &zeros), given);
+    // Corrections that are not finite are refused.
+    state["values"][0][3][0] = serde_json::json!(null);
+    assert!(MotionCorrections::shared_turns_in(&state).is_err());
+}

@@ -195,7 +195,8 @@ const GLB_JSON_BYTES: u64 = 256 << 20;
 /// fitted bones (`capture::retarget`), or the scene's frames in order (at their times when
 /// every frame has one and they increase, else 30 a second: a scene's test frames may carry
 /// times among its training ones').
-fn avatar_motion(options: &AvatarOptions, scene: &crate::scene::Scene) -> Result<Vec<(f64, crate::skeleton::Pose)>, FitError> {
+fn avatar_motion(options: &AvatarOptions, restored: &crate::run::FittedRun) -> Result<Vec<(f64, crate::skeleton::Pose)>, FitError> {
+    let scene = &restored.scene;
     let Some(file) = &options.motion else {
         let times: Option<Vec<f64>> = scene.frames.iter().map(|f| f.time).collect();
         let times = times.filter(|t| t.windows(2).all(|w| w[1] > w[0])).unwrap_or_else(|| (0..scene.frames.len()).map(|k| k as f64 / 30.0).collect());
@@ -204,7 +205,7 @@ fn avatar_motion(options: &AvatarOptions, scene: &crate::scene::Scene) -> Result
     let clip = crate::capture::read_clip(file).map_err(|e| FitError::Input(e.to_string()))?;
     let units = options.units.unwrap_or_else(|| crate::capture::Units::for_extent(crate::capture::joint_extent(&clip)));
     let driven = crate::capture::retarget::drive(&scene.skeleton, &scene.frames[0].pose, &clip, units.metres()).map_err(|e| io(file, e))?;
-    Ok(driven.poses.into_iter().enumerate().map(|(k, pose)| (k as f64 * driven.frame_time, pose)).collect())
+    Ok(driven.poses.into_iter().enumerate().map(|(k, pose)| (k as f64 * driven.frame_time, restored.shown_motion(pose))).collect())
 }
 
 /// The fitted surface in the scene's first frame with its skinning (`gltf::SkinnedMesh`).
@@ -227,7 +228,7 @@ pub fn export_avatar(options: &AvatarOptions) -> Result<AvatarExported, FitError
     if out.exists() && !written_by_avatar_export(out) {
         return Err(io(out, "exists and is not a GLB umbra export-avatar wrote: choose another --out, or move it away (nothing was written)"));
     }
-    let motion = avatar_motion(options, scene)?;
+    let motion = avatar_motion(options, &restored)?;
     let model = restored.fitted.model.valid();
     let device = restored.fitted.device.clone().without_autodiff();
     let skinned = skinned_mesh(&model, scene, &device)?;

@@ -358,7 +358,7 @@ fn evaluation(
     let out = &options.out;
     let has_tests = trainer.scene.views_in(Split::Test).next().is_some();
     let evaluation = if options.evaluate && has_tests {
-        evaluate(&trainer.scene, &trainer.fitted()?, out, on)?
+        evaluate(&trainer.shown_scene(), &trainer.fitted()?, out, on)?
     } else if !trained {
         previous_evaluation(out)
     } else {

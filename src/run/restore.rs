@@ -11,12 +11,32 @@ use crate::train::Trainer;
 use burn::module::Module;
 use std::path::Path;
 
-/// A finished (or checkpointed) run as `restore` rebuilds it: the scene it is rendered on, its
-/// schedule copy and the fitted avatar.
+/// A finished (or checkpointed) run as `restore` rebuilds it: the scene it is rendered on (its
+/// frames posed as the avatar is shown in them: `train::motion::show_in`), its schedule copy
+/// and the fitted avatar.
 pub struct FittedRun {
     pub scene: Scene,
     pub schedule: Schedule,
     pub fitted: Fitted,
+    /// Each bone's turn every refined training frame shares (radians, in its parent's frame;
+    /// empty when the motion was not refined): the scene's frames and new motion are shown with
+    /// it.
+    pub shared_turns: Vec<[f64; 3]>,
+}
+
+impl FittedRun {
+    /// `pose` of new motion (a clip driving the bones) as the avatar is shown in it.
+    pub fn shown_motion(&self, pose: crate::skeleton::Pose) -> crate::skeleton::Pose {
+        crate::train::motion::shown_pose(&self.scene.skeleton, &pose, &self.shared_turns)
+    }
+}
+
+/// The turns every refined training frame shares (`MotionCorrections::shared_turns`), from a
+/// checkpoint's state; none when the motion was not refined (or not moved).
+fn shared_turns(state: &serde_json::Value, state_path: &Path) -> Result<Vec<[f64; 3]>, FitError> {
+    let Some(value) = state.get("motion").filter(|m| !m.is_null()) else { return Ok(Vec::new()) };
+    let turns = crate::train::motion::MotionCorrections::shared_turns_in(value).map_err(|e| io(state_path, format!("motion: {e}")))?;
+    Ok(if turns.iter().flatten().all(|&v| v == 0.0) { Vec::new() } else { turns })
 }
 
 /// A run rebuilt from its folder (its schedule copy and last checkpoint), on the scene it was
@@ -33,11 +53,13 @@ pub fn restore(run: &Path, scene: Option<&Path>, backend: crate::backend::Backen
         Some(path) => path.to_path_buf(),
         None => recorded_scene(run)?,
     };
-    let scene = Scene::load(&scene_path)?;
+    let mut scene = Scene::load(&scene_path)?;
     apply_recorded_field(run, scene.skeleton.len(), &mut schedule.field)?;
     let checkpoint = existing_checkpoint(run).ok_or_else(|| io(run, "holds no checkpoint"))?;
     let state = verified_state(&checkpoint, &scene, None)?;
     let state_path = checkpoint.join("state.json");
+    let shared_turns = shared_turns(&state, &state_path)?;
+    crate::train::motion::show_in(&mut scene, &shared_turns);
     let lights = crate::train::training_lights(&scene, &schedule)?;
     let device = backend.open().map_err(|e| FitError::Input(e.to_string()))?;
     device.seed(0);
@@ -67,7 +89,7 @@ pub fn restore(run: &Path, scene: Option<&Path>, backend: crate::backend::Backen
     let iteration = state["iteration"].as_u64().unwrap_or(0) as usize;
     let footprint = schedule.footprint.unwrap_or_else(|| scene.footprint().footprint);
     let fitted = Fitted { model, device, light_kind: lights.kind, fit_light: lights.fit, footprint, iteration };
-    Ok(FittedRun { scene, schedule, fitted })
+    Ok(FittedRun { scene, schedule, fitted, shared_turns })
 }
 
 /// A trainer rebuilt from a run folder on the scene it was fitted on, its model loaded from the

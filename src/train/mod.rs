@@ -290,6 +290,19 @@ impl Trainer {
         }
     }
 
+    /// The scene with its frames posed as the fitted avatar is shown in them
+    /// (`motion::show_in`: turned by what every training frame's correction shares); the scene
+    /// itself when the motion is not refined.
+    pub fn shown_scene(&self) -> std::borrow::Cow<'_, crate::scene::Scene> {
+        let shared = self.state.as_ref().and_then(|s| s.motion.as_ref()).map(|m| m.shared_turns()).unwrap_or_default();
+        if shared.iter().flatten().all(|&v| v == 0.0) {
+            return std::borrow::Cow::Borrowed(&self.scene);
+        }
+        let mut scene = self.scene.clone();
+        motion::show_in(&mut scene, &shared);
+        std::borrow::Cow::Owned(scene)
+    }
+
     /// How far the refinement has moved the training motion (none for a fit that does not
     /// refine it).
     pub fn motion_moved(&self) -> Option<motion::MotionMoved> {

@@ -19,6 +19,16 @@ use glam::{DMat3, DQuat, DVec3};
 /// in: a turn of one radian moves a point this far from its joint as far as a shift of one.
 pub const LEVER_ON_HUMAN: f64 = 0.3;
 
+/// How far a bone's mean correction must stand out of its frames' scatter to be shown in other
+/// poses: it is kept in proportion `1 - SHARED_TURN_EVIDENCE e^2 / m^2` (`m` the mean turn, `e`
+/// its standard error, the frames' scatter over the square root of their count), none of it
+/// within `sqrt(2)` standard errors. A tracker's errors drawn anew each frame leave a mean about
+/// one standard error long, which exact poses must not be turned by; a turn the field took up
+/// is shared by every frame alike, a few standard errors long. On the 64-pixel captures
+/// (`docs/measurements.md`) a factor of 1 turned exact test poses by a tracker's mean and cost
+/// them 1.6 dB; 4 gave up 0.5-0.9 dB of what the exact capture gains.
+pub const SHARED_TURN_EVIDENCE: f64 = 2.0;
+
 /// Rows of a frame's correction: one per bone, then the shift.
 type Rows = Vec<[f64; 3]>;
 
@@ -49,6 +59,10 @@ pub struct MotionMoved {
     pub largest_degrees: f64,
     pub mean_shift_cm: f64,
     pub largest_shift_cm: f64,
+    /// The turns every frame shares (`MotionCorrections::shared_turns`), which every pose is
+    /// shown with: degrees, mean and largest over the bones.
+    pub shared_mean_degrees: f64,
+    pub shared_largest_degrees: f64,
     pub bones: Vec<BoneMoved>,
 }
 
@@ -58,6 +72,8 @@ pub struct BoneMoved {
     pub bone: String,
     pub mean_degrees: f64,
     pub largest_degrees: f64,
+    /// Its turn shared by every frame (degrees).
+    pub shared_degrees: f64,
 }
 
 /// A bone's rotation in its parent's frame (the root's in the world) in `pose`.
@@ -129,6 +145,25 @@ impl MotionCorrections {
         }
     }
 
+    /// Each bone's turn shared by every training frame: the mean of its corrections (rotation
+    /// vectors in its parent's frame, a few degrees at most, where a mean of rotation vectors is
+    /// the mean rotation to second order), kept in the measure that the frames agree on it
+    /// (`SHARED_TURN_EVIDENCE`). The skeleton's shift is left out: it moves the body in the
+    /// world, which a bone's content cannot trade against.
+    pub fn shared_turns(&self) -> Vec<[f64; 3]> {
+        shared_turns_of(&self.values)
+    }
+
+    /// `shared_turns` of the corrections a checkpoint keeps (`to_json`), whatever its frames.
+    pub fn shared_turns_in(value: &serde_json::Value) -> Result<Vec<[f64; 3]>, String> {
+        let values: Vec<Rows> = serde_json::from_value(value["values"].clone()).map_err(|e| format!("values: {e}"))?;
+        let rows = values.first().map_or(0, |v| v.len());
+        if values.iter().any(|v| v.len() != rows || v.iter().flatten().any(|c| !c.is_finite())) {
+            return Err(format!("values: {rows} finite [x, y, z] per training frame"));
+        }
+        Ok(shared_turns_of(&values))
+    }
+
     /// Corrected frame `k`'s correction as a leaf (`[bones + 1, 3]`) whose gradient a step
     /// reads back, and where its neighbours would have it for a smooth motion (the corrected
     /// motion's second difference there zero, to first order: half the neighbours' corrections
@@ -183,13 +218,19 @@ impl MotionCorrections {
         let shifts: Vec<f64> = self.values.iter().map(|v| DVec3::from_array(*v.last().unwrap_or(&[0.0; 3])).length() * self.lever * 100.0).collect();
         let mean = |v: &[f64]| if v.is_empty() { 0.0 } else { v.iter().sum::<f64>() / v.len() as f64 };
         let largest = |v: &[f64]| v.iter().copied().fold(0.0, f64::max);
+        let shared: Vec<f64> = self.shared_turns().iter().map(|t| DVec3::from_array(*t).length().to_degrees()).collect();
         let bones = skeleton
             .bones
             .iter()
             .enumerate()
             .map(|(b, bone)| {
                 let d = degrees(b);
-                BoneMoved { bone: bone.name.clone(), mean_degrees: mean(&d), largest_degrees: largest(&d) }
+                BoneMoved {
+                    bone: bone.name.clone(),
+                    mean_degrees: mean(&d),
+                    largest_degrees: largest(&d),
+                    shared_degrees: shared.get(b).copied().unwrap_or(0.0),
+                }
             })
             .collect();
         MotionMoved {
@@ -198,6 +239,8 @@ impl MotionCorrections {
             largest_degrees: largest(&turns),
             mean_shift_cm: mean(&shifts),
             largest_shift_cm: largest(&shifts),
+            shared_mean_degrees: mean(&shared),
+            shared_largest_degrees: largest(&shared),
             bones,
         }
     }
@@ -258,4 +301,40 @@ pub fn joint_error(skeleton: &Skeleton, a: &Pose, b: &Pose) -> (f64, f64) {
     let degrees: f64 = (0..bones).map(|k| turn_between(local_rotation(skeleton, a, k), local_rotation(skeleton, b, k)).length().to_degrees()).sum();
     let root = (a.bone_to_world[0].w_axis - b.bone_to_world[0].w_axis).truncate().length() * 100.0;
     (degrees / bones as f64, root)
+}
+
+/// `MotionCorrections::shared_turns` of per-frame corrections `values` (bones, then the shift).
+fn shared_turns_of(values: &[Rows]) -> Vec<[f64; 3]> {
+    let bones = values.first().map_or(0, |v| v.len().saturating_sub(1));
+    let n = values.len().max(1) as f64;
+    (0..bones)
+        .map(|b| {
+            let turn = |v: &Rows| DVec3::from_array(v.get(b).copied().unwrap_or_default());
+            let mean = values.iter().fold(DVec3::ZERO, |sum, v| sum + turn(v)) / n;
+            // The mean's squared standard error: the frames' squared scatter about it over
+            // their count, over their count again.
+            let error = values.iter().map(|v| (turn(v) - mean).length_squared()).sum::<f64>() / (n * n);
+            let keep = match mean.length_squared() {
+                0.0 => 0.0,
+                squared => (1.0 - SHARED_TURN_EVIDENCE * error / squared).max(0.0),
+            };
+            (mean * keep).to_array()
+        })
+        .collect()
+}
+
+/// `pose` as the fitted avatar is shown in it: each bone turned by `shared` (`shared_turns`,
+/// one per bone; none: the pose as given).
+pub fn shown_pose(skeleton: &Skeleton, pose: &Pose, shared: &[[f64; 3]]) -> Pose {
+    match shared.iter().flatten().all(|&v| v == 0.0) {
+        true => pose.clone(),
+        false => pose.corrected(skeleton, shared, [0.0; 3]),
+    }
+}
+
+/// Every frame of `scene` posed as the fitted avatar is shown in it (`shown_pose`).
+pub fn show_in(scene: &mut Scene, shared: &[[f64; 3]]) {
+    for f in 0..scene.frames.len() {
+        scene.frames[f].pose = shown_pose(&scene.skeleton, &scene.frames[f].pose, shared);
+    }
 }
