@@ -488,3 +488,40 @@ fn the_turns_every_training_frame_shares_are_shown_in_every_other_pose() {
     state["values"][0][3][0] = serde_json::json!(null);
     assert!(MotionCorrections::shared_turns_in(&state).is_err());
 }
+
+/// A run whose checkpoint holds refined motion is shown in its shared turns by every command
+/// that renders from it: `run::restore` poses the scene's frames so, and a clip's poses too.
+#[test]
+fn a_restored_run_shows_its_scene_and_new_motion_in_the_shared_turns() {
+    let (_dir, scene_path, run) = common::short_run("motion-shown");
+    let state_path = run.join(umbra::run::CHECKPOINT).join("state.json");
+    let mut state: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&state_path).unwrap()).unwrap();
+    let given = umbra::scene::Scene::load(&scene_path).unwrap();
+    let motion = MotionCorrections::new(&given).unwrap();
+    let rows = given.skeleton.len() + 1;
+    // Every training frame turns bone 4 alike (but for a hair), so all of it is shared.
+    let values: Vec<Vec<[f64; 3]>> = (0..motion.frames().len())
+        .map(|k| {
+            let mut frame = vec![[0.0f64; 3]; rows];
+            frame[4] = [0.0, 0.05 + 1e-4 * k as f64, 0.0];
+            frame
+        })
+        .collect();
+    let mut corrections = motion.to_json();
+    corrections["values"] = serde_json::json!(values);
+    state["motion"] = corrections.clone();
+    common::rewrite_state(&state_path, &state);
+    let shared = MotionCorrections::shared_turns_in(&corrections).unwrap();
+    assert!(shared[4][1] > 0.049, "bone 4's turn is shared: {:?}", shared[4]);
+    let restored = umbra::run::restore(&run, None, umbra::backend::Backend::Flex).unwrap();
+    for (shown, frame) in restored.scene.frames.iter().zip(&given.frames) {
+        assert_eq!(shown.pose, frame.pose.corrected(&given.skeleton, &shared, [0.0; 3]));
+    }
+    assert_ne!(restored.scene.frames[0].pose, given.frames[0].pose);
+    assert_eq!(restored.shown_motion(given.frames[1].pose.clone()), restored.scene.frames[1].pose);
+    // A checkpoint without refined motion: the scene as given.
+    state["motion"] = serde_json::Value::Null;
+    common::rewrite_state(&state_path, &state);
+    let restored = umbra::run::restore(&run, None, umbra::backend::Backend::Flex).unwrap();
+    assert!(restored.scene.frames.iter().zip(&given.frames).all(|(a, b)| a.pose == b.pose) && restored.shared_turns.is_empty());
+}
