@@ -19,8 +19,8 @@ pub struct FittedRun {
     pub schedule: Schedule,
     pub fitted: Fitted,
     /// Each bone's turn every refined training frame shares (radians, in its parent's frame;
-    /// empty when the motion was not refined): the scene's frames and new motion are shown with
-    /// it.
+    /// empty when the motion was not refined, zeros where nothing is shared): the scene's frames
+    /// and new motion are shown with it.
     pub shared_turns: Vec<[f64; 3]>,
 }
 
@@ -32,11 +32,12 @@ impl FittedRun {
 }
 
 /// The turns every refined training frame shares (`MotionCorrections::shared_turns`), from a
-/// checkpoint's state; none when the motion was not refined (or not moved).
+/// checkpoint's state; none when the motion was not refined.
 fn shared_turns(state: &serde_json::Value, state_path: &Path) -> Result<Vec<[f64; 3]>, FitError> {
-    let Some(value) = state.get("motion").filter(|m| !m.is_null()) else { return Ok(Vec::new()) };
-    let turns = crate::train::motion::MotionCorrections::shared_turns_in(value).map_err(|e| io(state_path, format!("motion: {e}")))?;
-    Ok(if turns.iter().flatten().all(|&v| v == 0.0) { Vec::new() } else { turns })
+    match state.get("motion").filter(|m| !m.is_null()) {
+        Some(value) => crate::train::motion::MotionCorrections::shared_turns_in(value).map_err(|e| io(state_path, format!("motion: {e}"))),
+        None => Ok(Vec::new()),
+    }
 }
 
 /// A run rebuilt from its folder (its schedule copy and last checkpoint), on the scene it was

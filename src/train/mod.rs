@@ -295,7 +295,7 @@ impl Trainer {
     /// itself when the motion is not refined.
     pub fn shown_scene(&self) -> std::borrow::Cow<'_, crate::scene::Scene> {
         let shared = self.state.as_ref().and_then(|s| s.motion.as_ref()).map(|m| m.shared_turns()).unwrap_or_default();
-        if shared.iter().flatten().all(|&v| v == 0.0) {
+        if !motion::turns_any(&shared) {
             return std::borrow::Cow::Borrowed(&self.scene);
         }
         let mut scene = self.scene.clone();

@@ -19,8 +19,8 @@ use glam::{DMat3, DQuat, DVec3};
 /// in: a turn of one radian moves a point this far from its joint as far as a shift of one.
 pub const LEVER_ON_HUMAN: f64 = 0.3;
 
-/// How far a bone's mean correction must stand out of its frames' scatter to be shown in other
-/// poses: it is kept in proportion `1 - SHARED_TURN_EVIDENCE e^2 / m^2` (`m` the mean turn, `e`
+/// How far a bone's mean correction must stand out of its frames' scatter for the poses the
+/// avatar is shown in to carry it: it is kept in proportion `1 - SHARED_TURN_EVIDENCE e^2 / m^2` (`m` the mean turn, `e`
 /// its standard error, the frames' scatter over the square root of their count), none of it
 /// within `sqrt(2)` standard errors. A tracker's errors drawn anew each frame leave a mean about
 /// one standard error long, which exact poses must not be turned by; a turn the field took up
@@ -326,10 +326,15 @@ fn shared_turns_of(values: &[Rows]) -> Vec<[f64; 3]> {
 /// `pose` as the fitted avatar is shown in it: each bone turned by `shared` (`shared_turns`,
 /// one per bone; none: the pose as given).
 pub fn shown_pose(skeleton: &Skeleton, pose: &Pose, shared: &[[f64; 3]]) -> Pose {
-    match shared.iter().flatten().all(|&v| v == 0.0) {
-        true => pose.clone(),
-        false => pose.corrected(skeleton, shared, [0.0; 3]),
+    match turns_any(shared) {
+        true => pose.corrected(skeleton, shared, [0.0; 3]),
+        false => pose.clone(),
     }
+}
+
+/// Whether `shared` turns any bone at all.
+pub fn turns_any(shared: &[[f64; 3]]) -> bool {
+    shared.iter().flatten().any(|&v| v != 0.0)
 }
 
 /// Every frame of `scene` posed as the fitted avatar is shown in it (`shown_pose`).
