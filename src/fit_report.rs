@@ -128,10 +128,17 @@ pub fn motion_line(capture: &serde_json::Value) -> Option<String> {
         number("mean_shift_cm")?,
         number("largest_shift_cm")?,
     );
-    // Runs from before the shared turns were shown in other poses do not record them.
-    Some(match (number("shared_mean_degrees"), number("shared_largest_degrees")) {
+    // Runs from before the shared turns were shown in other poses, or the smoothness was
+    // weighed by the capture, do not record them.
+    let line = match (number("shared_mean_degrees"), number("shared_largest_degrees")) {
         (Some(mean), Some(largest)) => {
             format!("{line}; turned alike in every frame {mean:.2} degrees on average (at most {largest:.2}), which every pose is shown with")
+        }
+        _ => line,
+    };
+    Some(match (number("given_noise_share"), number("smoothness_scale")) {
+        (Some(noise), Some(scale)) => {
+            format!("{line}; the given motion's second differences {:.0}% noise, smoothed {scale:.3}x the schedule's weight", noise * 100.0)
         }
         _ => line,
     })
@@ -179,6 +186,8 @@ mod tests {
             motion_line(&capture).unwrap(),
             "motion refined: 12 training frames, bones turned 1.23 degrees on average (at most 6.50), the root moved 0.71 cm (at most 1.90); turned alike in every frame 0.41 degrees on average (at most 0.90), which every pose is shown with"
         );
+        let capture = json!({"motion_refined": {"frames": 30, "mean_degrees": 1.234, "largest_degrees": 6.5, "mean_shift_cm": 0.71, "largest_shift_cm": 1.9, "shared_mean_degrees": 0.414, "shared_largest_degrees": 0.9, "given_noise_share": 0.9, "smoothness_scale": 9.0}});
+        assert!(motion_line(&capture).unwrap().ends_with("; the given motion's second differences 90% noise, smoothed 9.000x the schedule's weight"));
         assert_eq!(motion_line(&json!({"motion_refined": null})), None);
     }
 

@@ -55,8 +55,10 @@ pub struct Inputs {
     pub normal_pairs: Option<(Tensor<2>, Tensor<2>)>,
     /// The batch frame's motion correction (`[bones + 1, 3]`: each bone's turn in radians, the
     /// skeleton's shift in levers) and where its neighbouring frames would have it for a
-    /// smooth motion (the corrected motion's second difference there zero).
-    pub motion: Option<(Tensor<2>, Tensor<2>)>,
+    /// smooth motion (the corrected motion's second difference there zero), and how much the
+    /// smoothness weighs on this capture (`MotionCorrections::smoothness_scale`: the given
+    /// motion's noise-to-motion ratio).
+    pub motion: Option<(Tensor<2>, Tensor<2>, f64)>,
     /// The training cameras' turns about their centres (`[C, 3]`, radians).
     pub cameras: Option<Tensor<2>>,
 }
@@ -87,8 +89,13 @@ pub const TERMS: [Term; 12] = [
     Term { name: "ambient", needs: &[Input::Ambient], always: false, value: |i| i.ambient.clone().map(|(a, target)| ambient(a, target)) },
     Term { name: "eikonal", needs: &[Input::Gradient], always: false, value: |i| Some(eikonal(i.gradient.clone()?)) },
     Term { name: "curvature", needs: &[Input::NormalPairs], always: false, value: |i| i.normal_pairs.clone().map(|(n, p)| curvature(n, p)) },
-    Term { name: "motion_prior", needs: &[Input::Motion], always: false, value: |i| i.motion.clone().map(|(c, _)| squared(c)) },
-    Term { name: "motion_smoothness", needs: &[Input::Motion], always: false, value: |i| i.motion.clone().map(|(c, smooth)| squared(c - smooth)) },
+    Term { name: "motion_prior", needs: &[Input::Motion], always: false, value: |i| i.motion.clone().map(|(c, _, _)| squared(c)) },
+    Term {
+        name: "motion_smoothness",
+        needs: &[Input::Motion],
+        always: false,
+        value: |i| i.motion.clone().map(|(c, smooth, scale)| squared(c - smooth) * scale),
+    },
     Term { name: "camera_prior", needs: &[Input::Cameras], always: false, value: |i| i.cameras.clone().map(squared) },
 ];
 
@@ -212,5 +219,29 @@ mod tests {
         close(value(eikonal(t2(&[3.0, 4.0, 0.0, 0.0, 0.0, 1.0], 3))), (16.0 + 0.0) / 2.0);
         close(value(curvature(t2(&[1.0, 0.0, 0.0], 3), t2(&[0.0, 1.0, 0.0], 3))), 2.0);
         close(value(squared(t2(&[0.1, -0.2, 0.0, 0.3, 0.0, 0.0], 3))), 0.01 + 0.04 + 0.09);
+    }
+
+    #[test]
+    fn the_motions_smoothness_is_weighed_by_the_captures_scale_and_its_prior_is_not() {
+        let inputs = |scale: f64| Inputs {
+            accumulation: t1(&[0.0]),
+            mask: t1(&[0.0]),
+            mask_weights: None,
+            albedo: t2(&[0.0; 3], 3),
+            target: t2(&[0.0; 3], 3),
+            colour: None,
+            densities: vec![],
+            widths: None,
+            means: None,
+            ambient: None,
+            gradient: None,
+            normal_pairs: None,
+            motion: Some((t2(&[0.1, 0.0, -0.2], 3), t2(&[0.0, 0.1, 0.0], 3), scale)),
+            cameras: None,
+        };
+        let of = |name: &str, scale: f64| value((term(name).unwrap().value)(&inputs(scale)).unwrap());
+        close(of("motion_smoothness", 1.0), 0.01 + 0.01 + 0.04);
+        close(of("motion_smoothness", 7.5), 7.5 * 0.06);
+        close(of("motion_prior", 7.5), 0.01 + 0.04);
     }
 }

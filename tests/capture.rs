@@ -801,3 +801,28 @@ fn a_static_cameras_plate_comes_from_its_frames_and_training_images_keep_what_it
     plate.colour.pixels[known][0] += 0.25;
     assert_ne!(other.training_identity(), scene.training_identity());
 }
+
+/// The motion's smoothness weighs by what of the given motion is noise: a synthetic walk
+/// sampled 30 times a cycle, exported and imported as a user would, is movement, and the same
+/// walk with a tracker's errors (2.5 degrees a joint channel) is almost all noise between
+/// frames, smoothed several times the schedule's weight.
+#[test]
+fn a_trackers_errors_are_told_from_the_walk_and_smoothed_harder() {
+    use umbra::train::motion::MotionCorrections;
+    let dir = TempDir::new("capture-motion-noise");
+    let synth = SynthOptions { size: 16, cameras: 1, frames: 30, samples: 1, ..synth_options(Some(Export::Nerfstudio)) };
+    let errors = umbra::capture::flaws::CaptureErrors::parse("joints=2.5,root=1").unwrap();
+    let mut shares = Vec::new();
+    for (name, errors) in [("clean", None), ("tracked", Some(errors))] {
+        let capture = dir.path().join(name);
+        umbra::synth::generate(&SynthOptions { errors, ..synth.clone() }, &capture, false, |_, _| {}).unwrap();
+        let scene = dir.path().join(format!("{name}-scene"));
+        import(&options(&capture, scene.clone()), &|_, _| {}).unwrap();
+        let motion = MotionCorrections::new(&Scene::load(&scene).unwrap()).unwrap();
+        assert_eq!(motion.frames().len(), 30);
+        shares.push((motion.noise_share(), motion.smoothness_scale()));
+    }
+    let ((clean, clean_scale), (tracked, tracked_scale)) = (shares[0], shares[1]);
+    assert!(clean < 0.5 && clean_scale == 1.0, "the exact walk: {clean:.3}, smoothed {clean_scale}x");
+    assert!(tracked > 0.9 && tracked_scale > 3.0, "the tracker's: {tracked:.3}, smoothed {tracked_scale}x");
+}

@@ -18,6 +18,7 @@ pub mod camera_pose;
 mod host_adam;
 mod light_search;
 pub mod motion;
+pub mod motion_noise;
 mod pixels;
 mod rebind;
 mod setup;

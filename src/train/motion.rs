@@ -10,6 +10,7 @@
 //! frames and new
 //! motion are used as given.
 
+use super::motion_noise::Rows;
 use crate::scene::{Scene, Split};
 use crate::skeleton::{Pose, Skeleton};
 use burn::tensor::{Device, Tensor, TensorData};
@@ -29,9 +30,6 @@ pub const LEVER_ON_HUMAN: f64 = 0.3;
 /// them 1.6 dB; 4 gave up 0.5-0.9 dB of what the exact capture gains.
 pub const SHARED_TURN_EVIDENCE: f64 = 2.0;
 
-/// Rows of a frame's correction: one per bone, then the shift.
-type Rows = Vec<[f64; 3]>;
-
 /// The training frames' corrections and their optimiser's state.
 #[derive(Clone, Debug, PartialEq)]
 pub struct MotionCorrections {
@@ -48,6 +46,8 @@ pub struct MotionCorrections {
     second: Vec<Rows>,
     steps: Vec<u64>,
     lever: f64,
+    /// The share of the given motion's second differences that is noise (`noise_share`).
+    noise_share: f64,
 }
 
 /// How far the refinement moved the training motion: the bones' turns over every frame
@@ -63,6 +63,10 @@ pub struct MotionMoved {
     /// shown with: degrees, mean and largest over the bones.
     pub shared_mean_degrees: f64,
     pub shared_largest_degrees: f64,
+    /// The share of the given motion's second differences that is noise (`noise_share`), and
+    /// the smoothness's weight on this capture for the schedule's (`smoothness_scale`).
+    pub given_noise_share: f64,
+    pub smoothness_scale: f64,
     pub bones: Vec<BoneMoved>,
 }
 
@@ -107,7 +111,7 @@ impl MotionCorrections {
         let rows = scene.skeleton.len() + 1;
         let n = frames.len();
         let neighbours: Vec<Option<(usize, usize)>> = (0..n).map(|k| (k > 0 && k + 1 < n).then(|| (k - 1, k + 1))).collect();
-        let acceleration = (0..n)
+        let acceleration: Vec<Rows> = (0..n)
             .map(|k| match neighbours[k] {
                 Some((before, after)) => {
                     let pose = |j: usize| &scene.frames[frames[j]].pose;
@@ -125,7 +129,25 @@ impl MotionCorrections {
             })
             .collect();
         let zeros = vec![vec![[0.0; 3]; rows]; n];
-        Some(Self { frames, neighbours, acceleration, values: zeros.clone(), first: zeros.clone(), second: zeros, steps: vec![0; n], lever })
+        let noise_share = super::motion_noise::noise_share(&acceleration, &neighbours);
+        Some(Self { frames, neighbours, acceleration, values: zeros.clone(), first: zeros.clone(), second: zeros, steps: vec![0; n], lever, noise_share })
+    }
+
+    /// The share of the given motion's second differences (the bones' turns) that is noise
+    /// drawn anew each frame, as a tracker leaves it, rather than the motion's own: from their
+    /// correlation with the next frame's, which is -2/3 for independent errors and near 1 for a
+    /// motion sampled finely enough to be seen moving. 0 to `motion_noise::MOST_NOISE_SHARE`.
+    pub fn noise_share(&self) -> f64 {
+        self.noise_share
+    }
+
+    /// How much the smoothness term weighs on this capture, for the schedule's weight: the
+    /// noise-to-motion ratio of the given motion's second differences, `f / (1 - f)` of the
+    /// `noise_share` `f`, as a Wiener filter weighs a signal's smoothness against its noise,
+    /// times `motion_noise::SMOOTHNESS_PER_NOISE_RATIO`; never less than 1, the weight that holds back the
+    /// refinement's own wander, which a smooth given motion has too.
+    pub fn smoothness_scale(&self) -> f64 {
+        super::motion_noise::smoothness_scale(self.noise_share)
     }
 
     /// The corrected frame of scene frame `frame`, if it is one.
@@ -169,7 +191,7 @@ impl MotionCorrections {
     /// motion's second difference there zero, to first order: half the neighbours' corrections
     /// plus the given motion's second difference; itself when it lacks a neighbour, which no
     /// term then moves).
-    pub fn leaf_and_smooth(&self, k: usize, device: &Device) -> (Tensor<2>, Tensor<2>) {
+    pub fn leaf_and_smooth(&self, k: usize, device: &Device) -> (Tensor<2>, Tensor<2>, f64) {
         let values = &self.values[k];
         let rows = values.len();
         let smooth: Vec<f32> = match self.neighbours[k] {
@@ -182,7 +204,8 @@ impl MotionCorrections {
             None => values.iter().flatten().map(|&v| v as f32).collect(),
         };
         let leaf: Vec<f32> = values.iter().flatten().map(|&v| v as f32).collect();
-        (Tensor::from_data(TensorData::new(leaf, [rows, 3]), device).require_grad(), Tensor::from_data(TensorData::new(smooth, [rows, 3]), device))
+        let leaf = Tensor::from_data(TensorData::new(leaf, [rows, 3]), device).require_grad();
+        (leaf, Tensor::from_data(TensorData::new(smooth, [rows, 3]), device), self.smoothness_scale())
     }
 
     /// One Adam step of `rate` on corrected frame `k`: `leaf` is the gradient of its leaf
@@ -241,6 +264,8 @@ impl MotionCorrections {
             largest_shift_cm: largest(&shifts),
             shared_mean_degrees: mean(&shared),
             shared_largest_degrees: largest(&shared),
+            given_noise_share: self.noise_share,
+            smoothness_scale: self.smoothness_scale(),
             bones,
         }
     }
