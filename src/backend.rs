@@ -96,9 +96,21 @@ pub fn on_host(device: &Device) -> bool {
 #[error("copying a tensor's values to the host: {0}")]
 pub struct HostError(String);
 
+thread_local! {
+    /// `to_host` calls on this thread (`reads_to_host`).
+    static READS: std::cell::Cell<u64> = const { std::cell::Cell::new(0) };
+}
+
+/// How many times this thread has copied a tensor to the host (`to_host`): on a GPU each is a
+/// wait for the device, so a test counts a piece of a step's reads by it.
+pub fn reads_to_host() -> u64 {
+    READS.with(|r| r.get())
+}
+
 /// A tensor's values on the host as f32, in row-major order: the one way tensors leave the
 /// device.
 pub fn to_host<const D: usize>(t: burn::tensor::Tensor<D>) -> Result<Vec<f32>, HostError> {
+    READS.with(|r| r.set(r.get() + 1));
     t.into_data().convert::<f32>().try_to_vec::<f32>().map_err(|e| HostError(format!("{e:?}")))
 }
 

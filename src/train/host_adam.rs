@@ -1,7 +1,10 @@
 //! Adam on a few numbers kept on the host, in rows of three with their moments: the cameras'
 //! colours and turns (`camera_colour`, `camera_pose`: `CameraRows`, a row per training camera)
 //! and the motion's corrections (`motion`), too small to be worth a parameter group on the
-//! device.
+//! device; and their gradients brought to the host after a step's backward pass, all in one
+//! read (`host_gradients`).
+
+use burn::tensor::Tensor;
 
 /// Adam's decay rates and its guard against a zero second moment (burn's defaults).
 const BETAS: (f64, f64) = (0.9, 0.999);
@@ -108,5 +111,77 @@ impl CameraRows {
         self.second = rows("second")?;
         self.steps = value["steps"].as_u64().ok_or("steps: missing")?;
         Ok(())
+    }
+}
+
+/// The gradients of `leaves` on the host, read from the device in one copy (a GPU waits on
+/// every read): per leaf its values, none where the backward pass did not reach it.
+pub fn host_gradients(leaves: &[&Tensor<2>], grads: &burn::tensor::Gradients) -> Vec<Option<Vec<f32>>> {
+    let found: Vec<Option<Tensor<1>>> = leaves
+        .iter()
+        .map(|t| {
+            t.grad(grads).map(|g| {
+                let n = g.shape().num_elements();
+                g.reshape([n])
+            })
+        })
+        .collect();
+    let lengths: Vec<Option<usize>> = found.iter().map(|g| g.as_ref().map(|g| g.dims()[0])).collect();
+    let parts: Vec<Tensor<1>> = found.into_iter().flatten().collect();
+    if parts.is_empty() {
+        return vec![None; leaves.len()];
+    }
+    let values = crate::backend::host_values(Tensor::cat(parts, 0));
+    let mut at = 0;
+    lengths
+        .into_iter()
+        .map(|n| {
+            n.map(|n| {
+                let part = values.get(at..at + n).map_or_else(|| vec![f32::NAN; n], <[f32]>::to_vec);
+                at += n;
+                part
+            })
+        })
+        .collect()
+}
+
+/// A leaf's gradient (zeros where it has none) and the sum of its increments' (zeros where
+/// none was reached), from `read`, their gradients in `host_gradients`' order.
+pub fn leaf_and_increments(rows: usize, read: &mut impl Iterator<Item = Option<Vec<f32>>>, increments: usize) -> (Vec<f32>, Vec<f32>) {
+    let leaf = read.next().flatten().unwrap_or_else(|| vec![0.0; rows]);
+    let mut through_render = vec![0.0f32; rows];
+    for g in read.take(increments).flatten() {
+        through_render.iter_mut().zip(g).for_each(|(a, b)| *a += b);
+    }
+    (leaf, through_render)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::{host_gradients, leaf_and_increments};
+    use burn::tensor::{Device, Tensor, TensorData};
+
+    #[test]
+    fn the_host_gradients_come_down_in_one_read_each_leaf_its_own() {
+        let device = Device::flex().autodiff();
+        let leaf = |v: Vec<f32>| Tensor::<2>::from_data(TensorData::new(v, [2, 3]), &device).require_grad();
+        let (a, unreached, c, d) = (leaf(vec![1.0; 6]), leaf(vec![2.0; 6]), leaf(vec![0.5; 6]), leaf(vec![-1.0; 6]));
+        // d(sum 2a + sum 3c^2 + sum d) = 2, 6c = 3, 1.
+        let loss = (a.clone() * 2.0).sum() + (c.clone() * c.clone() * 3.0).sum() + d.clone().sum();
+        let grads = loss.backward();
+        let before = crate::backend::reads_to_host();
+        let read = host_gradients(&[&a, &unreached, &c, &d], &grads);
+        assert_eq!(crate::backend::reads_to_host() - before, 1, "one read for every leaf");
+        assert_eq!(read, vec![Some(vec![2.0; 6]), None, Some(vec![3.0; 6]), Some(vec![1.0; 6])]);
+        // A leaf and its increments: the unreached one counts as zeros.
+        let mut parts = read.into_iter();
+        let (first, through) = leaf_and_increments(6, &mut parts, 2);
+        assert_eq!((first, through), (vec![2.0; 6], vec![3.0; 6]));
+        let (first, through) = leaf_and_increments(6, &mut parts, 0);
+        assert_eq!((first, through), (vec![1.0; 6], vec![0.0; 6]));
+        // Nothing reached: no read at all.
+        let before = crate::backend::reads_to_host();
+        assert_eq!(host_gradients(&[&unreached], &grads), vec![None]);
+        assert_eq!(crate::backend::reads_to_host(), before);
     }
 }

@@ -86,26 +86,6 @@ struct Leaves {
     cameras: Option<CameraLeaves>,
 }
 
-/// A leaf's gradient on the host, and the sum of the gradients of `increments` (zeros where a
-/// leaf has none: it was not reached).
-fn leaf_and_increments(leaf: &Tensor<2>, increments: &[Tensor<2>], grads: &burn::tensor::Gradients) -> (Vec<f32>, Vec<f32>) {
-    let read = |t: &Tensor<2>| t.grad(grads).map(crate::backend::host_values);
-    let rows = leaf.dims()[0] * 3;
-    let leaf = read(leaf).unwrap_or_else(|| vec![0.0; rows]);
-    let mut through_render = vec![0.0f32; rows];
-    for g in increments.iter().filter_map(read) {
-        through_render.iter_mut().zip(g).for_each(|(a, b)| *a += b);
-    }
-    (leaf, through_render)
-}
-
-/// One Adam step of the batch frame's motion correction at `rate`: its leaf's gradient (the
-/// motion's terms) and the sum of the increments' the render parts carried, from `grads`.
-fn step_motion(motion: &mut MotionCorrections, (k, leaf, increments): MotionLeaves, grads: &burn::tensor::Gradients, pose: &crate::skeleton::Pose, rate: f64) {
-    let (leaf, through_render) = leaf_and_increments(&leaf, &increments, grads);
-    motion.step(k, &leaf, &through_render, pose, rate);
-}
-
 impl Trainer {
     /// One step on `batch` from `state`: forward, the weighted losses, backward, one Adam step
     /// per group. The batch carries every random number the step uses (`draw_batch`). The state
@@ -149,17 +129,31 @@ impl Trainer {
         }
         let grads = total.backward();
         clock.mark(8);
-        if let (Some(leaf), Some(colours)) = (colour_leaf, state.camera_colours.as_mut()) {
-            if let Some(gradient) = leaf.grad(&grads) {
-                colours.step(&crate::backend::host_values(gradient), self.schedule.learning_rate("light", it));
+        // Every gradient the host's optimisers step from comes down in one read.
+        let motion_leaves = leaves.motion.as_ref().map(|(k, leaf, increments)| (*k, leaf.dims()[0] * 3, increments.len()));
+        let camera_leaves = leaves.cameras.as_ref().map(|(leaf, increments)| (leaf.dims()[0] * 3, increments.len()));
+        let wanted: Vec<&Tensor<2>> = colour_leaf
+            .iter()
+            .chain(leaves.motion.iter().flat_map(|(_, leaf, increments)| std::iter::once(leaf).chain(increments)))
+            .chain(leaves.cameras.iter().flat_map(|(leaf, increments)| std::iter::once(leaf).chain(increments)))
+            .collect();
+        let mut read = super::host_adam::host_gradients(&wanted, &grads).into_iter();
+        if colour_leaf.is_some() {
+            if let (Some(gradient), Some(colours)) = (read.next().flatten(), state.camera_colours.as_mut()) {
+                colours.step(&gradient, self.schedule.learning_rate("light", it));
             }
         }
-        if let (Some(leaves), Some(motion), Some((pose, _))) = (leaves.motion, state.motion.as_mut(), batch.corrected.as_ref()) {
-            step_motion(motion, leaves, &grads, pose, self.schedule.learning_rate("motion", it));
+        if let Some((k, rows, increments)) = motion_leaves {
+            let (leaf, through_render) = super::host_adam::leaf_and_increments(rows, &mut read, increments);
+            if let (Some(motion), Some((pose, _))) = (state.motion.as_mut(), batch.corrected.as_ref()) {
+                motion.step(k, &leaf, &through_render, pose, self.schedule.learning_rate("motion", it));
+            }
         }
-        if let (Some((leaf, increments)), Some(cameras)) = (leaves.cameras, state.cameras.as_mut()) {
-            let (leaf, through_render) = leaf_and_increments(&leaf, &increments, &grads);
-            cameras.step(&leaf, &through_render, self.schedule.learning_rate("cameras", it));
+        if let Some((rows, increments)) = camera_leaves {
+            let (leaf, through_render) = super::host_adam::leaf_and_increments(rows, &mut read, increments);
+            if let Some(cameras) = state.cameras.as_mut() {
+                cameras.step(&leaf, &through_render, self.schedule.learning_rate("cameras", it));
+            }
         }
         let model = state.model;
         state.model = self.update(model, grads, forks, batch.light, &mut state.optimisers, it);
