@@ -43,11 +43,11 @@ impl Avatar {
     }
 }
 
-/// Whether every parameter of `module` is finite, read back as one number: the count, summed on
-/// the device, of the parameters holding a NaN or an infinity (found by their bits, which a GPU's
-/// fast maths keeps, where `x * 0` may not). A GPU then sends one value a step instead of every
-/// parameter.
-fn all_finite<M: Module>(module: &M) -> bool {
+/// How many of `module`'s parameters hold a NaN or an infinity, counted on the device (none
+/// for a module without parameters): a caller reads it with whatever else it reads after an
+/// update, then names the parameter with `first_non_finite_of` only when it is not zero. The
+/// bits are tested (`is_nan`, `is_inf`), which a GPU's fast maths keeps.
+pub fn non_finite_count<M: Module>(module: &M) -> Option<Tensor<1>> {
     #[derive(Default)]
     struct Sum {
         total: Option<Tensor<1>>,
@@ -64,14 +64,20 @@ fn all_finite<M: Module>(module: &M) -> bool {
     }
     let mut sum = Sum::default();
     module.visit(&mut sum);
-    sum.total.is_none_or(|total| crate::backend::host_scalar(total) == 0.0)
+    sum.total
 }
 
 /// The path (`field.hidden.0.weight`, ...) of the first parameter holding a NaN or an
 /// infinity: the update that put it there must not reach a checkpoint.
 pub fn first_non_finite<M: Module>(module: &M) -> Option<String> {
-    // The parameters are read one by one, for the name, only when one is not finite.
-    if all_finite(module) {
+    let count = non_finite_count(module).map_or(0.0, crate::backend::host_scalar);
+    first_non_finite_of(module, count)
+}
+
+/// `first_non_finite` with the module's `non_finite_count` already read: the parameters are
+/// read one by one, for the name, only when it is not zero (NaN, a failed read, counts).
+pub fn first_non_finite_of<M: Module>(module: &M, count: f32) -> Option<String> {
+    if count == 0.0 {
         return None;
     }
     #[derive(Default)]
@@ -121,7 +127,7 @@ pub struct Fitted {
 
 #[cfg(test)]
 mod tests {
-    use super::{all_finite, first_non_finite};
+    use super::{first_non_finite, first_non_finite_of, non_finite_count};
     use burn::module::Param;
     use burn::nn::{Linear, LinearConfig};
     use burn::tensor::{Device, Tensor, TensorData};
@@ -131,13 +137,17 @@ mod tests {
     fn a_parameter_that_is_not_finite_is_found_and_named() {
         let device = Device::flex().autodiff();
         let layer: Linear = LinearConfig::new(2, 2).init(&device);
-        assert!(all_finite(&layer));
+        let count = |m: &Linear| crate::backend::host_scalar(non_finite_count(m).expect("parameters"));
+        assert_eq!(count(&layer), 0.0);
         assert_eq!(first_non_finite(&layer), None);
         for bad in [f32::NAN, f32::INFINITY, f32::NEG_INFINITY] {
             let mut broken = layer.clone();
             broken.weight = Param::from_tensor(Tensor::from_data(TensorData::new(vec![0.5, bad, 1e30, -2.0], [2, 2]), &device));
-            assert!(!all_finite(&broken), "{bad}");
+            assert_eq!(count(&broken), 1.0, "{bad}");
             assert_eq!(first_non_finite(&broken).as_deref(), Some("weight"), "{bad}");
+            // The name is looked for only when the count read says so.
+            assert_eq!(first_non_finite_of(&broken, 0.0), None);
+            assert_eq!(first_non_finite_of(&broken, f32::NAN).as_deref(), Some("weight"));
         }
         let mut broken = layer.clone();
         broken.bias = Some(Param::from_tensor(Tensor::from_data(TensorData::new(vec![f32::MAX, f32::NAN], [2]), &device)));

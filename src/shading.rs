@@ -192,13 +192,17 @@ impl FittedLight {
     /// Where the light is, as plain numbers: a sun's unit direction, a point light's position
     /// (m); none for uniform light.
     pub fn location(&self) -> Option<[f64; 3]> {
-        let vector = match self.kind {
-            LightKind::Directional => self.direction(),
-            LightKind::Point => self.position(),
-            LightKind::Uniform => return None,
-        };
-        let values = crate::backend::to_host(vector).ok()?;
-        Some([*values.first()?, *values.get(1)?, *values.get(2)?].map(f64::from))
+        let values = crate::backend::to_host(self.location_tensor()?).ok()?;
+        location_of(&values)
+    }
+
+    /// `location` on the device (`[3]`), for a caller that reads it with other values.
+    pub fn location_tensor(&self) -> Option<Tensor<1>> {
+        match self.kind {
+            LightKind::Directional => Some(self.direction()),
+            LightKind::Point => Some(self.position()),
+            LightKind::Uniform => None,
+        }
     }
 
     pub fn direction(&self) -> Tensor<1> {
@@ -261,4 +265,10 @@ impl FittedLight {
             LightKind::Uniform => serde_json::json!({"type": "uniform", "radiance": [1.0, 1.0, 1.0]}),
         }
     }
+}
+
+/// A light's location (`FittedLight::location`) from its three values read from the device;
+/// none when they are fewer.
+pub fn location_of(values: &[f32]) -> Option<[f64; 3]> {
+    Some([*values.first()?, *values.get(1)?, *values.get(2)?].map(f64::from))
 }

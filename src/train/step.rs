@@ -3,7 +3,7 @@
 
 use super::motion::MotionCorrections;
 use super::{Batch, TrainState, Trainer};
-use crate::avatar::{first_non_finite, Avatar};
+use crate::avatar::Avatar;
 use crate::field::{AvatarField, PoseTensors};
 use crate::fit_error::FitError;
 use crate::gaussians::GaussianParams;
@@ -157,10 +157,20 @@ impl Trainer {
         }
         let model = state.model;
         state.model = self.update(model, grads, forks, batch.light, &mut state.optimisers, it);
-        if self.fit_light {
-            stats.light = state.model.light.location();
+        // The light the step reports and the count of parameters the update left not finite
+        // come down in one read.
+        let location = self.fit_light.then(|| state.model.light.location_tensor()).flatten();
+        let count = crate::avatar::non_finite_count(&state.model);
+        let reported: Vec<Tensor<1>> = count.iter().chain(location.iter()).cloned().collect();
+        let read = if reported.is_empty() { Vec::new() } else { crate::backend::host_values(Tensor::cat(reported, 0)) };
+        let (count, location) = match count {
+            Some(_) => (read.first().copied().unwrap_or(f32::NAN), read.get(1..).unwrap_or_default()),
+            None => (0.0, &read[..]),
+        };
+        if location.len() == 3 {
+            stats.light = crate::shading::location_of(location);
         }
-        if let Some(name) = first_non_finite(&state.model) {
+        if let Some(name) = crate::avatar::first_non_finite_of(&state.model, count) {
             return (state, Err(FitError::NonFinite { iteration: it, what: format!("the parameter {name} after the update"), checkpoint: String::new() }));
         }
         state.iteration += 1;
