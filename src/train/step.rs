@@ -129,46 +129,12 @@ impl Trainer {
         }
         let grads = total.backward();
         clock.mark(8);
-        // Every gradient the host's optimisers step from comes down in one read.
-        let motion_leaves = leaves.motion.as_ref().map(|(k, leaf, increments)| (*k, leaf.dims()[0] * 3, increments.len()));
-        let camera_leaves = leaves.cameras.as_ref().map(|(leaf, increments)| (leaf.dims()[0] * 3, increments.len()));
-        let wanted: Vec<&Tensor<2>> = colour_leaf
-            .iter()
-            .chain(leaves.motion.iter().flat_map(|(_, leaf, increments)| std::iter::once(leaf).chain(increments)))
-            .chain(leaves.cameras.iter().flat_map(|(leaf, increments)| std::iter::once(leaf).chain(increments)))
-            .collect();
-        let mut read = super::host_adam::host_gradients(&wanted, &grads).into_iter();
-        if colour_leaf.is_some() {
-            if let (Some(gradient), Some(colours)) = (read.next().flatten(), state.camera_colours.as_mut()) {
-                colours.step(&gradient, self.schedule.learning_rate("light", it));
-            }
-        }
-        if let Some((k, rows, increments)) = motion_leaves {
-            let (leaf, through_render) = super::host_adam::leaf_and_increments(rows, &mut read, increments);
-            if let (Some(motion), Some((pose, _))) = (state.motion.as_mut(), batch.corrected.as_ref()) {
-                motion.step(k, &leaf, &through_render, pose, self.schedule.learning_rate("motion", it));
-            }
-        }
-        if let Some((rows, increments)) = camera_leaves {
-            let (leaf, through_render) = super::host_adam::leaf_and_increments(rows, &mut read, increments);
-            if let Some(cameras) = state.cameras.as_mut() {
-                cameras.step(&leaf, &through_render, self.schedule.learning_rate("cameras", it));
-            }
-        }
+        self.step_host_leaves(colour_leaf, leaves, &grads, &mut state, &batch, it);
         let model = state.model;
         state.model = self.update(model, grads, forks, batch.light, &mut state.optimisers, it);
-        // The light the step reports and the count of parameters the update left not finite
-        // come down in one read.
-        let location = self.fit_light.then(|| state.model.light.location_tensor()).flatten();
-        let count = crate::avatar::non_finite_count(&state.model);
-        let reported: Vec<Tensor<1>> = count.iter().chain(location.iter()).cloned().collect();
-        let read = if reported.is_empty() { Vec::new() } else { crate::backend::host_values(Tensor::cat(reported, 0)) };
-        let (count, location) = match count {
-            Some(_) => (read.first().copied().unwrap_or(f32::NAN), read.get(1..).unwrap_or_default()),
-            None => (0.0, &read[..]),
-        };
-        if location.len() == 3 {
-            stats.light = crate::shading::location_of(location);
+        let (light, count) = self.read_after_update(&state.model);
+        if self.fit_light {
+            stats.light = light;
         }
         if let Some(name) = crate::avatar::first_non_finite_of(&state.model, count) {
             return (state, Err(FitError::NonFinite { iteration: it, what: format!("the parameter {name} after the update"), checkpoint: String::new() }));
@@ -440,6 +406,64 @@ impl Trainer {
             light = std::mem::replace(&mut other_lights[light_index - 1], light);
         }
         Avatar { field, gaussians, light, other_lights }
+    }
+
+    /// One host-side Adam step of each of the cameras' colours, the batch frame's motion
+    /// correction and the cameras' turns that the step carried, from their gradients (the
+    /// corrections' leaves and the increments their render parts carried), all brought to the
+    /// host in one read.
+    fn step_host_leaves(
+        &self,
+        colour_leaf: Option<Tensor<2>>,
+        leaves: Leaves,
+        grads: &burn::tensor::Gradients,
+        state: &mut TrainState,
+        batch: &Batch,
+        it: usize,
+    ) {
+        let motion_leaves = leaves.motion.as_ref().map(|(k, leaf, increments)| (*k, leaf.dims()[0] * 3, increments.len()));
+        let camera_leaves = leaves.cameras.as_ref().map(|(leaf, increments)| (leaf.dims()[0] * 3, increments.len()));
+        let wanted: Vec<&Tensor<2>> = colour_leaf
+            .iter()
+            .chain(leaves.motion.iter().flat_map(|(_, leaf, increments)| std::iter::once(leaf).chain(increments)))
+            .chain(leaves.cameras.iter().flat_map(|(leaf, increments)| std::iter::once(leaf).chain(increments)))
+            .collect();
+        let mut read = super::host_adam::host_gradients(&wanted, grads).into_iter();
+        if colour_leaf.is_some() {
+            if let (Some(gradient), Some(colours)) = (read.next().flatten(), state.camera_colours.as_mut()) {
+                colours.step(&gradient, self.schedule.learning_rate("light", it));
+            }
+        }
+        if let Some((k, rows, increments)) = motion_leaves {
+            let (leaf, through_render) = super::host_adam::leaf_and_increments(rows, &mut read, increments);
+            if let (Some(motion), Some((pose, _))) = (state.motion.as_mut(), batch.corrected.as_ref()) {
+                motion.step(k, &leaf, &through_render, pose, self.schedule.learning_rate("motion", it));
+            }
+        }
+        if let Some((rows, increments)) = camera_leaves {
+            let (leaf, through_render) = super::host_adam::leaf_and_increments(rows, &mut read, increments);
+            if let Some(cameras) = state.cameras.as_mut() {
+                cameras.step(&leaf, &through_render, self.schedule.learning_rate("cameras", it));
+            }
+        }
+    }
+
+    /// After the update, in one read: where the light is (`FittedLight::location`, when the fit
+    /// has one to report) and how many parameters the update left not finite
+    /// (`avatar::non_finite_count`; NaN when the read failed).
+    fn read_after_update(&self, model: &Avatar) -> (Option<[f64; 3]>, f32) {
+        let location = self.fit_light.then(|| model.light.location_tensor()).flatten();
+        let count = crate::avatar::non_finite_count(model);
+        let counted = count.is_some();
+        let reported: Vec<Tensor<1>> = count.into_iter().chain(location).collect();
+        if reported.is_empty() {
+            return (None, 0.0);
+        }
+        let read = crate::backend::host_values(Tensor::cat(reported, 0));
+        match counted {
+            true => (read.get(1..).and_then(crate::shading::location_of), read.first().copied().unwrap_or(f32::NAN)),
+            false => (crate::shading::location_of(&read), 0.0),
+        }
     }
 
     /// Moves the field's average toward the parameters of the step just taken, or starts it at
