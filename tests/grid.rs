@@ -946,8 +946,8 @@ fn a_render_split_over_threads_is_the_whole_render_and_so_are_its_gradients() {
     let sampling = umbra::render::Sampling { coarse: 16, probe: 16, fine: 16, albedo_floor: umbra::render::ALBEDO_WEIGHT_FLOOR, cull: false };
     let jitter: Vec<f32> = (0..rays.len() * sampling.draws()).map(|_| stream.uniform() as f32).collect();
     let run = |parts: usize| {
-        let (d, forks) = umbra::render::render_in_parts(&field, &pose, &rays, sampling, &jitter, Some(umbra::field::GRADIENT), &device, parts);
-        assert_eq!(forks.len(), if parts == 1 { 0 } else { parts });
+        let (d, split) = umbra::render::render_in_parts(&field, &pose, &rays, sampling, &jitter, Some(umbra::field::GRADIENT), &device, parts);
+        assert_eq!(split.forks().len(), if parts == 1 { 0 } else { parts });
         let normal = d.normal.clone().unwrap();
         // Every output in the loss, each weighted differently per ray so that a part out of
         // place changes it.
@@ -956,10 +956,13 @@ fn a_render_split_over_threads_is_the_whole_render_and_so_are_its_gradients() {
         let loss = (d.accumulation.clone() * ramp.clone()).sum()
             + (d.albedo.clone().sum_dim(1).reshape([r]) * ramp.clone()).sum()
             + (normal.sum_dim(1).reshape([r]) * ramp.clone()).sum()
+            + (d.depth.clone() * d.accumulation.clone() * ramp.clone()).sum() * 1e-2
+            + (d.surface.clone().sum_dim(1).reshape([r]) * ramp).sum() * 1e-2
             + d.sample_density.clone().sum() * 1e-3;
         let outputs = [values(d.accumulation.clone()), values(d.albedo.clone()), values(d.depth.clone()), values(d.sample_points.clone())];
-        let mut grads = loss.reshape([1]).backward();
-        (outputs, named_gradients(&mut grads, &field, &forks))
+        // Each part's backward pass on a thread of its own, from its outputs' gradients.
+        let mut grads = split.backward(&loss.reshape([1]));
+        (outputs, named_gradients(&mut grads, &field, split.forks()))
     };
     let (whole, whole_grads) = run(1);
     let (split, split_grads) = run(3);
@@ -1003,7 +1006,7 @@ fn a_culled_render_is_the_full_render_and_so_are_its_gradients() {
     let full = umbra::render::Sampling { coarse: 16, probe: 16, fine: 16, albedo_floor: 0.0, cull: false };
     let jitter: Vec<f32> = (0..rays.len() * full.draws()).map(|_| stream.uniform() as f32).collect();
     let run = |sampling: umbra::render::Sampling| {
-        let (d, forks) =
+        let (d, split) =
             umbra::render::render_in_parts(&field, &pose, &rays, sampling, &jitter, Some(umbra::field::GRADIENT), &device, if sampling.cull { 2 } else { 1 });
         let r = rays.len();
         let ramp = Tensor::<1>::from_data(TensorData::new((0..r).map(|i| 1.0 + i as f32 / r as f32).collect::<Vec<_>>(), [r]), &device);
@@ -1013,8 +1016,8 @@ fn a_culled_render_is_the_full_render_and_so_are_its_gradients() {
             + (d.depth.clone() * d.accumulation.clone() * ramp.clone()).sum()
             + (d.normal.clone().unwrap().sum_dim(1).reshape([r]) * d.accumulation.clone() * ramp).sum();
         let outputs = [values(d.accumulation.clone()), values(d.albedo.clone()), values(d.depth.clone()), values(d.sample_density.clone())];
-        let mut grads = loss.reshape([1]).backward();
-        (outputs, named_gradients(&mut grads, &field, &forks), d.evaluated)
+        let mut grads = split.backward(&loss.reshape([1]));
+        (outputs, named_gradients(&mut grads, &field, split.forks()), d.evaluated)
     };
     let (whole, whole_grads, all) = run(full);
     let (culled, culled_grads, kept) = run(umbra::render::Sampling { cull: true, ..full });

@@ -20,7 +20,7 @@ mod parts;
 mod samples;
 
 use locate::*;
-pub use parts::{render_in_parts, sum_gradients};
+pub use parts::{render_in_parts, sum_gradients, Parts};
 use samples::*;
 pub use samples::{CULL_OPTICAL_DEPTH, CULL_TRANSMITTANCE};
 

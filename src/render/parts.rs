@@ -1,6 +1,6 @@
 //! A training step's render split over threads: the rays in parts, each part rendered through
-//! a fork of the field on its own thread, and the forks' gradients summed back into the one
-//! field's.
+//! a fork of the field on its own thread, each part's backward pass run on its own thread too,
+//! and the forks' gradients summed back into the one field's.
 
 use super::*;
 
@@ -13,9 +13,11 @@ const MIN_RAYS_PER_PART: usize = 64;
 /// core sat idle. Every ray's samples and arithmetic are its own, so the result is the unsplit
 /// render's (a test pins them). Each part renders through its own fork of `field` (the same
 /// parameters, same ids, as leaves of a graph of its own: burn's autodiff graph client is not
-/// safe for several threads registering nodes of one shared graph), so after the backward pass
-/// the parameters' gradients are the sum of the field's and of every returned fork's
-/// (`sum_gradients`). One part: `field` itself, no forks.
+/// safe for several threads registering nodes of one shared graph). The joined outputs are
+/// leaves of the losses' graph cut from the parts' graphs (`Parts::backward` carries the
+/// gradient across), so the parts' backward passes run on their threads too; after it the
+/// parameters' gradients are the sum of the field's and of every fork's (`sum_gradients`).
+/// One part: `field` itself, no forks, nothing cut.
 #[allow(clippy::too_many_arguments)]
 pub fn render_in_parts(
     field: &AvatarField,
@@ -26,11 +28,11 @@ pub fn render_in_parts(
     normals: Option<GradientMethod>,
     device: &Device,
     parts: usize,
-) -> (Deferred, Vec<AvatarField>) {
+) -> (Deferred, Parts) {
     let r = rays.len();
     let parts = parts.min(r / MIN_RAYS_PER_PART).max(1);
     if parts == 1 {
-        return (render(field, pose, rays, sampling, jitter, normals, device), Vec::new());
+        return (render(field, pose, rays, sampling, jitter, normals, device), Parts::default());
     }
     use rayon::prelude::*;
     let per_part = r.div_ceil(parts);
@@ -39,16 +41,113 @@ pub fn render_in_parts(
     let poses: Vec<PoseTensors> = (0..parts)
         .map(|_| PoseTensors { motion: pose.motion.as_ref().map(|m| m.fork()), view: pose.view.as_ref().map(|v| v.fork()), ..pose.clone() })
         .collect();
-    let rendered: Vec<Deferred> = forks
+    let rendered: Vec<(Deferred, Vec<Seam>)> = forks
         .par_iter()
         .zip(&poses)
         .enumerate()
         .map(|(k, (fork, pose))| {
             let (lo, hi) = (k * per_part, ((k + 1) * per_part).min(r));
-            render(fork, pose, &rays.range(lo, hi), sampling, &sampling.jitter_of(jitter, r, lo, hi), normals, device)
+            cut(render(fork, pose, &rays.range(lo, hi), sampling, &sampling.jitter_of(jitter, r, lo, hi), normals, device))
         })
         .collect();
-    (Deferred::cat(rendered), forks)
+    let (deferred, seams): (Vec<Deferred>, Vec<Vec<Seam>>) = rendered.into_iter().unzip();
+    let leaves = deferred.iter().map(|d| d.motion_leaves.iter().chain(&d.view_leaves).cloned().collect()).collect();
+    (Deferred::cat(deferred), Parts { forks, seams, leaves })
+}
+
+/// One output of a part's render, flattened: the tensor in the part's graph and the leaf that
+/// stands for it in the losses' graph.
+type Seam = (Tensor<1>, Tensor<1>);
+
+/// A part's outputs as leaves of a graph of their own (those that carry a gradient; the rest as
+/// they are), with the seams that join each back to the part's graph.
+fn cut(part: Deferred) -> (Deferred, Vec<Seam>) {
+    let mut seams = Vec::new();
+    let mut leaf_of = |t: Tensor<1>| {
+        if !t.is_tracked() {
+            return t;
+        }
+        let leaf = t.clone().detach().require_grad();
+        seams.push((t, leaf.clone()));
+        leaf
+    };
+    let mut cut2 = |t: Tensor<2>| {
+        let dims = t.dims();
+        leaf_of(t.reshape([dims[0] * dims[1]])).reshape(dims)
+    };
+    let deferred = Deferred {
+        albedo: cut2(part.albedo),
+        surface: cut2(part.surface),
+        normal: part.normal.map(&mut cut2),
+        sample_points: cut2(part.sample_points),
+        ..part
+    };
+    let mut cut1 = |t: Tensor<1>| leaf_of(t);
+    let deferred =
+        Deferred { accumulation: cut1(deferred.accumulation), depth: cut1(deferred.depth), sample_density: cut1(deferred.sample_density), ..deferred };
+    (deferred, seams)
+}
+
+/// What a split render leaves for the backward pass: each part's fork of the field, the seams
+/// between the losses' graph and the part's, and the increments (motion, view) its render
+/// carried. Empty for a render in one part.
+#[derive(Default)]
+pub struct Parts {
+    forks: Vec<AvatarField>,
+    seams: Vec<Vec<Seam>>,
+    leaves: Vec<Vec<Tensor<2>>>,
+}
+
+impl Parts {
+    /// The gradients of `loss`: its own graph's backward pass, then every part's on a thread of
+    /// its own, from the gradient each seam's leaf received (a part's graph differentiates
+    /// `sum(output * gradient)`, whose gradient at the output is that gradient exactly). The
+    /// forks' and the increments' gradients are moved into the one returned.
+    pub fn backward(&self, loss: &Tensor<1>) -> burn::tensor::Gradients {
+        use rayon::prelude::*;
+        let mut grads = loss.backward();
+        let roots: Vec<Option<Tensor<1>>> = self
+            .seams
+            .iter()
+            .map(|seams| seams.iter().filter_map(|(output, leaf)| leaf.grad_remove(&mut grads).map(|g| (output.clone() * g).sum())).reduce(|a, b| a + b))
+            .collect();
+        let parts: Vec<Option<burn::tensor::Gradients>> = roots.into_par_iter().map(|root| root.map(|root| root.backward())).collect();
+        for ((fork, leaves), part) in self.forks.iter().zip(&self.leaves).zip(parts) {
+            let Some(mut part) = part else { continue };
+            fork.visit(&mut Mover { from: &mut part, into: &mut grads });
+            for leaf in leaves {
+                if let Some(g) = leaf.grad_remove(&mut part) {
+                    leaf.grad_replace(&mut grads, g);
+                }
+            }
+        }
+        grads
+    }
+
+    /// The forks of the field the parts were rendered through.
+    pub fn forks(&self) -> &[AvatarField] {
+        &self.forks
+    }
+
+    /// The forks, taken.
+    pub fn into_forks(self) -> Vec<AvatarField> {
+        self.forks
+    }
+}
+
+/// Moves every visited parameter's gradient from one set of gradients to another.
+struct Mover<'a> {
+    from: &'a mut burn::tensor::Gradients,
+    into: &'a mut burn::tensor::Gradients,
+}
+
+impl burn::module::ModuleVisitor for Mover<'_> {
+    fn visit_float<const D: usize>(&mut self, param: &burn::module::Param<Tensor<D>>) {
+        let tensor = param.val();
+        if let Some(g) = tensor.grad_remove(self.from) {
+            tensor.grad_replace(self.into, g);
+        }
+    }
 }
 
 /// The gradients of `module`'s parameters, summed over it and its `forks` (the same

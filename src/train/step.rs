@@ -9,7 +9,7 @@ use crate::fit_error::FitError;
 use crate::gaussians::GaussianParams;
 use crate::losses::{Input, Inputs};
 use crate::messages::{StepStats, PHASES};
-use crate::render::{render_in_parts, sum_gradients, Deferred};
+use crate::render::{render_in_parts, sum_gradients, Deferred, Parts};
 use crate::shading::{FittedLight, LightKind};
 use crate::skeleton::{MotionIncrement, ViewIncrement};
 use burn::optim::GradientsParams;
@@ -105,7 +105,7 @@ impl Trainer {
         let refined = state.motion.as_ref().filter(|_| self.schedule.needs(Input::Motion, it) && batch.corrected.is_some());
         let motion_row = refined.and_then(|m| m.row(self.frames[batch.frame].position).map(|k| (m, k)));
         let cameras = state.cameras.as_ref().filter(|_| !batch.rays.cameras.is_empty());
-        let (terms, forks, leaves) = self.losses(&state.model, &batch, it, &mut state.error_maps, colours.clone(), motion_row, cameras, &mut clock);
+        let (terms, parts, leaves) = self.losses(&state.model, &batch, it, &mut state.error_maps, colours.clone(), motion_row, cameras, &mut clock);
         let colour_leaf = colours.map(|(_, leaf)| leaf);
         let mut total = terms[0].2.clone() * terms[0].1;
         for (_, weight, value) in terms.iter().skip(1) {
@@ -127,11 +127,11 @@ impl Trainer {
             let bad = stats.terms.iter().find(|(_, v)| !v.is_finite()).map(|(n, _)| format!("the {n} loss")).unwrap_or_else(|| "the total loss".into());
             return (state, Err(FitError::NonFinite { iteration: it, what: bad, checkpoint: String::new() }));
         }
-        let grads = total.backward();
+        let grads = parts.backward(&total);
         clock.mark(8);
         self.step_host_leaves(colour_leaf, leaves, &grads, &mut state, &batch, it);
         let model = state.model;
-        state.model = self.update(model, grads, forks, batch.light, &mut state.optimisers, it);
+        state.model = self.update(model, grads, parts.into_forks(), batch.light, &mut state.optimisers, it);
         let (light, count) = self.read_after_update(&state.model);
         if self.fit_light {
             stats.light = light;
@@ -149,7 +149,8 @@ impl Trainer {
 
     /// The forward pass and the schedule's losses on `batch` (`losses::TERMS`, each from the
     /// step's `Inputs`; the colour's error, and the mask's, recorded in each pixel's view's
-    /// error map), with the forks of the field that rendered parts of the batch on other threads.
+    /// error map), with the parts of the batch rendered on other threads (their forks of the field
+    /// and what their backward passes start from).
     #[allow(clippy::too_many_arguments)]
     fn losses<'a>(
         &self,
@@ -161,7 +162,7 @@ impl Trainer {
         motion: Option<(&MotionCorrections, usize)>,
         cameras: Option<&super::camera_pose::CameraPoses>,
         clock: &mut PhaseClock,
-    ) -> (Terms<'a>, Vec<AvatarField>, Leaves) {
+    ) -> (Terms<'a>, Parts, Leaves) {
         let device = self.device.clone();
         let needs = |input: Input| self.schedule.needs(input, it);
         // With the motion refined, the render's lookups carry an increment of the pose.
@@ -172,7 +173,7 @@ impl Trainer {
         let (r, rendered) = (batch.rays.len(), batch.rendered);
         let sampling = self.schedule.sampling();
         let shading = self.fit_light && needs(Input::Colour);
-        let (deferred, forks) = render_in_parts(
+        let (deferred, parts) = render_in_parts(
             &model.field,
             &pose,
             &batch.rays.first(rendered),
@@ -243,7 +244,7 @@ impl Trainer {
                 (term.always || weight > 0.0).then(|| (term.value)(&inputs).map(|value| (term.name, weight, value))).flatten()
             })
             .collect();
-        (terms, forks, leaves)
+        (terms, parts, leaves)
     }
 
     /// The pose a batch is rendered in: its frame's, as the motion's refinement has corrected it.
