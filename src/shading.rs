@@ -20,6 +20,9 @@ pub enum LightKind {
     Uniform,
 }
 
+/// What of a vector's length may lie across an axis it is opposite to from f32's rounding alone.
+const ACROSS_ROUNDING: f32 = 1e-5;
+
 #[derive(burn::module::Module, Debug)]
 pub struct FittedLight {
     /// Unnormalised direction toward a sun, or a point light's position in body units
@@ -205,6 +208,41 @@ impl FittedLight {
         }
     }
 
+    /// The light with its sun's vector rotated, within the plane of `axis` and the vector, back
+    /// onto the cone of half-angle `angle` around `axis` when a step took it outside, its length
+    /// kept (ambient, strength and shadow density untouched). On the device: a training step
+    /// keeps the sun in the search's cone without reading the light back (a GPU waits on a read).
+    pub fn kept_in_cone(mut self, axis: glam::DVec3, angle: f64) -> Self {
+        let axis = axis.normalize_or_zero();
+        if self.kind != LightKind::Directional || axis == glam::DVec3::ZERO {
+            return self;
+        }
+        self.vector = self.vector.map(|value| {
+            let grad = value.is_require_grad();
+            let v = value.without_autodiff();
+            let device = v.device();
+            let constant = |d: glam::DVec3| Tensor::<1>::from_data(TensorData::new(d.as_vec3().to_array().to_vec(), [3]), &device);
+            let a = constant(axis);
+            let length = (v.clone() * v.clone()).sum().sqrt();
+            let along = (v.clone() * a.clone()).sum();
+            // Inside the cone, or too short to have a direction: left as it is.
+            let inside = along.clone().greater_equal(length.clone() * angle.cos()).bool_or(length.clone().lower_elem(1e-12));
+            let across = v.clone() - a.clone() * along;
+            let across_length = (across.clone() * across.clone()).sum().sqrt();
+            // A vector opposite the axis (to f32's rounding) has no plane with it: any side will do.
+            let opposite = across_length.clone().lower_equal(length.clone() * ACROSS_ROUNDING);
+            let side = (across / across_length.clamp_min(1e-30)).mask_where(opposite.expand([3]), constant(axis.any_orthonormal_vector()));
+            let clamped = (a * angle.cos() + side * angle.sin()) * length;
+            let kept = clamped.mask_where(inside.expand([3]), v);
+            if grad {
+                kept.autodiff().require_grad()
+            } else {
+                kept
+            }
+        });
+        self
+    }
+
     pub fn direction(&self) -> Tensor<1> {
         let v = self.vector.val();
         v.clone() / (v.clone() * v).sum().sqrt().clamp_min(1e-8)
@@ -271,4 +309,61 @@ impl FittedLight {
 /// none when they are fewer.
 pub fn location_of(values: &[f32]) -> Option<[f64; 3]> {
     Some([*values.first()?, *values.get(1)?, *values.get(2)?].map(f64::from))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use glam::DVec3;
+
+    /// The vector `v` kept within `angle` of `axis`, in f64: rotated toward the axis in their
+    /// plane onto the cone's edge, its length kept.
+    fn kept_reference(v: DVec3, axis: DVec3, angle: f64) -> DVec3 {
+        let axis = axis.normalize();
+        if v.length() < 1e-12 || v.normalize().dot(axis) >= angle.cos() {
+            return v;
+        }
+        let across = v - axis * v.dot(axis);
+        let side = if across.length() > ACROSS_ROUNDING as f64 * v.length() { across.normalize() } else { axis.any_orthonormal_vector() };
+        (axis * angle.cos() + side * angle.sin()) * v.length()
+    }
+
+    #[test]
+    fn a_sun_outside_its_cone_is_turned_onto_its_edge_on_the_device_and_one_inside_is_left_alone() {
+        let device = Device::flex().autodiff();
+        let axis = DVec3::new(0.3, 0.9, 0.2);
+        let angle = 14f64.to_radians();
+        let mut stream = crate::random::Stream::new(5, 0, 0);
+        let mut vectors: Vec<DVec3> = (0..200).map(|_| DVec3::new(stream.uniform() - 0.5, stream.uniform() - 0.5, stream.uniform() - 0.5) * 4.0).collect();
+        // Inside, on the axis, opposite it, and next to nothing.
+        vectors.extend([axis * 0.7 + DVec3::new(0.01, 0.0, -0.02), axis * 3.0, -axis * 1.5, DVec3::new(1e-14, 0.0, 0.0)]);
+        let (mut moved, mut kept) = (0, 0);
+        for v in vectors {
+            let light = FittedLight::new(LightKind::Directional, v.as_vec3().to_array(), [0.0; 3], 1.0, 0.25, &device);
+            let before = crate::backend::host_values(light.vector.val());
+            let after = light.kept_in_cone(axis, angle);
+            assert!(after.vector.val().is_require_grad(), "the vector is still a leaf that learns");
+            let got = crate::backend::host_values(after.vector.val());
+            let want = kept_reference(DVec3::new(before[0] as f64, before[1] as f64, before[2] as f64), axis, angle);
+            let error = (DVec3::new(got[0] as f64, got[1] as f64, got[2] as f64) - want).length();
+            assert!(error <= 1e-5 * want.length().max(1e-6), "{v}: {got:?} against {want}");
+            if got == before {
+                kept += 1;
+            } else {
+                moved += 1;
+                let turned = DVec3::new(got[0] as f64, got[1] as f64, got[2] as f64).normalize().dot(axis.normalize()).acos();
+                assert!((turned - angle).abs() < 1e-5, "{v}: {} degrees from the axis", turned.to_degrees());
+            }
+        }
+        assert!(moved > 150 && kept >= 3, "{moved} moved, {kept} left alone");
+    }
+
+    #[test]
+    fn a_point_light_has_no_cone() {
+        let device = Device::flex();
+        let light = FittedLight::new(LightKind::Point, [2.0, 0.0, 0.0], [0.0; 3], 1.0, 0.25, &device);
+        let before = crate::backend::host_values(light.vector.val());
+        let after = light.kept_in_cone(DVec3::Y, 0.1);
+        assert_eq!(crate::backend::host_values(after.vector.val()), before);
+    }
 }

@@ -43,27 +43,6 @@ impl PhaseClock {
     }
 }
 
-/// The light with its sun direction rotated back onto the cone of half-angle `angle` around
-/// `axis` when a step took it outside (ambient and shadow density untouched).
-fn keep_in_cone(mut light: FittedLight, axis: glam::DVec3, angle: f64, device: &Device) -> FittedLight {
-    let values = crate::backend::host_values(light.vector.val());
-    if values.len() != 3 {
-        return light;
-    }
-    let v = glam::DVec3::new(values[0] as f64, values[1] as f64, values[2] as f64);
-    let axis = axis.normalize();
-    if v.length() < 1e-12 || v.normalize().dot(axis) >= angle.cos() {
-        return light;
-    }
-    // Rotate within the plane of axis and v, to the cone's edge, keeping v's length.
-    let across = v - axis * v.dot(axis);
-    let side = if across.length() > 1e-12 { across.normalize() } else { axis.any_orthonormal_vector() };
-    let clamped = (axis * angle.cos() + side * angle.sin()) * v.length();
-    let device = device.clone();
-    light.vector = light.vector.map(|_| Tensor::from_data(TensorData::new(clamped.as_vec3().to_array().to_vec(), [3]), &device).require_grad());
-    light
-}
-
 /// The step's losses: name, weight and value, in the order they are summed.
 type Terms<'a> = Vec<(&'a str, f64, Tensor<1>)>;
 
@@ -400,7 +379,7 @@ impl Trainer {
         let gaussians = optimisers.gaussians.step(lr("gaussians"), gaussians, g_gaussians);
         light = if light_active { optimisers.light.step(lr("light"), light, g_light) } else { light };
         light = match self.cones[light_index] {
-            Some((axis, angle)) if light_active => keep_in_cone(light, axis, angle, &self.device),
+            Some((axis, angle)) if light_active => light.kept_in_cone(axis, angle),
             _ => light,
         };
         if light_index > 0 {
