@@ -10,10 +10,10 @@ use crate::gaussians::GaussianParams;
 use crate::losses::{Input, Inputs};
 use crate::messages::{StepStats, PHASES};
 use crate::render::{render_in_parts, sum_gradients, Deferred, Parts};
-use crate::shading::{FittedLight, LightKind};
+use crate::shading::LightKind;
 use crate::skeleton::{MotionIncrement, ViewIncrement};
 use burn::optim::GradientsParams;
-use burn::tensor::{Device, Int, Tensor, TensorData};
+use burn::tensor::{Int, Tensor, TensorData};
 use std::time::Instant;
 
 /// Splits a step's wall time into `PHASES`.
