@@ -150,8 +150,8 @@ fn a_step_on_the_device_reports_the_device_memory() {
     assert_eq!(cpu.iterate().unwrap().device_memory_bytes, None);
 }
 
-/// The check after each update, that no parameter went NaN or infinite, counts them on the
-/// device by their bits and reads one number back; it finds them there as on the CPU.
+/// The check after each update, that no parameter went NaN or infinite, sums the parameters on
+/// the device and reads one number back; it finds them there as on the CPU.
 #[test]
 fn a_parameter_gone_nan_is_found_on_the_device() {
     use burn::nn::{Linear, LinearConfig};

@@ -111,11 +111,11 @@ impl Trainer {
         self.step_host_leaves(colour_leaf, leaves, &grads, &mut state, &batch, it);
         let model = state.model;
         state.model = self.update(model, grads, parts.into_forks(), batch.light, &mut state.optimisers, it);
-        let (light, count) = self.read_after_update(&state.model);
+        let (light, sum) = self.read_after_update(&state.model);
         if self.fit_light {
             stats.light = light;
         }
-        if let Some(name) = crate::avatar::first_non_finite_of(&state.model, count) {
+        if let Some(name) = crate::avatar::first_non_finite_of(&state.model, sum) {
             return (state, Err(FitError::NonFinite { iteration: it, what: format!("the parameter {name} after the update"), checkpoint: String::new() }));
         }
         state.iteration += 1;
@@ -429,18 +429,18 @@ impl Trainer {
     }
 
     /// After the update, in one read: where the light is (`FittedLight::location`, when the fit
-    /// has one to report) and how many parameters the update left not finite
-    /// (`avatar::non_finite_count`; NaN when the read failed).
+    /// has one to report) and the sum of the parameters, not finite when the update left one
+    /// not finite (`avatar::parameter_sum`; NaN when the read failed).
     fn read_after_update(&self, model: &Avatar) -> (Option<[f64; 3]>, f32) {
         let location = self.fit_light.then(|| model.light.location_tensor()).flatten();
-        let count = crate::avatar::non_finite_count(model);
-        let counted = count.is_some();
-        let reported: Vec<Tensor<1>> = count.into_iter().chain(location).collect();
+        let sum = crate::avatar::parameter_sum(model);
+        let summed = sum.is_some();
+        let reported: Vec<Tensor<1>> = sum.into_iter().chain(location).collect();
         if reported.is_empty() {
             return (None, 0.0);
         }
         let read = crate::backend::host_values(Tensor::cat(reported, 0));
-        match counted {
+        match summed {
             true => (read.get(1..).and_then(crate::shading::location_of), read.first().copied().unwrap_or(f32::NAN)),
             false => (crate::shading::location_of(&read), 0.0),
         }
