@@ -56,7 +56,9 @@ pub fn parameter_sum<M: Module>(module: &M) -> Option<Tensor<1>> {
     }
     impl burn::module::ModuleVisitor for Sum {
         fn visit_float<const D: usize>(&mut self, param: &burn::module::Param<Tensor<D>>) {
-            let sum = param.val().detach().sum();
+            // Off the autodiff graph: a float op on a detached tensor still registers a node there,
+            // and one a parameter a step left behind slowed every later backward pass.
+            let sum = param.val().without_autodiff().sum();
             self.total = Some(match self.total.take() {
                 Some(total) => total + sum,
                 None => sum,
