@@ -142,6 +142,8 @@ mod tests {
         let layer: Linear = LinearConfig::new(2, 2).init(&device);
         let sum = |m: &Linear| crate::backend::host_scalar(parameter_sum(m).expect("parameters"));
         assert!(sum(&layer).is_finite());
+        // Read off the autodiff graph: what a step leaves there slows every later backward pass.
+        assert!(!parameter_sum(&layer).expect("parameters").is_autodiff());
         assert_eq!(first_non_finite(&layer), None);
         for bad in [f32::NAN, f32::INFINITY, f32::NEG_INFINITY] {
             let mut broken = layer.clone();
