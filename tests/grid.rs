@@ -961,7 +961,7 @@ fn a_render_split_over_threads_is_the_whole_render_and_so_are_its_gradients() {
             + d.sample_density.clone().sum() * 1e-3;
         let outputs = [values(d.accumulation.clone()), values(d.albedo.clone()), values(d.depth.clone()), values(d.sample_points.clone())];
         // Each part's backward pass on a thread of its own, from its outputs' gradients.
-        let mut grads = split.backward(&loss.reshape([1]));
+        let mut grads = split.backward(&loss.reshape([1]), true);
         (outputs, named_gradients(&mut grads, &field, split.forks()))
     };
     let (whole, whole_grads) = run(1);
@@ -1016,7 +1016,7 @@ fn a_culled_render_is_the_full_render_and_so_are_its_gradients() {
             + (d.depth.clone() * d.accumulation.clone() * ramp.clone()).sum()
             + (d.normal.clone().unwrap().sum_dim(1).reshape([r]) * d.accumulation.clone() * ramp).sum();
         let outputs = [values(d.accumulation.clone()), values(d.albedo.clone()), values(d.depth.clone()), values(d.sample_density.clone())];
-        let mut grads = split.backward(&loss.reshape([1]));
+        let mut grads = split.backward(&loss.reshape([1]), true);
         (outputs, named_gradients(&mut grads, &field, split.forks()), d.evaluated)
     };
     let (whole, whole_grads, all) = run(full);

@@ -2,7 +2,8 @@
 //! field kinds, with and without the work a step need not do (rendering rays that miss every
 //! Gaussian bound; encoding a point in every bone instead of its nearest; the grid's lookup as
 //! a composite of tensor ops instead of one fused op; the batch rendered on one thread instead
-//! of split over every thread), in the schedule's first stage (silhouette and grey albedo) and
+//! of split over every thread; the split render's backward passes one after the other instead of
+//! at once), in the schedule's first stage (silhouette and grey albedo) and
 //! its light stage (normals and shadow rays).
 //! Baseline: the `mlp` field as it was (every ray rendered, one thread), measured in the same run.
 
@@ -30,6 +31,9 @@ struct Variant {
     motion_given: bool,
     /// The training cameras refined too (`train::camera_pose`, from 400 with the motion).
     cameras_refined: bool,
+    /// The render's parts differentiated one after the other on one thread (before
+    /// `render::Parts::backward` ran them at once).
+    parts_backward_in_turn: bool,
 }
 
 /// Milliseconds per step of `variant` from `iteration` (its stage), over `budget` seconds.
@@ -46,6 +50,7 @@ fn step_ms(scene: &Scene, schedule: &Schedule, variant: &Variant, iteration: usi
     if variant.one_render_thread {
         trainer.render_threads = 1;
     }
+    trainer.parts_backward_at_once = !variant.parts_backward_in_turn;
     trainer.set_iteration(iteration)?;
     time_steps(&mut trainer, budget)
 }
@@ -72,26 +77,31 @@ fn variants(scene: &Scene) -> Vec<Variant> {
     let grid = |top_bones: Option<usize>| FieldSettings { top_bones, ..FieldSettings::of(FieldKind::Grid) };
     let mlp = FieldSettings::of(FieldKind::Mlp);
     // [render missed rays, composite lookup, one render thread, every sample differentiated,
-    // the motion as given, the cameras refined]
-    let v = |name: &'static str, field: FieldSettings, flags: [bool; 6]| {
-        let [render_missed_rays, composite_lookup, one_render_thread, every_sample, motion_given, cameras_refined] = flags;
-        Variant { name, field, render_missed_rays, composite_lookup, one_render_thread, every_sample, motion_given, cameras_refined }
+    // the motion as given, the cameras refined, the parts' backward passes in turn]
+    let v = |name: &'static str, field: FieldSettings, flags: [bool; 7]| {
+        let [render_missed_rays, composite_lookup, one_render_thread, every_sample, motion_given, cameras_refined, parts_backward_in_turn] = flags;
+        Variant { name, field, render_missed_rays, composite_lookup, one_render_thread, every_sample, motion_given, cameras_refined, parts_backward_in_turn }
     };
     vec![
-        v("mlp, every ray rendered (before), one render thread", mlp.clone(), [true, false, true, false, false, false]),
-        v("mlp, missed rays skipped, one render thread", mlp.clone(), [false, false, true, false, false, false]),
-        v("mlp, missed rays skipped", mlp, [false, false, false, false, false, false]),
+        v("mlp, every ray rendered (before), one render thread", mlp.clone(), [true, false, true, false, false, false, false]),
+        v("mlp, missed rays skipped, one render thread", mlp.clone(), [false, false, true, false, false, false, false]),
+        v("mlp, missed rays skipped", mlp, [false, false, false, false, false, false, false]),
         v(
             "grid, nearest 8 bones (the most a lookup takes), composite lookup",
             grid(Some(scene.skeleton.len().min(crate::field::grid::MAX_TOP_BONES))),
-            [false, true, false, false, false, false],
+            [false, true, false, false, false, false, false],
         ),
-        v("grid, nearest 3 bones, composite lookup", grid(None), [false, true, false, false, false, false]),
-        v("grid, nearest 3 bones, fused lookup op, one render thread", grid(None), [false, false, true, false, false, false]),
-        v("grid, nearest 3 bones, fused lookup op, every sample differentiated", grid(None), [false, false, false, true, false, false]),
-        v("grid, nearest 3 bones, fused lookup op, the motion as given", grid(None), [false, false, false, false, true, false]),
-        v("grid, nearest 3 bones, fused lookup op (the motion refined from 400)", grid(None), [false, false, false, false, false, false]),
-        v("grid, nearest 3 bones, fused lookup op, the motion and the cameras refined", grid(None), [false, false, false, false, false, true]),
+        v("grid, nearest 3 bones, composite lookup", grid(None), [false, true, false, false, false, false, false]),
+        v("grid, nearest 3 bones, fused lookup op, one render thread", grid(None), [false, false, true, false, false, false, false]),
+        v("grid, nearest 3 bones, fused lookup op, every sample differentiated", grid(None), [false, false, false, true, false, false, false]),
+        v(
+            "grid, nearest 3 bones, fused lookup op, the motion as given, the parts' backward passes in turn",
+            grid(None),
+            [false, false, false, false, true, false, true],
+        ),
+        v("grid, nearest 3 bones, fused lookup op, the motion as given", grid(None), [false, false, false, false, true, false, false]),
+        v("grid, nearest 3 bones, fused lookup op (the motion refined from 400)", grid(None), [false, false, false, false, false, false, false]),
+        v("grid, nearest 3 bones, fused lookup op, the motion and the cameras refined", grid(None), [false, false, false, false, false, true, false]),
     ]
 }
 
@@ -113,13 +123,17 @@ pub fn steps(scene_path: &Path, schedule_path: &Path, out: &Path, quick: bool, r
         }
     }
     // A fresh field's surface is as soft as its starting beta, so the samples culling leaves out
-    // are fewer than in the steps of a fit: a fitted field shows what culling saves.
+    // are fewer than in the steps of a fit: a fitted field shows what culling saves (and what the
+    // parts' backward passes at once save, on most of a fit's steps).
     if let Some(run) = run {
         let mut baseline = None;
         let mut trainer = super::fitted_trainer(run)?;
         let fitted = "fitted field";
-        for (name, cull) in [("every sample differentiated", false), ("culled", true)] {
+        for (name, cull, at_once) in
+            [("every sample differentiated", false, true), ("culled, the parts' backward passes in turn", true, false), ("culled", true, true)]
+        {
             trainer.schedule.cull_samples = cull;
+            trainer.parts_backward_at_once = at_once;
             let ms = time_steps(&mut trainer, budget)?;
             let base = *baseline.get_or_insert(ms);
             rows.push((fitted, name, ms, ms / base));

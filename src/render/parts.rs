@@ -102,8 +102,9 @@ impl Parts {
     /// The gradients of `loss`: its own graph's backward pass, then every part's on a thread of
     /// its own, from the gradient each seam's leaf received (a part's graph differentiates
     /// `sum(output * gradient)`, whose gradient at the output is that gradient exactly). The
-    /// forks' and the increments' gradients are moved into the one returned.
-    pub fn backward(&self, loss: &Tensor<1>) -> burn::tensor::Gradients {
+    /// forks' and the increments' gradients are moved into the one returned. Not `at_once`: the
+    /// parts' passes one after the other on this thread (a benchmark's baseline; the same sums).
+    pub fn backward(&self, loss: &Tensor<1>, at_once: bool) -> burn::tensor::Gradients {
         use rayon::prelude::*;
         let mut grads = loss.backward();
         let roots: Vec<Option<Tensor<1>>> = self
@@ -111,7 +112,11 @@ impl Parts {
             .iter()
             .map(|seams| seams.iter().filter_map(|(output, leaf)| leaf.grad_remove(&mut grads).map(|g| (output.clone() * g).sum())).reduce(|a, b| a + b))
             .collect();
-        let parts: Vec<Option<burn::tensor::Gradients>> = roots.into_par_iter().map(|root| root.map(|root| root.backward())).collect();
+        let backward = |root: Option<Tensor<1>>| root.map(|root| root.backward());
+        let parts: Vec<Option<burn::tensor::Gradients>> = match at_once {
+            true => roots.into_par_iter().map(backward).collect(),
+            false => roots.into_iter().map(backward).collect(),
+        };
         for ((fork, leaves), part) in self.forks.iter().zip(&self.leaves).zip(parts) {
             let Some(mut part) = part else { continue };
             fork.visit(&mut Mover { from: &mut part, into: &mut grads });

@@ -145,6 +145,9 @@ pub struct Trainer {
     /// default; 1 renders the batch on one (a benchmark's baseline). The parts' matrix products
     /// round differently, so a fit is the same to the bit for a seed and a thread count.
     pub render_threads: usize,
+    /// Each render part's backward pass on its own thread (`render::Parts::backward`); false runs
+    /// them one after the other on the step's thread: only for a benchmark's baseline.
+    pub parts_backward_at_once: bool,
     /// The centre of the skeleton's bounds over the capture and the body's extent (m): where
     /// and at what distances a point light is searched.
     body_centre: glam::DVec3,

@@ -322,6 +322,7 @@ impl Trainer {
             gradient: crate::field::GRADIENT,
             render_missed_rays: false,
             render_threads: rayon::current_num_threads(),
+            parts_backward_at_once: true,
             body_centre: centre,
             body_extent: extent,
             searches: vec![None; light_count],

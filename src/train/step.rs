@@ -106,7 +106,7 @@ impl Trainer {
             let bad = stats.terms.iter().find(|(_, v)| !v.is_finite()).map(|(n, _)| format!("the {n} loss")).unwrap_or_else(|| "the total loss".into());
             return (state, Err(FitError::NonFinite { iteration: it, what: bad, checkpoint: String::new() }));
         }
-        let grads = parts.backward(&total);
+        let grads = parts.backward(&total, self.parts_backward_at_once);
         clock.mark(8);
         self.step_host_leaves(colour_leaf, leaves, &grads, &mut state, &batch, it);
         let model = state.model;
