@@ -136,10 +136,15 @@ pub fn motion_line(capture: &serde_json::Value) -> Option<String> {
         }
         _ => line,
     };
-    Some(match (number("given_noise_share"), number("smoothness_scale")) {
+    let line = match (number("given_noise_share"), number("smoothness_scale")) {
         (Some(noise), Some(scale)) => {
             format!("{line}; the given motion's second differences {:.0}% noise, smoothed {scale:.3}x the schedule's weight", noise * 100.0)
         }
+        _ => line,
+    };
+    // Runs from before the prior was weighed by the capture do not record it.
+    Some(match (number("given_noise_degrees"), number("prior_scale")) {
+        (Some(noise), Some(scale)) => format!("{line}; its noise {noise:.2} degrees a frame, held to it {scale:.3}x the schedule's weight"),
         _ => line,
     })
 }
@@ -188,6 +193,10 @@ mod tests {
         );
         let capture = json!({"motion_refined": {"frames": 30, "mean_degrees": 1.234, "largest_degrees": 6.5, "mean_shift_cm": 0.71, "largest_shift_cm": 1.9, "shared_mean_degrees": 0.414, "shared_largest_degrees": 0.9, "given_noise_share": 0.9, "smoothness_scale": 9.0}});
         assert!(motion_line(&capture).unwrap().ends_with("; the given motion's second differences 90% noise, smoothed 9.000x the schedule's weight"));
+        let capture = json!({"motion_refined": {"frames": 30, "mean_degrees": 1.234, "largest_degrees": 6.5, "mean_shift_cm": 0.71, "largest_shift_cm": 1.9, "shared_mean_degrees": 0.414, "shared_largest_degrees": 0.9, "given_noise_share": 0.26, "smoothness_scale": 1.0, "given_noise_degrees": 0.1, "prior_scale": 625.0}});
+        assert!(motion_line(&capture)
+            .unwrap()
+            .ends_with("smoothed 1.000x the schedule's weight; its noise 0.10 degrees a frame, held to it 625.000x the schedule's weight"));
         assert_eq!(motion_line(&json!({"motion_refined": null})), None);
     }
 

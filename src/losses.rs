@@ -53,14 +53,23 @@ pub struct Inputs {
     pub ambient: Option<(Tensor<1>, f64)>,
     pub gradient: Option<Tensor<2>>,
     pub normal_pairs: Option<(Tensor<2>, Tensor<2>)>,
-    /// The batch frame's motion correction (`[bones + 1, 3]`: each bone's turn in radians, the
-    /// skeleton's shift in levers) and where its neighbouring frames would have it for a
-    /// smooth motion (the corrected motion's second difference there zero), and how much the
-    /// smoothness weighs on this capture (`MotionCorrections::smoothness_scale`: the given
-    /// motion's noise-to-motion ratio).
-    pub motion: Option<(Tensor<2>, Tensor<2>, f64)>,
+    /// The batch frame's motion correction and what its terms hold it to.
+    pub motion: Option<MotionInput>,
     /// The training cameras' turns about their centres (`[C, 3]`, radians).
     pub cameras: Option<Tensor<2>>,
+}
+
+/// The batch frame's motion correction (`[bones + 1, 3]`: each bone's turn in radians, the
+/// skeleton's shift in levers), where its neighbouring frames would have it for a smooth motion
+/// (the corrected motion's second difference there zero), and how much the smoothness and the
+/// prior weigh on this capture for the schedule's weights (`MotionCorrections::smoothness_scale`:
+/// the given motion's noise-to-motion ratio; `MotionCorrections::prior_scale`: how sure it is).
+#[derive(Clone, Debug)]
+pub struct MotionInput {
+    pub correction: Tensor<2>,
+    pub smooth: Tensor<2>,
+    pub smoothness_scale: f64,
+    pub prior_scale: f64,
 }
 
 /// A loss term: its name, what it needs, its value (none when a step lacks an input).
@@ -89,12 +98,12 @@ pub const TERMS: [Term; 12] = [
     Term { name: "ambient", needs: &[Input::Ambient], always: false, value: |i| i.ambient.clone().map(|(a, target)| ambient(a, target)) },
     Term { name: "eikonal", needs: &[Input::Gradient], always: false, value: |i| Some(eikonal(i.gradient.clone()?)) },
     Term { name: "curvature", needs: &[Input::NormalPairs], always: false, value: |i| i.normal_pairs.clone().map(|(n, p)| curvature(n, p)) },
-    Term { name: "motion_prior", needs: &[Input::Motion], always: false, value: |i| i.motion.clone().map(|(c, _, _)| squared(c)) },
+    Term { name: "motion_prior", needs: &[Input::Motion], always: false, value: |i| i.motion.clone().map(|m| squared(m.correction) * m.prior_scale) },
     Term {
         name: "motion_smoothness",
         needs: &[Input::Motion],
         always: false,
-        value: |i| i.motion.clone().map(|(c, smooth, scale)| squared(c - smooth) * scale),
+        value: |i| i.motion.clone().map(|m| squared(m.correction - m.smooth) * m.smoothness_scale),
     },
     Term { name: "camera_prior", needs: &[Input::Cameras], always: false, value: |i| i.cameras.clone().map(squared) },
 ];
@@ -222,8 +231,8 @@ mod tests {
     }
 
     #[test]
-    fn the_motions_smoothness_is_weighed_by_the_captures_scale_and_its_prior_is_not() {
-        let inputs = |scale: f64| Inputs {
+    fn the_motions_smoothness_and_prior_are_weighed_by_the_captures_own_scales() {
+        let inputs = |smoothness_scale: f64, prior_scale: f64| Inputs {
             accumulation: t1(&[0.0]),
             mask: t1(&[0.0]),
             mask_weights: None,
@@ -236,12 +245,13 @@ mod tests {
             ambient: None,
             gradient: None,
             normal_pairs: None,
-            motion: Some((t2(&[0.1, 0.0, -0.2], 3), t2(&[0.0, 0.1, 0.0], 3), scale)),
+            motion: Some(MotionInput { correction: t2(&[0.1, 0.0, -0.2], 3), smooth: t2(&[0.0, 0.1, 0.0], 3), smoothness_scale, prior_scale }),
             cameras: None,
         };
-        let of = |name: &str, scale: f64| value((term(name).unwrap().value)(&inputs(scale)).unwrap());
-        close(of("motion_smoothness", 1.0), 0.01 + 0.01 + 0.04);
-        close(of("motion_smoothness", 7.5), 7.5 * 0.06);
-        close(of("motion_prior", 7.5), 0.01 + 0.04);
+        let of = |name: &str, smoothness: f64, prior: f64| value((term(name).unwrap().value)(&inputs(smoothness, prior)).unwrap());
+        close(of("motion_smoothness", 1.0, 1.0), 0.01 + 0.01 + 0.04);
+        close(of("motion_smoothness", 7.5, 40.0), 7.5 * 0.06);
+        close(of("motion_prior", 7.5, 1.0), 0.01 + 0.04);
+        close(of("motion_prior", 1.0, 40.0), 40.0 * (0.01 + 0.04));
     }
 }

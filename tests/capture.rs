@@ -802,12 +802,13 @@ fn a_static_cameras_plate_comes_from_its_frames_and_training_images_keep_what_it
     assert_ne!(other.training_identity(), scene.training_identity());
 }
 
-/// The motion's smoothness weighs by what of the given motion is noise: a synthetic walk
-/// sampled 30 times a cycle, exported and imported as a user would, is movement, and the same
-/// walk with a tracker's errors (2.5 degrees a joint channel) is almost all noise between
-/// frames, smoothed several times the schedule's weight.
+/// The motion's smoothness and prior weigh by what of the given motion is noise: a synthetic
+/// walk sampled 30 times a cycle, exported and imported as a user would, is movement, held to the
+/// given motion many times the schedule's weight, and the same walk with a tracker's errors (2.5
+/// degrees a joint channel) is almost all noise between frames, of about that size, smoothed
+/// several times the schedule's weight and held at it.
 #[test]
-fn a_trackers_errors_are_told_from_the_walk_and_smoothed_harder() {
+fn a_trackers_errors_are_told_from_the_walk_smoothed_harder_and_held_less() {
     use umbra::train::motion::MotionCorrections;
     let dir = TempDir::new("capture-motion-noise");
     let synth = SynthOptions { size: 16, cameras: 1, frames: 30, samples: 1, ..synth_options(Some(Export::Nerfstudio)) };
@@ -820,9 +821,11 @@ fn a_trackers_errors_are_told_from_the_walk_and_smoothed_harder() {
         import(&options(&capture, scene.clone()), &|_, _| {}).unwrap();
         let motion = MotionCorrections::new(&Scene::load(&scene).unwrap()).unwrap();
         assert_eq!(motion.frames().len(), 30);
-        shares.push((motion.noise_share(), motion.smoothness_scale()));
+        shares.push((motion.noise_share(), motion.smoothness_scale(), motion.noise().to_degrees(), motion.prior_scale()));
     }
-    let ((clean, clean_scale), (tracked, tracked_scale)) = (shares[0], shares[1]);
+    let ((clean, clean_scale, clean_noise, clean_prior), (tracked, tracked_scale, tracked_noise, tracked_prior)) = (shares[0], shares[1]);
     assert!(clean < 0.5 && clean_scale == 1.0, "the exact walk: {clean:.3}, smoothed {clean_scale}x");
+    assert!(clean_noise < 0.5 && clean_prior > 25.0, "the exact walk's noise {clean_noise:.3} degrees, held {clean_prior}x");
     assert!(tracked > 0.9 && tracked_scale > 3.0, "the tracker's: {tracked:.3}, smoothed {tracked_scale}x");
+    assert!((2.0..3.0).contains(&tracked_noise) && tracked_prior < 1.6, "the tracker's noise {tracked_noise:.3} degrees, held {tracked_prior}x");
 }

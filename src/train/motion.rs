@@ -11,6 +11,7 @@
 //! motion are used as given.
 
 use super::motion_noise::Rows;
+use crate::losses::MotionInput;
 use crate::scene::{Scene, Split};
 use crate::skeleton::{Pose, Skeleton};
 use burn::tensor::{Device, Tensor, TensorData};
@@ -48,6 +49,8 @@ pub struct MotionCorrections {
     lever: f64,
     /// The share of the given motion's second differences that is noise (`noise_share`).
     noise_share: f64,
+    /// The given motion's noise per frame (radians per axis, `noise`).
+    noise: f64,
 }
 
 /// How far the refinement moved the training motion: the bones' turns over every frame
@@ -67,6 +70,10 @@ pub struct MotionMoved {
     /// the smoothness's weight on this capture for the schedule's (`smoothness_scale`).
     pub given_noise_share: f64,
     pub smoothness_scale: f64,
+    /// The given motion's noise per frame (degrees per axis, `MotionCorrections::noise`) and
+    /// the prior's weight on this capture for the schedule's (`prior_scale`).
+    pub given_noise_degrees: f64,
+    pub prior_scale: f64,
     pub bones: Vec<BoneMoved>,
 }
 
@@ -130,7 +137,19 @@ impl MotionCorrections {
             .collect();
         let zeros = vec![vec![[0.0; 3]; rows]; n];
         let noise_share = super::motion_noise::noise_share(&acceleration, &neighbours);
-        Some(Self { frames, neighbours, acceleration, values: zeros.clone(), first: zeros.clone(), second: zeros, steps: vec![0; n], lever, noise_share })
+        let noise = super::motion_noise::noise(&acceleration, &neighbours, noise_share);
+        Some(Self {
+            frames,
+            neighbours,
+            acceleration,
+            values: zeros.clone(),
+            first: zeros.clone(),
+            second: zeros,
+            steps: vec![0; n],
+            lever,
+            noise_share,
+            noise,
+        })
     }
 
     /// The share of the given motion's second differences (the bones' turns) that is noise
@@ -148,6 +167,19 @@ impl MotionCorrections {
     /// refinement's own wander, which a smooth given motion has too.
     pub fn smoothness_scale(&self) -> f64 {
         super::motion_noise::smoothness_scale(self.noise_share)
+    }
+
+    /// The given motion's noise per frame (radians per axis): the deviation of a tracker's
+    /// errors drawn anew each frame that its second differences show.
+    pub fn noise(&self) -> f64 {
+        self.noise
+    }
+
+    /// How much the prior weighs on this capture, for the schedule's weight: as sure as the given
+    /// motion is, `(motion_noise::PRIOR_NOISE / noise)^2`, from 1 (a tracker's 2.5 degrees and
+    /// more) to `motion_noise::MOST_PRIOR_SCALE` (a motion that shows no noise).
+    pub fn prior_scale(&self) -> f64 {
+        super::motion_noise::prior_scale(self.noise)
     }
 
     /// The corrected frame of scene frame `frame`, if it is one.
@@ -190,8 +222,8 @@ impl MotionCorrections {
     /// reads back, and where its neighbours would have it for a smooth motion (the corrected
     /// motion's second difference there zero, to first order: half the neighbours' corrections
     /// plus the given motion's second difference; itself when it lacks a neighbour, which no
-    /// term then moves).
-    pub fn leaf_and_smooth(&self, k: usize, device: &Device) -> (Tensor<2>, Tensor<2>, f64) {
+    /// term then moves), with how much the smoothness and the prior weigh on this capture.
+    pub fn leaf_and_smooth(&self, k: usize, device: &Device) -> MotionInput {
         let values = &self.values[k];
         let rows = values.len();
         let smooth: Vec<f32> = match self.neighbours[k] {
@@ -205,7 +237,12 @@ impl MotionCorrections {
         };
         let leaf: Vec<f32> = values.iter().flatten().map(|&v| v as f32).collect();
         let leaf = Tensor::from_data(TensorData::new(leaf, [rows, 3]), device).require_grad();
-        (leaf, Tensor::from_data(TensorData::new(smooth, [rows, 3]), device), self.smoothness_scale())
+        MotionInput {
+            correction: leaf,
+            smooth: Tensor::from_data(TensorData::new(smooth, [rows, 3]), device),
+            smoothness_scale: self.smoothness_scale(),
+            prior_scale: self.prior_scale(),
+        }
     }
 
     /// One Adam step of `rate` on corrected frame `k`: `leaf` is the gradient of its leaf
@@ -266,6 +303,8 @@ impl MotionCorrections {
             shared_largest_degrees: largest(&shared),
             given_noise_share: self.noise_share,
             smoothness_scale: self.smoothness_scale(),
+            given_noise_degrees: self.noise.to_degrees(),
+            prior_scale: self.prior_scale(),
             bones,
         }
     }

@@ -1,7 +1,8 @@
 //! What of a given motion is noise: the share of its second differences (each bone's turn over
 //! the next step less the last step's, per training frame in time) that a tracker's errors,
-//! drawn anew each frame, account for rather than the movement; and from it how hard the
-//! refined motion's smoothness term weighs on a capture (`MotionCorrections::smoothness_scale`).
+//! drawn anew each frame, account for rather than the movement, and the noise's size; and from
+//! them how hard the refined motion's smoothness and prior weigh on a capture
+//! (`MotionCorrections::smoothness_scale`, `MotionCorrections::prior_scale`).
 
 /// Rows of a frame's correction or of its given motion's second difference: one per bone, then
 /// the skeleton's shift.
@@ -19,6 +20,45 @@ pub const SMOOTHNESS_PER_NOISE_RATIO: f64 = 0.15;
 /// smoothness weighs at most `0.15 f / (1 - f)`, about 15 times the schedule's weight, where the
 /// estimate's own scatter over a few dozen frames would otherwise let it grow without bound.
 pub const MOST_NOISE_SHARE: f64 = 0.99;
+
+/// The given motion's noise per frame that the schedule's `motion_prior` weight holds a correction
+/// against (radians per axis): 2.5 degrees, the tracker's error the weight was measured at
+/// (`docs/measurements.md`). A prior is as strong as the given motion is sure: a capture whose
+/// given motion carries less noise holds its corrections in proportion to `1 / noise^2`.
+pub const PRIOR_NOISE: f64 = 2.5 * std::f64::consts::PI / 180.0;
+
+/// The most the prior weighs, as a share of the schedule's (`prior_scale`): a motion whose
+/// second differences show no noise at all would otherwise be held without bound.
+pub const MOST_PRIOR_SCALE: f64 = 1000.0;
+
+/// `MotionCorrections::prior_scale` of the given motion's noise (radians per axis): the
+/// schedule's weight times `(PRIOR_NOISE / noise)^2`, never less than the schedule's (a
+/// noisier motion than the weight was measured at is not measured) nor more than
+/// `MOST_PRIOR_SCALE` times it.
+pub(super) fn prior_scale(noise: f64) -> f64 {
+    match noise > 0.0 {
+        true => (PRIOR_NOISE / noise).powi(2).clamp(1.0, MOST_PRIOR_SCALE),
+        false => MOST_PRIOR_SCALE,
+    }
+}
+
+/// The given motion's noise per frame (radians per axis) of its second differences
+/// (`acceleration`, the frames with both neighbours, the bones' rows): noise drawn anew each
+/// frame with deviation `s` gives a second difference of variance `6 s^2`, so `s` is the root of
+/// the `noise_share` of their mean square over 6. None (zero) without such frames.
+pub(super) fn noise(acceleration: &[Rows], neighbours: &[Option<(usize, usize)>], noise_share: f64) -> f64 {
+    let (mut sum, mut count) = (0.0, 0usize);
+    for (rows, _) in acceleration.iter().zip(neighbours).filter(|(_, n)| n.is_some()) {
+        for row in &rows[..rows.len().saturating_sub(1)] {
+            sum += row.iter().map(|v| v * v).sum::<f64>();
+            count += 3;
+        }
+    }
+    match count {
+        0 => 0.0,
+        _ => (noise_share * sum / count as f64 / 6.0).sqrt(),
+    }
+}
 
 /// `MotionCorrections::smoothness_scale` of a noise share.
 pub(super) fn smoothness_scale(noise_share: f64) -> f64 {
@@ -61,7 +101,7 @@ pub(super) fn noise_share(acceleration: &[Rows], neighbours: &[Option<(usize, us
 
 #[cfg(test)]
 mod tests {
-    use super::{noise_share, smoothness_scale, Rows, MOST_NOISE_SHARE, SMOOTHNESS_PER_NOISE_RATIO};
+    use super::{noise, noise_share, prior_scale, smoothness_scale, Rows, MOST_NOISE_SHARE, MOST_PRIOR_SCALE, PRIOR_NOISE, SMOOTHNESS_PER_NOISE_RATIO};
     use crate::random::Stream;
 
     /// Per frame, `bones` rows of three channels from `channel(frame, row, axis)` and a shift
@@ -120,6 +160,37 @@ mod tests {
         assert_eq!(noise_share(&a, &n), 0.5);
         let (a, n) = accelerations(30, 20, |k, _, _| 0.1 * k as f64);
         assert_eq!(noise_share(&a, &n), 0.0);
+    }
+
+    #[test]
+    fn the_noise_is_a_trackers_deviation_and_the_prior_holds_in_proportion_to_its_inverse_square() {
+        let walk =
+            |frames_a_cycle: f64| move |k: usize, b: usize, c: usize| 0.4 * (std::f64::consts::TAU * k as f64 / frames_a_cycle + b as f64 + c as f64).sin();
+        let estimate = |(a, n): (Vec<Rows>, Vec<Option<(usize, usize)>>)| noise(&a, &n, noise_share(&a, &n));
+        // A tracker's errors alone, and on a walk sampled 30 and 12 times a cycle: its deviation,
+        // within the estimate's scatter over 30 frames; a walk sampled coarsely reads partly as
+        // noise (its second differences correlate less), so over, not under.
+        for sigma in [0.01, 0.04] {
+            for (frames_a_cycle, within) in [(f64::INFINITY, (0.9, 1.1)), (30.0, (0.9, 1.1)), (12.0, (0.9, 1.35))] {
+                let found = estimate(accelerations(30, 20, |k, b, c| {
+                    let motion = if frames_a_cycle.is_finite() { walk(frames_a_cycle)(k, b, c) } else { 0.0 };
+                    motion + sigma * normal(4, k, b, c)
+                }));
+                let (low, high) = within;
+                assert!(found / sigma > low && found / sigma < high, "{sigma} on a walk {frames_a_cycle} frames a cycle: {found}");
+            }
+        }
+        // A walk alone sampled finely: next to none, held the most.
+        let found = estimate(accelerations(30, 20, walk(30.0)));
+        assert!(found < 0.002, "a sampled walk: {found}");
+        assert_eq!(prior_scale(found), MOST_PRIOR_SCALE);
+        // The schedule's weight at the measured noise and beyond, four times it at half.
+        assert_eq!(prior_scale(PRIOR_NOISE), 1.0);
+        assert_eq!(prior_scale(3.0 * PRIOR_NOISE), 1.0);
+        assert!((prior_scale(PRIOR_NOISE / 2.0) - 4.0).abs() < 1e-9);
+        assert_eq!(prior_scale(0.0), MOST_PRIOR_SCALE);
+        // Frames without both neighbours carry no second difference: none.
+        assert_eq!(noise(&[vec![[1.0; 3]; 3]], &[None], 0.5), 0.0);
     }
 
     #[test]

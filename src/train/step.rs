@@ -207,7 +207,7 @@ impl Trainer {
             cameras: cameras.map(|c| c.leaf(&device)),
         };
         let leaves = Leaves {
-            motion: motion.zip(inputs.motion.as_ref()).map(|((_, k), (leaf, _, _))| (k, leaf.clone(), deferred.motion_leaves.clone())),
+            motion: motion.zip(inputs.motion.as_ref()).map(|((_, k), m)| (k, m.correction.clone(), deferred.motion_leaves.clone())),
             cameras: inputs.cameras.clone().map(|leaf| (leaf, deferred.view_leaves.clone())),
         };
         if self.error_rays > 0.0 {
