@@ -7,8 +7,11 @@
 //! calibration's millimetres across the view turn the image as a hundredth of a degree does,
 //! and along it scale it by a thousandth, while a shift and a turn that swing the camera about
 //! the body leave its silhouettes almost as they were, a direction the fit cannot hold (with
-//! both refined the centres ran 15 cm off in 1,400 iterations). Test views are rendered from
-//! their cameras as given.
+//! both refined the centres ran 15 cm off in 1,400 iterations). Nor is the rig's common roll
+//! refined: every camera rolled about its viewing axis by `theta . axis` is, to first order, the
+//! whole rig turned by `theta` about the body, which the field and the motion take up as well,
+//! so the images do not decide it; after each step the turns lose the part such a common turn
+//! accounts for (`without_common_roll`). Test views are rendered from their cameras as given.
 
 use super::host_adam::CameraRows;
 use crate::scene::{Camera, Ray, Scene};
@@ -19,6 +22,8 @@ use glam::{DMat3, DMat4, DQuat, DVec3};
 #[derive(Clone, Debug, PartialEq)]
 pub struct CameraPoses {
     turns: CameraRows,
+    /// Per row, its camera's viewing axis in the world.
+    axes: Vec<DVec3>,
 }
 
 /// How far the refinement turned each training camera, and over them all (degrees).
@@ -41,11 +46,39 @@ fn rotation(turn: [f64; 3]) -> DMat3 {
     DMat3::from_quat(DQuat::from_scaled_axis(DVec3::from_array(turn)))
 }
 
+/// The direction `camera` looks along in the world (its axes are OpenCV's: +z forward).
+fn viewing_axis(camera: &Camera) -> DVec3 {
+    camera.camera_to_world.z_axis.truncate().normalize_or(DVec3::Z)
+}
+
+/// `turns` (world rotation vectors, one per camera) less the rolls a common turn of the rig
+/// accounts for: with `a_i` each camera's viewing axis, the `theta` that best gives each camera's
+/// roll `turn_i . a_i` as `theta . a_i` (least squares), and each turn less `(theta . a_i) a_i`.
+/// What is left of the rolls is orthogonal to every common turn's: `sum_i a_i (turn_i . a_i)` is
+/// zero. Two cameras leave a common turn about the axis normal to both undecided; a small ridge
+/// keeps it at none.
+fn without_common_roll(turns: &mut [[f64; 3]], axes: &[DVec3]) {
+    let (mut normal, mut rolls) = (DMat3::ZERO, DVec3::ZERO);
+    for (turn, &a) in turns.iter().zip(axes) {
+        normal += DMat3::from_cols(a * a.x, a * a.y, a * a.z);
+        rolls += a * DVec3::from_array(*turn).dot(a);
+    }
+    let theta = (normal + DMat3::from_diagonal(DVec3::splat(1e-9))).inverse() * rolls;
+    if !theta.is_finite() {
+        return;
+    }
+    for (turn, &a) in turns.iter_mut().zip(axes) {
+        *turn = (DVec3::from_array(*turn) - a * theta.dot(a)).to_array();
+    }
+}
+
 impl CameraPoses {
     /// For a scene whose training images come from two or more cameras (none otherwise: one
     /// camera's pose is the body's root seen from it, which the motion holds).
     pub fn new(scene: &Scene) -> Option<Self> {
-        CameraRows::of_training_cameras(scene).map(|turns| Self { turns })
+        let turns = CameraRows::of_training_cameras(scene)?;
+        let axes = turns.cameras().iter().map(|&c| scene.cameras.get(c).map_or(DVec3::Z, viewing_axis)).collect();
+        Some(Self { turns, axes })
     }
 
     /// Scene camera `camera`'s row, if it is refined.
@@ -96,6 +129,7 @@ impl CameraPoses {
         }
         let gradient: Vec<f32> = leaf.iter().enumerate().map(|(k, g)| g + increment.get(k).copied().unwrap_or(0.0)).collect();
         self.turns.step(&gradient, rate);
+        without_common_roll(&mut self.turns.values, &self.axes);
     }
 
     /// How far the corrections turned the training cameras (of the scene's `cameras`).
@@ -134,7 +168,50 @@ mod tests {
     use super::*;
 
     fn poses(n: usize) -> CameraPoses {
-        CameraPoses { turns: CameraRows::zeros((0..n).map(Some).collect(), (0..n).collect()) }
+        CameraPoses { turns: CameraRows::zeros((0..n).map(Some).collect(), (0..n).collect()), axes: vec![DVec3::Z; n] }
+    }
+
+    /// Eight cameras on a ring about a body, looking at it from a little above.
+    fn ring() -> CameraPoses {
+        let cameras: Vec<Camera> = (0..8)
+            .map(|k| {
+                let angle = std::f64::consts::TAU * k as f64 / 8.0;
+                let eye = DVec3::new(3.0 * angle.sin(), 1.6, 3.0 * angle.cos());
+                Camera::look_at(&format!("c{k}"), eye, DVec3::new(0.0, 1.0, 0.0), DVec3::Y, 64, 64, 50.0)
+            })
+            .collect();
+        let axes = cameras.iter().map(viewing_axis).collect();
+        CameraPoses { turns: CameraRows::zeros((0..8).map(Some).collect(), (0..8).collect()), axes }
+    }
+
+    /// Rolls that a common turn of the rig accounts for are not refined; a camera's own roll
+    /// keeps what no common turn gives, turns across the views (which move the images) are kept
+    /// whole, and after any step the rolls left are orthogonal to every common turn's.
+    #[test]
+    fn the_rigs_common_roll_is_not_refined() {
+        let mut p = ring();
+        let theta = DVec3::new(0.3, -0.2, 0.9) * 1e-3;
+        let mut common: Vec<[f64; 3]> = p.axes.iter().map(|&a| (a * theta.dot(a)).to_array()).collect();
+        without_common_roll(&mut common, &p.axes);
+        assert!(common.iter().flatten().all(|v| v.abs() < 1e-11), "{common:?}");
+        let mut across: Vec<[f64; 3]> = p.axes.iter().enumerate().map(|(k, &a)| (a.cross(DVec3::Y).normalize() * 1e-3 * k as f64).to_array()).collect();
+        let given = across.clone();
+        without_common_roll(&mut across, &p.axes);
+        assert!(across.iter().flatten().zip(given.iter().flatten()).all(|(a, b)| (a - b).abs() < 1e-15));
+        let mut own: Vec<[f64; 3]> = vec![[0.0; 3]; 8];
+        own[0] = (p.axes[0] * 1e-3).to_array();
+        without_common_roll(&mut own, &p.axes);
+        let kept = DVec3::from_array(own[0]).dot(p.axes[0]);
+        assert!(kept > 5e-4 && kept < 1e-3, "camera 0 keeps most of its roll: {kept}");
+        // Steps of any gradient: the rolls left never hold a common turn's.
+        let mut stream = crate::random::Stream::new(7, 0, 0);
+        for _ in 0..20 {
+            let gradient: Vec<f32> = (0..24).map(|_| stream.uniform() as f32 - 0.5).collect();
+            p.step(&[0.0; 24], &gradient, 1e-3);
+            let normal: DVec3 = (0..8).map(|k| p.axes[k] * DVec3::from_array(p.turns.values[k]).dot(p.axes[k])).sum();
+            assert!(normal.length() < 1e-11, "{normal}");
+        }
+        assert!(p.turns.values.iter().flatten().any(|v| v.abs() > 1e-3), "the turns moved");
     }
 
     /// A corrected camera casts the corrected rays: each pixel's ray from its centre in the
