@@ -5,12 +5,14 @@
 //! seed), RUN the fit's run folder (its checkpoint's corrections). Prints each bone's rotation
 //! error (degrees, mean over bones and training frames) and the root's (cm), given and refined;
 //! and, when the fit refined the cameras (`--errors camera_turn=..,camera_move=..`), each training
-//! camera's turn (degrees) and centre (mm) from the true camera's, given and refined.
+//! camera's turn (degrees) and centre (mm) from the true camera's, given and refined. The
+//! joints' error is also split into what every training frame shares (each bone's mean error
+//! over them) and each frame's own.
 
 use std::path::Path;
 use umbra::scene::Scene;
 use umbra::train::camera_pose::CameraPoses;
-use umbra::train::motion::{joint_error, MotionCorrections};
+use umbra::train::motion::{joint_error, turns_between, MotionCorrections};
 
 fn main() -> Result<(), Box<dyn std::error::Error>> {
     let args: Vec<String> = std::env::args().collect();
@@ -73,6 +75,19 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let (gs, gt) = split(&|f| given.frames[f].pose.clone());
     let (rs, rt) = split(&|f| refined.iter().find(|(g, _)| *g == f).map(|(_, p)| p.clone()).unwrap_or_else(|| given.frames[f].pose.clone()));
     println!("bone directions in the world (swing): given {gs:.3}, refined {rs:.3} degrees; turns about the bones (twist): given {gt:.3}, refined {rt:.3}");
+    // The error shared by every training frame (each bone's mean over them, which the avatar's
+    // content takes up as well as the motion) and each frame's own.
+    let split = |poses: Vec<&umbra::skeleton::Pose>| {
+        let pairs: Vec<_> = poses.into_iter().zip(&refined).map(|(p, (f, _))| (p, &truth.frames[*f].pose)).collect();
+        let (mean, own) = turns_between(&given.skeleton, &pairs);
+        let bones = mean.len().max(1) as f64;
+        let shared = mean.iter().map(|m| m.length().to_degrees()).sum::<f64>() / bones;
+        let frames: f64 = own.iter().flatten().map(|t| t.length_squared()).sum::<f64>() / (own.len().max(1) as f64 * bones);
+        (shared, frames.sqrt().to_degrees())
+    };
+    let (gs, gf) = split(refined.iter().map(|(f, _)| &given.frames[*f].pose).collect());
+    let (rs, rf) = split(refined.iter().map(|(_, p)| p).collect());
+    println!("shared by the training frames (each bone's mean error, mean over bones): given {gs:.3}, refined {rs:.3} degrees; each frame's own (rms): given {gf:.3}, refined {rf:.3}");
     cameras(&given, &truth, &state)
 }
 

@@ -525,3 +525,41 @@ fn a_restored_run_shows_its_scene_and_new_motion_in_the_shared_turns() {
     let restored = umbra::run::restore(&run, None, umbra::backend::Backend::Flex).unwrap();
     assert!(restored.scene.frames.iter().zip(&given.frames).all(|(a, b)| a.pose == b.pose) && restored.shared_turns.is_empty());
 }
+
+#[test]
+fn a_motions_error_splits_into_what_every_frame_shares_and_each_frames_own() {
+    let character = Character::new(Kind::Human);
+    let bones = character.skeleton.len();
+    let mut stream = Stream::new(21, 1, 0);
+    let mut angle = || (stream.uniform() - 0.5) * 0.08;
+    // Each bone's shared error and each of 7 frames' own, the own ones summing to zero.
+    let shared: Vec<DVec3> = (0..bones).map(|_| DVec3::new(angle(), angle(), angle())).collect();
+    let mut own: Vec<Vec<DVec3>> = (0..7).map(|_| (0..bones).map(|_| DVec3::new(angle(), angle(), angle())).collect()).collect();
+    for b in 0..bones {
+        let mean = own.iter().map(|o| o[b]).sum::<DVec3>() / own.len() as f64;
+        own.iter_mut().for_each(|o| o[b] -= mean);
+    }
+    let truths: Vec<Pose> = (0..own.len()).map(|k| character.pose(0.1 * k as f64, 0.2, DVec3::new(0.02 * k as f64, 0.0, 0.0))).collect();
+    let errs: Vec<Pose> = truths
+        .iter()
+        .zip(&own)
+        .map(|(truth, own)| {
+            let turns: Vec<[f64; 3]> = (0..bones).map(|b| (shared[b] + own[b]).to_array()).collect();
+            truth.corrected(&character.skeleton, &turns, [0.0; 3])
+        })
+        .collect();
+    let pairs: Vec<(&Pose, &Pose)> = truths.iter().zip(&errs).collect();
+    let (mean, rest) = umbra::train::motion::turns_between(&character.skeleton, &pairs);
+    // A mean of rotation vectors is the mean rotation to second order: within 1e-3 radians of
+    // 0.04-radian turns.
+    for b in 0..bones {
+        assert!((mean[b] - shared[b]).length() < 1e-3, "bone {b}: shared {:?}, found {:?}", shared[b], mean[b]);
+        for k in 0..own.len() {
+            assert!((rest[k][b] - own[k][b]).length() < 1e-3, "bone {b}, frame {k}: own {:?}, found {:?}", own[k][b], rest[k][b]);
+        }
+    }
+    // A pose against itself has no error at all.
+    let same: Vec<(&Pose, &Pose)> = truths.iter().map(|t| (t, t)).collect();
+    let (mean, rest) = umbra::train::motion::turns_between(&character.skeleton, &same);
+    assert!(mean.iter().chain(rest.iter().flatten()).all(|t| t.length() < 1e-9));
+}

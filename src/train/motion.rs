@@ -367,6 +367,21 @@ pub fn joint_error(skeleton: &Skeleton, a: &Pose, b: &Pose) -> (f64, f64) {
     (degrees / bones as f64, root)
 }
 
+/// Each bone's turn from `pairs`' first poses to their second (a rotation vector in its
+/// parent's frame, radians), as its mean over the pairs and as each pair's turn less that mean:
+/// what a motion's error shares over the frames, which an avatar's content can take up as well
+/// as the motion (`docs/measurements.md`), and what each frame has of its own.
+pub fn turns_between(skeleton: &Skeleton, pairs: &[(&Pose, &Pose)]) -> (Vec<DVec3>, Vec<Vec<DVec3>>) {
+    let n = pairs.len().max(1) as f64;
+    let turns: Vec<Vec<DVec3>> = pairs
+        .iter()
+        .map(|(a, b)| (0..skeleton.len()).map(|k| turn_between(local_rotation(skeleton, a, k), local_rotation(skeleton, b, k))).collect())
+        .collect();
+    let mean: Vec<DVec3> = (0..skeleton.len()).map(|k| turns.iter().map(|t| t[k]).sum::<DVec3>() / n).collect();
+    let own = turns.iter().map(|t| t.iter().zip(&mean).map(|(t, m)| *t - *m).collect()).collect();
+    (mean, own)
+}
+
 /// `MotionCorrections::shared_turns` of per-frame corrections `values` (bones, then the shift).
 fn shared_turns_of(values: &[Rows]) -> Vec<[f64; 3]> {
     let bones = values.first().map_or(0, |v| v.len().saturating_sub(1));
