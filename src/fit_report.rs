@@ -143,9 +143,13 @@ pub fn motion_line(capture: &serde_json::Value) -> Option<String> {
         _ => line,
     };
     // Runs from before the prior was weighed by the capture do not record it.
-    Some(match (number("given_noise_degrees"), number("prior_scale")) {
+    let line = match (number("given_noise_degrees"), number("prior_scale")) {
         (Some(noise), Some(scale)) => format!("{line}; its noise {noise:.2} degrees a frame, held to it {scale:.3}x the schedule's weight"),
         _ => line,
+    };
+    Some(match number("given_bias_degrees") {
+        Some(bias) => format!("{line}; that noise leaves about {bias:.2} degrees a bone alike in every training frame, which the images cannot tell from the body: the avatar keeps it"),
+        None => line,
     })
 }
 
@@ -197,6 +201,10 @@ mod tests {
         assert!(motion_line(&capture)
             .unwrap()
             .ends_with("smoothed 1.000x the schedule's weight; its noise 0.10 degrees a frame, held to it 625.000x the schedule's weight"));
+        let capture = json!({"motion_refined": {"frames": 30, "mean_degrees": 1.234, "largest_degrees": 6.5, "mean_shift_cm": 0.71, "largest_shift_cm": 1.9, "given_noise_degrees": 2.5, "prior_scale": 1.0, "given_bias_degrees": 0.7284}});
+        assert!(motion_line(&capture).unwrap().ends_with(
+            "held to it 1.000x the schedule's weight; that noise leaves about 0.73 degrees a bone alike in every training frame, which the images cannot tell from the body: the avatar keeps it"
+        ));
         assert_eq!(motion_line(&json!({"motion_refined": null})), None);
     }
 

@@ -74,6 +74,10 @@ pub struct MotionMoved {
     /// the prior's weight on this capture for the schedule's (`prior_scale`).
     pub given_noise_degrees: f64,
     pub prior_scale: f64,
+    /// What that noise leaves alike in every training frame (degrees, a bone's mean error over
+    /// them, `motion_noise::bias`): the images cannot tell it from the body, so the avatar
+    /// carries it, and motion from elsewhere shows it.
+    pub given_bias_degrees: f64,
     pub bones: Vec<BoneMoved>,
 }
 
@@ -305,6 +309,7 @@ impl MotionCorrections {
             smoothness_scale: self.smoothness_scale(),
             given_noise_degrees: self.noise.to_degrees(),
             prior_scale: self.prior_scale(),
+            given_bias_degrees: super::motion_noise::bias(self.noise, self.frames.len()).to_degrees(),
             bones,
         }
     }
