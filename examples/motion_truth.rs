@@ -77,7 +77,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     println!("bone directions in the world (swing): given {gs:.3}, refined {rs:.3} degrees; turns about the bones (twist): given {gt:.3}, refined {rt:.3}");
     // The error shared by every training frame (each bone's mean over them, which the avatar's
     // content takes up as well as the motion) and each frame's own.
-    let split = |poses: Vec<&umbra::skeleton::Pose>| {
+    let shared_and_own = |poses: Vec<&umbra::skeleton::Pose>| {
         let pairs: Vec<_> = poses.into_iter().zip(&refined).map(|(p, (f, _))| (p, &truth.frames[*f].pose)).collect();
         let (mean, own) = turns_between(&given.skeleton, &pairs);
         let bones = mean.len().max(1) as f64;
@@ -85,8 +85,8 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         let frames: f64 = own.iter().flatten().map(|t| t.length_squared()).sum::<f64>() / (own.len().max(1) as f64 * bones);
         (shared, frames.sqrt().to_degrees())
     };
-    let (gs, gf) = split(refined.iter().map(|(f, _)| &given.frames[*f].pose).collect());
-    let (rs, rf) = split(refined.iter().map(|(_, p)| p).collect());
+    let (gs, gf) = shared_and_own(refined.iter().map(|(f, _)| &given.frames[*f].pose).collect());
+    let (rs, rf) = shared_and_own(refined.iter().map(|(_, p)| p).collect());
     println!("shared by the training frames (each bone's mean error, mean over bones): given {gs:.3}, refined {rs:.3} degrees; each frame's own (rms): given {gf:.3}, refined {rf:.3}");
     cameras(&given, &truth, &state)
 }
