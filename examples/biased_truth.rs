@@ -50,7 +50,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     for dir in ["images", "masks", "plates"] {
         copy_dir(&truth_dir.join(dir), &out.join(dir))?;
     }
-    std::fs::write(out.join("scene.json"), serde_json::to_string_pretty(&json)?)?;
+    umbra::imageio::write_atomic(&out.join("scene.json"), serde_json::to_string_pretty(&json)?.as_bytes())?;
     println!("wrote {}", out.display());
     Ok(())
 }
