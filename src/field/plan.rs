@@ -166,7 +166,7 @@ impl Plan {
     /// consecutive levels and fills their rows alone: no per-thread copies of the table to zero
     /// and add up (4-8 MB each, a quarter of this op's time).
     pub(super) fn backward(&self, grad: &[f32], table_rows: usize) -> Vec<f32> {
-        let (n, w, f, c) = (self.points, self.width(), self.features, self.corners);
+        let f = self.features;
         let parts = self.table_parts.max(1);
         let part_rows = table_rows / parts;
         let tasks = rayon::current_num_threads().clamp(1, parts);
@@ -183,31 +183,84 @@ impl Plan {
         }
         slices.into_par_iter().enumerate().for_each(|(t, values)| {
             let levels = levels_of(t);
-            let (first, count) = (levels.start * part_rows, values.len() / f);
-            let groups: Vec<usize> = (0..self.levels).filter(|g| levels.contains(&(g % parts))).collect();
-            for i in 0..n {
-                for &g in &groups {
-                    let fade = self.fade[g];
-                    for j in 0..c {
-                        let at = (i * self.levels + g) * c + j;
-                        // A row outside this task's run (or the table) is a level left out of
-                        // the plan: row 0, coefficient 0, nothing to add.
-                        let Some(row) = (self.rows[at] as usize).checked_sub(first).filter(|&r| r < count) else { continue };
-                        for q in 0..f {
-                            let column = g * f + q;
-                            let mut sum = self.coefficients[at] * grad[i * w + column];
-                            if let Some(d) = &self.tangents {
-                                for axis in 0..3 {
-                                    sum += d[at * 3 + axis] * grad[(n + axis * n + i) * w + column];
-                                }
-                            }
-                            values[row * f + q] += sum * fade;
-                        }
-                    }
-                }
+            let first = levels.start * part_rows;
+            // A level faded out (coarse to fine) adds nothing: its groups are skipped whole.
+            let groups: Vec<usize> = (0..self.levels).filter(|g| levels.contains(&(g % parts)) && self.fade[*g] != 0.0).collect();
+            match f {
+                2 => self.scatter::<2>(grad, values, first, &groups),
+                _ => self.scatter_any(grad, values, first, &groups),
             }
         });
         total
+    }
+}
+
+impl Plan {
+    /// `backward`'s work for one run of the table (`values`, whose first row is `first`) and
+    /// its `groups`, with `F` features a row: per point and group the output's gradient (and
+    /// its tangents' gradients) read once, faded, then added into each corner's row.
+    fn scatter<const F: usize>(&self, grad: &[f32], values: &mut [f32], first: usize, groups: &[usize]) {
+        let (n, w, c) = (self.points, self.width(), self.corners);
+        let count = values.len() / F;
+        for i in 0..n {
+            for &g in groups {
+                let column = g * F;
+                let fade = self.fade[g];
+                let value: [f32; F] = std::array::from_fn(|q| grad[i * w + column + q] * fade);
+                let along: Option<[[f32; F]; 3]> =
+                    self.tangents.as_ref().map(|_| std::array::from_fn(|axis| std::array::from_fn(|q| grad[(n + axis * n + i) * w + column + q] * fade)));
+                let at = (i * self.levels + g) * c;
+                for j in 0..c {
+                    // A row outside this run (or the table) is a level left out of the plan:
+                    // row 0, coefficient 0, nothing to add.
+                    let row = (self.rows[at + j] as usize).wrapping_sub(first);
+                    if row >= count {
+                        continue;
+                    }
+                    let k = self.coefficients[at + j];
+                    let mut sum: [f32; F] = std::array::from_fn(|q| k * value[q]);
+                    if let (Some(d), Some(along)) = (&self.tangents, &along) {
+                        for axis in 0..3 {
+                            let slope = d[(at + j) * 3 + axis];
+                            for q in 0..F {
+                                sum[q] += slope * along[axis][q];
+                            }
+                        }
+                    }
+                    for (out, add) in values[row * F..(row + 1) * F].iter_mut().zip(sum) {
+                        *out += add;
+                    }
+                }
+            }
+        }
+    }
+
+    /// `scatter` for any number of features a row.
+    fn scatter_any(&self, grad: &[f32], values: &mut [f32], first: usize, groups: &[usize]) {
+        let (n, w, f, c) = (self.points, self.width(), self.features, self.corners);
+        let count = values.len() / f;
+        for i in 0..n {
+            for &g in groups {
+                let fade = self.fade[g];
+                for j in 0..c {
+                    let at = (i * self.levels + g) * c + j;
+                    let row = (self.rows[at] as usize).wrapping_sub(first);
+                    if row >= count {
+                        continue;
+                    }
+                    for q in 0..f {
+                        let column = g * f + q;
+                        let mut sum = self.coefficients[at] * grad[i * w + column];
+                        if let Some(d) = &self.tangents {
+                            for axis in 0..3 {
+                                sum += d[at * 3 + axis] * grad[(n + axis * n + i) * w + column];
+                            }
+                        }
+                        values[row * f + q] += sum * fade;
+                    }
+                }
+            }
+        }
     }
 }
 
@@ -258,5 +311,86 @@ impl Plan {
             }
         });
         out
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The table's gradient summed as plainly as it can be: every planned corner's coefficient
+    /// (and tangent coefficients) times the output's gradient, times the level's fade.
+    fn plain_backward(plan: &Plan, grad: &[f32], table_rows: usize) -> Vec<f32> {
+        let (n, w, f, c) = (plan.points, plan.width(), plan.features, plan.corners);
+        let mut values = vec![0.0f64; table_rows * f];
+        for i in 0..n {
+            for g in 0..plan.levels {
+                for j in 0..c {
+                    let at = (i * plan.levels + g) * c + j;
+                    let row = plan.rows[at] as usize;
+                    for q in 0..f {
+                        let column = g * f + q;
+                        let mut sum = plan.coefficients[at] as f64 * grad[i * w + column] as f64;
+                        if let Some(d) = &plan.tangents {
+                            for axis in 0..3 {
+                                sum += d[at * 3 + axis] as f64 * grad[(n + axis * n + i) * w + column] as f64;
+                            }
+                        }
+                        values[row * f + q] += sum * plan.fade[g] as f64;
+                    }
+                }
+            }
+        }
+        values.into_iter().map(|v| v as f32).collect()
+    }
+
+    /// A plan of `n` points over a table of `parts` levels of `per_level` rows, each point in
+    /// three bones' grids, the coarse levels' corners close together and the fine ones' spread,
+    /// with a level faded out and one half in.
+    fn random_plan(n: usize, features: usize, tangents: bool) -> (Plan, Vec<f32>, usize) {
+        let (parts, per_level, slots) = (4usize, 512usize, 3usize);
+        let levels = parts * slots;
+        let mut state = 0x9E37_79B9_7F4A_7C15u64;
+        let mut next = move || {
+            state ^= state << 13;
+            state ^= state >> 7;
+            state ^= state << 17;
+            state
+        };
+        let (mut rows, mut coefficients) = (Vec::new(), Vec::new());
+        for i in 0..n {
+            for g in 0..levels {
+                let level = g % parts;
+                let spread = (16usize << (2 * level)).min(per_level);
+                let base = (i * 7) % (per_level - spread + 1);
+                for _ in 0..8 {
+                    rows.push((level * per_level + base + next() as usize % spread) as u32);
+                    coefficients.push((next() % 1000) as f32 / 1000.0);
+                }
+            }
+        }
+        let slopes = tangents.then(|| (0..rows.len() * 3).map(|_| (next() % 2001) as f32 / 1000.0 - 1.0).collect());
+        let fade = (0..levels).map(|g| [1.0, 1.0, 0.37, 0.0][g % parts]).collect();
+        let plan = Plan { points: n, levels, corners: 8, features, rows, coefficients, tangents: slopes, carried: None, fade, table_parts: parts };
+        let blocks = if tangents { 4 } else { 1 };
+        let grad = (0..n * blocks * levels * features).map(|_| (next() % 2001) as f32 / 1000.0 - 1.0).collect();
+        (plan, grad, parts * per_level)
+    }
+
+    /// The two-feature path and the any-width one each against the plain sum, with and without
+    /// tangents: every run of the table, faded levels, corners shared by many points.
+    #[test]
+    fn the_tables_gradient_is_the_plain_sum_of_every_corners_part() {
+        for features in [2, 3] {
+            for tangents in [false, true] {
+                let (plan, grad, table_rows) = random_plan(300, features, tangents);
+                let fast = plan.backward(&grad, table_rows);
+                let plain = plain_backward(&plan, &grad, table_rows);
+                let scale = plain.iter().fold(0.0f32, |m, v| m.max(v.abs()));
+                let worst = fast.iter().zip(&plain).map(|(a, b)| (a - b).abs()).fold(0.0f32, f32::max);
+                assert!(worst <= 1e-5 * scale, "{features} features, tangents {tangents}: off by {worst} of {scale}");
+                assert!(plain.iter().any(|&v| v != 0.0) && fast.len() == plain.len());
+            }
+        }
     }
 }
