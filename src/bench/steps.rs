@@ -129,11 +129,17 @@ pub fn steps(scene_path: &Path, schedule_path: &Path, out: &Path, quick: bool, r
         let mut baseline = None;
         let mut trainer = super::fitted_trainer(run)?;
         let fitted = "fitted field";
-        for (name, cull, at_once) in
-            [("every sample differentiated", false, true), ("culled, the parts' backward passes in turn", true, false), ("culled", true, true)]
-        {
+        // Late in a fit: the schedule's late fine samples, and the 16 every step took before.
+        let fine = schedule.fine_samples_per_ray;
+        for (name, cull, at_once, fine) in [
+            ("every sample differentiated", false, true, fine),
+            ("culled, the parts' backward passes in turn", true, false, fine),
+            ("culled, 16 fine samples a ray (before)", true, true, 16),
+            ("culled", true, true, fine),
+        ] {
             trainer.schedule.cull_samples = cull;
             trainer.parts_backward_at_once = at_once;
+            trainer.schedule.fine_samples_per_ray = fine;
             let ms = time_steps(&mut trainer, budget)?;
             let base = *baseline.get_or_insert(ms);
             rows.push((fitted, name, ms, ms / base));

@@ -180,6 +180,9 @@ pub struct Schedule {
     pub samples_per_ray: usize,
     /// Samples per ray added where the coarse ones found density (hierarchical sampling).
     pub fine_samples_per_ray: usize,
+    /// Fine samples per ray before `early_samples_until` (absent: `fine_samples_per_ray`).
+    pub early_fine_samples_per_ray: usize,
+    pub early_samples_until: usize,
     /// Samples per ray, without gradients, that locate the surface between the coarse and the
     /// fine samples (`render::Sampling::probe`).
     pub probe_samples_per_ray: usize,
@@ -281,12 +284,13 @@ pub fn check_iterations(n: usize) -> Result<usize, String> {
 }
 
 impl Schedule {
-    /// How a training step samples its rays.
-    pub fn sampling(&self) -> crate::render::Sampling {
+    /// How a training step at `iteration` samples its rays.
+    pub fn sampling(&self, iteration: usize) -> crate::render::Sampling {
+        let fine = if iteration < self.early_samples_until { self.early_fine_samples_per_ray } else { self.fine_samples_per_ray };
         crate::render::Sampling {
             coarse: self.samples_per_ray,
             probe: self.probe_samples_per_ray,
-            fine: self.fine_samples_per_ray,
+            fine,
             // Training decodes the albedo at every sample: a sample without weight still tells
             // the geometry, through its colour, whether density there would match the image
             // (dropping them cost human-sun-128 0.8 dB foreground at seed 0).

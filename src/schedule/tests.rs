@@ -170,3 +170,20 @@ fn shipped_ablations_parse_and_differ_from_the_default() {
     }
     assert!(count >= 8, "{count} ablations in {}", folder.display());
 }
+
+/// A step samples the early fine count before `early_samples_until` and the fine count from
+/// it; a schedule that names no early count samples its fine count throughout.
+#[test]
+fn the_fine_samples_drop_to_their_late_count_at_early_samples_until() {
+    let default = Schedule::parse(DEFAULT, Path::new("x.toml")).unwrap();
+    let until = default.early_samples_until;
+    assert!(until > 0 && default.early_fine_samples_per_ray != default.fine_samples_per_ray);
+    assert_eq!(default.sampling(0).fine, default.early_fine_samples_per_ray);
+    assert_eq!(default.sampling(until - 1).fine, default.early_fine_samples_per_ray);
+    assert_eq!(default.sampling(until).fine, default.fine_samples_per_ray);
+    // The coarse and probe samples, and so a batch's draws, follow the same count.
+    assert_eq!(default.sampling(until - 1).draws() - default.sampling(until).draws(), default.early_fine_samples_per_ray - default.fine_samples_per_ray);
+    let plain = Schedule::parse("iterations = 100\nfine_samples_per_ray = 12\n[losses]\nmask = 1.0", Path::new("x.toml")).unwrap();
+    assert!([0, 50, 99].iter().all(|&it| plain.sampling(it).fine == 12));
+    assert_eq!(error_of("iterations = 10\nearly_fine_samples_per_ray = -1\n[losses]\nmask = 1.0").key, "early_fine_samples_per_ray");
+}

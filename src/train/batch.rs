@@ -74,7 +74,7 @@ impl Trainer {
         let set = self.model()?.gaussians.to_set();
         let mut batch = self.pixels(&set);
         let rendered = if self.render_missed_rays { batch.rays.len() } else { batch.hits.max(1) };
-        let sampling = self.schedule.sampling();
+        let sampling = self.schedule.sampling(it);
         let samples = rendered * sampling.total();
         let jitter: Vec<f32> = (0..rendered * sampling.draws()).map(|_| self.stream.uniform() as f32).collect();
         let needs = |input: Input| self.schedule.needs(input, it);

@@ -82,7 +82,7 @@ impl Trainer {
             if rays.is_empty() {
                 continue;
             }
-            let sampling = self.schedule.sampling();
+            let sampling = self.schedule.sampling(self.iteration());
             let jitter: Vec<f32> = (0..rays.len() * sampling.draws()).map(|_| self.stream.uniform() as f32).collect();
             let pose_tensors = PoseTensors::new(pose, &self.scene.skeleton, &device);
             let deferred = render(&model.field, &pose_tensors, &rays, sampling, &jitter, Some(self.gradient), &device);

@@ -150,7 +150,7 @@ impl Trainer {
         let view = cameras.map(|c| ViewIncrement::new(c.len(), crate::skeleton::body_length(NORMAL_STENCIL_ON_HUMAN, self.body_extent) as f32, &device));
         let pose = PoseTensors { motion: increment, view, ..self.batch_pose(batch).clone() };
         let (r, rendered) = (batch.rays.len(), batch.rendered);
-        let sampling = self.schedule.sampling();
+        let sampling = self.schedule.sampling(it);
         let shading = self.fit_light && needs(Input::Colour);
         let (deferred, parts) = render_in_parts(
             &model.field,
