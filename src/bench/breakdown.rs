@@ -140,7 +140,7 @@ pub fn breakdown(scene_path: &Path, schedule_path: &Path, out: &Path, quick: boo
         schedule.rays_per_batch,
         schedule.samples_per_ray,
         schedule.probe_samples_per_ray,
-        schedule.fine_samples_per_ray
+        schedule.fine_samples_label()
     );
     let mut csv_rows = Vec::new();
     for p in &parts {

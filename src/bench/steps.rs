@@ -156,7 +156,7 @@ fn write_tables(out: &Path, scene_path: &Path, schedule: &Schedule, rows: &[(&st
         scene_path.display(),
         schedule.rays_per_batch,
         schedule.samples_per_ray,
-        schedule.fine_samples_per_ray
+        schedule.fine_samples_label()
     );
     for (stage, name, ms, ratio) in rows {
         md += &format!("| {stage} | {name} | {ms:.1} | {ratio:.2}x |\n");

@@ -277,16 +277,14 @@ fn validate(written: ScheduleFile, file: &Path) -> Result<Schedule, ScheduleErro
         Some(v) => Err(err(file, key, format!("must be within (0, 1], found {v}"))),
     };
     let iterations = count("iterations", written.iterations, 2000, 1)?;
+    let fine = count("fine_samples_per_ray", written.fine_samples_per_ray, 0, 0)?;
     let schedule = Schedule {
         file: file.to_path_buf(),
         iterations,
         rays_per_batch: count("rays_per_batch", written.rays_per_batch, 512, 1)?,
         samples_per_ray: count("samples_per_ray", written.samples_per_ray, 24, 2)?,
-        fine_samples_per_ray: count("fine_samples_per_ray", written.fine_samples_per_ray, 0, 0)?,
-        early_fine_samples_per_ray: match written.early_fine_samples_per_ray {
-            Some(_) => count("early_fine_samples_per_ray", written.early_fine_samples_per_ray, 0, 0)?,
-            None => count("fine_samples_per_ray", written.fine_samples_per_ray, 0, 0)?,
-        },
+        fine_samples_per_ray: fine,
+        early_fine_samples_per_ray: count("early_fine_samples_per_ray", written.early_fine_samples_per_ray, fine, 0)?,
         early_samples_until: count("early_samples_until", written.early_samples_until, 0, 0)?,
         probe_samples_per_ray: count("probe_samples_per_ray", written.probe_samples_per_ray, 0, 0)?,
         cull_samples: written.cull_samples.unwrap_or(true),

@@ -284,6 +284,14 @@ pub fn check_iterations(n: usize) -> Result<usize, String> {
 }
 
 impl Schedule {
+    /// The fine samples a ray as a table's heading says them: `16 (8 from 1200)`, or `8`.
+    pub fn fine_samples_label(&self) -> String {
+        match self.early_samples_until > 0 && self.early_fine_samples_per_ray != self.fine_samples_per_ray {
+            true => format!("{} ({} from {})", self.early_fine_samples_per_ray, self.fine_samples_per_ray, self.early_samples_until),
+            false => self.fine_samples_per_ray.to_string(),
+        }
+    }
+
     /// How a training step at `iteration` samples its rays.
     pub fn sampling(&self, iteration: usize) -> crate::render::Sampling {
         let fine = if iteration < self.early_samples_until { self.early_fine_samples_per_ray } else { self.fine_samples_per_ray };

@@ -185,5 +185,7 @@ fn the_fine_samples_drop_to_their_late_count_at_early_samples_until() {
     assert_eq!(default.sampling(until - 1).draws() - default.sampling(until).draws(), default.early_fine_samples_per_ray - default.fine_samples_per_ray);
     let plain = Schedule::parse("iterations = 100\nfine_samples_per_ray = 12\n[losses]\nmask = 1.0", Path::new("x.toml")).unwrap();
     assert!([0, 50, 99].iter().all(|&it| plain.sampling(it).fine == 12));
+    assert_eq!(plain.fine_samples_label(), "12");
+    assert_eq!(default.fine_samples_label(), format!("{} ({} from {until})", default.early_fine_samples_per_ray, default.fine_samples_per_ray));
     assert_eq!(error_of("iterations = 10\nearly_fine_samples_per_ray = -1\n[losses]\nmask = 1.0").key, "early_fine_samples_per_ray");
 }
