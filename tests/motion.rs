@@ -302,13 +302,25 @@ fn a_steps_camera_gradient_points_down_its_loss() {
     let default = std::fs::read_to_string(std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("schedules/default.toml")).unwrap();
     // The samples stratified over each ray's bound alone (no search for the surface), so the
     // loss is smooth in the cameras: a search's fine samples move by jumps.
-    let text = default
-        .replace("refine_cameras = \"auto\"", "refine_cameras = true")
-        .replace("rays_per_batch = 512", "rays_per_batch = 384")
-        .replace("samples_per_ray = 16 ", "samples_per_ray = 48 ")
-        .replace("fine_samples_per_ray = 16", "fine_samples_per_ray = 0")
-        .replace("probe_samples_per_ray = 16", "probe_samples_per_ray = 0")
-        .replace("cull_samples = true", "cull_samples = false");
+    let settings = [
+        ("refine_cameras", "true"),
+        ("rays_per_batch", "384"),
+        ("samples_per_ray", "48"),
+        ("fine_samples_per_ray", "0"),
+        ("early_fine_samples_per_ray", "0"),
+        ("probe_samples_per_ray", "0"),
+        ("early_probe_samples_per_ray", "0"),
+        ("cull_samples", "false"),
+    ];
+    // Each key's line set whole, so no key is changed through another's name.
+    let text: String = default
+        .lines()
+        .map(|line| match settings.iter().find(|(key, _)| line.split('=').next().map(str::trim) == Some(*key)) {
+            Some((key, value)) => format!("{key} = {value}\n"),
+            None => format!("{line}\n"),
+        })
+        .collect();
+    assert_eq!(settings.iter().filter(|(key, _)| text.contains(&format!("\n{key} = "))).count(), settings.len(), "every setting is in the default schedule");
     let schedule_path = dir.path().join("schedule.toml");
     std::fs::write(&schedule_path, text).unwrap();
     let schedule = umbra::schedule::Schedule::load(&schedule_path).unwrap();

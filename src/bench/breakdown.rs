@@ -139,7 +139,7 @@ pub fn breakdown(scene_path: &Path, schedule_path: &Path, out: &Path, quick: boo
         scene_path.display(),
         schedule.rays_per_batch,
         schedule.samples_per_ray,
-        schedule.probe_samples_per_ray,
+        schedule.probe_samples_label(),
         schedule.fine_samples_label()
     );
     let mut csv_rows = Vec::new();

@@ -129,16 +129,19 @@ pub fn steps(scene_path: &Path, schedule_path: &Path, out: &Path, quick: bool, r
         let mut baseline = None;
         let mut trainer = super::fitted_trainer(run)?;
         let fitted = "fitted field";
-        // Late in a fit: the schedule's late fine samples, and the 16 every step took before.
-        let fine = schedule.fine_samples_per_ray;
-        for (name, cull, at_once, fine) in [
-            ("every sample differentiated", false, true, fine),
-            ("culled, the parts' backward passes in turn", true, false, fine),
-            ("culled, 16 fine samples a ray (before)", true, true, 16),
-            ("culled", true, true, fine),
+        // Late in a fit: the schedule's late probe and fine samples, and the 16 and 16 every
+        // step took before.
+        let (probe, fine) = (schedule.probe_samples_per_ray, schedule.fine_samples_per_ray);
+        for (name, cull, at_once, probe, fine) in [
+            ("every sample differentiated", false, true, probe, fine),
+            ("culled, the parts' backward passes in turn", true, false, probe, fine),
+            ("culled, 16 probe and 16 fine samples a ray (before)", true, true, 16, 16),
+            ("culled, 16 probe samples a ray (before)", true, true, 16, fine),
+            ("culled", true, true, probe, fine),
         ] {
             trainer.schedule.cull_samples = cull;
             trainer.parts_backward_at_once = at_once;
+            trainer.schedule.probe_samples_per_ray = probe;
             trainer.schedule.fine_samples_per_ray = fine;
             let ms = time_steps(&mut trainer, budget)?;
             let base = *baseline.get_or_insert(ms);
@@ -152,10 +155,11 @@ pub fn steps(scene_path: &Path, schedule_path: &Path, out: &Path, quick: bool, r
 fn write_tables(out: &Path, scene_path: &Path, schedule: &Schedule, rows: &[(&str, &str, f64, f64)], run: Option<&Path>) -> Result<String, FitError> {
     let stages = STAGES;
     let mut md = format!(
-        "## Training step cost: {} ({} rays per batch, {} coarse + {} fine samples per ray)\n\n| stage | variant | ms per step | vs baseline |\n|---|---|---|---|\n",
+        "## Training step cost: {} ({} rays per batch, {} coarse + {} probe + {} fine samples per ray)\n\n| stage | variant | ms per step | vs baseline |\n|---|---|---|---|\n",
         scene_path.display(),
         schedule.rays_per_batch,
         schedule.samples_per_ray,
+        schedule.probe_samples_label(),
         schedule.fine_samples_label()
     );
     for (stage, name, ms, ratio) in rows {

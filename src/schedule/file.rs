@@ -23,6 +23,7 @@ struct ScheduleFile {
     early_fine_samples_per_ray: Option<Count>,
     early_samples_until: Option<Count>,
     probe_samples_per_ray: Option<Count>,
+    early_probe_samples_per_ray: Option<Count>,
     cull_samples: Option<bool>,
     density_points: Option<Count>,
     regulariser_points: Option<Count>,
@@ -278,6 +279,7 @@ fn validate(written: ScheduleFile, file: &Path) -> Result<Schedule, ScheduleErro
     };
     let iterations = count("iterations", written.iterations, 2000, 1)?;
     let fine = count("fine_samples_per_ray", written.fine_samples_per_ray, 0, 0)?;
+    let probe = count("probe_samples_per_ray", written.probe_samples_per_ray, 0, 0)?;
     let schedule = Schedule {
         file: file.to_path_buf(),
         iterations,
@@ -286,7 +288,8 @@ fn validate(written: ScheduleFile, file: &Path) -> Result<Schedule, ScheduleErro
         fine_samples_per_ray: fine,
         early_fine_samples_per_ray: count("early_fine_samples_per_ray", written.early_fine_samples_per_ray, fine, 0)?,
         early_samples_until: count("early_samples_until", written.early_samples_until, 0, 0)?,
-        probe_samples_per_ray: count("probe_samples_per_ray", written.probe_samples_per_ray, 0, 0)?,
+        probe_samples_per_ray: probe,
+        early_probe_samples_per_ray: count("early_probe_samples_per_ray", written.early_probe_samples_per_ray, probe, 0)?,
         cull_samples: written.cull_samples.unwrap_or(true),
         density_points: count("density_points", written.density_points, 256, 0)?,
         regulariser_points: count("regulariser_points", written.regulariser_points, 128, 0)?,

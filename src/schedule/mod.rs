@@ -186,6 +186,8 @@ pub struct Schedule {
     /// Samples per ray, without gradients, that locate the surface between the coarse and the
     /// fine samples (`render::Sampling::probe`).
     pub probe_samples_per_ray: usize,
+    /// Probe samples per ray before `early_samples_until` (absent: `probe_samples_per_ray`).
+    pub early_probe_samples_per_ray: usize,
     /// Whether the differentiable pass evaluates the field only where a sample can change a ray
     /// (`render::Sampling::cull`); absent: yes.
     pub cull_samples: bool,
@@ -286,19 +288,28 @@ pub fn check_iterations(n: usize) -> Result<usize, String> {
 impl Schedule {
     /// The fine samples a ray as a table's heading says them: `16 (8 from 1200)`, or `8`.
     pub fn fine_samples_label(&self) -> String {
-        match self.early_samples_until > 0 && self.early_fine_samples_per_ray != self.fine_samples_per_ray {
-            true => format!("{} ({} from {})", self.early_fine_samples_per_ray, self.fine_samples_per_ray, self.early_samples_until),
-            false => self.fine_samples_per_ray.to_string(),
+        self.dropping_label(self.early_fine_samples_per_ray, self.fine_samples_per_ray)
+    }
+
+    /// The probe samples a ray as `fine_samples_label` says the fine ones.
+    pub fn probe_samples_label(&self) -> String {
+        self.dropping_label(self.early_probe_samples_per_ray, self.probe_samples_per_ray)
+    }
+
+    fn dropping_label(&self, early: usize, late: usize) -> String {
+        match self.early_samples_until > 0 && early != late {
+            true => format!("{early} ({late} from {})", self.early_samples_until),
+            false => late.to_string(),
         }
     }
 
     /// How a training step at `iteration` samples its rays.
     pub fn sampling(&self, iteration: usize) -> crate::render::Sampling {
-        let fine = if iteration < self.early_samples_until { self.early_fine_samples_per_ray } else { self.fine_samples_per_ray };
+        let early = iteration < self.early_samples_until;
         crate::render::Sampling {
             coarse: self.samples_per_ray,
-            probe: self.probe_samples_per_ray,
-            fine,
+            probe: if early { self.early_probe_samples_per_ray } else { self.probe_samples_per_ray },
+            fine: if early { self.early_fine_samples_per_ray } else { self.fine_samples_per_ray },
             // Training decodes the albedo at every sample: a sample without weight still tells
             // the geometry, through its colour, whether density there would match the image
             // (dropping them cost human-sun-128 0.8 dB foreground at seed 0).

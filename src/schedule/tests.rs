@@ -171,21 +171,30 @@ fn shipped_ablations_parse_and_differ_from_the_default() {
     assert!(count >= 8, "{count} ablations in {}", folder.display());
 }
 
-/// A step samples the early fine count before `early_samples_until` and the fine count from
-/// it; a schedule that names no early count samples its fine count throughout.
+/// A step samples the early fine and probe counts before `early_samples_until` and the late
+/// ones from it; a schedule that names no early count samples its late count throughout.
 #[test]
-fn the_fine_samples_drop_to_their_late_count_at_early_samples_until() {
+fn the_fine_and_probe_samples_drop_to_their_late_counts_at_early_samples_until() {
     let default = Schedule::parse(DEFAULT, Path::new("x.toml")).unwrap();
     let until = default.early_samples_until;
     assert!(until > 0 && default.early_fine_samples_per_ray != default.fine_samples_per_ray);
     assert_eq!(default.sampling(0).fine, default.early_fine_samples_per_ray);
     assert_eq!(default.sampling(until - 1).fine, default.early_fine_samples_per_ray);
     assert_eq!(default.sampling(until).fine, default.fine_samples_per_ray);
-    // The coarse and probe samples, and so a batch's draws, follow the same count.
-    assert_eq!(default.sampling(until - 1).draws() - default.sampling(until).draws(), default.early_fine_samples_per_ray - default.fine_samples_per_ray);
-    let plain = Schedule::parse("iterations = 100\nfine_samples_per_ray = 12\n[losses]\nmask = 1.0", Path::new("x.toml")).unwrap();
-    assert!([0, 50, 99].iter().all(|&it| plain.sampling(it).fine == 12));
-    assert_eq!(plain.fine_samples_label(), "12");
+    // The probe samples drop with them; the coarse ones stay, and a batch's draws follow.
+    assert!(default.early_probe_samples_per_ray != default.probe_samples_per_ray);
+    assert_eq!(default.sampling(until - 1).probe, default.early_probe_samples_per_ray);
+    assert_eq!(default.sampling(until).probe, default.probe_samples_per_ray);
+    assert_eq!(default.sampling(0).coarse, default.sampling(until).coarse);
+    assert_eq!(
+        default.sampling(until - 1).draws() - default.sampling(until).draws(),
+        default.early_fine_samples_per_ray - default.fine_samples_per_ray + default.early_probe_samples_per_ray - default.probe_samples_per_ray
+    );
+    let plain = Schedule::parse("iterations = 100\nfine_samples_per_ray = 12\nprobe_samples_per_ray = 6\n[losses]\nmask = 1.0", Path::new("x.toml")).unwrap();
+    assert!([0, 50, 99].iter().all(|&it| plain.sampling(it).fine == 12 && plain.sampling(it).probe == 6));
+    assert_eq!((plain.fine_samples_label(), plain.probe_samples_label()), ("12".to_string(), "6".to_string()));
     assert_eq!(default.fine_samples_label(), format!("{} ({} from {until})", default.early_fine_samples_per_ray, default.fine_samples_per_ray));
+    assert_eq!(default.probe_samples_label(), format!("{} ({} from {until})", default.early_probe_samples_per_ray, default.probe_samples_per_ray));
     assert_eq!(error_of("iterations = 10\nearly_fine_samples_per_ray = -1\n[losses]\nmask = 1.0").key, "early_fine_samples_per_ray");
+    assert_eq!(error_of("iterations = 10\nearly_probe_samples_per_ray = 1.5\n[losses]\nmask = 1.0").key, "early_probe_samples_per_ray");
 }
