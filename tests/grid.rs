@@ -1104,3 +1104,55 @@ fn the_devices_grid_ops_are_the_hosts() {
         assert!(scale > 0.1 && worst < 1e-5 * scale, "{what}: the device's ops differ by {worst} (largest {scale})");
     }
 }
+
+/// The plan made with tensor ops on the points' device (`lookup_on_device`, a GPU's) is the
+/// host's (`lookup`): the same bones, rows and root corners, and the same coefficients,
+/// logits, prior and world derivatives to f32 rounding; with the root capped or not, a
+/// level inactive, dense and hashed levels and the root's own table.
+#[test]
+fn the_plan_made_on_the_device_is_the_hosts() {
+    use umbra::field::tensor_lookup::lookup_on_device;
+    let s = setup();
+    let grid = s.config.grid.clone().unwrap();
+    let device = Device::flex();
+    let frames = PoseTensors::new(&s.pose, &s.character.skeleton, &device).frames;
+    let mut pts = points(&s, 300, 9);
+    // Far outside every bone's box (clamped to the grids' borders) and on a bone's axis.
+    pts.push(DVec3::new(3.0, -2.0, 4.0));
+    pts.push(s.pose.to_world(2, DVec3::new(0.0, 0.05, 0.0)));
+    let n = pts.len();
+    let ints = |t: Tensor<1, burn::tensor::Int>| t.into_data().convert::<i64>().try_to_vec::<i64>().unwrap();
+    for (what, skin, inactive) in [("capped root", skinning(&s.config), 8), ("by distance", uncapped(&s.config), 5)] {
+        let mut levels = grid.layout();
+        for level in levels.iter_mut().skip(inactive) {
+            level.active = false;
+        }
+        assert!(levels.iter().any(|l| l.dense) && levels.iter().any(|l| !l.dense));
+        let host = lookup(&grid, &levels, &frames, skin, &flat(&pts), true);
+        let points = Tensor::<2>::from_data(TensorData::new(flat(&pts), [n, 3]), &device);
+        let plan = lookup_on_device(&grid, &levels, &frames, skin, points, true);
+        let bones: Vec<u32> = ints(plan.bones.clone().reshape([n * grid.top()])).iter().map(|&b| b as u32).collect();
+        assert_eq!(bones, host.bones, "{what}: bones");
+        let rows: Vec<u32> = ints(plan.rows.clone()).iter().map(|&r| r as u32).collect();
+        let differ = rows.iter().zip(&host.rows).filter(|(a, b)| a != b).count();
+        assert_eq!(differ, 0, "{what}: {differ} of {} rows differ", rows.len());
+        let root_rows: Vec<u32> = ints(plan.root_rows.clone()).iter().map(|&r| r as u32).collect();
+        assert_eq!(root_rows, host.root_rows, "{what}: root rows");
+        let close = |name: &str, a: Vec<f32>, b: &[f32], tolerance: f32| {
+            assert_eq!(a.len(), b.len(), "{what}: {name}");
+            let scale = b.iter().map(|v| v.abs()).fold(0.0f32, f32::max).max(1e-6);
+            let (at, worst) = a.iter().zip(b).map(|(x, y)| (x - y).abs()).enumerate().fold((0, 0.0f32), |m, (i, d)| if d > m.1 { (i, d) } else { m });
+            assert!(worst <= tolerance * scale, "{what}: {name} differs by {worst} at {at} ({} against {}; largest {scale})", a[at], b[at]);
+        };
+        close("coefficients", values(plan.coefficients.clone()), &host.coefficients, 1e-6);
+        close("coefficient tangents", values(plan.coefficient_tangents.clone().unwrap()), &host.coefficient_tangents, 1e-5);
+        close("logits", values(plan.logits.clone()), &host.logits, 1e-6);
+        close("logit tangents", values(plan.logit_tangents.clone()), &host.logit_tangents, 1e-6);
+        close("root slot", values(plan.root_slot.clone()), &host.root_slot, 0.0);
+        close("root coefficients", values(plan.root_coefficients.clone()), &host.root_coefficients, 1e-6);
+        close("root coefficient tangents", values(plan.root_coefficient_tangents.clone()), &host.root_coefficient_tangents, 1e-5);
+        close("prior", values(plan.prior.clone()), &host.prior, 1e-6);
+        close("prior tangents", values(plan.prior_tangents()), &host.prior_tangents, 1e-5);
+        close("prior slot tangents", values(plan.prior_slot_tangents.clone()), &host.prior_slot_tangents, 1e-5);
+    }
+}

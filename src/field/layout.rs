@@ -285,7 +285,7 @@ pub struct RootTable {
 }
 
 /// instant-NGP's spatial hash's primes for the second and third axes, and one for the bone.
-const HASH_PRIMES: [u32; 3] = [2_654_435_761, 805_459_861, 3_674_653_429];
+pub(super) const HASH_PRIMES: [u32; 3] = [2_654_435_761, 805_459_861, 3_674_653_429];
 
 impl Level {
     /// The table rows of the 8 vertices of the cell whose lowest vertex is `base` in bone
@@ -293,10 +293,7 @@ impl Level {
     /// `row` of each, with each axis's part of the index or hash taken once for both of its
     /// sides rather than once per corner.
     pub fn corner_rows(&self, bone: usize, base: [usize; 3]) -> [usize; 8] {
-        let (offset, dense) = match self.root {
-            Some(root) if root.bone == bone => (root.offset, root.dense),
-            _ => (self.table_offset + if self.dense { self.offsets[bone] } else { 0 }, self.dense),
-        };
+        let (offset, dense) = self.grid_of(bone);
         let mut rows = [0usize; 8];
         if dense {
             let d = self.dims[bone];
@@ -316,6 +313,20 @@ impl Level {
         rows
     }
 
+    /// Where bone `bone`'s grid lies in the table: its first row (a dense grid's vertex 0, a
+    /// hashed one's hash 0) and whether it is dense.
+    pub fn grid_of(&self, bone: usize) -> (usize, bool) {
+        match self.root {
+            Some(root) if root.bone == bone => (root.offset, root.dense),
+            _ => (self.table_offset + if self.dense { self.offsets[bone] } else { 0 }, self.dense),
+        }
+    }
+
+    /// The hash's mask: a hashed grid's rows are its first row plus the hash masked by it.
+    pub fn hash_mask(&self) -> usize {
+        self.table_mask
+    }
+
     /// The table row of vertex `v` of bone `bone`'s grid.
     pub fn row(&self, bone: usize, v: [usize; 3]) -> usize {
         let d = self.dims[bone];
@@ -327,9 +338,7 @@ impl Level {
             h as usize & self.table_mask
         };
         let within_grid = v[0] + d[0] * (v[1] + d[1] * v[2]);
-        match self.root {
-            Some(root) if root.bone == bone => root.offset + if root.dense { within_grid } else { hashed() },
-            _ => self.table_offset + if self.dense { self.offsets[bone] + within_grid } else { hashed() },
-        }
+        let (offset, dense) = self.grid_of(bone);
+        offset + if dense { within_grid } else { hashed() }
     }
 }
