@@ -57,7 +57,7 @@ fn main() {
     println!("untracked lookup (one pass on the host): {fastest:.1} ms");
     for (name, composite) in [("fused op", false), ("composite of tensor ops", true)] {
         let mut grid = field.grid.clone().unwrap();
-        grid.composite = composite;
+        grid.route = if composite { umbra::field::grid::Route::Composite } else { umbra::field::grid::Route::Fused };
         let encode = |tangents: bool| grid.encode(input.clone(), &tensors.frames, skinning, tangents, None);
         let t = Instant::now();
         for _ in 0..repeat {

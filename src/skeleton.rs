@@ -270,10 +270,11 @@ impl MotionIncrement {
     /// small `[B, ..]` ops), so a point's is one row picked and one product with `(x, 1)`: a
     /// handful of `[N, ..]` ops where the cross product row by row took some twenty (and as
     /// many again backward): building half a batch's shift took 3.1 ms, now 2.1-2.4.
-    pub fn motion_of(&self, points: &[f32], slots: usize, bones: Tensor<1, Int>) -> Tensor<2> {
+    pub fn motion_of(&self, points: Tensor<2>, slots: usize, bones: Tensor<1, Int>) -> Tensor<2> {
         let device = self.leaf.device();
         let b = self.heads.dims()[0];
-        let n = points.len() / 3 * slots;
+        let [count, _] = points.dims();
+        let n = count * slots;
         let turns = self.leaf.clone().narrow(0, 0, b);
         let shift = self.leaf.clone().narrow(0, b, 1);
         let e = self.chains.clone().matmul(turns.clone()); // [B, 3]
@@ -287,8 +288,7 @@ impl MotionIncrement {
         }
         let cross: Tensor<2> = Tensor::from_data(TensorData::new(to_cross.to_vec(), [3, 9]), &device);
         let maps = Tensor::cat(vec![e.matmul(cross).reshape([b, 3, 3]), (p.neg() + shift).reshape([b, 3, 1])], 2).reshape([b, 12]);
-        let homogeneous: Vec<f32> = points.chunks_exact(3).flat_map(|x| std::iter::repeat_n([x[0], x[1], x[2], 1.0], slots).flatten()).collect();
-        let homogeneous: Tensor<3> = Tensor::from_data(TensorData::new(homogeneous, [n, 1, 4]), &device);
+        let homogeneous = Tensor::cat(vec![points, Tensor::ones([count, 1], &device)], 1).reshape([count, 1, 4]).expand([count, slots, 4]).reshape([n, 1, 4]);
         (maps.select(0, bones).reshape([n, 3, 4]) * homogeneous).sum_dim(2).reshape([n, 3])
     }
 }

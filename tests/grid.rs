@@ -287,7 +287,7 @@ fn busy_field(config: &FieldConfig, device: &Device, all_active: bool) -> Avatar
         root_preference,
         config: grid.config,
         active_levels: grid.active_levels,
-        composite: false,
+        route: umbra::field::grid::Route::Fused,
     });
     let [i, o] = field.output.weight.val().dims();
     let w: Vec<f32> = (0..i * o).map(|_| (stream.uniform() * 2.0 - 1.0) as f32 * OUTPUT_WEIGHT).collect();
@@ -407,7 +407,7 @@ fn table_gradient_matches_finite_differences() {
                 root_preference: g.root_preference,
                 config: g.config,
                 active_levels: g.active_levels,
-                composite: g.composite,
+                route: g.route,
             });
             per_point(&f)
         };
@@ -586,7 +586,7 @@ fn fused_interpolation_matches_the_composite_and_its_gradient() {
         let weights = Tensor::<2>::from_data(TensorData::new(weights, [4 * n, width]), &device);
         let run = |composite: bool| {
             let mut grid = grid.clone();
-            grid.composite = composite;
+            grid.route = if composite { umbra::field::grid::Route::Composite } else { umbra::field::grid::Route::Fused };
             let f = grid.encode(input(), &pose.frames, skinning(&s.config), true, None);
             let (tangents, _) = f.tangents.unwrap();
             let out = Tensor::cat(vec![f.features, tangents], 0);
@@ -1154,5 +1154,66 @@ fn the_plan_made_on_the_device_is_the_hosts() {
         close("prior", values(plan.prior.clone()), &host.prior, 1e-6);
         close("prior tangents", values(plan.prior_tangents()), &host.prior_tangents, 1e-5);
         close("prior slot tangents", values(plan.prior_slot_tangents.clone()), &host.prior_slot_tangents, 1e-5);
+    }
+}
+
+/// The field's outputs with its grid lookup on `route`: the SDF of points carrying a motion and
+/// a view increment, weighted and summed; the table's, the root preference's and both
+/// increments' gradients; the SDF's spatial gradient (the tangents) and the SDF without
+/// gradients.
+fn outputs_by_route(route: umbra::field::grid::Route, field: &AvatarField, s: &Setup, pts: &[DVec3]) -> Vec<(&'static str, Vec<f32>)> {
+    use umbra::skeleton::{MotionIncrement, ViewIncrement};
+    let device = Device::flex().autodiff();
+    let mut field = field.clone();
+    field.grid.as_mut().unwrap().route = route;
+    let n = pts.len();
+    let mut tensors = PoseTensors::new(&s.pose, &s.character.skeleton, &device);
+    tensors.motion = Some(MotionIncrement::new(&s.character.skeleton, &s.pose, &device));
+    let origins: Vec<f32> = (0..n).flat_map(|k| [0.3 * (k % 3) as f32, 1.0, -2.5]).collect();
+    let rows: Vec<u32> = (0..n as u32).map(|k| k % 2).collect();
+    let view = ViewIncrement::new(2, 0.01, &device);
+    let along = view.along(&rows, origins);
+    let input = || Tensor::<2>::from_data(TensorData::new(flat(pts), [n, 3]), &device);
+    let mut stream = Stream::new(4, 4, 0);
+    let w: Vec<f32> = (0..n).map(|_| (stream.uniform() * 2.0 - 1.0) as f32).collect();
+    let weights = Tensor::<1>::from_data(TensorData::new(w, [n]), &device);
+    let grid = field.grid.as_ref().unwrap();
+    let features = grid.encode_carrying(input(), &tensors.frames, s.config.skinning(), false, tensors.motion.as_ref(), Some(&along));
+    let sdf = field.decode(input(), &tensors).sdf;
+    let loss = (sdf.clone() * weights.clone()).sum() + (features.features * 0.1).sum() + (features.prior * weights).sum();
+    let grads = loss.backward();
+    let grid = field.grid.as_ref().unwrap();
+    let plain = PoseTensors::new(&s.pose, &s.character.skeleton, &device);
+    let (_, normal) = field.sdf_and_gradient(input(), &plain);
+    vec![
+        ("sdf", values(sdf.inner())),
+        ("table gradient", values(grid.table.grad(&grads).expect("the table is in the graph"))),
+        ("root preference gradient", values(grid.root_preference.as_ref().unwrap().grad(&grads).expect("the preference is in the graph"))),
+        ("motion gradient", values(tensors.motion.as_ref().unwrap().leaf.grad(&grads).expect("the motion is in the graph"))),
+        ("view gradient", values(view.leaf.grad(&grads).expect("the view is in the graph"))),
+        ("sdf gradient", values(normal)),
+        ("sdf without gradients", values(field.valid().decode(input().inner(), &plain).sdf)),
+    ]
+}
+
+/// The lookup by tensor ops alone, planned on the device as a GPU runs it (`Route::Tensors`),
+/// and the composite of the host's plan (`Route::Composite`) give the fused op's values and
+/// gradients (to the table, the root's preference, a carried motion and view), its tangents
+/// and its lookup without gradients, on the CPU.
+#[test]
+fn the_lookup_by_tensor_ops_is_the_fused_lookup() {
+    use umbra::field::grid::Route;
+    let s = setup();
+    let field = busy_field(&s.config, &Device::flex().autodiff(), true);
+    let pts = points(&s, 240, 12);
+    let fused = outputs_by_route(Route::Fused, &field, &s, &pts);
+    for route in [Route::Tensors, Route::Composite] {
+        for ((what, a), (_, b)) in outputs_by_route(route, &field, &s, &pts).iter().zip(&fused) {
+            assert_eq!(a.len(), b.len(), "{route:?} {what}");
+            let scale = b.iter().map(|v| v.abs()).fold(0.0f32, f32::max);
+            let worst = a.iter().zip(b).map(|(x, y)| (x - y).abs()).fold(0.0f32, f32::max);
+            assert!(scale > 1e-6, "{what}: nothing to compare");
+            assert!(worst <= 1e-5 * scale, "{route:?} {what}: differs by {worst} (largest {scale})");
+        }
     }
 }

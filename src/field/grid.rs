@@ -39,10 +39,23 @@ pub struct FeatureGrid {
     /// trainer sets it for a coarse-to-fine schedule, all of them otherwise.
     #[module(skip)]
     pub active_levels: f32,
-    /// How the lookup runs: the fused op (default) or, for comparison, the composite of tensor
-    /// ops it replaced.
+    /// How the lookup runs (`Route`).
     #[module(skip)]
-    pub composite: bool,
+    pub route: Route,
+}
+
+/// How a grid lookup runs.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum Route {
+    /// The CPU backends plan on the host and sum by the fused op (`interpolate`); a device
+    /// that keeps its tensors (a GPU) plans and sums by tensor ops (`Tensors`).
+    #[default]
+    Fused,
+    /// The host's plan sent up and summed by tensor ops: the composite the fused op replaced
+    /// (the step benchmark's "before", and the fused op's reference).
+    Composite,
+    /// Planned and summed by tensor ops on any device, as a GPU runs it.
+    Tensors,
 }
 
 /// Points `[N, 3]` on the host, and N (NaN-filled if the backend cannot give them, which the fit
@@ -89,7 +102,7 @@ impl FeatureGrid {
     }
 
     /// The layout with each level marked active or not (coarse to fine).
-    fn active_layout(&self) -> Vec<Level> {
+    pub(super) fn active_layout(&self) -> Vec<Level> {
         let mut levels = self.config.layout();
         for (l, level) in levels.iter_mut().enumerate() {
             level.active = (l as f32) < self.active_levels;
@@ -98,7 +111,7 @@ impl FeatureGrid {
     }
 
     /// Each level's weight: levels beyond `active_levels` are faded out (coarse to fine).
-    fn fade(&self) -> Vec<f32> {
+    pub(super) fn fade(&self) -> Vec<f32> {
         (0..self.config.levels).map(|l| (self.active_levels - l as f32).clamp(0.0, 1.0)).collect()
     }
 
@@ -122,18 +135,24 @@ impl FeatureGrid {
         let device = points.device();
         let tracked = self.table.val().is_require_grad();
         let view = view.filter(|v| v.points() == points.dims()[0]);
-        if (motion.is_some() || view.is_some()) && !tangents && tracked && !self.composite {
+        let route = match self.route {
+            Route::Fused if !crate::backend::on_host(&device) => Route::Tensors,
+            route => route,
+        };
+        if route != Route::Fused {
+            return self.encode_by_tensors(points, frames, skinning, tangents, motion, view, route == Route::Composite);
+        }
+        if (motion.is_some() || view.is_some()) && !tangents && tracked {
             return self.encode_moving(points, frames, skinning, motion, view);
         }
-        // On a GPU the table stays there: the plan goes up and the sums run on the device.
-        if !tangents && !self.composite && !tracked && crate::backend::on_host(&device) {
+        if !tangents && !tracked {
             return self.encode_without_gradients(points, frames, skinning);
         }
         let (plan, n) = self.plan(points, frames, skinning, tangents);
-        let (per_bone, per_bone_tangents, plan) =
-            if self.composite { self.interpolate_composite(plan, n, tangents) } else { self.interpolate_fused(plan, n, tangents, None) };
+        let (per_bone, per_bone_tangents, plan) = self.interpolate_fused(plan, n, tangents, None);
         let prior = Tensor::from_data(TensorData::new(plan.prior.clone(), [n]), &device);
-        let (features, feature_tangents) = self.blend(&plan, n, per_bone, per_bone_tangents, None, &device);
+        let skin = self.skin_of(&plan, n, tangents, &device);
+        let (features, feature_tangents) = self.blend(skin, n, per_bone, per_bone_tangents, None);
         let tangents = feature_tangents.map(|t| {
             let prior_tangents: Tensor<2> = Tensor::from_data(TensorData::new(plan.prior_tangents, [n, 3]), &device);
             (t, prior_tangents.transpose())
@@ -166,25 +185,12 @@ impl FeatureGrid {
         let mut plan = lookup_carried(&self.config, &levels, frames, skinning, &values);
         let k = self.config.top();
         let bones = frames.len();
-        // Rows of `[N, 3]` once per chosen bone (`[N K, 3]`); each point's motion in each.
-        let per_slot = |rows: Tensor<2>| rows.reshape([n, 1, 3]).expand([n, k, 3]).reshape([n * k, 3]);
-        let moved_by = |motion: &MotionIncrement| {
-            let chosen: Vec<i64> = plan.bones.iter().map(|&b| (b as usize).min(bones.saturating_sub(1)) as i64).collect();
-            motion.motion_of(&values, k, Tensor::<1, Int>::from_data(TensorData::new(chosen, [n * k]), &device))
-        };
-        let shift = match (motion, view) {
-            (Some(motion), Some(view)) => per_slot(view.seen_shift(points.clone())) - moved_by(motion),
-            (Some(motion), None) => moved_by(motion).neg(),
-            (None, Some(view)) => per_slot(view.seen_shift(points.clone())),
-            (None, None) => Tensor::zeros([n * k, 3], &device),
-        }
-        .reshape([n, k, 3]);
+        let chosen: Vec<i64> = plan.bones.iter().map(|&b| (b as usize).min(bones.saturating_sub(1)) as i64).collect();
+        let shift = carried_shift(points, k, Tensor::<1, Int>::from_data(TensorData::new(chosen, [n * k]), &device), motion, view);
         let slot_tangents = |values: &[f32]| Tensor::<3>::from_data(TensorData::new(values.to_vec(), [n, k, 3]), &device);
-        let logit_shift = (slot_tangents(&plan.logit_tangents) * shift.clone()).sum_dim(2).reshape([n, k]);
-        let prior_shift = (slot_tangents(&plan.prior_slot_tangents) * shift.clone()).sum_dim(2).sum_dim(1).reshape([n]);
+        let root_slot = Tensor::from_data(TensorData::new(plan.root_slot.clone(), [n, k]), &device);
+        let (logit_shift, prior_shift, root_shift) = carried_terms(&shift, slot_tangents(&plan.logit_tangents), slot_tangents(&plan.prior_slot_tangents), root_slot);
         let prior = Tensor::<1>::from_data(TensorData::new(plan.prior.clone(), [n]), &device) + prior_shift;
-        let root_slot: Tensor<3> = Tensor::from_data(TensorData::new(plan.root_slot.clone(), [n, k, 1]), &device);
-        let root_shift = (shift.clone() * root_slot).sum_dim(1).reshape([n, 3]);
         let carried = super::plan::Carried {
             slots: k,
             levels: self.config.levels,
@@ -193,7 +199,8 @@ impl FeatureGrid {
             per_cell: levels.iter().map(|level| 1.0 / level.cell).collect(),
         };
         let (per_bone, _, plan) = self.interpolate_fused(plan, n, false, Some((shift.reshape([n, 3 * k]), carried)));
-        let (features, _) = self.blend(&plan, n, per_bone, None, Some((logit_shift, root_shift)), &device);
+        let skin = self.skin_of(&plan, n, true, &device);
+        let (features, _) = self.blend(skin, n, per_bone, None, Some((logit_shift, root_shift)));
         GridFeatures { features, prior, tangents: None }
     }
 
@@ -236,55 +243,10 @@ impl FeatureGrid {
         (per_bone, per_bone_tangents, plan)
     }
 
-    /// The same by a composite of tensor ops (`select` of every corner's row, a product and a
-    /// sum): the reference the fused op is tested against, and the step benchmark's "before".
-    #[allow(clippy::type_complexity)]
-    fn interpolate_composite(&self, plan: Lookup, n: usize, tangents: bool) -> (Tensor<2>, Option<Tensor<2>>, Lookup) {
-        let device = self.table.val().device();
-        let config = &self.config;
-        let groups = config.top() * config.levels;
-        let f = config.features;
-        let m = plan.rows.len();
-        let rows_index: Tensor<1, Int> = Tensor::from_data(TensorData::new(plan.rows.iter().map(|&r| r as i64).collect::<Vec<_>>(), [m]), &device);
-        let rows = self.table.val().select(0, rows_index); // [M, F]
-        let coefficients: Tensor<2> = Tensor::from_data(TensorData::new(plan.coefficients.clone(), [m, 1]), &device);
-        let fade: Vec<f32> = self.fade().into_iter().cycle().take(groups).flat_map(|w| std::iter::repeat_n(w, f)).collect();
-        let fade: Tensor<2> = Tensor::from_data(TensorData::new(fade, [1, groups * f]), &device);
-        let per_bone = (rows.clone() * coefficients).reshape([n, groups, 8, f]).sum_dim(2).reshape([n, groups * f]) * fade.clone();
-        let per_bone_tangents = tangents.then(|| {
-            let d: Tensor<2> = Tensor::from_data(TensorData::new(plan.coefficient_tangents.clone(), [m, 3]), &device);
-            let d = d.transpose().reshape([3, m, 1]);
-            (rows.unsqueeze_dim::<3>(0) * d).reshape([3 * n, groups, 8, f]).sum_dim(2).reshape([3 * n, groups * f]) * fade
-        });
-        (per_bone, per_bone_tangents, plan)
-    }
-
-    /// The features (`[N, W]`) as the chosen bones' features weighted by the skinning: a
-    /// softmax of the planned logits (plus `logit_shift`, when the points carry a shift) plus the
-    /// root's learned preference; and their tangents (`[3N, W]`), through the weights'
-    /// gradients too.
-    fn blend(
-        &self,
-        plan: &Lookup,
-        n: usize,
-        per_bone: Tensor<2>,
-        per_bone_tangents: Option<Tensor<2>>,
-        carried: Option<(Tensor<2>, Tensor<2>)>,
-        device: &Device,
-    ) -> (Tensor<2>, Option<Tensor<2>>) {
-        let config = &self.config;
-        let (k, w) = (config.top(), config.width());
-        let logits: Tensor<2> = Tensor::from_data(TensorData::new(plan.logits.clone(), [n, k]), device);
-        // A carried shift: the logits' (`[N, K]`) and the root's lookup's (`[N, 3]`).
-        let (logits, root_shift) = match carried {
-            Some((logit_shift, root_shift)) => (logits + logit_shift, Some(root_shift)),
-            None => (logits, None),
-        };
-        let root_slot: Tensor<2> = Tensor::from_data(TensorData::new(plan.root_slot.clone(), [n, k]), device);
-        let tangents = per_bone_tangents.is_some();
-        // The preference's world gradient, for its tangents or to carry the root's shift.
-        let preference_tangents = tangents || root_shift.is_some();
-        // The root's preference at each point (and its gradient), by the same fused op.
+    /// What the host's plan blends with (`Skin`), up on the table's device; the root's
+    /// preference by the fused op, with its world gradients when `preference_tangents`.
+    fn skin_of(&self, plan: &Lookup, n: usize, preference_tangents: bool, device: &Device) -> Skin {
+        let k = self.config.top();
         let preference = self.root_preference.as_ref().map(|table| {
             let lookup = super::plan::Plan {
                 points: n,
@@ -300,6 +262,28 @@ impl FeatureGrid {
             };
             super::interpolate::interpolate(table.val(), lookup)
         });
+        let logit_tangents = (!plan.logit_tangents.is_empty()).then(|| Tensor::<2>::from_data(TensorData::new(plan.logit_tangents.clone(), [n * k, 3]), device));
+        Skin {
+            logits: Tensor::from_data(TensorData::new(plan.logits.clone(), [n, k]), device),
+            logit_tangents,
+            root_slot: Tensor::from_data(TensorData::new(plan.root_slot.clone(), [n, k]), device),
+            preference,
+        }
+    }
+
+    /// The features (`[N, W]`) as the chosen bones' features weighted by the skinning: a
+    /// softmax of the planned logits (plus `logit_shift`, when the points carry a shift) plus the
+    /// root's learned preference; and their tangents (`[3N, W]`), through the weights'
+    /// gradients too.
+    pub(super) fn blend(&self, skin: Skin, n: usize, per_bone: Tensor<2>, per_bone_tangents: Option<Tensor<2>>, carried: Option<(Tensor<2>, Tensor<2>)>) -> (Tensor<2>, Option<Tensor<2>>) {
+        let config = &self.config;
+        let (k, w) = (config.top(), config.width());
+        let Skin { logits, logit_tangents, root_slot, preference } = skin;
+        // A carried shift: the logits' (`[N, K]`) and the root's lookup's (`[N, 3]`).
+        let (logits, root_shift) = match carried {
+            Some((logit_shift, root_shift)) => (logits + logit_shift, Some(root_shift)),
+            None => (logits, None),
+        };
         let logits = match (&preference, root_shift) {
             (Some(p), Some(shift)) => {
                 let along = (p.clone().slice([n..4 * n, 0..1]).reshape([3, n]).transpose() * shift).sum_dim(1);
@@ -312,7 +296,8 @@ impl FeatureGrid {
         let per_bone = per_bone.reshape([n, k, w]);
         let features = (per_bone.clone() * weights.clone().reshape([n, k, 1])).sum_dim(1).reshape([n, w]);
         let feature_tangents = per_bone_tangents.map(|d_per_bone| {
-            let d_logits: Tensor<3> = Tensor::<2>::from_data(TensorData::new(plan.logit_tangents.clone(), [n * k, 3]), device).transpose().reshape([3, n, k]);
+            let device = d_per_bone.device();
+            let d_logits = logit_tangents.unwrap_or_else(|| Tensor::zeros([n * k, 3], &device)).transpose().reshape([3, n, k]);
             let d_logits = match &preference {
                 Some(p) => d_logits + root_slot.unsqueeze_dim::<3>(0) * p.clone().slice([n..4 * n, 0..1]).reshape([3, n, 1]),
                 None => d_logits,
@@ -325,6 +310,46 @@ impl FeatureGrid {
         });
         (features, feature_tangents)
     }
+}
+
+/// What the skinning blends a point's bones with: the logits (`[N, K]`) with their world
+/// gradients (`[N K, 3]`, when planned), the root's slot (`[N, K]`, 1 where the root is) and
+/// the root's learned preference at each point (`[N, 1]`, or `[4N, 1]` with its world
+/// gradients axis-major after it).
+pub(super) struct Skin {
+    pub(super) logits: Tensor<2>,
+    pub(super) logit_tangents: Option<Tensor<2>>,
+    pub(super) root_slot: Tensor<2>,
+    pub(super) preference: Option<Tensor<2>>,
+}
+
+/// The shift a carried lookup of `points` (`[N, 3]`) makes in each of its `k` chosen bones
+/// (`bones`, `[N K]`): `[N, K, 3]`, where the moved camera sees the point (`view`, in every bone
+/// alike) less its bone's motion (`motion`), zero in value.
+pub(super) fn carried_shift(points: Tensor<2>, k: usize, bones: Tensor<1, Int>, motion: Option<&MotionIncrement>, view: Option<&ViewIncrement>) -> Tensor<3> {
+    let [n, _] = points.dims();
+    // Rows of `[N, 3]` once per chosen bone (`[N K, 3]`); each point's motion in each.
+    let per_slot = |rows: Tensor<2>| rows.reshape([n, 1, 3]).expand([n, k, 3]).reshape([n * k, 3]);
+    let moved_by = |motion: &MotionIncrement| motion.motion_of(points.clone().detach(), k, bones.clone());
+    match (motion, view) {
+        (Some(motion), Some(view)) => per_slot(view.seen_shift(points.clone())) - moved_by(motion),
+        (Some(motion), None) => moved_by(motion).neg(),
+        (None, Some(view)) => per_slot(view.seen_shift(points.clone())),
+        (None, None) => Tensor::zeros([n * k, 3], &points.device()),
+    }
+    .reshape([n, k, 3])
+}
+
+/// What a carried `shift` (`[N, K, 3]`) moves besides the corners, through the planned world
+/// gradients: the logits (`[N, K]`, from `logit_tangents` `[N, K, 3]`), the capsule prior (`[N]`,
+/// from `prior_slot_tangents`) and the root's preference lookup (`[N, 3]`, the root's slot's
+/// shift).
+pub(super) fn carried_terms(shift: &Tensor<3>, logit_tangents: Tensor<3>, prior_slot_tangents: Tensor<3>, root_slot: Tensor<2>) -> (Tensor<2>, Tensor<1>, Tensor<2>) {
+    let [n, k, _] = shift.dims();
+    let logit_shift = (logit_tangents * shift.clone()).sum_dim(2).reshape([n, k]);
+    let prior_shift = (prior_slot_tangents * shift.clone()).sum_dim(2).sum_dim(1).reshape([n]);
+    let root_shift = (shift.clone() * root_slot.reshape([n, k, 1])).sum_dim(1).reshape([n, 3]);
+    (logit_shift, prior_shift, root_shift)
 }
 
 impl GridConfig {
@@ -343,7 +368,7 @@ impl GridConfig {
             root_preference,
             config: self.clone(),
             active_levels: self.levels as f32,
-            composite: false,
+            route: Route::Fused,
         }
     }
 }

@@ -225,7 +225,7 @@ impl Trainer {
     /// step benchmark's comparison; a no-op for the `mlp` field).
     pub fn set_composite_lookup(&mut self, composite: bool) {
         if let Some(grid) = self.state.as_mut().and_then(|s| s.model.field.grid.as_mut()) {
-            grid.composite = composite;
+            grid.route = if composite { crate::field::grid::Route::Composite } else { crate::field::grid::Route::Fused };
         }
     }
 
