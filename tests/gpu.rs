@@ -233,3 +233,30 @@ fn a_missing_device_is_refused_before_anything_is_written() {
     assert!(stderr.contains("error: the wgpu backend found no usable device") && stderr.contains("mesa-vulkan-drivers"), "{stderr}");
     assert!(!run.exists(), "nothing written");
 }
+
+/// A lookup on the device is planned and summed there: with tangents, carrying a motion
+/// increment and without gradients, no values come down to the host. The composite of the
+/// host's plan, for contrast, reads each lookup's points.
+#[test]
+fn a_lookup_on_the_device_reads_nothing_back() {
+    use umbra::field::grid::Route;
+    let character = Character::new(Kind::Human);
+    let pose = character.pose(0.3, 0.2, DVec3::new(0.05, 0.0, -0.1));
+    let device = Backend::Wgpu.device();
+    let field = busy_field(&character, &pose).fork(&device);
+    let skinning = field.config.skinning();
+    let mut tensors = PoseTensors::new(&pose, &character.skeleton, &device);
+    tensors.motion = Some(MotionIncrement::new(&character.skeleton, &pose, &device));
+    let points = Tensor::<2>::from_data(TensorData::new((0..90).map(|k| ((k * 37) % 100) as f32 * 0.01 - 0.5).collect::<Vec<_>>(), [30, 3]), &device);
+    let reads = |grid: &umbra::field::grid::FeatureGrid| {
+        let before = umbra::backend::reads_to_host();
+        let _ = grid.encode(points.clone(), &tensors.frames, skinning, true, None);
+        let _ = grid.encode(points.clone(), &tensors.frames, skinning, false, tensors.motion.as_ref());
+        let _ = grid.clone().valid().encode(points.clone().inner(), &tensors.frames, skinning, false, None);
+        umbra::backend::reads_to_host() - before
+    };
+    let mut grid = field.grid.clone().unwrap();
+    assert_eq!(reads(&grid), 0, "the device's lookups read nothing back");
+    grid.route = Route::Composite;
+    assert!(reads(&grid) >= 3, "the host's plan reads each lookup's points");
+}

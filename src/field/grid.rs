@@ -9,14 +9,15 @@
 //! segment, renormalised over those bones), trilinearly in each level, and the weighted
 //! corners summed into `levels x features` values that a small MLP decodes.
 //!
-//! The lookup is planned on the CPU (`lookup`): which table rows, with which coefficient
+//! On the CPU backends the lookup is planned on the host (`lookup`): which table rows, with which coefficient
 //! (skinning weight x trilinear weight) and, when asked, the coefficient's exact derivative
 //! along the three world axes, so the features' spatial tangents are closed form and the SDF
 //! gradient stays exact. The tensor side is then one fused op (`interpolate`) whose backward
 //! scatters into the table. The sample points are constants of the plan: gradients reach the
 //! table, not the points. Where nothing is differentiated (a ray's search for the body, most of
 //! a step's points, and every lookup of a render) the plan is never stored: each point's
-//! corners are summed as they are found (`features_on_host`).
+//! corners are summed as they are found (`features_on_host`). A device that keeps its tensors
+//! (a GPU) plans and sums the same lookup with tensor ops instead (`Route`, `tensor_encode`).
 
 use burn::module::{Module, Param};
 use burn::tensor::{Device, Int, Tensor, TensorData};

@@ -8,8 +8,9 @@
 //! scatters the output's gradient into the table once. A lookup nobody differentiates skips the
 //! plan altogether (`grid_lookup`: skinning, corners and sums in one pass per point). The CPU
 //! backends (flex, ndarray) run both on the host (the plan's arithmetic, `plan`), flex lending
-//! its tensors' memory without a copy; the device runs its own (`on_device`) behind the same
-//! trait. This file holds the op: the trait, its autodiff backward and the host's plumbing.
+//! its tensors' memory without a copy. A device that keeps its tensors (a GPU) never calls the
+//! op: it plans and sums with tensor ops (`tensor_encode`). This file holds the op: the trait,
+//! its autodiff backward and the host's plumbing.
 // burn-ndarray is deprecated upstream but stays our `--backend ndarray`.
 #![allow(deprecated)]
 
@@ -22,8 +23,6 @@ use burn::backend::autodiff::checkpoint::strategy::CheckpointStrategy;
 use burn::backend::autodiff::grads::Gradients;
 use burn::backend::autodiff::ops::{binary, unary, Backward, Ops, OpsKind};
 use burn::backend::tensor::FloatTensor;
-#[cfg(feature = "gpu")]
-use burn::backend::Cube;
 use burn::backend::{backend_extension, Autodiff, AutodiffBackend, Backend, Dispatch, Flex, NdArray, TensorMetadata};
 use burn::tensor::{Tensor, TensorData};
 use std::sync::Arc;
@@ -52,10 +51,6 @@ pub(super) trait HostValues: Backend {
 }
 
 impl HostValues for NdArray {}
-
-/// The lookup without gradients brings the device's table down and its features up.
-#[cfg(feature = "gpu")]
-impl HostValues for Cube {}
 
 impl HostValues for Flex {
     fn with_host<R>(tensor: FloatTensor<Self>, f: impl FnOnce(&[f32]) -> R) -> R {
@@ -113,7 +108,7 @@ impl HostLookup {
 }
 
 /// The interpolation op; `Autodiff` adds its analytic backward.
-#[backend_extension(Flex, NdArray, Cube: cfg(feature = "gpu"), Autodiff)]
+#[backend_extension(Flex, NdArray, Autodiff)]
 pub trait GridOps: Backend {
     /// `[output_rows, levels x features]`: the plan's weighted sums of `table`'s rows.
     fn grid_interpolate(table: FloatTensor<Self>, plan: Arc<Plan>) -> FloatTensor<Self>;
@@ -130,8 +125,8 @@ pub trait GridOps: Backend {
     fn grid_shift_backward(grad: FloatTensor<Self>, table: FloatTensor<Self>, plan: Arc<Plan>) -> FloatTensor<Self>;
 }
 
-/// `GridOps` for `$backend` by its `forward`, `backward` and `shift_backward` (the host's here,
-/// the device's in `on_device`); the lookup without gradients runs on the host.
+/// `GridOps` for `$backend` by its `forward`, `backward` and `shift_backward`; the lookup
+/// without gradients runs on the host.
 macro_rules! grid_ops {
     ($backend:ty, $forward:path, $backward:path, $shift_backward:path) => {
         impl $crate::field::interpolate::GridOps for $backend {
@@ -161,9 +156,6 @@ macro_rules! grid_ops {
         }
     };
 }
-// Used by `on_device` in the GPU build.
-#[cfg_attr(not(feature = "gpu"), allow(unused_imports))]
-pub(super) use grid_ops;
 
 grid_ops!(Flex, forward_on_host::<Flex>, backward_on_host::<Flex>, shift_backward_on_host::<Flex>);
 grid_ops!(NdArray, forward_on_host::<NdArray>, backward_on_host::<NdArray>, shift_backward_on_host::<NdArray>);

@@ -16,7 +16,6 @@ pub mod host_lookup;
 pub mod interpolate;
 pub mod layout;
 pub mod lookup;
-pub mod on_device;
 pub mod tensor_encode;
 pub mod tensor_lookup;
 pub mod plan;

@@ -70,25 +70,6 @@ impl Carried {
         });
         (raw.map(|v| if v < 2.0 { v } else { v - 2.0 }), rows)
     }
-
-    /// Each corner coefficient's world derivative (`[P, 3]`, as `Plan::tangents`): what a device
-    /// multiplies out where the host contracts the corners first (`Plan::shift_backward`).
-    pub fn per_corner(&self, plan: &Plan) -> Vec<f32> {
-        let mut out = vec![0.0f32; plan.rows.len() * 3];
-        for i in 0..plan.points {
-            for g in 0..plan.levels {
-                let (f, rows) = self.cell(i, g);
-                for k in 0..plan.corners {
-                    let slopes = corner_slopes(f, k);
-                    let at = ((i * plan.levels + g) * plan.corners + k) * 3;
-                    for x in 0..3 {
-                        out[at + x] = (0..3).map(|m| slopes[m] * rows[m][x]).sum();
-                    }
-                }
-            }
-        }
-        out
-    }
 }
 
 impl Plan {
