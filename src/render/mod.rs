@@ -18,6 +18,7 @@ use glam::DVec3;
 mod locate;
 mod parts;
 mod samples;
+mod search_tensors;
 
 use locate::*;
 pub use parts::{render_in_parts, sum_gradients, Parts};
@@ -353,20 +354,44 @@ pub fn render(
     normals: Option<GradientMethod>,
     device: &Device,
 ) -> Deferred {
+    render_searching(field, pose, rays, sampling, jitter, normals, device, !crate::backend::on_host(device))
+}
+
+/// `render`, its surface search run by tensor ops on the device (`search_tensors`) when
+/// `on_device`, and then its differentiable pass over every sample (a culled pass would read
+/// the search's densities back to choose its samples).
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn render_searching(
+    field: &AvatarField,
+    pose: &PoseTensors,
+    rays: &RaySet,
+    sampling: Sampling,
+    jitter: &[f32],
+    normals: Option<GradientMethod>,
+    device: &Device,
+    on_device: bool,
+) -> Deferred {
     let start = std::time::Instant::now();
     let r = rays.len();
     let (origins, directions) = ray_tensors(rays, device);
-    let want = if sampling.cull { Want::Culled } else { Want::Samples };
-    let Located { samples, density: searched, kept, .. } = locate(field, pose, rays, &origins, &directions, sampling, jitter, want);
-    let located = start.elapsed().as_secs_f64();
     let s = sampling.total();
-    let t = Tensor::<2>::from_data(TensorData::new(samples.t.clone(), [r, s]), device);
-    let delta = Tensor::<2>::from_data(TensorData::new(samples.delta.clone(), [r, s]), device);
+    // The samples, and for a culled pass those it keeps, their distances and the search's densities.
+    let (t, delta, culled) = if on_device {
+        let found = search_tensors::search_by_tensors(field, pose, rays, &origins, &directions, sampling, jitter);
+        (found.t, found.delta, None)
+    } else {
+        let want = if sampling.cull { Want::Culled } else { Want::Samples };
+        let Located { samples, density: searched, kept, .. } = locate(field, pose, rays, &origins, &directions, sampling, jitter, want);
+        let t = Tensor::<2>::from_data(TensorData::new(samples.t.clone(), [r, s]), device);
+        let delta = Tensor::<2>::from_data(TensorData::new(samples.delta, [r, s]), device);
+        (t, delta, kept.map(|kept| (kept, samples.t, searched)))
+    };
+    let located = start.elapsed().as_secs_f64();
     let points = sample_points(&origins, &directions, &t);
-    let (weights, albedo, density, evaluated) = match kept {
-        Some(kept) => {
+    let (weights, albedo, density, evaluated) = match culled {
+        Some((kept, host_t, searched)) => {
             let along = rays.pose_along(pose, s, kept.iter().copied());
-            let (weights, albedo, density) = culled_pass(field, &along, rays, &samples.t, &kept, delta, device);
+            let (weights, albedo, density) = culled_pass(field, &along, rays, &host_t, &kept, delta, device);
             // The density-fit and regulariser points are drawn from every sample: a culled
             // one's density (detached there) is the search's.
             let mut left_out: Vec<f32> = searched.iter().map(|&d| if d.is_finite() { d } else { 0.0 }).collect();

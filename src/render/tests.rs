@@ -126,3 +126,76 @@ fn host_weights_match_the_differentiable_compositing() {
         assert!((a - b).abs() < 1e-6, "{a} vs {b}");
     }
 }
+
+/// A two-bone body with a sharp surface and rays through it and beside it, each ray's bounds
+/// shifted a little so that rays cross the body between samples.
+fn two_bones(device: &Device) -> (AvatarField, PoseTensors, RaySet) {
+    use crate::skeleton::{Bone, Pose, Skeleton};
+    use glam::{DMat4, DQuat};
+    let skeleton =
+        Skeleton { bones: vec![Bone { name: "spine".into(), parent: None, length: 0.5 }, Bone { name: "arm".into(), parent: Some(0), length: 0.3 }] };
+    let pose = Pose { bone_to_world: vec![DMat4::IDENTITY, DMat4::from_rotation_translation(DQuat::from_rotation_z(1.2), DVec3::new(0.0, 0.4, 0.0))] };
+    let mut field = crate::field::FieldConfig::with_grid(vec![0.5, 0.3], 1.0).init(device, 3);
+    field.beta_raw = burn::module::Param::from_tensor(Tensor::from_data(TensorData::new(vec![-1e3f32], [1]), device));
+    let tensors = PoseTensors::new(&pose, &skeleton, device);
+    let eye = DVec3::new(0.1, 0.3, 2.0);
+    let mut rays = RaySet::default();
+    for k in 0..96 {
+        let target = DVec3::new(-0.5 + (k % 8) as f64 / 7.0, -0.2 + (k / 8 % 8) as f64 / 7.0, 0.0);
+        rays.push(eye, (target - eye).normalize(), Some((1.0 + (k / 64) as f64 * 0.013, 3.0)));
+    }
+    (field, tensors, rays)
+}
+
+/// The surface search by tensor ops (a GPU's) draws the host's samples: the same coarse
+/// strata, probes and fine samples, merged in the same order.
+#[test]
+fn the_search_by_tensor_ops_draws_the_hosts_samples() {
+    let device = Device::flex();
+    let (field, pose, rays) = two_bones(&device);
+    let r = rays.len();
+    let (origins, directions) = ray_tensors(&rays, &device);
+    for sampling in [Sampling { coarse: 24, probe: 16, fine: 16, albedo_floor: 0.0, cull: false }, Sampling { coarse: 12, probe: 0, fine: 8, albedo_floor: 0.0, cull: false }] {
+        let mut stream = crate::random::Stream::new(5, 2, 0);
+        let jitter: Vec<f32> = (0..r * sampling.draws()).map(|_| stream.uniform() as f32).collect();
+        let host = locate(&field, &pose, &rays, &origins, &directions, sampling, &jitter, Want::Samples).samples;
+        let tensors = search_tensors::search_by_tensors(&field, &pose, &rays, &origins, &directions, sampling, &jitter);
+        let read = |t: Tensor<2>| t.into_data().convert::<f32>().try_to_vec::<f32>().unwrap();
+        for (what, a, b) in [("t", read(tensors.t.clone()), &host.t), ("lo", read(tensors.lo.clone()), &host.lo), ("delta", read(tensors.delta.clone()), &host.delta)] {
+            assert_eq!(a.len(), b.len(), "{what}");
+            let worst = a.iter().zip(b).map(|(x, y)| (x - y).abs()).fold(0.0f32, f32::max);
+            assert!(worst < 1e-5, "{sampling:?} {what}: differs by {worst}");
+        }
+        // The fine samples sit where the body is: the search found something to refine.
+        let spread = |t: &[f32]| t.windows(2).map(|w| w[1] - w[0]).fold(f32::INFINITY, f32::min);
+        assert!(spread(&host.t[..sampling.total()]) < 0.01, "samples crowd a surface");
+    }
+}
+
+/// A render whose search runs by tensor ops, its differentiable pass over every sample, gives
+/// the host's render, culled or not: coverage, depth, albedo and normals.
+#[test]
+fn a_render_searched_by_tensor_ops_is_the_hosts_render() {
+    let device = Device::flex().autodiff();
+    let (field, pose, rays) = two_bones(&device);
+    let r = rays.len();
+    let mut stream = crate::random::Stream::new(8, 2, 0);
+    for cull in [false, true] {
+        let sampling = Sampling { coarse: 24, probe: 16, fine: 16, albedo_floor: 0.0, cull };
+        let jitter: Vec<f32> = (0..r * sampling.draws()).map(|_| stream.uniform() as f32).collect();
+        let render = |on_device: bool| render_searching(&field, &pose, &rays, sampling, &jitter, Some(GradientMethod::Tangents), &device, on_device);
+        let (a, b) = (render(true), render(false));
+        let read = |t: Tensor<2>| t.inner().into_data().convert::<f32>().try_to_vec::<f32>().unwrap();
+        let covered = read(b.accumulation.clone().reshape([r, 1]));
+        assert!(covered.iter().any(|&c| c > 0.99) && covered.iter().any(|&c| c < 0.01), "rays through and beside the body");
+        for (what, x, y) in [
+            ("coverage", a.accumulation.reshape([r, 1]), b.accumulation.reshape([r, 1])),
+            ("depth", a.depth.reshape([r, 1]), b.depth.reshape([r, 1])),
+            ("albedo", a.albedo, b.albedo),
+            ("normal", a.normal.unwrap(), b.normal.unwrap()),
+        ] {
+            let worst = read(x).iter().zip(read(y)).map(|(p, q)| (p - q).abs()).fold(0.0f32, f32::max);
+            assert!(worst < 1e-4, "cull {cull}: {what} differs by {worst}");
+        }
+    }
+}
