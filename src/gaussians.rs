@@ -386,24 +386,21 @@ mod learnable {
         }
 
         /// The current values as a plain set (for JSON, culling bounds and the CPU shadow path).
+        /// Read in one copy (a row of 11 a Gaussian: mean, rotation, scales, amplitude): a
+        /// training step's batch needs them, and on a GPU every read is a wait.
         pub fn to_set(&self) -> GaussianSet {
-            let means = values(self.means_metres());
-            let rotations = values(self.rotations.val());
-            let scales = values(self.scales());
-            let amplitudes = values(self.amplitudes());
+            let n = self.len();
+            if n == 0 {
+                return GaussianSet { gaussians: Vec::new() };
+            }
+            let rows = values(Tensor::cat(vec![self.means_metres(), self.rotations.val(), self.scales(), self.amplitudes().reshape([n, 1])], 1));
             let gaussians = self
                 .bones
                 .iter()
-                .enumerate()
-                .map(|(i, &bone)| {
-                    let q = glam::DQuat::from_array([rotations[i * 4], rotations[i * 4 + 1], rotations[i * 4 + 2], rotations[i * 4 + 3]]).normalize();
-                    Gaussian {
-                        bone,
-                        mean: [means[i * 3], means[i * 3 + 1], means[i * 3 + 2]],
-                        rotation: q.to_array(),
-                        scales: [scales[i * 3], scales[i * 3 + 1], scales[i * 3 + 2]],
-                        amplitude: amplitudes[i],
-                    }
+                .zip(rows.chunks_exact(11))
+                .map(|(&bone, row)| {
+                    let q = glam::DQuat::from_array([row[3], row[4], row[5], row[6]]).normalize();
+                    Gaussian { bone, mean: [row[0], row[1], row[2]], rotation: q.to_array(), scales: [row[7], row[8], row[9]], amplitude: row[10] }
                 })
                 .collect();
             GaussianSet { gaussians }

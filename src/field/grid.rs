@@ -190,7 +190,8 @@ impl FeatureGrid {
         let shift = carried_shift(points, k, Tensor::<1, Int>::from_data(TensorData::new(chosen, [n * k]), &device), motion, view);
         let slot_tangents = |values: &[f32]| Tensor::<3>::from_data(TensorData::new(values.to_vec(), [n, k, 3]), &device);
         let root_slot = Tensor::from_data(TensorData::new(plan.root_slot.clone(), [n, k]), &device);
-        let (logit_shift, prior_shift, root_shift) = carried_terms(&shift, slot_tangents(&plan.logit_tangents), slot_tangents(&plan.prior_slot_tangents), root_slot);
+        let (logit_shift, prior_shift, root_shift) =
+            carried_terms(&shift, slot_tangents(&plan.logit_tangents), slot_tangents(&plan.prior_slot_tangents), root_slot);
         let prior = Tensor::<1>::from_data(TensorData::new(plan.prior.clone(), [n]), &device) + prior_shift;
         let carried = super::plan::Carried {
             slots: k,
@@ -263,7 +264,8 @@ impl FeatureGrid {
             };
             super::interpolate::interpolate(table.val(), lookup)
         });
-        let logit_tangents = (!plan.logit_tangents.is_empty()).then(|| Tensor::<2>::from_data(TensorData::new(plan.logit_tangents.clone(), [n * k, 3]), device));
+        let logit_tangents =
+            (!plan.logit_tangents.is_empty()).then(|| Tensor::<2>::from_data(TensorData::new(plan.logit_tangents.clone(), [n * k, 3]), device));
         Skin {
             logits: Tensor::from_data(TensorData::new(plan.logits.clone(), [n, k]), device),
             logit_tangents,
@@ -276,7 +278,14 @@ impl FeatureGrid {
     /// softmax of the planned logits (plus `logit_shift`, when the points carry a shift) plus the
     /// root's learned preference; and their tangents (`[3N, W]`), through the weights'
     /// gradients too.
-    pub(super) fn blend(&self, skin: Skin, n: usize, per_bone: Tensor<2>, per_bone_tangents: Option<Tensor<2>>, carried: Option<(Tensor<2>, Tensor<2>)>) -> (Tensor<2>, Option<Tensor<2>>) {
+    pub(super) fn blend(
+        &self,
+        skin: Skin,
+        n: usize,
+        per_bone: Tensor<2>,
+        per_bone_tangents: Option<Tensor<2>>,
+        carried: Option<(Tensor<2>, Tensor<2>)>,
+    ) -> (Tensor<2>, Option<Tensor<2>>) {
         let config = &self.config;
         let (k, w) = (config.top(), config.width());
         let Skin { logits, logit_tangents, root_slot, preference } = skin;
@@ -345,7 +354,12 @@ pub(super) fn carried_shift(points: Tensor<2>, k: usize, bones: Tensor<1, Int>, 
 /// gradients: the logits (`[N, K]`, from `logit_tangents` `[N, K, 3]`), the capsule prior (`[N]`,
 /// from `prior_slot_tangents`) and the root's preference lookup (`[N, 3]`, the root's slot's
 /// shift).
-pub(super) fn carried_terms(shift: &Tensor<3>, logit_tangents: Tensor<3>, prior_slot_tangents: Tensor<3>, root_slot: Tensor<2>) -> (Tensor<2>, Tensor<1>, Tensor<2>) {
+pub(super) fn carried_terms(
+    shift: &Tensor<3>,
+    logit_tangents: Tensor<3>,
+    prior_slot_tangents: Tensor<3>,
+    root_slot: Tensor<2>,
+) -> (Tensor<2>, Tensor<1>, Tensor<2>) {
     let [n, k, _] = shift.dims();
     let logit_shift = (logit_tangents * shift.clone()).sum_dim(2).reshape([n, k]);
     let prior_shift = (prior_slot_tangents * shift.clone()).sum_dim(2).sum_dim(1).reshape([n]);

@@ -16,9 +16,9 @@ pub mod host_lookup;
 pub mod interpolate;
 pub mod layout;
 pub mod lookup;
+pub mod plan;
 pub mod tensor_encode;
 pub mod tensor_lookup;
-pub mod plan;
 
 use grid::{FeatureGrid, GridConfig, Skinning};
 

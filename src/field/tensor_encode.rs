@@ -31,7 +31,8 @@ impl TensorLookup {
             bones,
             rows: ints(&plan.rows),
             coefficients: floats(&plan.coefficients, corners),
-            coefficient_tangents: (plan.coefficient_tangents.len() == corners * 3).then(|| floats(&plan.coefficient_tangents, corners * 3).reshape([corners, 3])),
+            coefficient_tangents: (plan.coefficient_tangents.len() == corners * 3)
+                .then(|| floats(&plan.coefficient_tangents, corners * 3).reshape([corners, 3])),
             logits: floats(&plan.logits, n * k).reshape([n, k]),
             logit_tangents: floats(&plan.logit_tangents, n * k * 3).reshape([n, k, 3]),
             root_slot: floats(&plan.root_slot, n * k).reshape([n, k]),
@@ -76,12 +77,18 @@ impl FeatureGrid {
         let preference = self.preference_by_tensors(&plan, n, tangents || carrying);
         let (carried, prior) = match &shift {
             Some(shift) => {
-                let (logit_shift, prior_shift, root_shift) = carried_terms(shift, plan.logit_tangents.clone(), plan.prior_slot_tangents.clone(), plan.root_slot.clone());
+                let (logit_shift, prior_shift, root_shift) =
+                    carried_terms(shift, plan.logit_tangents.clone(), plan.prior_slot_tangents.clone(), plan.root_slot.clone());
                 (Some((logit_shift, root_shift)), plan.prior.clone() + prior_shift)
             }
             None => (None, plan.prior.clone()),
         };
-        let skin = Skin { logits: plan.logits.clone(), logit_tangents: Some(plan.logit_tangents.clone().reshape([n * k, 3])), root_slot: plan.root_slot.clone(), preference };
+        let skin = Skin {
+            logits: plan.logits.clone(),
+            logit_tangents: Some(plan.logit_tangents.clone().reshape([n * k, 3])),
+            root_slot: plan.root_slot.clone(),
+            preference,
+        };
         let (features, feature_tangents) = self.blend(skin, n, per_bone, per_bone_tangents, carried);
         let tangents = feature_tangents.map(|t| (t, plan.prior_tangents().transpose()));
         GridFeatures { features, prior, tangents }

@@ -186,7 +186,8 @@ fn level_corners(
     let (b, l) = (frames.len(), levels.len());
     let m = n * k;
     let flat = chosen.clone().reshape([m]);
-    let table = |f: &dyn Fn(usize, &Level) -> f32| per_slot_level((0..b).flat_map(|bone| levels.iter().map(move |level| f(bone, level))).collect(), b, l, &flat);
+    let table =
+        |f: &dyn Fn(usize, &Level) -> f32| per_slot_level((0..b).flat_map(|bone| levels.iter().map(move |level| f(bone, level))).collect(), b, l, &flat);
     let table_int =
         |f: &dyn Fn(usize, &Level) -> i64| per_slot_level_int((0..b).flat_map(|bone| levels.iter().map(move |level| f(bone, level))).collect(), b, l, &flat);
     let reach = table(&|bone, _| config.bone_reach(bone));
@@ -208,14 +209,19 @@ fn level_corners(
     for (corner, weight) in cells.weights.into_iter().enumerate() {
         let v = [0, 1, 2].map(|axis| cells.base[axis].clone().add_scalar(((corner >> axis) & 1) as i64));
         let within = v[0].clone() + width.clone() * (v[1].clone() + height.clone() * v[2].clone());
-        let hashed = v[0].clone().bitwise_xor(salt.clone()).bitwise_xor(v[1].clone().mul_scalar(prime(HASH_PRIMES[0]))).bitwise_xor(v[2].clone().mul_scalar(prime(HASH_PRIMES[1])));
+        let hashed = v[0]
+            .clone()
+            .bitwise_xor(salt.clone())
+            .bitwise_xor(v[1].clone().mul_scalar(prime(HASH_PRIMES[0])))
+            .bitwise_xor(v[2].clone().mul_scalar(prime(HASH_PRIMES[1])));
         let hashed = hashed.bitwise_and_scalar(mask);
         let row = first.clone() + dense.clone() * within + (dense.clone().neg().add_scalar(1)) * hashed;
         rows.push((row * active.clone()).reshape([m, l, 1]));
         weights.push((weight * active.clone().float()).reshape([m, l, 1]));
     }
     let tangents = cells.gradients.map(|gradients| {
-        let per_corner: Vec<Tensor<4>> = gradients.into_iter().map(|g| (Tensor::stack::<3>(g.to_vec(), 2) * active.clone().float().reshape([1, l, 1])).reshape([m, l, 1, 3])).collect();
+        let per_corner: Vec<Tensor<4>> =
+            gradients.into_iter().map(|g| (Tensor::stack::<3>(g.to_vec(), 2) * active.clone().float().reshape([1, l, 1])).reshape([m, l, 1, 3])).collect();
         Tensor::cat(per_corner, 2).reshape([m * l * 8, 3])
     });
     Corners { rows: Tensor::cat(rows, 2).reshape([m * l * 8]), weights: Tensor::cat(weights, 2).reshape([m * l * 8]), tangents }
@@ -269,7 +275,13 @@ fn trilinear(local: &[Tensor<2>; 3], reach: Tensor<2>, per_cell: Tensor<2>, top:
 
 /// The root's preference corners (`[N 8]` rows and coefficients, `[N 8, 3]` derivatives), zero
 /// where the root is not among the chosen bones.
-fn root_corners(config: &GridConfig, frames: &[BoneFrame], local: &[Tensor<2>; 3], root_slot: Tensor<2>, tangents: bool) -> (Tensor<1, Int>, Tensor<1>, Tensor<2>) {
+fn root_corners(
+    config: &GridConfig,
+    frames: &[BoneFrame],
+    local: &[Tensor<2>; 3],
+    root_slot: Tensor<2>,
+    tangents: bool,
+) -> (Tensor<1, Int>, Tensor<1>, Tensor<2>) {
     let device = root_slot.device();
     let [n, _] = root_slot.dims();
     let Some((root, frame)) = config.root.and_then(|root| frames.get(root.bone).map(|frame| (root, frame))) else {
@@ -291,7 +303,9 @@ fn root_corners(config: &GridConfig, frames: &[BoneFrame], local: &[Tensor<2>; 3
         .collect();
     let weights: Vec<Tensor<2>> = cells.weights.into_iter().map(|w| w * chosen.clone()).collect();
     let gradients = match cells.gradients {
-        Some(gradients) => Tensor::cat(gradients.into_iter().map(|g| Tensor::stack::<3>(g.to_vec(), 2) * chosen.clone().reshape([n, 1, 1])).collect(), 1).reshape([n * 8, 3]),
+        Some(gradients) => {
+            Tensor::cat(gradients.into_iter().map(|g| Tensor::stack::<3>(g.to_vec(), 2) * chosen.clone().reshape([n, 1, 1])).collect(), 1).reshape([n * 8, 3])
+        }
         None => Tensor::zeros([n * 8, 3], &device),
     };
     (Tensor::cat(rows, 1).reshape([n * 8]), Tensor::cat(weights, 1).reshape([n * 8]), gradients)

@@ -95,7 +95,12 @@ pub(super) fn draw(samples: &SampleTensors, weights: Tensor<2>, count: usize, ji
 /// intervals between the midpoints to each sample's neighbours (`bounds`: each ray's near and
 /// far, `[R, 1]`), and the values they carry (the densities) when given. As a stable sort of
 /// `a` then `b`: where distances tie, `a`'s come first.
-pub(super) fn merge(a: &Tensor<2>, b: &Tensor<2>, bounds: &(Tensor<2>, Tensor<2>), values: Option<(Tensor<2>, Tensor<2>)>) -> (SampleTensors, Option<Tensor<2>>) {
+pub(super) fn merge(
+    a: &Tensor<2>,
+    b: &Tensor<2>,
+    bounds: &(Tensor<2>, Tensor<2>),
+    values: Option<(Tensor<2>, Tensor<2>)>,
+) -> (SampleTensors, Option<Tensor<2>>) {
     let device = a.device();
     let ([r, na], [_, nb]) = (a.dims(), b.dims());
     let n = na + nb;

@@ -155,13 +155,18 @@ fn the_search_by_tensor_ops_draws_the_hosts_samples() {
     let (field, pose, rays) = two_bones(&device);
     let r = rays.len();
     let (origins, directions) = ray_tensors(&rays, &device);
-    for sampling in [Sampling { coarse: 24, probe: 16, fine: 16, albedo_floor: 0.0, cull: false }, Sampling { coarse: 12, probe: 0, fine: 8, albedo_floor: 0.0, cull: false }] {
+    for sampling in [
+        Sampling { coarse: 24, probe: 16, fine: 16, albedo_floor: 0.0, cull: false },
+        Sampling { coarse: 12, probe: 0, fine: 8, albedo_floor: 0.0, cull: false },
+    ] {
         let mut stream = crate::random::Stream::new(5, 2, 0);
         let jitter: Vec<f32> = (0..r * sampling.draws()).map(|_| stream.uniform() as f32).collect();
         let host = locate(&field, &pose, &rays, &origins, &directions, sampling, &jitter, Want::Samples).samples;
         let tensors = search_tensors::search_by_tensors(&field, &pose, &rays, &origins, &directions, sampling, &jitter);
         let read = |t: Tensor<2>| t.into_data().convert::<f32>().try_to_vec::<f32>().unwrap();
-        for (what, a, b) in [("t", read(tensors.t.clone()), &host.t), ("lo", read(tensors.lo.clone()), &host.lo), ("delta", read(tensors.delta.clone()), &host.delta)] {
+        for (what, a, b) in
+            [("t", read(tensors.t.clone()), &host.t), ("lo", read(tensors.lo.clone()), &host.lo), ("delta", read(tensors.delta.clone()), &host.delta)]
+        {
             assert_eq!(a.len(), b.len(), "{what}");
             let worst = a.iter().zip(b).map(|(x, y)| (x - y).abs()).fold(0.0f32, f32::max);
             assert!(worst < 1e-5, "{sampling:?} {what}: differs by {worst}");
