@@ -436,7 +436,8 @@ pub(crate) fn render_searching(
 /// How the SDF's gradient at `surface` (`gradient`, `[R, 3]`) changes as the points move by
 /// `shift` (`[R, 3]`, carrying an increment): its slope along each axis differenced over
 /// `stencil` (m) without gradients, times the shift's component along it. The field's
-/// second derivatives are not followed; this carries an increment into a shading normal.
+/// second derivatives are not followed; this carries an increment into a shading normal. By
+/// tensor ops on the surface's device: nothing is read back.
 fn slope_along(
     field: &AvatarField,
     pose: &PoseTensors,
@@ -448,18 +449,15 @@ fn slope_along(
 ) -> Tensor<2> {
     let [r, _] = surface.dims();
     let device = surface.device();
-    let here = crate::backend::host_values(surface.clone().detach());
-    let g = crate::backend::host_values(gradient.clone().detach());
-    let offsets: Vec<f32> =
-        (0..3).flat_map(|axis| here.chunks(3).flat_map(move |p| std::array::from_fn::<f32, 3, _>(|c| p[c] + if c == axis { stencil } else { 0.0 }))).collect();
-    let still = field.valid();
-    let offset = Tensor::<2>::from_data(TensorData::new(offsets, [3 * r, 3]), &device).without_autodiff();
-    let there = crate::backend::host_values(still.sdf_gradient(offset, pose, method));
+    let here = surface.clone().without_autodiff();
+    let step = |axis: usize| Tensor::<2>::from_data(TensorData::new([0, 1, 2].map(|c| if c == axis { stencil } else { 0.0 }).to_vec(), [1, 3]), &here.device());
+    let offsets = Tensor::cat((0..3).map(|axis| here.clone() + step(axis)).collect(), 0); // [3R, 3], axis-major
+    let there = field.valid().sdf_gradient(offsets, pose, method);
+    let g = gradient.clone().without_autodiff();
     let mut total = Tensor::<2>::zeros([r, 3], &device);
     for axis in 0..3 {
-        let slope: Vec<f32> = (0..3 * r).map(|k| (there.get(axis * 3 * r + k).copied().unwrap_or(0.0) - g[k]) / stencil).collect();
-        let slope = Tensor::<2>::from_data(TensorData::new(slope, [r, 3]), &device);
-        total = total + slope * shift.clone().narrow(1, axis, 1);
+        let slope = (there.clone().slice([axis * r..(axis + 1) * r, 0..3]) - g.clone()) / stencil;
+        total = total + shift.clone().narrow(1, axis, 1) * slope;
     }
     total
 }

@@ -114,35 +114,48 @@ impl CameraRows {
     }
 }
 
-/// The gradients of `leaves` on the host, read from the device in one copy (a GPU waits on
-/// every read): per leaf its values, none where the backward pass did not reach it.
-pub fn host_gradients(leaves: &[&Tensor<2>], grads: &burn::tensor::Gradients) -> Vec<Option<Vec<f32>>> {
-    let found: Vec<Option<Tensor<1>>> = leaves
-        .iter()
-        .map(|t| {
-            t.grad(grads).map(|g| {
-                let n = g.shape().num_elements();
-                g.reshape([n])
+/// The gradients of some leaves, still on the device, to come down in one copy with whatever
+/// else the step reads (a GPU waits on every read): per leaf its length, none where the
+/// backward pass did not reach it.
+pub struct PendingGradients {
+    lengths: Vec<Option<usize>>,
+    parts: Vec<Tensor<1>>,
+}
+
+impl PendingGradients {
+    pub fn of(leaves: &[&Tensor<2>], grads: &burn::tensor::Gradients) -> Self {
+        let found: Vec<Option<Tensor<1>>> = leaves
+            .iter()
+            .map(|t| {
+                t.grad(grads).map(|g| {
+                    let n = g.shape().num_elements();
+                    g.reshape([n])
+                })
             })
-        })
-        .collect();
-    let lengths: Vec<Option<usize>> = found.iter().map(|g| g.as_ref().map(|g| g.dims()[0])).collect();
-    let parts: Vec<Tensor<1>> = found.into_iter().flatten().collect();
-    if parts.is_empty() {
-        return vec![None; leaves.len()];
+            .collect();
+        let lengths = found.iter().map(|g| g.as_ref().map(|g| g.dims()[0])).collect();
+        Self { lengths, parts: found.into_iter().flatten().collect() }
     }
-    let values = crate::backend::host_values(Tensor::cat(parts, 0));
-    let mut at = 0;
-    lengths
-        .into_iter()
-        .map(|n| {
-            n.map(|n| {
-                let part = values.get(at..at + n).map_or_else(|| vec![f32::NAN; n], <[f32]>::to_vec);
-                at += n;
-                part
+
+    /// The reached gradients end to end (`[sum of lengths]`), or none when none was reached.
+    pub fn joined(&self) -> Option<Tensor<1>> {
+        (!self.parts.is_empty()).then(|| Tensor::cat(self.parts.clone(), 0))
+    }
+
+    /// Per leaf its gradient from `values`, `joined`'s values read (NaN where too few).
+    pub fn split(&self, values: &[f32]) -> Vec<Option<Vec<f32>>> {
+        let mut at = 0;
+        self.lengths
+            .iter()
+            .map(|n| {
+                n.map(|n| {
+                    let part = values.get(at..at + n).map_or_else(|| vec![f32::NAN; n], <[f32]>::to_vec);
+                    at += n;
+                    part
+                })
             })
-        })
-        .collect()
+            .collect()
+    }
 }
 
 /// A leaf's gradient (zeros where it has none) and the sum of its increments' (zeros where
@@ -158,11 +171,11 @@ pub fn leaf_and_increments(rows: usize, read: &mut impl Iterator<Item = Option<V
 
 #[cfg(test)]
 mod tests {
-    use super::{host_gradients, leaf_and_increments};
+    use super::{leaf_and_increments, PendingGradients};
     use burn::tensor::{Device, Tensor, TensorData};
 
     #[test]
-    fn the_host_gradients_come_down_in_one_read_each_leaf_its_own() {
+    fn the_host_gradients_wait_to_come_down_in_one_read_each_leaf_its_own() {
         let device = Device::flex().autodiff();
         let leaf = |v: Vec<f32>| Tensor::<2>::from_data(TensorData::new(v, [2, 3]), &device).require_grad();
         let (a, unreached, c, d) = (leaf(vec![1.0; 6]), leaf(vec![2.0; 6]), leaf(vec![0.5; 6]), leaf(vec![-1.0; 6]));
@@ -170,7 +183,9 @@ mod tests {
         let loss = (a.clone() * 2.0).sum() + (c.clone() * c.clone() * 3.0).sum() + d.clone().sum();
         let grads = loss.backward();
         let before = crate::backend::reads_to_host();
-        let read = host_gradients(&[&a, &unreached, &c, &d], &grads);
+        let pending = PendingGradients::of(&[&a, &unreached, &c, &d], &grads);
+        assert_eq!(crate::backend::reads_to_host(), before, "nothing read until asked");
+        let read = pending.split(&crate::backend::host_values(pending.joined().unwrap()));
         assert_eq!(crate::backend::reads_to_host() - before, 1, "one read for every leaf");
         assert_eq!(read, vec![Some(vec![2.0; 6]), None, Some(vec![3.0; 6]), Some(vec![1.0; 6])]);
         // A leaf and its increments: the unreached one counts as zeros.
@@ -181,7 +196,9 @@ mod tests {
         assert_eq!((first, through), (vec![1.0; 6], vec![0.0; 6]));
         // Nothing reached: no read at all.
         let before = crate::backend::reads_to_host();
-        assert_eq!(host_gradients(&[&unreached], &grads), vec![None]);
+        let pending = PendingGradients::of(&[&unreached], &grads);
+        assert!(pending.joined().is_none());
+        assert_eq!(pending.split(&[]), vec![None]);
         assert_eq!(crate::backend::reads_to_host(), before);
     }
 }

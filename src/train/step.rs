@@ -108,10 +108,13 @@ impl Trainer {
         }
         let grads = parts.backward(&total, self.parts_backward_at_once);
         clock.mark(8);
-        self.step_host_leaves(colour_leaf, leaves, &grads, &mut state, &batch, it);
+        // The host's leaves step after the device's update (neither reads the other), so that
+        // their gradients come down with what the update reports, in one read.
+        let host_leaves = HostLeaves::of(colour_leaf, leaves, &grads);
         let model = state.model;
         state.model = self.update(model, grads, parts.into_forks(), batch.light, &mut state.optimisers, it);
-        let (light, sum) = self.read_after_update(&state.model);
+        let (light, sum, gradients) = self.read_after_update(&state.model, host_leaves.pending.joined());
+        self.step_host_leaves(&host_leaves, host_leaves.pending.split(&gradients), &mut state, &batch, it);
         if self.fit_light {
             stats.light = light;
         }
@@ -389,38 +392,22 @@ impl Trainer {
     }
 
     /// One host-side Adam step of each of the cameras' colours, the batch frame's motion
-    /// correction and the cameras' turns that the step carried, from their gradients (the
-    /// corrections' leaves and the increments their render parts carried), all brought to the
-    /// host in one read.
-    fn step_host_leaves(
-        &self,
-        colour_leaf: Option<Tensor<2>>,
-        leaves: Leaves,
-        grads: &burn::tensor::Gradients,
-        state: &mut TrainState,
-        batch: &Batch,
-        it: usize,
-    ) {
-        let motion_leaves = leaves.motion.as_ref().map(|(k, leaf, increments)| (*k, leaf.dims()[0] * 3, increments.len()));
-        let camera_leaves = leaves.cameras.as_ref().map(|(leaf, increments)| (leaf.dims()[0] * 3, increments.len()));
-        let wanted: Vec<&Tensor<2>> = colour_leaf
-            .iter()
-            .chain(leaves.motion.iter().flat_map(|(_, leaf, increments)| std::iter::once(leaf).chain(increments)))
-            .chain(leaves.cameras.iter().flat_map(|(leaf, increments)| std::iter::once(leaf).chain(increments)))
-            .collect();
-        let mut read = super::host_adam::host_gradients(&wanted, grads).into_iter();
-        if colour_leaf.is_some() {
+    /// correction and the cameras' turns that the step carried, from their gradients
+    /// (`gradients`, per leaf of `leaves` in `HostLeaves::of`'s order).
+    fn step_host_leaves(&self, leaves: &HostLeaves, gradients: Vec<Option<Vec<f32>>>, state: &mut TrainState, batch: &Batch, it: usize) {
+        let mut read = gradients.into_iter();
+        if leaves.colours {
             if let (Some(gradient), Some(colours)) = (read.next().flatten(), state.camera_colours.as_mut()) {
                 colours.step(&gradient, self.schedule.learning_rate("light", it));
             }
         }
-        if let Some((k, rows, increments)) = motion_leaves {
+        if let Some((k, rows, increments)) = leaves.motion {
             let (leaf, through_render) = super::host_adam::leaf_and_increments(rows, &mut read, increments);
             if let (Some(motion), Some((pose, _))) = (state.motion.as_mut(), batch.corrected.as_ref()) {
                 motion.step(k, &leaf, &through_render, pose, self.schedule.learning_rate("motion", it));
             }
         }
-        if let Some((rows, increments)) = camera_leaves {
+        if let Some((rows, increments)) = leaves.cameras {
             let (leaf, through_render) = super::host_adam::leaf_and_increments(rows, &mut read, increments);
             if let Some(cameras) = state.cameras.as_mut() {
                 cameras.step(&leaf, &through_render, self.schedule.learning_rate("cameras", it));
@@ -429,21 +416,21 @@ impl Trainer {
     }
 
     /// After the update, in one read: where the light is (`FittedLight::location`, when the fit
-    /// has one to report) and the sum of the parameters, not finite when the update left one
-    /// not finite (`avatar::parameter_sum`; NaN when the read failed).
-    fn read_after_update(&self, model: &Avatar) -> (Option<[f64; 3]>, f32) {
+    /// has one to report), the sum of the parameters, not finite when the update left one not
+    /// finite (`avatar::parameter_sum`; NaN when the read failed), and the values of `extra`
+    /// (the host leaves' gradients).
+    fn read_after_update(&self, model: &Avatar, extra: Option<Tensor<1>>) -> (Option<[f64; 3]>, f32, Vec<f32>) {
         let location = self.fit_light.then(|| model.light.location_tensor()).flatten();
         let sum = crate::avatar::parameter_sum(model);
-        let summed = sum.is_some();
-        let reported: Vec<Tensor<1>> = sum.into_iter().chain(location).collect();
+        let lengths = [sum.as_ref(), location.as_ref(), extra.as_ref()].map(|t| t.map_or(0, |t| t.dims()[0]));
+        let reported: Vec<Tensor<1>> = sum.into_iter().chain(location).chain(extra).collect();
         if reported.is_empty() {
-            return (None, 0.0);
+            return (None, 0.0, Vec::new());
         }
         let read = crate::backend::host_values(Tensor::cat(reported, 0));
-        match summed {
-            true => (read.get(1..).and_then(crate::shading::location_of), read.first().copied().unwrap_or(f32::NAN)),
-            false => (crate::shading::location_of(&read), 0.0),
-        }
+        let part = |k: usize| read.get(lengths[..k].iter().sum::<usize>()..lengths[..=k].iter().sum::<usize>()).unwrap_or(&[]);
+        let sum = if lengths[0] > 0 { part(0).first().copied().unwrap_or(f32::NAN) } else { 0.0 };
+        (crate::shading::location_of(part(1)), sum, part(2).to_vec())
     }
 
     /// Moves the field's average toward the parameters of the step just taken, or starts it at
@@ -457,6 +444,30 @@ impl Trainer {
             Some(average) => average.update(&state.model.field, crate::averaging::ParameterAverage::keep_for_half_life(half_life)),
             None => state.average = Some(crate::averaging::ParameterAverage::start(&state.model.field)),
         }
+    }
+}
+
+/// The leaves the host's Adam steps after a step (`Trainer::step_host_leaves`), their gradients
+/// pending on the device: the cameras' colours when fitted, the batch frame's motion correction
+/// (its frame's row, the leaf's values, how many increments its render parts carried) and the
+/// cameras' turns (the leaf's values, its increments).
+struct HostLeaves {
+    colours: bool,
+    motion: Option<(usize, usize, usize)>,
+    cameras: Option<(usize, usize)>,
+    pending: super::host_adam::PendingGradients,
+}
+
+impl HostLeaves {
+    fn of(colour_leaf: Option<Tensor<2>>, leaves: Leaves, grads: &burn::tensor::Gradients) -> Self {
+        let motion = leaves.motion.as_ref().map(|(k, leaf, increments)| (*k, leaf.dims()[0] * 3, increments.len()));
+        let cameras = leaves.cameras.as_ref().map(|(leaf, increments)| (leaf.dims()[0] * 3, increments.len()));
+        let wanted: Vec<&Tensor<2>> = colour_leaf
+            .iter()
+            .chain(leaves.motion.iter().flat_map(|(_, leaf, increments)| std::iter::once(leaf).chain(increments)))
+            .chain(leaves.cameras.iter().flat_map(|(leaf, increments)| std::iter::once(leaf).chain(increments)))
+            .collect();
+        Self { colours: colour_leaf.is_some(), motion, cameras, pending: super::host_adam::PendingGradients::of(&wanted, grads) }
     }
 }
 
