@@ -261,9 +261,8 @@ mod learnable {
     use burn::module::Param;
     use burn::tensor::{Device, Int, Tensor, TensorData};
 
-    fn values<const D: usize>(t: Tensor<D>) -> Vec<f64> {
-        crate::backend::host_values(t).into_iter().map(f64::from).collect()
-    }
+    /// Values a Gaussian in `GaussianParams::rows`.
+    const ROW: usize = 11;
 
     impl GaussianParams {
         /// Learnable copies of `set` on a body whose unit is `unit` metres.
@@ -385,25 +384,39 @@ mod learnable {
             self.bones = bones.to_vec();
         }
 
-        /// The current values as a plain set (for JSON, culling bounds and the CPU shadow path).
-        /// Read in one copy (a row of 11 a Gaussian: mean, rotation, scales, amplitude): a
-        /// training step's batch needs them, and on a GPU every read is a wait.
-        pub fn to_set(&self) -> GaussianSet {
+        /// The current values as one flat tensor (`ROW` a Gaussian: mean, rotation, scales,
+        /// amplitude), read in one copy: a training step's batch needs them, and on a GPU
+        /// every read is a wait (the step reads them with its check after the update).
+        pub fn rows(&self) -> Tensor<1> {
             let n = self.len();
-            if n == 0 {
-                return GaussianSet { gaussians: Vec::new() };
+            Tensor::cat(vec![self.means_metres(), self.rotations.val(), self.scales(), self.amplitudes().reshape([n, 1])], 1).reshape([n * ROW])
+        }
+
+        /// The set from `rows`' values read (none unless there are as many as it gives).
+        pub fn set_from_rows(&self, rows: &[f32]) -> Option<GaussianSet> {
+            if rows.len() != self.len() * ROW {
+                return None;
             }
-            let rows = values(Tensor::cat(vec![self.means_metres(), self.rotations.val(), self.scales(), self.amplitudes().reshape([n, 1])], 1));
             let gaussians = self
                 .bones
                 .iter()
-                .zip(rows.chunks_exact(11))
+                .zip(rows.chunks_exact(ROW))
                 .map(|(&bone, row)| {
+                    let row: Vec<f64> = row.iter().map(|&v| f64::from(v)).collect();
                     let q = glam::DQuat::from_array([row[3], row[4], row[5], row[6]]).normalize();
                     Gaussian { bone, mean: [row[0], row[1], row[2]], rotation: q.to_array(), scales: [row[7], row[8], row[9]], amplitude: row[10] }
                 })
                 .collect();
-            GaussianSet { gaussians }
+            Some(GaussianSet { gaussians })
+        }
+
+        /// The current values as a plain set (for JSON, culling bounds and the CPU shadow path).
+        pub fn to_set(&self) -> GaussianSet {
+            if self.is_empty() {
+                return GaussianSet { gaussians: Vec::new() };
+            }
+            // `host_values` gives every value (NaN where the copy failed).
+            self.set_from_rows(&crate::backend::host_values(self.rows())).unwrap_or_default()
         }
     }
 }

@@ -936,3 +936,23 @@ fn a_brighter_camera_is_learned_a_larger_gain_and_the_gains_mean_is_one() {
     assert!(brighter[0] > brighter[1] && brighter[0] > brighter[2], "{brighter:?}");
     assert!((0..3).all(|c| (gains.iter().map(|(_, g)| g[c]).sum::<f64>() / 4.0 - 1.0).abs() < 1e-9));
 }
+
+/// A step reads the Gaussians with its check after the update, for the next batch's ray
+/// bounds: they are the model's, and whoever may change them (a rebinding, anyone taking the
+/// state mutably) drops them, so the next batch reads them afresh.
+#[test]
+fn the_gaussians_a_step_read_for_the_next_batch_are_the_models_until_someone_may_change_them() {
+    let (_dir, scene_path, schedule_path) = quick_setup("gaussians-read", TrainingLight::Sun, 4);
+    let scene = umbra::scene::Scene::load(&scene_path).unwrap();
+    let mut trainer = Trainer::new(scene, Schedule::load(&schedule_path).unwrap(), Backend::Flex, 1).unwrap();
+    let read = |trainer: &Trainer| trainer.state().unwrap().gaussians_read.clone();
+    assert_eq!(read(&trainer), None, "nothing read before the first step");
+    trainer.iterate().unwrap();
+    assert_eq!(read(&trainer), Some(trainer.model().unwrap().gaussians.to_set()), "the step's read is the model's Gaussians");
+    trainer.rebind_gaussians().unwrap();
+    assert_eq!(read(&trainer), None, "a rebinding drops them");
+    trainer.iterate().unwrap();
+    assert!(read(&trainer).is_some());
+    let _ = trainer.model_mut().unwrap();
+    assert_eq!(read(&trainer), None, "taking the model mutably drops them");
+}

@@ -71,7 +71,10 @@ impl Trainer {
     /// order: the pixels, the samples' jitter, the density loss's samples, the regularisers'.
     pub fn draw_batch(&mut self) -> Result<Batch, FitError> {
         let it = self.iteration();
-        let set = self.model()?.gaussians.to_set();
+        let set = match self.state.as_mut().and_then(|s| s.gaussians_read.take()) {
+            Some(set) => set,
+            None => self.model()?.gaussians.to_set(),
+        };
         let mut batch = self.pixels(&set);
         let rendered = if self.render_missed_rays { batch.rays.len() } else { batch.hits.max(1) };
         let sampling = self.schedule.sampling(it);

@@ -27,6 +27,9 @@ impl Trainer {
 
     /// Searches every training light (`search_one`).
     pub(super) fn search_lights(&mut self) -> Result<(), FitError> {
+        if let Some(state) = self.state.as_mut() {
+            state.gaussians_read = None;
+        }
         for k in 0..self.cones.len() {
             self.search_one(k)?;
         }

@@ -117,6 +117,10 @@ pub struct TrainState {
     pub motion: Option<motion::MotionCorrections>,
     /// The training cameras' pose corrections (a grid field's fit of two or more cameras).
     pub cameras: Option<camera_pose::CameraPoses>,
+    /// The Gaussians as the last step left them, read with its check after the update, for the
+    /// next batch's ray bounds (a GPU then waits once less a step); dropped by anything else
+    /// that may change them.
+    pub gaussians_read: Option<crate::gaussians::GaussianSet>,
 }
 
 pub struct Trainer {
@@ -240,7 +244,10 @@ impl Trainer {
     }
 
     pub fn state_mut(&mut self) -> Result<&mut TrainState, FitError> {
-        self.state.as_mut().ok_or_else(|| FitError::Input("the training state was lost by an interrupted step".into()))
+        let state = self.state.as_mut().ok_or_else(|| FitError::Input("the training state was lost by an interrupted step".into()))?;
+        // Whoever holds the state may change the Gaussians.
+        state.gaussians_read = None;
+        Ok(state)
     }
 
     /// The model being trained: the last step's parameters.

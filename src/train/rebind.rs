@@ -69,6 +69,9 @@ impl Trainer {
     /// own if it is one, else goes to the one nearest it; but a bone keeps at least one of its
     /// Gaussians (`keep_every_bone`). Returns how many moved.
     pub fn rebind_gaussians(&mut self) -> Result<usize, FitError> {
+        if let Some(state) = self.state.as_mut() {
+            state.gaussians_read = None;
+        }
         let model = self.state.as_ref().map(|s| &s.model).ok_or_else(|| FitError::Input("the model was lost by an interrupted step".into()))?;
         let set = model.gaussians.to_set();
         let bone_count = self.scene.skeleton.len();

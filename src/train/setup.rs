@@ -311,6 +311,7 @@ impl Trainer {
                 camera_colours,
                 motion,
                 cameras,
+                gaussians_read: None,
             }),
             frames,
             plates: views.iter().any(|v| !v.near_edge.is_empty()),

@@ -113,8 +113,10 @@ impl Trainer {
         let host_leaves = HostLeaves::of(colour_leaf, leaves, &grads);
         let model = state.model;
         state.model = self.update(model, grads, parts.into_forks(), batch.light, &mut state.optimisers, it);
-        let (light, sum, gradients) = self.read_after_update(&state.model, host_leaves.pending.joined());
+        let extra = [host_leaves.pending.joined(), (!state.model.gaussians.is_empty()).then(|| state.model.gaussians.rows())];
+        let (light, sum, [gradients, gaussians]) = self.read_after_update(&state.model, extra);
         self.step_host_leaves(&host_leaves, host_leaves.pending.split(&gradients), &mut state, &batch, it);
+        state.gaussians_read = state.model.gaussians.set_from_rows(&gaussians);
         if self.fit_light {
             stats.light = light;
         }
@@ -417,20 +419,21 @@ impl Trainer {
 
     /// After the update, in one read: where the light is (`FittedLight::location`, when the fit
     /// has one to report), the sum of the parameters, not finite when the update left one not
-    /// finite (`avatar::parameter_sum`; NaN when the read failed), and the values of `extra`
-    /// (the host leaves' gradients).
-    fn read_after_update(&self, model: &Avatar, extra: Option<Tensor<1>>) -> (Option<[f64; 3]>, f32, Vec<f32>) {
+    /// finite (`avatar::parameter_sum`; NaN when the read failed), and the values of each of
+    /// `extra` (empty where none).
+    fn read_after_update<const E: usize>(&self, model: &Avatar, extra: [Option<Tensor<1>>; E]) -> (Option<[f64; 3]>, f32, [Vec<f32>; E]) {
         let location = self.fit_light.then(|| model.light.location_tensor()).flatten();
         let sum = crate::avatar::parameter_sum(model);
-        let lengths = [sum.as_ref(), location.as_ref(), extra.as_ref()].map(|t| t.map_or(0, |t| t.dims()[0]));
-        let reported: Vec<Tensor<1>> = sum.into_iter().chain(location).chain(extra).collect();
-        if reported.is_empty() {
-            return (None, 0.0, Vec::new());
-        }
-        let read = crate::backend::host_values(Tensor::cat(reported, 0));
+        let parts: Vec<Option<Tensor<1>>> = [sum, location].into_iter().chain(extra).collect();
+        let lengths: Vec<usize> = parts.iter().map(|t| t.as_ref().map_or(0, |t| t.dims()[0])).collect();
+        let reported: Vec<Tensor<1>> = parts.into_iter().flatten().collect();
+        let read = match reported.is_empty() {
+            true => Vec::new(),
+            false => crate::backend::host_values(Tensor::cat(reported, 0)),
+        };
         let part = |k: usize| read.get(lengths[..k].iter().sum::<usize>()..lengths[..=k].iter().sum::<usize>()).unwrap_or(&[]);
         let sum = if lengths[0] > 0 { part(0).first().copied().unwrap_or(f32::NAN) } else { 0.0 };
-        (crate::shading::location_of(part(1)), sum, part(2).to_vec())
+        (crate::shading::location_of(part(1)), sum, std::array::from_fn(|k| part(k + 2).to_vec()))
     }
 
     /// Moves the field's average toward the parameters of the step just taken, or starts it at
