@@ -2,7 +2,6 @@
 //! shape follows the capture (the light by its kind, the evaluation's groups, the searches) stay
 //! JSON values inside it.
 
-use crate::backend::Backend;
 use crate::fit_error::{io, FitError};
 use serde::{Deserialize, Serialize};
 use serde_json::{Map, Value};
@@ -41,7 +40,9 @@ pub struct FitReport {
     pub seed: u64,
     #[serde(default)]
     pub schedule: String,
-    pub backend: Backend,
+    /// The backend's name (`Backend`'s): kept as written, so that a run fitted on a GPU build
+    /// reads in a build without the `gpu` feature.
+    pub backend: String,
     #[serde(default)]
     pub threads: usize,
     #[serde(default)]

@@ -35,6 +35,11 @@ fn a_fit_started_elsewhere_uses_the_built_in_schedule_and_its_run_renders_from_a
     let moved = dir.path().join("moved-run");
     std::fs::rename(&run, &moved).unwrap();
     succeeds(&elsewhere, &["render", moved.to_str().unwrap()]);
+    // A run fitted on a GPU build renders in any build: its backend is only a name there.
+    let report = std::fs::read_to_string(moved.join("fit.json")).unwrap();
+    assert!(report.contains("\"backend\": \"flex\""), "fit.json names its backend");
+    std::fs::write(moved.join("fit.json"), report.replace("\"backend\": \"flex\"", "\"backend\": \"wgpu\"")).unwrap();
+    succeeds(&elsewhere, &["render", moved.to_str().unwrap()]);
 }
 
 #[test]

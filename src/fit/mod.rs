@@ -246,7 +246,7 @@ pub fn fit(options: &FitOptions, mut on: impl FnMut(TrainMessage)) -> Result<Fit
         iterations: schedule.iterations,
         seed: options.seed,
         schedule: options.schedule.display().to_string(),
-        backend: options.backend,
+        backend: options.backend.to_string(),
         threads: rayon::current_num_threads(),
         final_losses: last.terms,
         final_total: last.total,

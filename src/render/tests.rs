@@ -1,3 +1,4 @@
+use super::samples::*;
 use super::*;
 
 #[test]

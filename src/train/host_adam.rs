@@ -1,9 +1,11 @@
 //! Adam on a few numbers kept on the host, in rows of three with their moments: the cameras'
 //! colours and turns (`camera_colour`, `camera_pose`: `CameraRows`, a row per training camera)
 //! and the motion's corrections (`motion`), too small to be worth a parameter group on the
-//! device; and their gradients brought to the host after a step's backward pass, all in one
-//! read (`host_gradients`).
+//! device; their gradients brought to the host with the step's check after its update, all in
+//! one read (`PendingGradients`), and the step of each (`Trainer::step_host_leaves`).
 
+use super::step::Leaves;
+use super::{Batch, TrainState};
 use burn::tensor::Tensor;
 
 /// Adam's decay rates and its guard against a zero second moment (burn's defaults).
@@ -167,6 +169,56 @@ pub fn leaf_and_increments(rows: usize, read: &mut impl Iterator<Item = Option<V
         through_render.iter_mut().zip(g).for_each(|(a, b)| *a += b);
     }
     (leaf, through_render)
+}
+
+/// The leaves the host's Adam steps after a step (`Trainer::step_host_leaves`), their gradients
+/// pending on the device: the cameras' colours when fitted, the batch frame's motion correction
+/// (its frame's row, the leaf's values, how many increments its render parts carried) and the
+/// cameras' turns (the leaf's values, its increments).
+pub(super) struct HostLeaves {
+    colours: bool,
+    motion: Option<(usize, usize, usize)>,
+    cameras: Option<(usize, usize)>,
+    pub(super) pending: PendingGradients,
+}
+
+impl HostLeaves {
+    pub(super) fn of(colour_leaf: Option<Tensor<2>>, leaves: Leaves, grads: &burn::tensor::Gradients) -> Self {
+        let motion = leaves.motion.as_ref().map(|(k, leaf, increments)| (*k, leaf.dims()[0] * 3, increments.len()));
+        let cameras = leaves.cameras.as_ref().map(|(leaf, increments)| (leaf.dims()[0] * 3, increments.len()));
+        let wanted: Vec<&Tensor<2>> = colour_leaf
+            .iter()
+            .chain(leaves.motion.iter().flat_map(|(_, leaf, increments)| std::iter::once(leaf).chain(increments)))
+            .chain(leaves.cameras.iter().flat_map(|(leaf, increments)| std::iter::once(leaf).chain(increments)))
+            .collect();
+        Self { colours: colour_leaf.is_some(), motion, cameras, pending: PendingGradients::of(&wanted, grads) }
+    }
+}
+
+impl super::Trainer {
+    /// One host-side Adam step of each of the cameras' colours, the batch frame's motion
+    /// correction and the cameras' turns that the step carried, from their gradients
+    /// (`gradients`, per leaf of `leaves` in `HostLeaves::of`'s order).
+    pub(super) fn step_host_leaves(&self, leaves: &HostLeaves, gradients: Vec<Option<Vec<f32>>>, state: &mut TrainState, batch: &Batch, it: usize) {
+        let mut read = gradients.into_iter();
+        if leaves.colours {
+            if let (Some(gradient), Some(colours)) = (read.next().flatten(), state.camera_colours.as_mut()) {
+                colours.step(&gradient, self.schedule.learning_rate("light", it));
+            }
+        }
+        if let Some((k, rows, increments)) = leaves.motion {
+            let (leaf, through_render) = leaf_and_increments(rows, &mut read, increments);
+            if let (Some(motion), Some((pose, _))) = (state.motion.as_mut(), batch.corrected.as_ref()) {
+                motion.step(k, &leaf, &through_render, pose, self.schedule.learning_rate("motion", it));
+            }
+        }
+        if let Some((rows, increments)) = leaves.cameras {
+            let (leaf, through_render) = leaf_and_increments(rows, &mut read, increments);
+            if let Some(cameras) = state.cameras.as_mut() {
+                cameras.step(&leaf, &through_render, self.schedule.learning_rate("cameras", it));
+            }
+        }
+    }
 }
 
 #[cfg(test)]

@@ -60,9 +60,9 @@ type CameraLeaves = (Tensor<2>, Vec<Tensor<2>>);
 
 /// The host-side leaves a step's backward pass fills: the motion's and the cameras'.
 #[derive(Default)]
-struct Leaves {
-    motion: Option<MotionLeaves>,
-    cameras: Option<CameraLeaves>,
+pub(super) struct Leaves {
+    pub(super) motion: Option<MotionLeaves>,
+    pub(super) cameras: Option<CameraLeaves>,
 }
 
 impl Trainer {
@@ -110,7 +110,7 @@ impl Trainer {
         clock.mark(8);
         // The host's leaves step after the device's update (neither reads the other), so that
         // their gradients come down with what the update reports, in one read.
-        let host_leaves = HostLeaves::of(colour_leaf, leaves, &grads);
+        let host_leaves = super::host_adam::HostLeaves::of(colour_leaf, leaves, &grads);
         let model = state.model;
         state.model = self.update(model, grads, parts.into_forks(), batch.light, &mut state.optimisers, it);
         let extra = [host_leaves.pending.joined(), (!state.model.gaussians.is_empty()).then(|| state.model.gaussians.rows())];
@@ -393,30 +393,6 @@ impl Trainer {
         Avatar { field, gaussians, light, other_lights }
     }
 
-    /// One host-side Adam step of each of the cameras' colours, the batch frame's motion
-    /// correction and the cameras' turns that the step carried, from their gradients
-    /// (`gradients`, per leaf of `leaves` in `HostLeaves::of`'s order).
-    fn step_host_leaves(&self, leaves: &HostLeaves, gradients: Vec<Option<Vec<f32>>>, state: &mut TrainState, batch: &Batch, it: usize) {
-        let mut read = gradients.into_iter();
-        if leaves.colours {
-            if let (Some(gradient), Some(colours)) = (read.next().flatten(), state.camera_colours.as_mut()) {
-                colours.step(&gradient, self.schedule.learning_rate("light", it));
-            }
-        }
-        if let Some((k, rows, increments)) = leaves.motion {
-            let (leaf, through_render) = super::host_adam::leaf_and_increments(rows, &mut read, increments);
-            if let (Some(motion), Some((pose, _))) = (state.motion.as_mut(), batch.corrected.as_ref()) {
-                motion.step(k, &leaf, &through_render, pose, self.schedule.learning_rate("motion", it));
-            }
-        }
-        if let Some((rows, increments)) = leaves.cameras {
-            let (leaf, through_render) = super::host_adam::leaf_and_increments(rows, &mut read, increments);
-            if let Some(cameras) = state.cameras.as_mut() {
-                cameras.step(&leaf, &through_render, self.schedule.learning_rate("cameras", it));
-            }
-        }
-    }
-
     /// After the update, in one read: where the light is (`FittedLight::location`, when the fit
     /// has one to report), the sum of the parameters, not finite when the update left one not
     /// finite (`avatar::parameter_sum`; NaN when the read failed), and the values of each of
@@ -447,30 +423,6 @@ impl Trainer {
             Some(average) => average.update(&state.model.field, crate::averaging::ParameterAverage::keep_for_half_life(half_life)),
             None => state.average = Some(crate::averaging::ParameterAverage::start(&state.model.field)),
         }
-    }
-}
-
-/// The leaves the host's Adam steps after a step (`Trainer::step_host_leaves`), their gradients
-/// pending on the device: the cameras' colours when fitted, the batch frame's motion correction
-/// (its frame's row, the leaf's values, how many increments its render parts carried) and the
-/// cameras' turns (the leaf's values, its increments).
-struct HostLeaves {
-    colours: bool,
-    motion: Option<(usize, usize, usize)>,
-    cameras: Option<(usize, usize)>,
-    pending: super::host_adam::PendingGradients,
-}
-
-impl HostLeaves {
-    fn of(colour_leaf: Option<Tensor<2>>, leaves: Leaves, grads: &burn::tensor::Gradients) -> Self {
-        let motion = leaves.motion.as_ref().map(|(k, leaf, increments)| (*k, leaf.dims()[0] * 3, increments.len()));
-        let cameras = leaves.cameras.as_ref().map(|(leaf, increments)| (leaf.dims()[0] * 3, increments.len()));
-        let wanted: Vec<&Tensor<2>> = colour_leaf
-            .iter()
-            .chain(leaves.motion.iter().flat_map(|(_, leaf, increments)| std::iter::once(leaf).chain(increments)))
-            .chain(leaves.cameras.iter().flat_map(|(leaf, increments)| std::iter::once(leaf).chain(increments)))
-            .collect();
-        Self { colours: colour_leaf.is_some(), motion, cameras, pending: super::host_adam::PendingGradients::of(&wanted, grads) }
     }
 }
 
