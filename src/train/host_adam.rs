@@ -4,7 +4,6 @@
 //! device; their gradients brought to the host with the step's check after its update, all in
 //! one read (`PendingGradients`), and the step of each (`Trainer::step_host_leaves`).
 
-use super::step::Leaves;
 use super::{Batch, TrainState};
 use burn::tensor::Tensor;
 
@@ -169,6 +168,20 @@ pub fn leaf_and_increments(rows: usize, read: &mut impl Iterator<Item = Option<V
         through_render.iter_mut().zip(g).for_each(|(a, b)| *a += b);
     }
     (leaf, through_render)
+}
+
+/// The motion's leaves of a step: the corrected frame, its correction's leaf and the
+/// increments the render carried.
+pub(super) type MotionLeaves = (usize, Tensor<2>, Vec<Tensor<2>>);
+
+/// The cameras' leaves of a step: their corrections' leaf and the increments the render carried.
+pub(super) type CameraLeaves = (Tensor<2>, Vec<Tensor<2>>);
+
+/// The host-side leaves a step's backward pass fills: the motion's and the cameras'.
+#[derive(Default)]
+pub(super) struct Leaves {
+    pub(super) motion: Option<MotionLeaves>,
+    pub(super) cameras: Option<CameraLeaves>,
 }
 
 /// The leaves the host's Adam steps after a step (`Trainer::step_host_leaves`), their gradients

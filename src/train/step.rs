@@ -1,6 +1,7 @@
 //! One training step: forward, the schedule's weighted losses, backward, one Adam step per named
 //! parameter group, the light kept in its cone, the field's moving average updated.
 
+use super::host_adam::{HostLeaves, Leaves};
 use super::motion::MotionCorrections;
 use super::{Batch, TrainState, Trainer};
 use crate::avatar::Avatar;
@@ -46,24 +47,10 @@ impl PhaseClock {
 /// The step's losses: name, weight and value, in the order they are summed.
 type Terms<'a> = Vec<(&'a str, f64, Tensor<1>)>;
 
-/// The motion's leaves of a step: the corrected frame, its correction's leaf and the
-/// increments the render carried.
-type MotionLeaves = (usize, Tensor<2>, Vec<Tensor<2>>);
-
 /// The step (m on the reference human, scaled with the body) over which a step differences the
 /// SDF's gradient to carry the cameras' increment into the shading normals: about the finest
 /// grid cell, so the slope is the surface's bend, not one cell's trilinear kink.
 const NORMAL_STENCIL_ON_HUMAN: f64 = 0.01;
-
-/// The cameras' leaves of a step: their corrections' leaf and the increments the render carried.
-type CameraLeaves = (Tensor<2>, Vec<Tensor<2>>);
-
-/// The host-side leaves a step's backward pass fills: the motion's and the cameras'.
-#[derive(Default)]
-pub(super) struct Leaves {
-    pub(super) motion: Option<MotionLeaves>,
-    pub(super) cameras: Option<CameraLeaves>,
-}
 
 impl Trainer {
     /// One step on `batch` from `state`: forward, the weighted losses, backward, one Adam step
@@ -110,7 +97,7 @@ impl Trainer {
         clock.mark(8);
         // The host's leaves step after the device's update (neither reads the other), so that
         // their gradients come down with what the update reports, in one read.
-        let host_leaves = super::host_adam::HostLeaves::of(colour_leaf, leaves, &grads);
+        let host_leaves = HostLeaves::of(colour_leaf, leaves, &grads);
         let model = state.model;
         state.model = self.update(model, grads, parts.into_forks(), batch.light, &mut state.optimisers, it);
         let extra = [host_leaves.pending.joined(), (!state.model.gaussians.is_empty()).then(|| state.model.gaussians.rows())];
