@@ -1081,13 +1081,20 @@ fn the_plan_made_on_the_device_is_the_hosts() {
         close("coefficients", values(plan.coefficients.clone()), &host.coefficients, 1e-6);
         close("coefficient tangents", values(plan.coefficient_tangents.clone().unwrap()), &host.coefficient_tangents, 1e-5);
         close("logits", values(plan.logits.clone()), &host.logits, 1e-6);
-        close("logit tangents", values(plan.logit_tangents.clone()), &host.logit_tangents, 1e-6);
+        close("logit tangents", values(plan.logit_tangents.clone().unwrap()), &host.logit_tangents, 1e-6);
         close("root slot", values(plan.root_slot.clone()), &host.root_slot, 0.0);
         close("root coefficients", values(plan.root_coefficients.clone()), &host.root_coefficients, 1e-6);
         close("root coefficient tangents", values(plan.root_coefficient_tangents.clone()), &host.root_coefficient_tangents, 1e-5);
         close("prior", values(plan.prior.clone()), &host.prior, 1e-6);
-        close("prior tangents", values(plan.prior_tangents()), &host.prior_tangents, 1e-5);
-        close("prior slot tangents", values(plan.prior_slot_tangents.clone()), &host.prior_slot_tangents, 1e-5);
+        close("prior tangents", values(plan.prior_tangents().unwrap()), &host.prior_tangents, 1e-5);
+        close("prior slot tangents", values(plan.prior_slot_tangents.clone().unwrap()), &host.prior_slot_tangents, 1e-5);
+        // Without tangents: the same plan, and no gradients computed.
+        let points = Tensor::<2>::from_data(TensorData::new(flat(&pts), [n, 3]), &device);
+        let bare = lookup_on_device(&grid, &levels, &frames, skin, points, false);
+        assert!(bare.coefficient_tangents.is_none() && bare.logit_tangents.is_none() && bare.prior_slot_tangents.is_none(), "{what}");
+        assert_eq!(ints(bare.rows), ints(plan.rows.clone()), "{what}: rows without tangents");
+        close("coefficients without tangents", values(bare.coefficients), &host.coefficients, 1e-6);
+        close("prior without tangents", values(bare.prior), &host.prior, 1e-6);
     }
 }
 

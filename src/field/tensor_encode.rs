@@ -13,6 +13,9 @@ impl TensorLookup {
     /// The host's plan of `n` points in `k` bones on `device`; what it did not plan (the
     /// gradients of a plan without tangents) as zeros.
     pub fn upload(plan: &Lookup, n: usize, k: usize, device: &Device) -> Self {
+        let planned = |values: &[f32]| {
+            (values.len() == n * k * 3).then(|| Tensor::<1>::from_data(TensorData::new(values.to_vec(), [n * k * 3]), device).reshape([n, k, 3]))
+        };
         let floats = |values: &[f32], count: usize| match values.len() == count {
             true => Tensor::<1>::from_data(TensorData::new(values.to_vec(), [count]), device),
             false => Tensor::zeros([count], device),
@@ -34,13 +37,13 @@ impl TensorLookup {
             coefficient_tangents: (plan.coefficient_tangents.len() == corners * 3)
                 .then(|| floats(&plan.coefficient_tangents, corners * 3).reshape([corners, 3])),
             logits: floats(&plan.logits, n * k).reshape([n, k]),
-            logit_tangents: floats(&plan.logit_tangents, n * k * 3).reshape([n, k, 3]),
+            logit_tangents: planned(&plan.logit_tangents),
             root_slot: floats(&plan.root_slot, n * k).reshape([n, k]),
             root_rows: ints(&plan.root_rows),
             root_coefficients: floats(&plan.root_coefficients, n * 8),
             root_coefficient_tangents: floats(&plan.root_coefficient_tangents, n * 24).reshape([n * 8, 3]),
             prior: floats(&plan.prior, n),
-            prior_slot_tangents: floats(&plan.prior_slot_tangents, n * k * 3).reshape([n, k, 3]),
+            prior_slot_tangents: planned(&plan.prior_slot_tangents),
         }
     }
 }
@@ -75,22 +78,22 @@ impl FeatureGrid {
         let shift = carrying.then(|| carried_shift(points, k, plan.bones.clone().reshape([n * k]), motion, view));
         let (per_bone, per_bone_tangents) = self.sum_corners(&plan, n, tangents, shift.as_ref());
         let preference = self.preference_by_tensors(&plan, n, tangents || carrying);
-        let (carried, prior) = match &shift {
-            Some(shift) => {
-                let (logit_shift, prior_shift, root_shift) =
-                    carried_terms(shift, plan.logit_tangents.clone(), plan.prior_slot_tangents.clone(), plan.root_slot.clone());
+        // (A carrying lookup is planned with its world gradients.)
+        let (carried, prior) = match (&shift, &plan.logit_tangents, &plan.prior_slot_tangents) {
+            (Some(shift), Some(logit_tangents), Some(prior_slot_tangents)) => {
+                let (logit_shift, prior_shift, root_shift) = carried_terms(shift, logit_tangents.clone(), prior_slot_tangents.clone(), plan.root_slot.clone());
                 (Some((logit_shift, root_shift)), plan.prior.clone() + prior_shift)
             }
-            None => (None, plan.prior.clone()),
+            _ => (None, plan.prior.clone()),
         };
         let skin = Skin {
             logits: plan.logits.clone(),
-            logit_tangents: Some(plan.logit_tangents.clone().reshape([n * k, 3])),
+            logit_tangents: plan.logit_tangents.clone().map(|t| t.reshape([n * k, 3])),
             root_slot: plan.root_slot.clone(),
             preference,
         };
         let (features, feature_tangents) = self.blend(skin, n, per_bone, per_bone_tangents, carried);
-        let tangents = feature_tangents.map(|t| (t, plan.prior_tangents().transpose()));
+        let tangents = feature_tangents.zip(plan.prior_tangents()).map(|(t, prior)| (t, prior.transpose()));
         GridFeatures { features, prior, tangents }
     }
 

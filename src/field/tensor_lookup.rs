@@ -23,9 +23,9 @@ pub struct TensorLookup {
     /// `[N K L 8, 3]`: each coefficient's world derivative, when asked for.
     pub coefficient_tangents: Option<Tensor<2>>,
     /// `[N, K]`: the skinning's logits from distance, the largest 0; `[N, K, 3]` their world
-    /// gradients, each through its own bone's distance.
+    /// gradients, each through its own bone's distance, when asked for.
     pub logits: Tensor<2>,
-    pub logit_tangents: Tensor<3>,
+    pub logit_tangents: Option<Tensor<3>>,
     /// `[N, K]`: 1 in the root's slot.
     pub root_slot: Tensor<2>,
     /// `[N 8]` the root's preference corners (zero where the root is not chosen), `[N 8, 3]`
@@ -33,16 +33,19 @@ pub struct TensorLookup {
     pub root_rows: Tensor<1, Int>,
     pub root_coefficients: Tensor<1>,
     pub root_coefficient_tangents: Tensor<2>,
-    /// `[N]`: the capsule prior; `[N, K, 3]`: its world gradient through each slot's distance.
+    /// `[N]`: the capsule prior; `[N, K, 3]`: its world gradient through each slot's distance,
+    /// when asked for.
     pub prior: Tensor<1>,
-    pub prior_slot_tangents: Tensor<3>,
+    pub prior_slot_tangents: Option<Tensor<3>>,
 }
 
 impl TensorLookup {
-    /// `[N, 3]`: the capsule prior's world gradient.
-    pub fn prior_tangents(&self) -> Tensor<2> {
-        let [n, _, _] = self.prior_slot_tangents.dims();
-        self.prior_slot_tangents.clone().sum_dim(1).reshape([n, 3])
+    /// `[N, 3]`: the capsule prior's world gradient, when planned.
+    pub fn prior_tangents(&self) -> Option<Tensor<2>> {
+        self.prior_slot_tangents.as_ref().map(|t| {
+            let [n, _, _] = t.dims();
+            t.clone().sum_dim(1).reshape([n, 3])
+        })
     }
 }
 
@@ -81,28 +84,35 @@ pub fn lookup_on_device(config: &GridConfig, levels: &[Level], frames: &[BoneFra
     let slot_local = local.clone().map(|l| in_slots(&l));
     let offset = [slot_local[0].clone(), in_slots(&along), slot_local[2].clone()];
     let slot_axes: [[Tensor<2>; 3]; 3] = [0, 1, 2].map(|m| [0, 1, 2].map(|x| of_slots(frames.iter().map(|f| f.axes[m][x]).collect())));
-    // The squared distance's world gradient, per slot and axis.
-    let gradient: [Tensor<2>; 3] = [0, 1, 2].map(|x| {
-        (slot_axes[0][x].clone() * offset[0].clone() + slot_axes[1][x].clone() * offset[1].clone() + slot_axes[2][x].clone() * offset[2].clone()) * 2.0
-    });
-    // The skinning's logits: shifted by the nearest bone's, with its own bone's gradient (none
-    // where the root's distance is capped).
+    // The skinning's logits: shifted by the nearest bone's.
     let sharpness = skinning.sharpness;
     let logits = skinning_d2.clone() * sharpness - skinning_d2.clone().min_dim(1) * sharpness;
-    let moves = skinning_d2.equal(d2.clone()).float();
-    let stack3 = |parts: [Tensor<2>; 3]| Tensor::stack::<3>(parts.to_vec(), 2);
-    let logit_tangents = stack3(gradient.clone().map(|g| g * moves.clone() * sharpness));
     // The capsule prior: a softmax of the true distances weighs the distances to the segments.
     let weights = burn::tensor::activation::softmax(d2.clone() * sharpness, 1);
-    let distances = (d2 + 1e-8).sqrt();
+    let distances = (d2.clone() + 1e-8).sqrt();
     let mean = (weights.clone() * distances.clone()).sum_dim(1);
     let prior = mean.clone() - skinning.prior_radius;
     let (prior, slope) = match skinning.prior_cap {
         Some(cap) => (prior.clone().clamp_max(cap), prior.lower_equal_elem(cap).float()),
         None => (prior, Tensor::ones([n, 1], &device)),
     };
-    let through = slope * ((distances.clone() - mean) * weights.clone() * sharpness + weights / (distances * 2.0));
-    let prior_slot_tangents = stack3(gradient.map(|g| g * through.clone()));
+    // Their world gradients, only when asked for (a lookup without gradients, most of a step's
+    // and every one of the search's, needs none).
+    let (logit_tangents, prior_slot_tangents) = match tangents {
+        true => {
+            // The squared distance's world gradient, per slot and axis.
+            let gradient: [Tensor<2>; 3] = [0, 1, 2].map(|x| {
+                (slot_axes[0][x].clone() * offset[0].clone() + slot_axes[1][x].clone() * offset[1].clone() + slot_axes[2][x].clone() * offset[2].clone()) * 2.0
+            });
+            let stack3 = |parts: [Tensor<2>; 3]| Tensor::stack::<3>(parts.to_vec(), 2);
+            // A logit's gradient is its own bone's (none where the root's distance is capped).
+            let moves = skinning_d2.equal(d2).float();
+            let logit_tangents = stack3(gradient.clone().map(|g| g * moves.clone() * sharpness));
+            let through = slope * ((distances.clone() - mean) * weights.clone() * sharpness + weights / (distances * 2.0));
+            (Some(logit_tangents), Some(stack3(gradient.map(|g| g * through.clone()))))
+        }
+        false => (None, None),
+    };
     let root_slot = match config.root {
         Some(root) => chosen.clone().equal_elem(root.bone as i64).float(),
         None => Tensor::zeros([n, k], &device),
