@@ -241,6 +241,19 @@ fn malformed_captures_are_refused_naming_the_file_and_the_place_and_nothing_is_w
             "motion.bvh".into(),
             "camera_model \"OPENCV_FISHEYE\"",
         ),
+        // A training image also listed for testing would score the fit on what it saw.
+        (
+            "transforms.json",
+            transforms.replacen("\"test_filenames\": [", "\"test_filenames\": [\n    \"images/c00_f0000_sun.png\",", 1),
+            "motion.bvh".into(),
+            "frames[0].file_path: listed in train_filenames and test_filenames",
+        ),
+        (
+            "transforms.json",
+            transforms.replacen("\"test_filenames\": [", "\"test_filenames\": [\n    \"images/c09_f0000_sun.png\",", 1),
+            "motion.bvh".into(),
+            "test_filenames[0]: \"images/c09_f0000_sun.png\" names none of the frames' file_path",
+        ),
     ];
     for (k, (file, text, _, expected)) in cases.iter().enumerate() {
         let broken = dir.path().join(format!("broken-{k}"));

@@ -29,17 +29,7 @@ pub fn read(file: &Path) -> Result<Vec<CaptureImage>, SceneError> {
         None => "OPENCV".to_string(),
     };
     let shared = intrinsics(&root, None, &model)?;
-    let split_lists: Vec<(Split, Vec<String>)> = [("train_filenames", Split::Train), ("val_filenames", Split::Val), ("test_filenames", Split::Test)]
-        .into_iter()
-        .map(|(key, split)| -> Result<_, SceneError> {
-            let names = match root.opt_field(key)? {
-                Some(list) => list.array()?.iter().map(|n| n.str().map(str::to_string)).collect::<Result<Vec<_>, _>>()?,
-                None => Vec::new(),
-            };
-            Ok((split, names))
-        })
-        .collect::<Result<_, _>>()?;
-    let listed = split_lists.iter().any(|(_, names)| !names.is_empty());
+    let mut lists = SplitLists::read(&root)?;
     let mut images = Vec::new();
     for frame in root.field("frames")?.non_empty_array()? {
         let path_node = frame.field("file_path")?;
@@ -50,15 +40,7 @@ pub fn read(file: &Path) -> Result<Vec<CaptureImage>, SceneError> {
         let (intrinsics, distortion) =
             own.or(shared.clone()).ok_or_else(|| frame.error("no intrinsics: fl_x, fl_y, cx, cy, w and h on the frame or the file"))?;
         let opengl = frame.field("transform_matrix")?.rigid_mat4()?;
-        let split = if listed {
-            let named = |n: &String| n == relative || Path::new(n).file_name() == Path::new(relative).file_name();
-            match split_lists.iter().find(|(_, names)| names.iter().any(named)) {
-                Some((split, _)) => *split,
-                None => return Err(path_node.error("listed in none of train_filenames, val_filenames and test_filenames")),
-            }
-        } else {
-            Split::Train
-        };
+        let split = lists.split_of(relative).map_err(|e| path_node.error(e))?;
         // The key: the path below `images/` (nerfstudio's folder for them), else below the file.
         let below = file_path.strip_prefix("images").ok().filter(|p| !p.as_os_str().is_empty()).unwrap_or(&file_path);
         images.push(CaptureImage {
@@ -73,7 +55,82 @@ pub fn read(file: &Path) -> Result<Vec<CaptureImage>, SceneError> {
             split,
         });
     }
+    lists.each_names_a_frame(&root)?;
     Ok(images)
+}
+
+/// The capture's `train_filenames`, `val_filenames` and `test_filenames`: which split each
+/// frame's image is in. A list's entry names a frame's `file_path` whole or by its last parts
+/// (`c03/0001.png` names `images/c03/0001.png`, but `c00/0001.png` does not): multi-camera
+/// captures often keep each camera's images in a folder of its own under the same file names.
+struct SplitLists {
+    /// Each list's split, key and entries, the entries as path components.
+    lists: Vec<(Split, &'static str, Vec<Vec<String>>)>,
+    /// Which entries named a frame, per list (`each_names_a_frame`).
+    used: Vec<Vec<bool>>,
+}
+
+const SPLIT_KEYS: [(&str, Split); 3] = [("train_filenames", Split::Train), ("val_filenames", Split::Val), ("test_filenames", Split::Test)];
+
+/// A path's parts, without `.` and empty ones, with either separator.
+fn parts(path: &str) -> Vec<String> {
+    path.split(['/', '\\']).filter(|p| !p.is_empty() && *p != ".").map(str::to_string).collect()
+}
+
+impl SplitLists {
+    fn read(root: &At) -> Result<SplitLists, SceneError> {
+        let mut lists = Vec::new();
+        for (key, split) in SPLIT_KEYS {
+            let entries = match root.opt_field(key)? {
+                Some(list) => list.array()?.iter().map(|n| n.str().map(parts)).collect::<Result<Vec<_>, _>>()?,
+                None => Vec::new(),
+            };
+            lists.push((split, key, entries));
+        }
+        let used = lists.iter().map(|(_, _, e)| vec![false; e.len()]).collect();
+        Ok(SplitLists { lists, used })
+    }
+
+    /// The split of the frame whose `file_path` is `path`: every image trains when no list is
+    /// given; refused when the lists are given and none, or more than one, names it.
+    fn split_of(&mut self, path: &str) -> Result<Split, String> {
+        if self.lists.iter().all(|(_, _, entries)| entries.is_empty()) {
+            return Ok(Split::Train);
+        }
+        let frame = parts(path);
+        let mut naming = Vec::new();
+        for (k, (split, key, entries)) in self.lists.iter().enumerate() {
+            for (e, entry) in entries.iter().enumerate() {
+                if !entry.is_empty() && frame.ends_with(entry) {
+                    self.used[k][e] = true;
+                    if naming.last().is_none_or(|(_, last)| last != key) {
+                        naming.push((*split, *key));
+                    }
+                }
+            }
+        }
+        match naming.as_slice() {
+            [(split, _)] => Ok(*split),
+            [] => Err("listed in none of train_filenames, val_filenames and test_filenames".into()),
+            _ => Err(format!(
+                "listed in {}: each image is in one split (a test image that also trains scores the fit on what it has seen)",
+                naming.iter().map(|(_, key)| *key).collect::<Vec<_>>().join(" and ")
+            )),
+        }
+    }
+
+    /// Refuses an entry of a list that named no frame, naming it: a list that names an image the
+    /// file does not hold has lost it, or names another capture's.
+    fn each_names_a_frame(&self, root: &At) -> Result<(), SceneError> {
+        for ((_, key, entries), used) in self.lists.iter().zip(&self.used) {
+            if let Some(e) = used.iter().position(|u| !u) {
+                let node = root.field(key)?;
+                let entry = node.array()?.into_iter().nth(e).ok_or_else(|| node.error("changed while read"))?;
+                return Err(entry.error(format!("{:?} names none of the frames' file_path", entries[e].join("/"))));
+            }
+        }
+        Ok(())
+    }
 }
 
 /// The intrinsics `node` states (`None` when it states none of them), each missing one taken
@@ -178,4 +235,45 @@ pub fn write(scene: &Scene, cameras: &[Camera], chosen: &[usize], units: f64, fr
         "val_filenames": split_names(Split::Val),
         "test_filenames": split_names(Split::Test),
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn lists(value: &Value) -> SplitLists {
+        SplitLists::read(&At::root(value, Path::new("transforms.json"))).unwrap()
+    }
+
+    #[test]
+    fn a_list_names_a_frame_by_its_whole_path_or_its_last_parts_never_by_a_shared_file_name() {
+        // Each camera's images in a folder of its own, under the same file names.
+        let value = json!({"train_filenames": ["images/c00/0001.png", "./images/c01/0001.png"], "test_filenames": ["c02/0001.png"]});
+        let mut lists = lists(&value);
+        assert_eq!(lists.split_of("images/c00/0001.png"), Ok(Split::Train));
+        assert_eq!(lists.split_of("images/c01/0001.png"), Ok(Split::Train));
+        assert_eq!(lists.split_of("images/c02/0001.png"), Ok(Split::Test), "c00's entry shares only the file name");
+        // A part of a name is no name.
+        let mut bare = self::lists(&json!({"train_filenames": ["1.png"]}));
+        assert!(bare.split_of("images/c00/0001.png").is_err());
+        assert_eq!(bare.split_of("images/1.png"), Ok(Split::Train));
+        // No lists: everything trains.
+        assert_eq!(self::lists(&json!({})).split_of("images/a.png"), Ok(Split::Train));
+    }
+
+    #[test]
+    fn an_image_in_two_lists_or_in_none_and_an_entry_naming_no_frame_are_refused() {
+        let value = json!({"train_filenames": ["a.png", "b.png"], "test_filenames": ["images/b.png", "images/c.png"]});
+        let root = At::root(&value, Path::new("transforms.json"));
+        let mut lists = SplitLists::read(&root).unwrap();
+        let both = lists.split_of("images/b.png").unwrap_err();
+        assert!(both.contains("train_filenames and test_filenames"), "{both}");
+        assert!(lists.split_of("images/d.png").unwrap_err().contains("listed in none"));
+        assert_eq!(lists.split_of("images/a.png"), Ok(Split::Train));
+        // images/c.png was never read: its entry names nothing.
+        let unused = lists.each_names_a_frame(&root).unwrap_err().to_string();
+        assert!(unused.contains("test_filenames[1]") && unused.contains("images/c.png"), "{unused}");
+        assert_eq!(lists.split_of("images/c.png"), Ok(Split::Test));
+        assert!(lists.each_names_a_frame(&root).is_ok());
+    }
 }

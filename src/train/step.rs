@@ -55,7 +55,8 @@ const NORMAL_STENCIL_ON_HUMAN: f64 = 0.01;
 impl Trainer {
     /// One step on `batch` from `state`: forward, the weighted losses, backward, one Adam step
     /// per group. The batch carries every random number the step uses (`draw_batch`). The state
-    /// comes back whatever happens: unchanged but for its error maps when the step fails.
+    /// comes back whatever happens; when the step fails (a loss or a parameter not finite) it
+    /// holds the failed update, which a fit does not keep: it stops at its last checkpoint.
     pub fn step(&self, batch: Batch, mut state: TrainState) -> (TrainState, Result<StepStats, FitError>) {
         let start = Instant::now();
         let mut clock = PhaseClock::start();
@@ -77,22 +78,11 @@ impl Trainer {
         for (_, weight, value) in terms.iter().skip(1) {
             total = total + value.clone() * *weight;
         }
-        // The total and every term come down together: one read a step, not one per term.
-        let read = crate::backend::host_values(Tensor::cat(
-            std::iter::once(&total).chain(terms.iter().map(|(_, _, v)| v)).map(|v| v.clone().detach().narrow(0, 0, 1)).collect(),
-            0,
-        ));
-        let value = |k: usize| read.get(k).map_or(f64::NAN, |&v| v as f64);
-        let mut stats = StepStats {
-            total: value(0),
-            terms: terms.iter().enumerate().map(|(k, (n, _, _))| (n.to_string(), value(k + 1))).collect(),
-            ..StepStats::default()
-        };
+        // The total and every term come down with what the update reports, in the step's one
+        // read: read before the backward pass, they would hold a device idle while the host
+        // waited on them. A diverged step stops the fit, which keeps its last checkpoint.
+        let losses = Tensor::cat(std::iter::once(&total).chain(terms.iter().map(|(_, _, v)| v)).map(|v| v.clone().detach().narrow(0, 0, 1)).collect(), 0);
         clock.mark(7);
-        if !stats.total.is_finite() {
-            let bad = stats.terms.iter().find(|(_, v)| !v.is_finite()).map(|(n, _)| format!("the {n} loss")).unwrap_or_else(|| "the total loss".into());
-            return (state, Err(FitError::NonFinite { iteration: it, what: bad, checkpoint: String::new() }));
-        }
         let grads = parts.backward(&total, self.parts_backward_at_once);
         clock.mark(8);
         // The host's leaves step after the device's update (neither reads the other), so that
@@ -100,8 +90,19 @@ impl Trainer {
         let host_leaves = HostLeaves::of(colour_leaf, leaves, &grads);
         let model = state.model;
         state.model = self.update(model, grads, parts.into_forks(), batch.light, &mut state.optimisers, it);
-        let extra = [host_leaves.pending.joined(), (!state.model.gaussians.is_empty()).then(|| state.model.gaussians.rows())];
-        let (light, sum, [gradients, gaussians]) = self.read_after_update(&state.model, extra);
+        let extra = [Some(losses), host_leaves.pending.joined(), (!state.model.gaussians.is_empty()).then(|| state.model.gaussians.rows())];
+        let (light, sum, [losses, gradients, gaussians]) = self.read_after_update(&state.model, extra);
+        let value = |k: usize| losses.get(k).map_or(f64::NAN, |&v| v as f64);
+        let mut stats = StepStats {
+            total: value(0),
+            terms: terms.iter().enumerate().map(|(k, (n, _, _))| (n.to_string(), value(k + 1))).collect(),
+            ..StepStats::default()
+        };
+        if !stats.total.is_finite() {
+            let bad = stats.terms.iter().find(|(_, v)| !v.is_finite()).map(|(n, _)| format!("the {n} loss")).unwrap_or_else(|| "the total loss".into());
+            state.gaussians_read = None;
+            return (state, Err(FitError::NonFinite { iteration: it, what: bad, checkpoint: String::new() }));
+        }
         self.step_host_leaves(&host_leaves, host_leaves.pending.split(&gradients), &mut state, &batch, it);
         state.gaussians_read = state.model.gaussians.set_from_rows(&gaussians);
         if self.fit_light {
