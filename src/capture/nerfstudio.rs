@@ -60,9 +60,10 @@ pub fn read(file: &Path) -> Result<Vec<CaptureImage>, SceneError> {
 }
 
 /// The capture's `train_filenames`, `val_filenames` and `test_filenames`: which split each
-/// frame's image is in. A list's entry names a frame's `file_path` whole or by its last parts
-/// (`c03/0001.png` names `images/c03/0001.png`, but `c00/0001.png` does not): multi-camera
-/// captures often keep each camera's images in a folder of its own under the same file names.
+/// frame's image is in. An entry and a frame's `file_path` name the same image when one is the
+/// other's last parts (`c03/0001.png` names `images/c03/0001.png`, and so does an absolute
+/// `/data/capture/images/c03/0001.png`, but `c00/0001.png` does not): multi-camera captures
+/// often keep each camera's images in a folder of its own under the same file names.
 struct SplitLists {
     /// Each list's split, key and entries, the entries as path components.
     lists: Vec<(Split, &'static str, Vec<Vec<String>>)>,
@@ -101,7 +102,7 @@ impl SplitLists {
         let mut naming = Vec::new();
         for (k, (split, key, entries)) in self.lists.iter().enumerate() {
             for (e, entry) in entries.iter().enumerate() {
-                if !entry.is_empty() && frame.ends_with(entry) {
+                if !entry.is_empty() && (frame.ends_with(entry) || entry.ends_with(&frame)) {
                     self.used[k][e] = true;
                     if naming.last().is_none_or(|(_, last)| last != key) {
                         naming.push((*split, *key));
@@ -253,6 +254,11 @@ mod tests {
         assert_eq!(lists.split_of("images/c00/0001.png"), Ok(Split::Train));
         assert_eq!(lists.split_of("images/c01/0001.png"), Ok(Split::Train));
         assert_eq!(lists.split_of("images/c02/0001.png"), Ok(Split::Test), "c00's entry shares only the file name");
+        // An entry written from elsewhere, whole, names the frame its last parts are.
+        let mut absolute =
+            self::lists(&json!({"train_filenames": ["/data/capture/images/c00/0001.png"], "test_filenames": ["/data/capture/images/c01/0001.png"]}));
+        assert_eq!(absolute.split_of("images/c01/0001.png"), Ok(Split::Test));
+        assert_eq!(absolute.split_of("c00/0001.png"), Ok(Split::Train));
         // A part of a name is no name.
         let mut bare = self::lists(&json!({"train_filenames": ["1.png"]}));
         assert!(bare.split_of("images/c00/0001.png").is_err());
