@@ -55,7 +55,7 @@ pub fn read(file: &Path) -> Result<Vec<CaptureImage>, SceneError> {
             split,
         });
     }
-    lists.each_names_a_frame(&root)?;
+    lists.each_names_a_frame()?;
     Ok(images)
 }
 
@@ -64,9 +64,11 @@ pub fn read(file: &Path) -> Result<Vec<CaptureImage>, SceneError> {
 /// other's last parts (`c03/0001.png` names `images/c03/0001.png`, and so does an absolute
 /// `/data/capture/images/c03/0001.png`, but `c00/0001.png` does not): multi-camera captures
 /// often keep each camera's images in a folder of its own under the same file names.
-struct SplitLists {
-    /// Each list's split, key and entries, the entries as path components.
-    lists: Vec<(Split, &'static str, Vec<Vec<String>>)>,
+struct SplitLists<'a> {
+    /// Each list's split and entries, as their JSON nodes.
+    lists: Vec<(Split, &'static str, Vec<At<'a>>)>,
+    /// The entries by their last part, as path components with their list and place in it.
+    by_name: std::collections::HashMap<String, Vec<(usize, usize, Vec<String>)>>,
     /// Which entries named a frame, per list (`each_names_a_frame`).
     used: Vec<Vec<bool>>,
 }
@@ -78,18 +80,25 @@ fn parts(path: &str) -> Vec<String> {
     path.split(['/', '\\']).filter(|p| !p.is_empty() && *p != ".").map(str::to_string).collect()
 }
 
-impl SplitLists {
-    fn read(root: &At) -> Result<SplitLists, SceneError> {
+impl<'a> SplitLists<'a> {
+    fn read(root: &At<'a>) -> Result<SplitLists<'a>, SceneError> {
         let mut lists = Vec::new();
-        for (key, split) in SPLIT_KEYS {
+        let mut by_name: std::collections::HashMap<String, Vec<_>> = std::collections::HashMap::new();
+        for (k, (key, split)) in SPLIT_KEYS.into_iter().enumerate() {
             let entries = match root.opt_field(key)? {
-                Some(list) => list.array()?.iter().map(|n| n.str().map(parts)).collect::<Result<Vec<_>, _>>()?,
+                Some(list) => list.array()?,
                 None => Vec::new(),
             };
+            for (e, entry) in entries.iter().enumerate() {
+                let entry_parts = parts(entry.str()?);
+                if let Some(last) = entry_parts.last() {
+                    by_name.entry(last.clone()).or_default().push((k, e, entry_parts));
+                }
+            }
             lists.push((split, key, entries));
         }
         let used = lists.iter().map(|(_, _, e)| vec![false; e.len()]).collect();
-        Ok(SplitLists { lists, used })
+        Ok(SplitLists { lists, by_name, used })
     }
 
     /// The split of the frame whose `file_path` is `path`: every image trains when no list is
@@ -99,35 +108,32 @@ impl SplitLists {
             return Ok(Split::Train);
         }
         let frame = parts(path);
-        let mut naming = Vec::new();
-        for (k, (split, key, entries)) in self.lists.iter().enumerate() {
-            for (e, entry) in entries.iter().enumerate() {
-                if !entry.is_empty() && (frame.ends_with(entry) || entry.ends_with(&frame)) {
-                    self.used[k][e] = true;
-                    if naming.last().is_none_or(|(_, last)| last != key) {
-                        naming.push((*split, *key));
-                    }
+        let mut naming: Vec<usize> = Vec::new();
+        for (k, e, entry) in frame.last().and_then(|last| self.by_name.get(last)).into_iter().flatten() {
+            if frame.ends_with(entry) || entry.ends_with(&frame) {
+                self.used[*k][*e] = true;
+                if !naming.contains(k) {
+                    naming.push(*k);
                 }
             }
         }
+        naming.sort_unstable();
         match naming.as_slice() {
-            [(split, _)] => Ok(*split),
+            [k] => Ok(self.lists[*k].0),
             [] => Err("listed in none of train_filenames, val_filenames and test_filenames".into()),
             _ => Err(format!(
                 "listed in {}: each image is in one split (a test image that also trains scores the fit on what it has seen)",
-                naming.iter().map(|(_, key)| *key).collect::<Vec<_>>().join(" and ")
+                naming.iter().map(|&k| self.lists[k].1).collect::<Vec<_>>().join(" and ")
             )),
         }
     }
 
     /// Refuses an entry of a list that named no frame, naming it: a list that names an image the
     /// file does not hold has lost it, or names another capture's.
-    fn each_names_a_frame(&self, root: &At) -> Result<(), SceneError> {
-        for ((_, key, entries), used) in self.lists.iter().zip(&self.used) {
-            if let Some(e) = used.iter().position(|u| !u) {
-                let node = root.field(key)?;
-                let entry = node.array()?.into_iter().nth(e).ok_or_else(|| node.error("changed while read"))?;
-                return Err(entry.error(format!("{:?} names none of the frames' file_path", entries[e].join("/"))));
+    fn each_names_a_frame(&self) -> Result<(), SceneError> {
+        for ((_, _, entries), used) in self.lists.iter().zip(&self.used) {
+            if let Some(entry) = entries.iter().zip(used).find(|(_, u)| !**u).map(|(entry, _)| entry) {
+                return Err(entry.error(format!("{:?} names none of the frames' file_path", entry.str()?)));
             }
         }
         Ok(())
@@ -242,7 +248,7 @@ pub fn write(scene: &Scene, cameras: &[Camera], chosen: &[usize], units: f64, fr
 mod tests {
     use super::*;
 
-    fn lists(value: &Value) -> SplitLists {
+    fn lists(value: &Value) -> SplitLists<'_> {
         SplitLists::read(&At::root(value, Path::new("transforms.json"))).unwrap()
     }
 
@@ -255,12 +261,13 @@ mod tests {
         assert_eq!(lists.split_of("images/c01/0001.png"), Ok(Split::Train));
         assert_eq!(lists.split_of("images/c02/0001.png"), Ok(Split::Test), "c00's entry shares only the file name");
         // An entry written from elsewhere, whole, names the frame its last parts are.
-        let mut absolute =
-            self::lists(&json!({"train_filenames": ["/data/capture/images/c00/0001.png"], "test_filenames": ["/data/capture/images/c01/0001.png"]}));
+        let written_whole = json!({"train_filenames": ["/data/capture/images/c00/0001.png"], "test_filenames": ["/data/capture/images/c01/0001.png"]});
+        let mut absolute = self::lists(&written_whole);
         assert_eq!(absolute.split_of("images/c01/0001.png"), Ok(Split::Test));
         assert_eq!(absolute.split_of("c00/0001.png"), Ok(Split::Train));
         // A part of a name is no name.
-        let mut bare = self::lists(&json!({"train_filenames": ["1.png"]}));
+        let bare_names = json!({"train_filenames": ["1.png"]});
+        let mut bare = self::lists(&bare_names);
         assert!(bare.split_of("images/c00/0001.png").is_err());
         assert_eq!(bare.split_of("images/1.png"), Ok(Split::Train));
         // No lists: everything trains.
@@ -277,9 +284,9 @@ mod tests {
         assert!(lists.split_of("images/d.png").unwrap_err().contains("listed in none"));
         assert_eq!(lists.split_of("images/a.png"), Ok(Split::Train));
         // images/c.png was never read: its entry names nothing.
-        let unused = lists.each_names_a_frame(&root).unwrap_err().to_string();
+        let unused = lists.each_names_a_frame().unwrap_err().to_string();
         assert!(unused.contains("test_filenames[1]") && unused.contains("images/c.png"), "{unused}");
         assert_eq!(lists.split_of("images/c.png"), Ok(Split::Test));
-        assert!(lists.each_names_a_frame(&root).is_ok());
+        assert!(lists.each_names_a_frame().is_ok());
     }
 }
