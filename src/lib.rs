@@ -54,5 +54,6 @@ pub mod skeleton;
 pub mod sun_search;
 pub mod synth;
 pub mod table;
+pub mod threads;
 pub mod train;
 pub mod written;

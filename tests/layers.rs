@@ -8,10 +8,11 @@ use std::path::Path;
 
 const LAYERS: &[&[&str]] = &[
     // files, validation, geometry, the seeded stream, the format's lights, pictures and tables,
-    // the average of any module's parameters
+    // the average of any module's parameters, jobs on threads of their own
     &[
         "files",
         "table",
+        "threads",
         "backend",
         "scene",
         "skeleton",

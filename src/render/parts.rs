@@ -34,22 +34,19 @@ pub fn render_in_parts(
     if parts == 1 {
         return (render(field, pose, rays, sampling, jitter, normals, device), Parts::default());
     }
-    use rayon::prelude::*;
     let per_part = r.div_ceil(parts);
     let forks: Vec<AvatarField> = (0..parts).map(|_| field.clone().fork(device)).collect();
     // A motion or view increment, like the field, is a leaf of each part's own graph.
     let poses: Vec<PoseTensors> = (0..parts)
         .map(|_| PoseTensors { motion: pose.motion.as_ref().map(|m| m.fork()), view: pose.view.as_ref().map(|v| v.fork()), ..pose.clone() })
         .collect();
-    let rendered: Vec<(Deferred, Vec<Seam>)> = forks
-        .par_iter()
-        .zip(&poses)
-        .enumerate()
-        .map(|(k, (fork, pose))| {
+    let jobs = forks.iter().zip(&poses).enumerate().map(|(k, (fork, pose))| {
+        move || {
             let (lo, hi) = (k * per_part, ((k + 1) * per_part).min(r));
             cut(render(fork, pose, &rays.range(lo, hi), sampling, &sampling.jitter_of(jitter, r, lo, hi), normals, device))
-        })
-        .collect();
+        }
+    });
+    let rendered: Vec<(Deferred, Vec<Seam>)> = crate::threads::on_own_threads(jobs.collect());
     let (deferred, seams): (Vec<Deferred>, Vec<Vec<Seam>>) = rendered.into_iter().unzip();
     let leaves = deferred.iter().map(|d| d.motion_leaves.iter().chain(&d.view_leaves).cloned().collect()).collect();
     (Deferred::cat(deferred), Parts { forks, seams, leaves })
@@ -105,7 +102,6 @@ impl Parts {
     /// forks' and the increments' gradients are moved into the one returned. Not `at_once`: the
     /// parts' passes one after the other on this thread (a benchmark's baseline; the same sums).
     pub fn backward(&self, loss: &Tensor<1>, at_once: bool) -> burn::tensor::Gradients {
-        use rayon::prelude::*;
         let mut grads = loss.backward();
         let roots: Vec<Option<Tensor<1>>> = self
             .seams
@@ -114,7 +110,7 @@ impl Parts {
             .collect();
         let backward = |root: Option<Tensor<1>>| root.map(|root| root.backward());
         let parts: Vec<Option<burn::tensor::Gradients>> = match at_once {
-            true => roots.into_par_iter().map(backward).collect(),
+            true => crate::threads::on_own_threads(roots.into_iter().map(|root| move || backward(root)).collect()),
             false => roots.into_iter().map(backward).collect(),
         };
         for ((fork, leaves), part) in self.forks.iter().zip(&self.leaves).zip(parts) {
