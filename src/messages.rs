@@ -65,6 +65,10 @@ pub struct StepStats {
     /// burn's CPU backends run eagerly, so each part's tensor work is done within its span.
     #[serde(skip)]
     pub phases: Vec<(&'static str, f64)>,
+    /// The process's CPU seconds per part of the step, as `phases` (the render's three parts
+    /// share theirs in proportion to their times); empty where it cannot be read.
+    #[serde(skip)]
+    pub phase_cpu: Vec<(&'static str, f64)>,
     /// The first training light after the step (`FittedLight::location`): a sun's unit
     /// direction or a point light's position (m); none when no light is fitted. Kept in
     /// `losses.csv`, so a run's path of the light survives `--resume` (`fit.json`: `light_path`).

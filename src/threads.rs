@@ -1,6 +1,7 @@
 //! Jobs run side by side, each on a thread with a rayon pool of its own: for work that is
 //! itself parallel inside (flex's matrix products and reductions, the grid lookup's plan), cut
-//! into as many parts as there are cores.
+//! into as many parts as there are cores. And the process's CPU time, which tells how many
+//! cores a piece of work kept busy.
 //!
 //! Why not `par_iter` over the parts: a part's inner parallel loops then run in the shared pool
 //! too, and a part that waits on such a loop sits idle while the other part's thread finishes a
@@ -37,6 +38,22 @@ pub fn on_own_threads<T: Send, F: FnOnce() -> T + Send>(jobs: Vec<F>) -> Vec<T> 
     })
 }
 
+/// The CPU time every thread of the process has spent so far (s), to tell how many cores a part
+/// of the work kept busy (its CPU time over its wall time); none where it cannot be read.
+pub fn process_cpu_seconds() -> Option<f64> {
+    #[cfg(unix)]
+    {
+        let mut now = libc::timespec { tv_sec: 0, tv_nsec: 0 };
+        // SAFETY: clock_gettime writes one timespec, which lives on this stack frame.
+        let read = unsafe { libc::clock_gettime(libc::CLOCK_PROCESS_CPUTIME_ID, &mut now) };
+        (read == 0).then_some(now.tv_sec as f64 + now.tv_nsec as f64 * 1e-9)
+    }
+    #[cfg(not(unix))]
+    {
+        None
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -59,5 +76,25 @@ mod tests {
         assert!(caught.is_err());
         // The pools still serve the next call.
         assert_eq!(on_own_threads((2..4).map(|k| move || k).collect()), vec![2, 3]);
+    }
+
+    #[test]
+    fn two_busy_threads_count_twice_their_wall_time() {
+        let Some(before) = process_cpu_seconds() else { return };
+        let start = std::time::Instant::now();
+        let spin = || {
+            let until = std::time::Instant::now() + std::time::Duration::from_millis(200);
+            let mut x = 0u64;
+            while std::time::Instant::now() < until {
+                x = std::hint::black_box(x.wrapping_add(1));
+            }
+            x
+        };
+        on_own_threads(vec![spin, spin]);
+        let (cpu, wall) = (process_cpu_seconds().unwrap_or(before) - before, start.elapsed().as_secs_f64());
+        // Each thread spun 0.2 s: at least 0.3 s of CPU (a loaded machine may not run both at
+        // once, but the CPU time is still both threads'), and never more than the cores allow.
+        assert!(cpu >= 0.3, "{cpu} s of CPU over {wall} s");
+        assert!(cpu <= wall * std::thread::available_parallelism().map_or(64, |n| n.get()) as f64 + 0.05, "{cpu} over {wall}");
     }
 }

@@ -25,6 +25,9 @@ struct Part {
     part: String,
     ms: f64,
     peak_mib: Option<f64>,
+    /// How many cores the part kept busy: the process's CPU time over its wall time (a training
+    /// step's parts only, where the CPU time can be read).
+    cores: Option<f64>,
 }
 
 /// Mean milliseconds per phase over `steps` training steps from `iteration`.
@@ -40,24 +43,31 @@ fn training_parts(scene: &Scene, schedule: &Schedule, stage: &str, iteration: us
 fn trainer_parts(trainer: &mut Trainer, stage: &str, steps: usize) -> Result<Vec<Part>, FitError> {
     trainer.iterate()?;
     let mut sums = vec![0.0; PHASES.len()];
-    let mut whole = 0.0;
+    let mut cpu_sums = vec![0.0; PHASES.len()];
+    let (mut whole, mut whole_cpu) = (0.0, 0.0);
+    let mut cpu_read = true;
     for _ in 0..steps {
         let stats = trainer.iterate()?;
         whole += stats.seconds;
-        for (name, seconds) in stats.phases {
-            if let Some(k) = PHASES.iter().position(|p| *p == name) {
-                sums[k] += seconds;
+        cpu_read &= !stats.phase_cpu.is_empty();
+        for (into, spans) in [(&mut sums, &stats.phases), (&mut cpu_sums, &stats.phase_cpu)] {
+            for (name, seconds) in spans {
+                if let Some(k) = PHASES.iter().position(|p| p == name) {
+                    into[k] += seconds;
+                }
             }
         }
+        whole_cpu += stats.phase_cpu.iter().map(|(_, s)| s).sum::<f64>();
     }
     let peak = peak_rss_mib();
+    let cores = |cpu: f64, wall: f64| (cpu_read && wall > 0.0).then_some(cpu / wall);
     let mut parts: Vec<Part> = PHASES
         .iter()
-        .zip(&sums)
-        .filter(|(_, s)| **s > 0.0)
-        .map(|(name, s)| Part { stage: stage.into(), part: name.to_string(), ms: s / steps as f64 * 1e3, peak_mib: peak })
+        .zip(sums.iter().zip(&cpu_sums))
+        .filter(|(_, (s, _))| **s > 0.0)
+        .map(|(name, (s, cpu))| Part { stage: stage.into(), part: name.to_string(), ms: s / steps as f64 * 1e3, peak_mib: peak, cores: cores(*cpu, *s) })
         .collect();
-    parts.push(Part { stage: stage.into(), part: "whole step".into(), ms: whole / steps as f64 * 1e3, peak_mib: peak });
+    parts.push(Part { stage: stage.into(), part: "whole step".into(), ms: whole / steps as f64 * 1e3, peak_mib: peak, cores: cores(whole_cpu, whole) });
     Ok(parts)
 }
 
@@ -86,7 +96,7 @@ fn render_parts(scene: &Scene, schedule: &Schedule, repeats: usize) -> Result<Ve
             render_view(&model, scene, view.camera, view.frame, VIEW_SAMPLING, &device, &lighting);
         }
         let ms = start.elapsed().as_secs_f64() / repeats as f64 * 1e3;
-        parts.push(Part { stage: "render one view".into(), part: name.into(), ms, peak_mib: peak_rss_mib() });
+        parts.push(Part { stage: "render one view".into(), part: name.into(), ms, peak_mib: peak_rss_mib(), cores: None });
     }
     // A test image and its albedo, as the evaluation scores them: two renders, or one trace.
     let sun = Lighting::Fitted(0);
@@ -102,7 +112,7 @@ fn render_parts(scene: &Scene, schedule: &Schedule, repeats: usize) -> Result<Ve
     }
     let together = start.elapsed().as_secs_f64() / repeats as f64 * 1e3;
     for (part, ms) in [("sun-lit image and its albedo, two renders", apart), ("sun-lit image and its albedo, one trace (as the evaluation does)", together)] {
-        parts.push(Part { stage: "render one test image".into(), part: part.into(), ms, peak_mib: peak_rss_mib() });
+        parts.push(Part { stage: "render one test image".into(), part: part.into(), ms, peak_mib: peak_rss_mib(), cores: None });
     }
     Ok(parts)
 }
@@ -130,12 +140,12 @@ pub fn breakdown(scene_path: &Path, schedule_path: &Path, out: &Path, quick: boo
     trainer.set_iteration(schedule.light_from)?;
     let stats = trainer.iterate()?;
     if let Some((_, seconds)) = stats.phases.iter().find(|(name, _)| *name == PHASES[0]) {
-        parts.push(Part { stage: "once per fit".into(), part: "sun search".into(), ms: seconds * 1e3, peak_mib: peak_rss_mib() });
+        parts.push(Part { stage: "once per fit".into(), part: "sun search".into(), ms: seconds * 1e3, peak_mib: peak_rss_mib(), cores: None });
     }
     parts.extend(render_parts(&scene, &schedule, if quick { 1 } else { 3 })?);
 
     let mut md = format!(
-        "## Where the time goes: {} ({} rays per step, {} + {} + {} samples per ray, mean of {steps} steps)\n\n| stage | part | ms | share of its stage | peak memory (MiB) |\n|---|---|---|---|---|\n",
+        "## Where the time goes: {} ({} rays per step, {} + {} + {} samples per ray, mean of {steps} steps)\n\n| stage | part | ms | share of its stage | cores busy | peak memory (MiB) |\n|---|---|---|---|---|---|\n",
         scene_path.display(),
         schedule.rays_per_batch,
         schedule.samples_per_ray,
@@ -147,17 +157,25 @@ pub fn breakdown(scene_path: &Path, schedule_path: &Path, out: &Path, quick: boo
         let whole = parts.iter().find(|q| q.stage == p.stage && q.part == "whole step").map(|q| q.ms);
         let share = whole.filter(|_| p.part != "whole step").map(|w| p.ms / w);
         let peak = p.peak_mib.map(|m| format!("{m:.0}")).unwrap_or_else(|| "-".into());
-        md += &format!("| {} | {} | {:.1} | {} | {peak} |\n", p.stage, p.part, p.ms, share.map(|s| format!("{:.0}%", s * 100.0)).unwrap_or_else(|| "-".into()));
+        let cores = p.cores.map(|c| format!("{c:.2}")).unwrap_or_else(|| "-".into());
+        md += &format!(
+            "| {} | {} | {:.1} | {} | {cores} | {peak} |\n",
+            p.stage,
+            p.part,
+            p.ms,
+            share.map(|s| format!("{:.0}%", s * 100.0)).unwrap_or_else(|| "-".into())
+        );
         csv_rows.push([
             p.stage.clone(),
             p.part.clone(),
             format!("{:.3}", p.ms),
             share.map(|s| format!("{s:.4}")).unwrap_or_default(),
+            p.cores.map(|c| format!("{c:.3}")).unwrap_or_default(),
             p.peak_mib.map(|m| format!("{m:.1}")).unwrap_or_default(),
         ]);
     }
-    let csv = crate::table::to_csv(&["stage", "part", "ms", "share", "peak_mib"], csv_rows);
-    md += "\nPeak memory is the process's high-water mark after each stage (it only grows).\n";
+    let csv = crate::table::to_csv(&["stage", "part", "ms", "share", "cores_busy", "peak_mib"], csv_rows);
+    md += "\nCores busy: the process's CPU time over the part's wall time (the render's three parts share one figure: they run together). Peak memory is the process's high-water mark after each stage (it only grows).\n";
     let whole = |stage: &str| parts.iter().find(|p| p.stage == stage && p.part == "whole step").map(|p| p.ms);
     if let (Some(given), Some(refined)) = (whole("light stage"), whole("light stage, motion refined")) {
         md += &format!("A light-stage step with the training motion refined costs {:.2}x one with it as given.\n", refined / given);

@@ -115,7 +115,7 @@ fn parse_losses_csv(text: &str) -> Vec<(usize, StepStats)> {
             (Some(x), Some(y), Some(z)) => Some([x, y, z]),
             _ => None,
         };
-        rows.push((it, StepStats { total, terms, seconds, phases: Vec::new(), light, device_memory_bytes: None }));
+        rows.push((it, StepStats { total, terms, seconds, phases: Vec::new(), phase_cpu: Vec::new(), light, device_memory_bytes: None }));
     }
     rows
 }
@@ -138,6 +138,7 @@ mod tests {
             terms: [("rgb".to_string(), 0.25), ("eikonal".to_string(), 0.125)].into(),
             seconds: 0.75,
             phases: Vec::new(),
+            phase_cpu: Vec::new(),
             light,
             device_memory_bytes: None,
         };

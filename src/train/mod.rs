@@ -390,15 +390,17 @@ impl Trainer {
         if self.rebinds_now() {
             self.rebind_gaussians()?;
         }
-        let drawing = Instant::now();
+        let (drawing, drawing_cpu) = (Instant::now(), crate::threads::process_cpu_seconds());
         let batch = self.draw_batch()?;
         phases.push((crate::messages::PHASES[1], drawing.elapsed().as_secs_f64()));
+        let batch_cpu = crate::threads::process_cpu_seconds().zip(drawing_cpu).map(|(now, then)| (crate::messages::PHASES[1], now - then));
         let state = self.state.take().ok_or_else(|| FitError::Input("the training state was lost by an interrupted step".into()))?;
         let (state, stats) = self.step(batch, state);
         self.state = Some(state);
         let mut stats = stats?;
         phases.append(&mut stats.phases);
         stats.phases = phases;
+        stats.phase_cpu = batch_cpu.into_iter().chain(std::mem::take(&mut stats.phase_cpu)).collect();
         stats.seconds = start.elapsed().as_secs_f64();
         stats.device_memory_bytes = crate::backend::device_memory_bytes(&self.device);
         Ok(stats)

@@ -17,21 +17,29 @@ use burn::optim::GradientsParams;
 use burn::tensor::{Int, Tensor, TensorData};
 use std::time::Instant;
 
-/// Splits a step's wall time into `PHASES`.
+/// Splits a step's wall time into `PHASES`, and the process's CPU time with it.
 struct PhaseClock {
     last: Instant,
     spans: Vec<(&'static str, f64)>,
+    cpu_last: Option<f64>,
+    cpu_spans: Vec<(&'static str, f64)>,
 }
 
 impl PhaseClock {
     fn start() -> Self {
-        Self { last: Instant::now(), spans: Vec::new() }
+        Self { last: Instant::now(), spans: Vec::new(), cpu_last: crate::threads::process_cpu_seconds(), cpu_spans: Vec::new() }
     }
 
-    /// Ends the current part of the step as the render's three parts, timed by `render`.
+    /// Ends the current part of the step as the render's three parts, timed by `render`; their
+    /// CPU time is the span's, shared in proportion to their times.
     fn mark_render(&mut self, deferred: &Deferred) {
+        let cpu = self.cpu_since();
+        let total: f64 = deferred.seconds.iter().sum();
         for (k, seconds) in deferred.seconds.iter().enumerate() {
             self.spans.push((PHASES[2 + k], *seconds));
+            if let Some(cpu) = cpu {
+                self.cpu_spans.push((PHASES[2 + k], if total > 0.0 { cpu * seconds / total } else { 0.0 }));
+            }
         }
         self.last = Instant::now();
     }
@@ -40,7 +48,18 @@ impl PhaseClock {
     fn mark(&mut self, k: usize) {
         let now = Instant::now();
         self.spans.push((PHASES[k], (now - self.last).as_secs_f64()));
+        if let Some(cpu) = self.cpu_since() {
+            self.cpu_spans.push((PHASES[k], cpu));
+        }
         self.last = now;
+    }
+
+    /// The process's CPU seconds since the last mark.
+    fn cpu_since(&mut self) -> Option<f64> {
+        let now = crate::threads::process_cpu_seconds();
+        let spent = now.zip(self.cpu_last).map(|(now, last)| now - last);
+        self.cpu_last = now;
+        spent
     }
 }
 
@@ -115,6 +134,7 @@ impl Trainer {
         self.update_average(&mut state);
         clock.mark(9);
         stats.phases = clock.spans;
+        stats.phase_cpu = clock.cpu_spans;
         stats.seconds = start.elapsed().as_secs_f64();
         (state, Ok(stats))
     }
