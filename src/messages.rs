@@ -69,6 +69,9 @@ pub struct StepStats {
     /// share theirs in proportion to their times); empty where it cannot be read.
     #[serde(skip)]
     pub phase_cpu: Vec<(&'static str, f64)>,
+    /// The process's CPU seconds over the whole step, where they can be read.
+    #[serde(skip)]
+    pub cpu_seconds: Option<f64>,
     /// The first training light after the step (`FittedLight::location`): a sun's unit
     /// direction or a point light's position (m); none when no light is fitted. Kept in
     /// `losses.csv`, so a run's path of the light survives `--resume` (`fit.json`: `light_path`).

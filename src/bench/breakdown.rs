@@ -49,7 +49,7 @@ fn trainer_parts(trainer: &mut Trainer, stage: &str, steps: usize) -> Result<Vec
     for _ in 0..steps {
         let stats = trainer.iterate()?;
         whole += stats.seconds;
-        cpu_read &= !stats.phase_cpu.is_empty();
+        cpu_read &= !stats.phase_cpu.is_empty() && stats.cpu_seconds.is_some();
         for (into, spans) in [(&mut sums, &stats.phases), (&mut cpu_sums, &stats.phase_cpu)] {
             for (name, seconds) in spans {
                 if let Some(k) = PHASES.iter().position(|p| p == name) {
@@ -57,7 +57,7 @@ fn trainer_parts(trainer: &mut Trainer, stage: &str, steps: usize) -> Result<Vec
                 }
             }
         }
-        whole_cpu += stats.phase_cpu.iter().map(|(_, s)| s).sum::<f64>();
+        whole_cpu += stats.cpu_seconds.unwrap_or(0.0);
     }
     let peak = peak_rss_mib();
     let cores = |cpu: f64, wall: f64| (cpu_read && wall > 0.0).then_some(cpu / wall);

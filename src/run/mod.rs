@@ -115,7 +115,7 @@ fn parse_losses_csv(text: &str) -> Vec<(usize, StepStats)> {
             (Some(x), Some(y), Some(z)) => Some([x, y, z]),
             _ => None,
         };
-        rows.push((it, StepStats { total, terms, seconds, phases: Vec::new(), phase_cpu: Vec::new(), light, device_memory_bytes: None }));
+        rows.push((it, StepStats { total, terms, seconds, phases: Vec::new(), phase_cpu: Vec::new(), cpu_seconds: None, light, device_memory_bytes: None }));
     }
     rows
 }
@@ -139,6 +139,7 @@ mod tests {
             seconds: 0.75,
             phases: Vec::new(),
             phase_cpu: Vec::new(),
+            cpu_seconds: None,
             light,
             device_memory_bytes: None,
         };

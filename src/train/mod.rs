@@ -381,7 +381,7 @@ impl Trainer {
     /// One iteration: the stage's events (the light search when the light stage starts,
     /// rebinding while the Gaussians fit the density), a batch drawn, a step taken on it.
     pub fn iterate(&mut self) -> Result<StepStats, FitError> {
-        let start = Instant::now();
+        let (start, cpu_start) = (Instant::now(), crate::threads::process_cpu_seconds());
         let mut phases = Vec::new();
         if self.searches_lights_now() {
             self.search_lights()?;
@@ -402,6 +402,7 @@ impl Trainer {
         stats.phases = phases;
         stats.phase_cpu = batch_cpu.into_iter().chain(std::mem::take(&mut stats.phase_cpu)).collect();
         stats.seconds = start.elapsed().as_secs_f64();
+        stats.cpu_seconds = crate::threads::process_cpu_seconds().zip(cpu_start).map(|(now, then)| now - then);
         stats.device_memory_bytes = crate::backend::device_memory_bytes(&self.device);
         Ok(stats)
     }

@@ -30,18 +30,20 @@ impl PhaseClock {
         Self { last: Instant::now(), spans: Vec::new(), cpu_last: crate::threads::process_cpu_seconds(), cpu_spans: Vec::new() }
     }
 
-    /// Ends the current part of the step as the render's three parts, timed by `render`; their
-    /// CPU time is the span's, shared in proportion to their times.
+    /// Ends the current part of the step as the render's three parts, timed by `render`; each
+    /// is given the span's CPU time in proportion to its share of the span's wall time, so all
+    /// three show the cores the whole span kept busy.
     fn mark_render(&mut self, deferred: &Deferred) {
         let cpu = self.cpu_since();
-        let total: f64 = deferred.seconds.iter().sum();
+        let now = Instant::now();
+        let wall = (now - self.last).as_secs_f64();
         for (k, seconds) in deferred.seconds.iter().enumerate() {
             self.spans.push((PHASES[2 + k], *seconds));
             if let Some(cpu) = cpu {
-                self.cpu_spans.push((PHASES[2 + k], if total > 0.0 { cpu * seconds / total } else { 0.0 }));
+                self.cpu_spans.push((PHASES[2 + k], if wall > 0.0 { cpu * seconds / wall } else { 0.0 }));
             }
         }
-        self.last = Instant::now();
+        self.last = now;
     }
 
     /// Ends the current part of the step as `PHASES[k]`.
