@@ -19,6 +19,7 @@ mod host_adam;
 mod light_search;
 pub mod motion;
 pub mod motion_noise;
+mod phase_clock;
 mod pixels;
 mod rebind;
 mod setup;

@@ -3,67 +3,20 @@
 
 use super::host_adam::{HostLeaves, Leaves};
 use super::motion::MotionCorrections;
+use super::phase_clock::PhaseClock;
 use super::{Batch, TrainState, Trainer};
 use crate::avatar::Avatar;
 use crate::field::{AvatarField, PoseTensors};
 use crate::fit_error::FitError;
 use crate::gaussians::GaussianParams;
 use crate::losses::{Input, Inputs};
-use crate::messages::{StepStats, PHASES};
+use crate::messages::StepStats;
 use crate::render::{render_in_parts, sum_gradients, Deferred, Parts};
 use crate::shading::LightKind;
 use crate::skeleton::{MotionIncrement, ViewIncrement};
 use burn::optim::GradientsParams;
 use burn::tensor::{Int, Tensor, TensorData};
 use std::time::Instant;
-
-/// Splits a step's wall time into `PHASES`, and the process's CPU time with it.
-struct PhaseClock {
-    last: Instant,
-    spans: Vec<(&'static str, f64)>,
-    cpu_last: Option<f64>,
-    cpu_spans: Vec<(&'static str, f64)>,
-}
-
-impl PhaseClock {
-    fn start() -> Self {
-        Self { last: Instant::now(), spans: Vec::new(), cpu_last: crate::threads::process_cpu_seconds(), cpu_spans: Vec::new() }
-    }
-
-    /// Ends the current part of the step as the render's three parts, timed by `render`; each
-    /// is given the span's CPU time in proportion to its share of the span's wall time, so all
-    /// three show the cores the whole span kept busy.
-    fn mark_render(&mut self, deferred: &Deferred) {
-        let cpu = self.cpu_since();
-        let now = Instant::now();
-        let wall = (now - self.last).as_secs_f64();
-        for (k, seconds) in deferred.seconds.iter().enumerate() {
-            self.spans.push((PHASES[2 + k], *seconds));
-            if let Some(cpu) = cpu {
-                self.cpu_spans.push((PHASES[2 + k], if wall > 0.0 { cpu * seconds / wall } else { 0.0 }));
-            }
-        }
-        self.last = now;
-    }
-
-    /// Ends the current part of the step as `PHASES[k]`.
-    fn mark(&mut self, k: usize) {
-        let now = Instant::now();
-        self.spans.push((PHASES[k], (now - self.last).as_secs_f64()));
-        if let Some(cpu) = self.cpu_since() {
-            self.cpu_spans.push((PHASES[k], cpu));
-        }
-        self.last = now;
-    }
-
-    /// The process's CPU seconds since the last mark.
-    fn cpu_since(&mut self) -> Option<f64> {
-        let now = crate::threads::process_cpu_seconds();
-        let spent = now.zip(self.cpu_last).map(|(now, last)| now - last);
-        self.cpu_last = now;
-        spent
-    }
-}
 
 /// The step's losses: name, weight and value, in the order they are summed.
 type Terms<'a> = Vec<(&'a str, f64, Tensor<1>)>;
