@@ -29,7 +29,7 @@ fn pools(count: usize) -> Option<Vec<Arc<rayon::ThreadPool>>> {
 /// thread), and returns their results in the jobs' order. A job's panic is raised again here,
 /// as `par_iter` would.
 pub fn on_own_threads<T: Send, F: FnOnce() -> T + Send>(jobs: Vec<F>) -> Vec<T> {
-    let Some(pools) = pools(jobs.len()).filter(|_| jobs.len() > 1) else {
+    let Some(pools) = (jobs.len() > 1).then(|| pools(jobs.len())).flatten() else {
         return jobs.into_iter().map(|job| job()).collect();
     };
     std::thread::scope(|scope| {
