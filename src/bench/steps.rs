@@ -3,7 +3,8 @@
 //! Gaussian bound; encoding a point in every bone instead of its nearest; the grid's lookup as
 //! a composite of tensor ops instead of one fused op; the batch rendered on one thread instead
 //! of split over every thread; the split render's backward passes one after the other instead of
-//! at once), in the schedule's first stage (silhouette and grey albedo) and
+//! at once; burn's Adam instead of the fused pass), in the schedule's first stage (silhouette
+//! and grey albedo) and
 //! its light stage (normals and shadow rays).
 //! Baseline: the `mlp` field as it was (every ray rendered, one thread), measured in the same run.
 
@@ -132,13 +133,18 @@ pub fn steps(scene_path: &Path, schedule_path: &Path, out: &Path, quick: bool, r
         // Late in a fit: the schedule's late probe and fine samples, and the 16 and 16 every
         // step took before.
         let (probe, fine) = (schedule.probe_samples_per_ray, schedule.fine_samples_per_ray);
-        for (name, cull, at_once, probe, fine) in [
-            ("every sample differentiated", false, true, probe, fine),
-            ("culled, the parts' backward passes in turn", true, false, probe, fine),
-            ("culled, 16 probe and 16 fine samples a ray (before)", true, true, 16, 16),
-            ("culled, 16 probe samples a ray (before)", true, true, 16, fine),
-            ("culled", true, true, probe, fine),
+        let fused = trainer.state()?.optimisers.clone();
+        let burns = fused.in_burns_adam();
+        for (name, cull, at_once, probe, fine, burns_adam) in [
+            ("every sample differentiated", false, true, probe, fine, false),
+            ("culled, the parts' backward passes in turn", true, false, probe, fine, false),
+            ("culled, 16 probe and 16 fine samples a ray (before)", true, true, 16, 16, false),
+            ("culled, 16 probe samples a ray (before)", true, true, 16, fine, false),
+            ("culled, burn's Adam (before the fused pass)", true, true, probe, fine, true),
+            ("culled", true, true, probe, fine, false),
         ] {
+            // Each Adam continues from the fitted run's state (the two are the same Adam).
+            trainer.state_mut()?.optimisers = if burns_adam { burns.clone() } else { fused.clone() };
             trainer.schedule.cull_samples = cull;
             trainer.parts_backward_at_once = at_once;
             trainer.schedule.probe_samples_per_ray = probe;

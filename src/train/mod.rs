@@ -15,6 +15,7 @@ mod batch;
 pub mod body;
 pub mod camera_colour;
 pub mod camera_pose;
+mod fused_adam;
 mod host_adam;
 mod light_search;
 pub mod motion;
@@ -38,9 +39,17 @@ use crate::random::Stream;
 use crate::scene::Scene;
 use crate::schedule::Schedule;
 use crate::shading::LightKind;
-use burn::optim::{AdamConfig, ModuleOptimizer};
+use burn::optim::ModuleOptimizer;
 use burn::tensor::{Device, Tensor};
+use fused_adam::FusedAdam;
 use std::time::Instant;
+
+/// Adam's guard against a zero second moment (burn's default).
+const EPSILON: f32 = 1e-5;
+
+/// The feature tables' guard: their gradients are tiny and sparse, so it must not swamp them
+/// (instant-NGP uses 1e-15).
+const FEATURES_EPSILON: f32 = 1e-15;
 
 /// One Adam optimiser per parameter group (`schedule::GROUPS`), by name.
 #[derive(Clone)]
@@ -48,18 +57,17 @@ pub struct Optimisers {
     pub field: ModuleOptimizer,
     pub gaussians: ModuleOptimizer,
     pub light: ModuleOptimizer,
-    /// A grid's feature tables: tiny, sparse gradients, so Adam's epsilon must not swamp them
-    /// (instant-NGP uses 1e-15).
+    /// A grid's feature tables, with their own guard (`FEATURES_EPSILON`).
     pub features: ModuleOptimizer,
 }
 
 impl Optimisers {
     pub fn new() -> Self {
         Self {
-            field: AdamConfig::new().init(),
-            gaussians: AdamConfig::new().init(),
-            light: AdamConfig::new().init(),
-            features: AdamConfig::new().with_epsilon(1e-15).init(),
+            field: FusedAdam::new(EPSILON).init(),
+            gaussians: FusedAdam::new(EPSILON).init(),
+            light: FusedAdam::new(EPSILON).init(),
+            features: FusedAdam::new(FEATURES_EPSILON).init(),
         }
     }
 
@@ -73,6 +81,20 @@ impl Optimisers {
     pub fn named_mut(&mut self) -> [(&'static str, &mut ModuleOptimizer); 4] {
         let [field, gaussians, light, features] = crate::schedule::GROUPS;
         [(field, &mut self.field), (gaussians, &mut self.gaussians), (light, &mut self.light), (features, &mut self.features)]
+    }
+}
+
+impl Optimisers {
+    /// The same optimisers in burn's own Adam, their state carried over (`train::fused_adam` is
+    /// burn's Adam to the bit, one pass instead of thirteen): a benchmark's baseline.
+    pub fn in_burns_adam(&self) -> Self {
+        let burns = |epsilon: f32, optimiser: &ModuleOptimizer| burn::optim::AdamConfig::new().with_epsilon(epsilon).init().load_record(optimiser.to_record());
+        Self {
+            field: burns(EPSILON, &self.field),
+            gaussians: burns(EPSILON, &self.gaussians),
+            light: burns(EPSILON, &self.light),
+            features: burns(FEATURES_EPSILON, &self.features),
+        }
     }
 }
 

@@ -336,6 +336,9 @@ impl Trainer {
             .collect();
         let g_grid = grid.as_ref().map(|g| sum_gradients(&mut grads, g, &fork_grids));
         let g_field = sum_gradients(&mut grads, &field, &fork_fields);
+        // The forks share the parameters' buffers: dropped, they leave the optimisers the only
+        // holders, who then update the values where they lie.
+        drop((fork_grids, fork_fields));
         let g_gaussians = GradientsParams::from_module(&mut grads, &gaussians);
         let g_light = GradientsParams::from_module(&mut grads, &light);
         let lr = |g: &str| self.schedule.learning_rate(g, it);
