@@ -15,7 +15,7 @@ use rayon::prelude::*;
 /// without a task's overhead showing.
 const CHUNK: usize = 1 << 15;
 
-/// Adam's constants (burn's defaults but for `epsilon`, which a caller sets).
+/// Adam's constants (burn's decay rates, `host_adam::BETAS`; `epsilon` a caller's).
 #[derive(Clone, Copy, Debug)]
 pub struct FusedAdam {
     beta_1: f32,
@@ -26,7 +26,8 @@ pub struct FusedAdam {
 impl FusedAdam {
     /// Adam with burn's decay rates and `epsilon` guarding the second moment.
     pub fn new(epsilon: f32) -> Self {
-        Self { beta_1: 0.9, beta_2: 0.999, epsilon }
+        let (beta_1, beta_2) = super::host_adam::BETAS;
+        Self { beta_1: beta_1 as f32, beta_2: beta_2 as f32, epsilon }
     }
 
     /// A whole module's optimiser of this Adam.

@@ -7,8 +7,9 @@
 use super::{Batch, TrainState};
 use burn::tensor::Tensor;
 
-/// Adam's decay rates and its guard against a zero second moment (burn's defaults).
-const BETAS: (f64, f64) = (0.9, 0.999);
+/// Adam's decay rates (burn's defaults; `fused_adam` takes them too) and its guard against a
+/// zero second moment.
+pub(super) const BETAS: (f64, f64) = (0.9, 0.999);
 const EPSILON: f64 = 1e-8;
 
 /// Step `t` (from 1) of Adam at `rate` on `values`, with `gradient` and the moments `first` and

@@ -82,9 +82,7 @@ impl Optimisers {
         let [field, gaussians, light, features] = crate::schedule::GROUPS;
         [(field, &mut self.field), (gaussians, &mut self.gaussians), (light, &mut self.light), (features, &mut self.features)]
     }
-}
 
-impl Optimisers {
     /// The same optimisers in burn's own Adam, their state carried over (`train::fused_adam` is
     /// burn's Adam to the bit, one pass instead of thirteen): a benchmark's baseline.
     pub fn in_burns_adam(&self) -> Self {
