@@ -343,6 +343,7 @@ pub struct BoneFrame {
 }
 
 impl BoneFrame {
+    #[inline(always)]
     pub fn to_local(&self, p: [f32; 3]) -> [f32; 3] {
         let r = [p[0] - self.origin[0], p[1] - self.origin[1], p[2] - self.origin[2]];
         self.axes.map(|a| a[0] * r[0] + a[1] * r[1] + a[2] * r[2])
@@ -350,7 +351,7 @@ impl BoneFrame {
 
     /// The squared distance from `p` to the bone's segment (its local y axis from 0 to
     /// `length`).
-    #[inline]
+    #[inline(always)]
     pub fn distance_squared(&self, p: [f32; 3]) -> f32 {
         let local = self.to_local(p);
         let along = local[1] - local[1].clamp(0.0, self.length);

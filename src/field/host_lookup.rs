@@ -70,7 +70,7 @@ pub fn features_on_host(
 /// Adds `coefficient` times table row `row` (`sums.len()` features wide) to `sums`: the one
 /// weighted sum of the planned op and of the one-pass lookup. A row outside the table (never
 /// planned) reads NaN, so it cannot pass unseen.
-#[inline]
+#[inline(always)]
 pub(super) fn add_row(table: &[f32], row: usize, coefficient: f32, sums: &mut [f32]) {
     // Two features per entry (the default grid, as instant-NGP's) on a path of its own: the
     // general one's loop and slice cost as much as the sum itself there.

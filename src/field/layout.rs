@@ -292,6 +292,7 @@ impl Level {
     /// `bone`'s grid, in `trilinear`'s corner order (bit 0 the x side, bit 1 y, bit 2 z):
     /// `row` of each, with each axis's part of the index or hash taken once for both of its
     /// sides rather than once per corner.
+    #[inline(always)]
     pub fn corner_rows(&self, bone: usize, base: [usize; 3]) -> [usize; 8] {
         let (offset, dense) = self.grid_of(bone);
         let mut rows = [0usize; 8];
@@ -315,6 +316,7 @@ impl Level {
 
     /// Where bone `bone`'s grid lies in the table: its first row (a dense grid's vertex 0, a
     /// hashed one's hash 0) and whether it is dense.
+    #[inline(always)]
     pub fn grid_of(&self, bone: usize) -> (usize, bool) {
         match self.root {
             Some(root) if root.bone == bone => (root.offset, root.dense),
