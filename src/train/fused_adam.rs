@@ -105,6 +105,7 @@ impl FusedAdam {
         let mut second = v.map_or_else(zeros, |v| v.into_data());
         let gradient = grad.into_data();
         let (factor, guard) = self.factors(time);
+        let back = |data: TensorData| Tensor::<D>::from_data(data, device);
         let slices = (values.as_mut_slice::<f32>(), first.as_mut_slice::<f32>(), second.as_mut_slice::<f32>(), gradient.as_slice::<f32>());
         match slices {
             (Ok(x), Ok(m), Ok(v), Ok(g)) if [x.len(), m.len(), v.len(), g.len()] == [n; 4] => {
@@ -116,12 +117,10 @@ impl FusedAdam {
                     .for_each(|(((x, m), v), g)| adam.update(x, m, v, g));
             }
             _ => {
-                let back = |data: TensorData| Tensor::<D>::from_data(data, device);
                 let moments = (time > 1).then(|| (time - 1, back(first), back(second)));
                 return self.by_tensors(lr, back(values), back(gradient), moments);
             }
         }
-        let back = |data: TensorData| Tensor::<D>::from_data(data, device);
         (back(values), time, back(first), back(second))
     }
 }
