@@ -37,6 +37,10 @@ pub enum Input {
     Cameras,
 }
 
+/// The inputs computed at the regulariser points (`Schedule::regulariser_points`), every
+/// `Schedule::regularise_every` steps.
+pub const REGULARISER_INPUTS: [Input; 2] = [Input::Gradient, Input::NormalPairs];
+
 /// What a step computed for its batch; a part an active term does not need is absent.
 pub struct Inputs {
     pub accumulation: Tensor<1>,

@@ -116,6 +116,9 @@ pub(super) fn capture_report(trainer: &Trainer) -> serde_json::Value {
         // Rays drawn where the fit is wrong: the share of each batch's anywhere-third
         // (`Schedule::error_rays`; under `auto`, half for a loose body, none for a tight one).
         "error_rays": trainer.error_rays,
+        // Every how many steps the Eikonal and curvature terms were evaluated, at that many
+        // times their weight (`Schedule::lazy_regularisation`; under `auto`, 2 for a tight body).
+        "regularise_every": trainer.schedule.regularise_every,
         // The Gaussians' density also fitted at the shadows' scale (`Schedule::density_at_shadow_scale`;
         // under `auto`, for a loose body alone).
         "density_at_shadow_scale": trainer.density_at_shadow_scale,

@@ -27,6 +27,7 @@ struct ScheduleFile {
     cull_samples: Option<bool>,
     density_points: Option<Count>,
     regulariser_points: Option<Count>,
+    lazy_regularisation: Option<Switch>,
     checkpoint_every: Option<Count>,
     light: Option<LightPolicy>,
     light_from: Option<Count>,
@@ -293,6 +294,8 @@ fn validate(written: ScheduleFile, file: &Path) -> Result<Schedule, ScheduleErro
         cull_samples: written.cull_samples.unwrap_or(true),
         density_points: count("density_points", written.density_points, 256, 0)?,
         regulariser_points: count("regulariser_points", written.regulariser_points, 128, 0)?,
+        lazy_regularisation: written.lazy_regularisation.unwrap_or(Switch::Fixed(false)),
+        regularise_every: if written.lazy_regularisation == Some(Switch::Fixed(true)) { super::LAZY_EVERY } else { 1 },
         checkpoint_every: count("checkpoint_every", written.checkpoint_every, 250, 1)?,
         light: written.light.unwrap_or(LightPolicy::Auto),
         light_from: count("light_from", written.light_from, 0, 0)?,
@@ -392,7 +395,7 @@ fn check_points(schedule: &Schedule) -> Result<(), ScheduleError> {
     use crate::losses::Input;
     let needs = [
         (schedule.density_points, "density_points", &[Input::Density][..]),
-        (schedule.regulariser_points, "regulariser_points", &[Input::Gradient, Input::NormalPairs][..]),
+        (schedule.regulariser_points, "regulariser_points", &crate::losses::REGULARISER_INPUTS[..]),
     ];
     for (points, key, inputs) in needs {
         let active = crate::losses::TERMS

@@ -198,3 +198,30 @@ fn the_fine_and_probe_samples_drop_to_their_late_counts_at_early_samples_until()
     assert_eq!(error_of("iterations = 10\nearly_fine_samples_per_ray = -1\n[losses]\nmask = 1.0").key, "early_fine_samples_per_ray");
     assert_eq!(error_of("iterations = 10\nearly_probe_samples_per_ray = 1.5\n[losses]\nmask = 1.0").key, "early_probe_samples_per_ray");
 }
+
+/// With lazy regularisation the regulariser points' inputs are computed every other step and
+/// their terms weigh twice as much; every other term is untouched. `auto` is on for a tight
+/// body alone, and reads as off until resolved.
+#[test]
+fn lazy_regularisation_evaluates_the_regulariser_terms_every_other_step_at_twice_their_weight() {
+    use crate::losses::Input;
+    let parse =
+        |lazy: &str| Schedule::parse(&format!("iterations = 10\n{lazy}[losses]\nmask = 1.0\neikonal = 0.1\ncurvature = 0.05"), Path::new("s.toml")).unwrap();
+    let (each, every) = (parse(""), parse("lazy_regularisation = true\n"));
+    assert_eq!((each.regularise_every, every.regularise_every), (1, LAZY_EVERY), "absent: every step");
+    for it in 0..4 {
+        assert!(each.needs(Input::Gradient, it) && each.needs(Input::NormalPairs, it));
+        assert_eq!(every.needs(Input::Gradient, it), it % 2 == 0);
+        assert_eq!(every.needs(Input::NormalPairs, it), it % 2 == 0);
+        assert!((every.weight("eikonal", it) - 2.0 * each.weight("eikonal", it)).abs() < 1e-12);
+        assert!((every.weight("curvature", it) - 2.0 * each.weight("curvature", it)).abs() < 1e-12);
+        assert_eq!(every.weight("mask", it), each.weight("mask", it));
+        assert!(every.needs(Input::Colour, it) == each.needs(Input::Colour, it));
+    }
+    let auto = parse("lazy_regularisation = \"auto\"\n");
+    assert_eq!(auto.regularise_every, 1, "unresolved: every step");
+    assert_eq!(auto.clone().with_lazy_regularisation(true).regularise_every, LAZY_EVERY);
+    assert_eq!(auto.with_lazy_regularisation(false).regularise_every, 1, "a loose body regularises every step");
+    assert_eq!(every.with_lazy_regularisation(false).regularise_every, LAZY_EVERY, "on is on");
+    assert_eq!(error_of("iterations = 10\nlazy_regularisation = 2\n[losses]\nmask = 1.0").key, "lazy_regularisation");
+}

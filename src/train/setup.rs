@@ -278,6 +278,7 @@ impl Trainer {
         // under `auto`; each training view with a mask then keeps an error map.
         let error_rays = schedule.error_rays.share(root.is_some());
         let density_at_shadow_scale = schedule.density_at_shadow_scale.on(root.is_some());
+        let schedule = schedule.with_lazy_regularisation(root.is_none());
         let error_maps = scene
             .views
             .iter()
