@@ -171,7 +171,8 @@ pub enum LightPolicy {
 /// many times their weight). Means over seeds 0-2, foreground novel pose / sun, against every
 /// step: `human-sun-128` 27.16 dB / 0.92 degrees against 27.24 / 0.91, the 240-image capture
 /// (`umbra synth --size 128 --cameras 8 --frames 30`) 29.61 / 1.02 against 29.48 / 0.87, `dog-sun`
-/// 29.49 / 2.36 against 28.86 / 2.26, in about 0.9x the training time; but `human-dressed` 26.56 / 1.09 against 27.02 / 1.23: a
+/// 29.49 / 2.36 against 28.86 / 2.26, `human-lamp` 28.27 dB / 6.4 cm against 28.47 / 5.6, in
+/// about 0.9x the training time; but `human-dressed` 26.56 / 1.09 against 27.02 / 1.23: a
 /// loose body's cloth wants its curvature term every step, so `auto` is off for it.
 pub const LAZY_EVERY: usize = 2;
 
