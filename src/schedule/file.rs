@@ -295,7 +295,8 @@ fn validate(written: ScheduleFile, file: &Path) -> Result<Schedule, ScheduleErro
         density_points: count("density_points", written.density_points, 256, 0)?,
         regulariser_points: count("regulariser_points", written.regulariser_points, 128, 0)?,
         lazy_regularisation: written.lazy_regularisation.unwrap_or(Switch::Fixed(false)),
-        regularise_every: if written.lazy_regularisation == Some(Switch::Fixed(true)) { super::LAZY_EVERY } else { 1 },
+        // Unresolved until a fit knows its body (`Schedule::with_lazy_regularisation`).
+        regularise_every: super::regularise_every(written.lazy_regularisation.unwrap_or(Switch::Fixed(false)), false),
         checkpoint_every: count("checkpoint_every", written.checkpoint_every, 250, 1)?,
         light: written.light.unwrap_or(LightPolicy::Auto),
         light_from: count("light_from", written.light_from, 0, 0)?,

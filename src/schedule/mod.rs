@@ -176,6 +176,16 @@ pub enum LightPolicy {
 /// loose body's cloth wants its curvature term every step, so `auto` is off for it.
 pub const LAZY_EVERY: usize = 2;
 
+/// Every how many steps the regulariser terms are evaluated under `lazy` for a body tight or
+/// not (an unresolved `auto` reads as off).
+pub(super) fn regularise_every(lazy: Switch, tight: bool) -> usize {
+    if lazy.on(tight) {
+        LAZY_EVERY
+    } else {
+        1
+    }
+}
+
 /// Where `umbra` looks for its default schedule, relative to the working folder...
 pub const DEFAULT_PATH: &str = "schedules/default.toml";
 /// ...and the copy compiled in, used when that file is not there.
@@ -357,15 +367,14 @@ impl Schedule {
     /// The schedule with `lazy_regularisation` resolved for a body tight (no loose clothing:
     /// `train::masked_reach_beyond_bones`) or not.
     pub fn with_lazy_regularisation(self, tight: bool) -> Self {
-        let regularise_every = if self.lazy_regularisation.on(tight) { LAZY_EVERY } else { 1 };
-        Self { regularise_every, ..self }
+        Self { regularise_every: regularise_every(self.lazy_regularisation, tight), ..self }
     }
 
     /// A term's weight at an iteration: its ramp's, times `regularise_every` for a term on the
     /// regulariser points (evaluated only every that many steps).
     pub fn weight(&self, term: &str, iteration: usize) -> f64 {
         let ramp = self.weights.get(term).map(|r| r.at(iteration)).unwrap_or(0.0);
-        match Self::regularises(term) {
+        match self.regularise_every > 1 && Self::regularises(term) {
             true => ramp * self.regularise_every as f64,
             false => ramp,
         }
