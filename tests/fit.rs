@@ -660,7 +660,7 @@ fn a_run_from_before_the_albedo_decoder_renders_and_resumes_as_it_was_fitted() {
     let text = std::fs::read_to_string(&schedule_path).unwrap();
     let old = dir.path().join("old.toml");
     // (Nor the root's skinning, which came after.)
-    std::fs::write(&old, format!("{text}\n[field]\nkind = \"grid\"\nalbedo_layers = 0\nroot_skinning = false\nhidden = 64\n")).unwrap();
+    std::fs::write(&old, format!("{text}\n[field]\nkind = \"grid\"\nalbedo_layers = 0\nroot_skinning = false\n")).unwrap();
     let today = dir.path().join("today.toml");
     std::fs::write(&today, format!("{text}\n[field]\nkind = \"grid\"\n")).unwrap();
     let run = dir.path().join("run");
@@ -681,14 +681,12 @@ fn a_run_from_before_the_albedo_decoder_renders_and_resumes_as_it_was_fitted() {
     let state: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&state_path).unwrap()).unwrap();
     assert_eq!(state["albedo_layers"], 0, "the resumed run kept its shared decoder");
     assert!(state["field"]["grid"]["root"].is_null(), "and its skinning by distance alone: {}", state["field"]);
-    assert_eq!(state["field"]["hidden"], 64, "and its decoders' width");
     // A run of today's default records its own decoder and restores with it.
     let fresh = dir.path().join("fresh");
     umbra::fit::fit(&fit_options(&scene_path, fresh.clone(), &today, Some(4), 2, false), |_| {}).unwrap();
     let state: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(fresh.join("checkpoint/state.json")).unwrap()).unwrap();
     assert_eq!(state["albedo_layers"], 2);
     assert_eq!(state["field"]["grid"]["root"]["bone"], 0, "today's grid lets far points follow the root: {}", state["field"]);
-    assert_eq!(state["field"]["hidden"], umbra::train::TIGHT_DECODER_WIDTH, "and a tight body's decoders");
     assert!(umbra::scoring::render_run(&fresh, None, Backend::Flex, |_| {}).is_ok());
 }
 

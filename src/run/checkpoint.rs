@@ -232,8 +232,6 @@ pub(crate) fn apply_recorded_field(run: &Path, bones: usize, settings: &mut crat
         return Ok(());
     }
     settings.root_skinning = Some(false);
-    // Every run before the record had decoders 64 wide, whatever its body.
-    settings.hidden = Some(OLD_DECODER_WIDTH);
     settings.albedo_layers = Some(match state.get("albedo_layers") {
         None => 0,
         Some(value) => {
@@ -243,9 +241,6 @@ pub(crate) fn apply_recorded_field(run: &Path, bones: usize, settings: &mut crat
     });
     Ok(())
 }
-
-/// The decoders' width of a run whose checkpoint does not record its field.
-const OLD_DECODER_WIDTH: usize = 64;
 
 /// The run's last complete checkpoint folder: `checkpoint/`, or the one an interrupted swap
 /// left aside.

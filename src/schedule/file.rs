@@ -219,7 +219,6 @@ struct FieldFile {
     features: Option<Count>,
     finest_per_extent: Option<Count>,
     albedo_layers: Option<Count>,
-    hidden: Option<Count>,
     reach_per_extent: Option<f64>,
     fine_levels_from: Option<Count>,
     fine_levels_until: Option<Count>,
@@ -448,7 +447,6 @@ fn field(written: FieldFile, file: &Path) -> Result<FieldSettings, ScheduleError
         features: within("features", written.features, 1, 8)?,
         finest_per_extent: within("finest_per_extent", written.finest_per_extent, 10, 4096)?,
         albedo_layers: within("albedo_layers", written.albedo_layers, 0, 4)?,
-        hidden: within("hidden", written.hidden, 1, 1024)?,
         reach_per_extent: match written.reach_per_extent {
             Some(v) if !(v > 0.0 && v <= 1.0) => return Err(err(file, "field.reach_per_extent", format!("must be within (0, 1], found {v}"))),
             other => other,

@@ -36,9 +36,6 @@ pub struct FieldSettings {
     /// Hidden layers of the albedo's own decoder (0: it shares the SDF's; none: the field's
     /// default).
     pub albedo_layers: Option<usize>,
-    /// Hidden units of each decoder layer (none: for a grid, 32 for a tight body and 64 for a
-    /// loose one, `train::decoders_for_body`; the `mlp`'s 64).
-    pub hidden: Option<usize>,
     /// How far (per body extent) each bone's grid box reaches beyond its segment (none: the
     /// grid's default, 1/8).
     pub reach_per_extent: Option<f64>,
@@ -65,7 +62,6 @@ impl FieldSettings {
             features: None,
             finest_per_extent: None,
             albedo_layers: None,
-            hidden: None,
             reach_per_extent: None,
             fine_levels: None,
             root_skinning: None,

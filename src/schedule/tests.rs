@@ -43,7 +43,6 @@ fn errors_name_the_file_and_key() {
     assert_eq!(error_of("[field]\nkind = \"grid\"\nlevels = 0\n[losses]\nmask = 1.0").key, "field.levels");
     assert_eq!(error_of("[field]\nlevels = 4\n[losses]\nmask = 1.0").key, "field.levels");
     assert_eq!(error_of("[field]\nkind = \"grid\"\ncells = 4\n[losses]\nmask = 1.0").key, "field.cells");
-    assert_eq!(error_of("[field]\nkind = \"grid\"\nhidden = 0\n[losses]\nmask = 1.0").key, "field.hidden");
     assert_eq!(error_of("[losses]\nmask = nan").key, "losses.mask");
     assert_eq!(error_of("[losses]\nmask = 1\neikonal = -1").key, "losses.eikonal", "a shorthand's error names the key as written");
     assert_eq!(error_of("density_points = 0\n[losses]\nmask = 1.0\ndensity = 0.5").key, "density_points");

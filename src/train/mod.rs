@@ -29,7 +29,7 @@ mod step;
 pub use batch::Batch;
 pub use body::{masked_body_beyond_bones, masked_reach_beyond_bones, seeds_on_loose_body};
 pub use light_search::SUN_CONE_SPACINGS;
-pub use setup::{body_centre, field_config, new_avatar, training_lights, TrainingLights, TIGHT_DECODER_WIDTH};
+pub use setup::{body_centre, field_config, new_avatar, training_lights, TrainingLights};
 
 use crate::avatar::Avatar;
 use crate::field::{GradientMethod, PoseTensors};

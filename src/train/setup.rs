@@ -86,23 +86,8 @@ pub fn field_config(
             config
         }
     };
-    FieldConfig { albedo_layers: settings.albedo_layers.unwrap_or(config.albedo_layers), hidden: settings.hidden.unwrap_or(config.hidden), ..config }
+    FieldConfig { albedo_layers: settings.albedo_layers.unwrap_or(config.albedo_layers), ..config }
 }
-
-/// A grid's decoders for a tight body `TIGHT_DECODER_WIDTH` wide, a loose body's (its root's
-/// grids reach body beyond every bone's) as the field's default, unless their width is `stated`
-/// (by the schedule, or by the run resumed: as it was fitted). Half as wide, the decoders'
-/// products cost a quarter: tight bodies fitted as well in 0.95x the time, while a skirt lost
-/// detail (`docs/measurements.md`).
-fn decoders_for_body(config: FieldConfig, loose: bool, stated: bool) -> FieldConfig {
-    match config.grid.is_some() && !loose && !stated {
-        true => FieldConfig { hidden: TIGHT_DECODER_WIDTH, ..config },
-        false => config,
-    }
-}
-
-/// Hidden units of each layer of a tight body's decoders (the SDF's and the albedo's).
-pub const TIGHT_DECODER_WIDTH: usize = 32;
 
 /// The training lights as a fit sees them: their kind (uniform when the schedule fits no light),
 /// whether a light is fitted, how many, and each view's (its index in `Scene::training_lights`;
@@ -268,10 +253,8 @@ impl Trainer {
             *loose_body.borrow_mut() = points;
             far
         });
-        let root = field_config.grid.as_ref().and_then(|g| g.root).filter(|r| r.features_reach_body).map(|r| r.bone);
-        let stated = schedule.field.hidden.is_some() || schedule.field.recorded.is_some();
-        let field_config = decoders_for_body(field_config, root.is_some(), stated);
         let grid = field_config.grid.as_ref();
+        let root = grid.and_then(|g| g.root).filter(|r| r.features_reach_body).map(|r| r.bone);
         let mut anchors = vec![None; set.len()];
         if let (Some(root), Some(grid)) = (root, grid) {
             // A run rebuilt from its checkpoint records its field, so the masks were not searched.
